@@ -1,0 +1,375 @@
+"""Command-line interface: argument parsing only; each subcommand calls into the packages."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from hostd import __version__
+from hostd.errors import HostdError
+
+
+def _positive(v: str) -> float:
+    try:
+        x = float(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {v!r}") from None
+    if not (np.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0: {v!r}")
+    return x
+
+
+def _finite(v: str) -> float:
+    try:
+        x = float(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {v!r}") from None
+    if not np.isfinite(x):
+        raise argparse.ArgumentTypeError(f"must be finite: {v!r}")
+    return x
+
+
+def loader_parent(length_default: float | None = 10.0) -> argparse.ArgumentParser:
+    """The profile-loading options shared by every command that reads a profile."""
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_argument_group("profile loading")
+    units = ["m", "mm", "um", "nm"]
+    g.add_argument("--x-unit", default="um", choices=units, help="unit of x / spacing (default um)")
+    g.add_argument("--y-unit", default="um", choices=units, help="unit of heights (default um)")
+    g.add_argument("--spacing", type=_positive, default=None,
+                   help="sample spacing in x-unit (one-column files; or resampling target)")
+    g.add_argument("--length-mm", type=_positive, default=length_default,
+                   help="patch length taken from the profile, mm "
+                   + ("(default 10; the whole profile if shorter)" if length_default
+                      else "(default: the stream's)"))
+    g.add_argument("--offset-mm", type=float, default=0.0, help="patch start, mm (default 0)")
+    g.add_argument("--detrend", default="none", choices=["none", "mean", "linear"])
+    return p
+
+
+def geometry_parent() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_argument_group("geometry and perception")
+    g.add_argument("--speed", type=_positive, default=50.0,
+                   help="reference hand speed v_ref, mm/s (default 50)")
+    g.add_argument("--fmax", type=_positive, default=400.0,
+                   help="band limit at v_ref, Hz (default 400)")
+    g.add_argument("--thresholds", default=None, metavar="CSV",
+                   help="detection-threshold curve (default config/thresholds/default.csv)")
+    return p
+
+
+def index_parent() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_argument_group("quality index")
+    g.add_argument("--preset", default="both", choices=["both", "wood", "sandpaper"],
+                   help="(a, b) fitted in the paper (default both: 0.581, 0.464)")
+    g.add_argument("--a", type=_finite, default=None, help="weight of Ip (overrides --preset)")
+    g.add_argument("--b", type=_finite, default=None, help="weight of Ia (overrides --preset)")
+    return p
+
+
+def _ab(args: argparse.Namespace) -> tuple[float, float]:
+    from hostd.perception.indices import PRESETS
+
+    a, b = PRESETS[args.preset]
+    return (args.a if args.a is not None else a, args.b if args.b is not None else b)
+
+
+def load_opts(args: argparse.Namespace, length_mm: float | None = None):
+    from hostd.texture.load import LoadOptions
+
+    return LoadOptions(
+        x_unit=args.x_unit,
+        y_unit=args.y_unit,
+        spacing=args.spacing,
+        length_mm=args.length_mm if args.length_mm is not None else length_mm,
+        offset_mm=args.offset_mm,
+        detrend=args.detrend,
+    )
+
+
+def read_profile(spec: str, args: argparse.Namespace, length_mm: float | None = None):
+    """A profile file, or 'synthetic:wood[:SEED]' / 'synthetic:sandpaper[:SEED]'."""
+    from hostd.errors import ProfileError
+    from hostd.texture import synth
+    from hostd.texture.load import cut_patch, load_profile
+
+    if spec.startswith("synthetic:"):
+        parts = spec.split(":")
+        try:
+            seed = int(parts[2]) if len(parts) > 2 else 0
+        except ValueError:
+            raise ProfileError(f"bad seed in {spec!r}: use synthetic:KIND:SEED") from None
+        prof = synth.make(parts[1], seed)
+        return cut_patch(prof.heights_um, prof.spacing_um, load_opts(args, length_mm), spec)
+    return load_profile(spec, load_opts(args, length_mm))
+
+
+def _dump(obj) -> None:
+    print(json.dumps(obj, indent=None, allow_nan=False))
+
+
+def _read_stream(path: str):
+    from hostd.codec.stream import decode
+    from hostd.errors import StreamError
+
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise StreamError(f"cannot read {path}: {exc.strerror or exc}") from None
+    return decode(data)
+
+
+def _write_bytes_atomic(path: str, data: bytes) -> None:
+    import os
+    import tempfile
+
+    from hostd.errors import HostdError as _E
+
+    target = Path(path)
+    try:
+        fd, tmp = tempfile.mkstemp(dir=target.parent or ".", prefix=f".{target.name}.")
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except OSError as exc:
+        raise _E(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+# ---------------------------------------------------------------- commands
+
+
+def cmd_encode(args: argparse.Namespace) -> int:
+    from hostd.codec import ratecontrol, stream, transform
+    from hostd.errors import CodecError
+    from hostd.perception import thresholds
+
+    prof = read_profile(args.profile, args)
+    curve = thresholds.resolve(args.thresholds)
+    geom = transform.Geometry(prof.n, prof.length_mm, args.speed, args.fmax)
+    if args.target_iobj is not None:
+        choice = ratecontrol.smallest_within(prof.heights_um, geom, curve, args.target_iobj,
+                                             ab=_ab(args))
+        data = choice.data
+        print(f"chose {choice.describe()}", file=sys.stderr)
+    else:
+        if args.method is None:
+            raise CodecError("give --method quant|cut (or --target-iobj X)")
+        data = stream.encode_profile(
+            prof.heights_um, geom, curve, method=args.method, levels=args.levels,
+            b0_db=args.b0, value_bits=args.value_bits, coder=args.coder,
+        )
+    _write_bytes_atomic(args.output, data)
+    s = stream.decode(data)
+    print(
+        f"{args.output}: {s.method}, N={s.n}, N'={s.n_keep}, {s.nbytes} bytes "
+        f"({100 * s.ratio_coeffs:.1f}% of 16-bit coefficients, "
+        f"{100 * s.ratio_profile:.2f}% of the 16-bit profile)",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    s = _read_stream(args.stream)
+    y = s.reconstruct()
+    text = "\n".join(repr(float(v)) for v in y) + "\n"
+    if args.output in (None, "-"):
+        sys.stdout.write(text)
+    else:
+        _write_bytes_atomic(args.output, text.encode())
+    return 0
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    s = _read_stream(args.stream)
+    info = s.summary()
+    if args.json:
+        _dump(info)
+        return 0
+    for k, v in info.items():
+        if k != "coefficients":
+            print(f"{k:>15}: {v}")
+    print(f"{'coefficients':>15}: {len(info['coefficients'])} values (use --json to list them)")
+    return 0
+
+
+def cmd_iobj(args: argparse.Namespace) -> int:
+    from hostd.perception import thresholds
+    from hostd.quality import score_stream
+
+    if args.stream is None:
+        stream_path, ref_spec = args.first, None
+    else:
+        stream_path, ref_spec = args.stream, args.first
+    s = _read_stream(stream_path)
+    curve = thresholds.load_csv(args.thresholds) if args.thresholds else None
+    ref = None
+    if ref_spec is not None:
+        ref = read_profile(ref_spec, args, length_mm=s.length_mm).heights_um
+    a, b = _ab(args)
+    sc = score_stream(s, reference_um=ref, curve=curve, a=a, b=b)
+    out = sc.as_dict()
+    out["reference"] = "profile" if ref is not None else "stream_header"
+    out.update(bytes=s.nbytes, ratio_coeffs=s.ratio_coeffs, ratio_profile=s.ratio_profile,
+               method=s.method)
+    if args.json:
+        _dump(out)
+    else:
+        for k, v in out.items():
+            print(f"{k:>14}: {v}")
+    return 0
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from hostd.perception import fit
+    from hostd.quality import score_stream
+    from hostd.texture.load import LoadOptions, load_profile
+
+    def score_one(stream_path, profile_path):
+        st = _read_stream(str(stream_path))
+        ref = None
+        if profile_path is not None:
+            ref = load_profile(profile_path, LoadOptions(length_mm=st.length_mm)).heights_um
+        sc = score_stream(st, reference_um=ref)
+        return float(sc.Ip), float(sc.Ia)
+
+    stimuli = fit.read_scores(args.scores, score_one)
+    res = fit.fit(stimuli, nonnegative=args.nonnegative, scale_max=args.scale_max,
+                  exclude_saturated=args.exclude_saturated)
+    if args.json:
+        _dump(res.as_dict())
+        return 0
+    print(f"Iobj = {res.a:.4f} Ip + {res.b:.4f} Ia   ({res.n_used} stimuli"
+          f"{', a, b >= 0' if res.nonnegative else ''})")
+    print(f"{'index':<6} {'r2_pearson':>11} {'r2_fit':>8}")
+    for name, m in res.metrics.items():
+        rp = "n/a" if m["r2_pearson"] is None else f"{m['r2_pearson']:.3f}"
+        rf = "n/a" if m["r2_fit"] is None else f"{m['r2_fit']:.3f}"
+        print(f"{name:<6} {rp:>11} {rf:>8}")
+    print("r2_pearson: squared Pearson correlation with the scores (the paper's R^2); "
+          "r2_fit: coefficient of determination of the no-intercept fit")
+    for e in res.excluded:
+        print(f"excluded: {e['texture']} {e['method']} {e['level']}: {e['why']}")
+    return 0
+
+
+def cmd_report_rate_quality(args: argparse.Namespace) -> int:
+    from hostd.codec import transform
+    from hostd.perception import thresholds
+    from hostd.report import rate_quality
+
+    prof = read_profile(args.profile, args)
+    curve = thresholds.resolve(args.thresholds)
+    geom = transform.Geometry(prof.n, prof.length_mm, args.speed, args.fmax)
+    res = rate_quality(prof.heights_um, geom, curve, args.out, title=args.profile,
+                       ab=_ab(args), progress=not args.no_progress)
+    for n in res["notes"]:
+        print(n)
+    print(f"wrote {res['dir']}/rate_quality.csv, .md, .png ({len(res['rows'])} streams)")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from hostd.demo import codec_demo
+
+    return codec_demo(out_dir=args.out)
+
+
+# ---------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="hostd",
+        description="Vibrotactile texture codec, quality index, renderer and device daemon.",
+    )
+    ap.add_argument("--version", action="version", version=f"hostd {__version__}")
+    sub = ap.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    loader, geom, idx = loader_parent(), geometry_parent(), index_parent()
+
+    p = sub.add_parser("encode", parents=[loader, geom, idx],
+                       help="compress a height profile into a .vtx stream")
+    p.add_argument("profile", help="profile file (csv/txt/npy) or synthetic:wood[:SEED]")
+    p.add_argument("-o", "--output", required=True, help="output .vtx file")
+    p.add_argument("--method", choices=["quant", "cut"], default=None)
+    p.add_argument("--levels", type=int, default=None, help="quantization steps L (quant)")
+    p.add_argument("--b0", type=_finite, default=None, help="threshold shift b0 in dB (cut)")
+    p.add_argument("--value-bits", type=int, default=0, choices=[0, 8, 16, 32],
+                   help="cut survivors: 0 = exact float64 (default), else integers of this width")
+    p.add_argument("--coder", default="auto", choices=["auto", "none", "deflate"],
+                   help="lossless entropy stage (default auto: the smaller)")
+    p.add_argument("--target-iobj", type=_finite, default=None,
+                   help="rate control: the smallest stream whose Iobj <= X")
+    p.set_defaults(func=cmd_encode)
+
+    p = sub.add_parser("decode", help="reconstruct heights (µm, one per line) from a stream")
+    p.add_argument("stream")
+    p.add_argument("-o", "--output", default=None, help="output file (default stdout)")
+    p.set_defaults(func=cmd_decode)
+
+    p = sub.add_parser("inspect", help="print a stream's header and coefficients")
+    p.add_argument("stream")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("iobj", parents=[loader_parent(None), idx],
+                       help="Ip, Ia, Iobj of a stream (against a profile or its header)")
+    p.add_argument("first", metavar="[REFERENCE_PROFILE] STREAM")
+    p.add_argument("stream", nargs="?", default=None, help=argparse.SUPPRESS)
+    p.add_argument("--thresholds", default=None, metavar="CSV",
+                   help="curve the stream was made with, if not embedded or shipped")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_iobj)
+
+    p = sub.add_parser("demo", help="the main job: run the demo on the embedded default")
+    p.add_argument("--out", default=None, help="directory for the demo's files")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("fit", help="fit (a, b) of Iobj to subjective scores (CSV)")
+    p.add_argument("scores", help="CSV: texture,method,level,score and Ip,Ia or stream[,profile]")
+    p.add_argument("--nonnegative", action="store_true", help="constrain a, b >= 0")
+    p.add_argument("--scale-max", type=float, default=3.0,
+                   help="top of the rating scale (default 3, the paper's 0..3 grades)")
+    p.add_argument("--exclude-saturated", action="store_true",
+                   help="exclude stimuli whose mean score is at --scale-max (flagged)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser("report", help="reports: rate-quality")
+    rsub = p.add_subparsers(dest="report", metavar="REPORT")
+    rsub.required = True
+    r = rsub.add_parser("rate-quality", parents=[loader, geom, idx],
+                        help="sweep both methods: bytes vs Ip, Ia, Iobj (CSV, Markdown, PNG)")
+    r.add_argument("profile", help="profile file or synthetic:wood[:SEED]")
+    r.add_argument("-o", "--out", default="rate-quality", help="output directory")
+    r.add_argument("--no-progress", action="store_true")
+    r.set_defaults(func=cmd_report_rate_quality)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except HostdError as exc:
+        print(f"hostd {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"hostd {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,92 @@
+"""The paper's two lossy methods on the amplitude spectrum C_1..C_N'.
+
+Linear quantization (eq. 5, 6):  L_k = round(C_k / D) D,  D = (max C - min C) / (L - 1)
+Threshold-cut (eq. 7):           T_k = 0 if |C_k| < b(f_k) 10^(b0/20) else C_k
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hostd.errors import CodecError
+
+MAX_LEVELS = 65535
+# |q| beyond 2^53 would no longer be an exact integer in float64.
+_MAX_INDEX = float(1 << 53)
+
+
+@dataclass(frozen=True)
+class Quantized:
+    """Integer indices q_k and step D, such that L_k = q_k * D."""
+
+    q: np.ndarray  # int64, shape (N',)
+    step_um: float
+    levels: int
+
+    def values(self) -> np.ndarray:
+        return self.q.astype(np.float64) * self.step_um
+
+
+def check_levels(levels: int) -> int:
+    if isinstance(levels, bool) or int(levels) != levels:
+        raise CodecError(f"--levels must be a whole number, got {levels!r}")
+    levels = int(levels)
+    if levels < 2:
+        raise CodecError(f"--levels must be >= 2 (eq. 6 divides by L - 1), got {levels}")
+    if levels > MAX_LEVELS:
+        raise CodecError(f"--levels must be <= {MAX_LEVELS}, got {levels}")
+    return levels
+
+
+def quantize(coeffs_um: np.ndarray, levels: int) -> Quantized:
+    """Linear quantization with L levels spanning min..max of the coefficients.
+
+    Rounding is half-to-even (numpy.rint, C's nearbyint). When every coefficient is equal
+    (max == min) the span is zero; D is then |c| (or 1 for all zeros) so the texture is
+    represented exactly instead of dividing by zero.
+    """
+    levels = check_levels(levels)
+    c = np.asarray(coeffs_um, dtype=np.float64)
+    if c.ndim != 1 or c.size < 1:
+        raise CodecError("quantize needs a 1-D array of coefficients")
+    if not np.all(np.isfinite(c)):
+        raise CodecError("coefficients contain NaN or Inf")
+    lo, hi = float(c.min()), float(c.max())
+    step = (hi - lo) / (levels - 1)
+    if not (step > 0 and math.isfinite(step)):
+        # Constant spectrum (or a span that underflows to 0): exact representation.
+        step = abs(hi) if hi != 0 else 1.0
+    ratio = c / step
+    if np.any(np.abs(ratio) >= _MAX_INDEX):
+        raise CodecError("coefficient range too narrow for its magnitude to quantize exactly")
+    q = np.rint(ratio).astype(np.int64)
+    return Quantized(q=q, step_um=step, levels=levels)
+
+
+def cut_level_um(threshold_um: np.ndarray, b0_db: float) -> np.ndarray:
+    """b(f_k) 10^(b0/20): the shifted threshold below which amplitudes are removed."""
+    if not math.isfinite(b0_db):
+        raise CodecError(f"--b0 must be a finite number of dB, got {b0_db}")
+    return np.asarray(threshold_um, dtype=np.float64) * 10.0 ** (b0_db / 20.0)
+
+
+def threshold_cut(coeffs_um: np.ndarray, threshold_um: np.ndarray, b0_db: float) -> np.ndarray:
+    """Boolean mask of the coefficients kept by eq. 7 (|C_k| >= shifted threshold).
+
+    Compared on a linear scale: log10|C| < log10 b + b0/20  <=>  |C| < b 10^(b0/20),
+    which needs no logarithm of zero.
+    """
+    c = np.asarray(coeffs_um, dtype=np.float64)
+    if not np.all(np.isfinite(c)):
+        raise CodecError("coefficients contain NaN or Inf")
+    level = cut_level_um(threshold_um, b0_db)
+    if level.shape != c.shape:
+        raise CodecError("one threshold per coefficient is needed")
+    return np.abs(c) >= level
+
+
+def apply_cut(coeffs_um: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    return np.where(keep, np.asarray(coeffs_um, dtype=np.float64), 0.0)

@@ -1,0 +1,35 @@
+"""Error types whose message is one line that tells the user what to do."""
+
+
+class HostdError(Exception):
+    """Base of every error a user can cause; the CLI prints it as one line, exit code 2."""
+
+    exit_code = 2
+
+
+class StreamError(HostdError):
+    """A .vtx stream is malformed, truncated, corrupt or of an unsupported version."""
+
+
+class ProfileError(HostdError):
+    """A height profile could not be loaded or is unusable."""
+
+
+class ThresholdError(HostdError):
+    """A detection-threshold curve is malformed."""
+
+
+class ConfigError(HostdError):
+    """A configuration file or parameter is invalid."""
+
+
+class CodecError(HostdError):
+    """Codec parameters are invalid (levels, b0, geometry)."""
+
+
+class FitError(HostdError):
+    """Subjective-score data cannot be fitted (degenerate or malformed)."""
+
+
+class QualityError(HostdError):
+    """Non-finite or mismatched input to the quality indices."""

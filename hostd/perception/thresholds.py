@@ -1,0 +1,153 @@
+"""Vibrotactile detection-threshold curves b(f): a table, linear interpolation, constant outside."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from hostd.errors import ThresholdError
+from hostd.paths import thresholds_dir
+
+MAX_POINTS = 4096
+
+
+@dataclass(frozen=True, eq=False)
+class ThresholdCurve:
+    """Detection threshold in µm (peak) against frequency in Hz.
+
+    Between table points the threshold is interpolated linearly, as in the paper; outside the
+    table it is held at the first or last value.
+    """
+
+    freq_hz: np.ndarray
+    threshold_um: np.ndarray
+    name: str = "custom"
+    _id: bytes = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        f = np.array(self.freq_hz, dtype=np.float64).reshape(-1)
+        b = np.array(self.threshold_um, dtype=np.float64).reshape(-1)
+        _validate(f, b, self.name)
+        f.setflags(write=False)
+        b.setflags(write=False)
+        object.__setattr__(self, "freq_hz", f)
+        object.__setattr__(self, "threshold_um", b)
+        object.__setattr__(self, "_id", curve_id_bytes(f, b))
+
+    def __call__(self, f_hz: np.ndarray | float) -> np.ndarray:
+        """b(f) in µm; f may be any shape."""
+        return np.interp(np.asarray(f_hz, dtype=np.float64), self.freq_hz, self.threshold_um)
+
+    @property
+    def id_bytes(self) -> bytes:
+        """8-byte identifier: the first 8 bytes of SHA-256 over the canonical table."""
+        return self._id
+
+    @property
+    def curve_id(self) -> str:
+        return self._id.hex()
+
+    def to_bytes(self) -> bytes:
+        """Serialized table for embedding in a stream: u16 count, then (f64 Hz, f64 µm) pairs."""
+        return canonical_table(self.freq_hz, self.threshold_um)
+
+
+def canonical_table(freq_hz: np.ndarray, threshold_um: np.ndarray) -> bytes:
+    pairs = np.empty((freq_hz.size, 2), dtype="<f8")
+    pairs[:, 0] = freq_hz
+    pairs[:, 1] = threshold_um
+    return struct.pack("<H", freq_hz.size) + pairs.tobytes()
+
+
+def curve_id_bytes(freq_hz: np.ndarray, threshold_um: np.ndarray) -> bytes:
+    return hashlib.sha256(canonical_table(freq_hz, threshold_um)).digest()[:8]
+
+
+def _validate(f: np.ndarray, b: np.ndarray, name: str) -> None:
+    if f.size != b.size:
+        raise ThresholdError(f"{name}: frequency and threshold columns differ in length")
+    if f.size < 1:
+        raise ThresholdError(f"{name}: a threshold curve needs at least one point")
+    if f.size > MAX_POINTS:
+        raise ThresholdError(f"{name}: more than {MAX_POINTS} points")
+    if not (np.all(np.isfinite(f)) and np.all(np.isfinite(b))):
+        raise ThresholdError(f"{name}: every frequency and threshold must be a finite number")
+    if np.any(np.diff(f) <= 0):
+        raise ThresholdError(f"{name}: frequencies must be strictly increasing")
+    if np.any(f < 0):
+        raise ThresholdError(f"{name}: frequencies must be >= 0 Hz")
+    if np.any(b <= 0):
+        raise ThresholdError(f"{name}: thresholds must be > 0 µm")
+
+
+def from_bytes(data: bytes, name: str = "embedded") -> ThresholdCurve:
+    """Inverse of ThresholdCurve.to_bytes; validates like a CSV load."""
+    if len(data) < 2:
+        raise ThresholdError(f"{name}: threshold table truncated")
+    (count,) = struct.unpack_from("<H", data)
+    if count < 1 or len(data) != 2 + 16 * count:
+        raise ThresholdError(f"{name}: threshold table has a wrong size")
+    pairs = np.frombuffer(data, dtype="<f8", offset=2).reshape(count, 2)
+    return ThresholdCurve(pairs[:, 0].copy(), pairs[:, 1].copy(), name=name)
+
+
+def load_csv(path: str | Path) -> ThresholdCurve:
+    """Load a curve from CSV: lines 'frequency_hz,threshold_um'; '#' comments and a header line."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ThresholdError(f"cannot read threshold curve {p}: {exc.strerror or exc}") from None
+    f: list[float] = []
+    b: list[float] = []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = [s.strip() for s in line.replace(";", ",").replace("\t", ",").split(",")]
+        parts = [s for s in parts if s]
+        if len(parts) != 2:
+            raise ThresholdError(f"{p}:{lineno}: expected 'frequency_hz,threshold_um'")
+        try:
+            fv, bv = float(parts[0]), float(parts[1])
+        except ValueError:
+            if not f:  # a header line before the first point
+                continue
+            raise ThresholdError(f"{p}:{lineno}: not a number: {line!r}") from None
+        f.append(fv)
+        b.append(bv)
+    return ThresholdCurve(np.array(f), np.array(b), name=p.stem)
+
+
+def default_curve() -> ThresholdCurve:
+    return load_csv(thresholds_dir() / "default.csv")
+
+
+def shipped_curves() -> dict[bytes, ThresholdCurve]:
+    """Every curve under config/thresholds/, keyed by its 8-byte id (cached until files change)."""
+    d = thresholds_dir()
+    files = tuple(sorted((str(p), p.stat().st_mtime_ns) for p in d.glob("*.csv"))) if d.is_dir() else ()
+    return _load_dir(files)
+
+
+@functools.lru_cache(maxsize=8)
+def _load_dir(files: tuple[tuple[str, int], ...]) -> dict[bytes, ThresholdCurve]:
+    out: dict[bytes, ThresholdCurve] = {}
+    if files:
+        for p, _mtime in files:
+            try:
+                c = load_csv(p)
+            except ThresholdError:
+                continue
+            out[c.id_bytes] = c
+    return out
+
+
+def resolve(path: str | Path | None) -> ThresholdCurve:
+    """A user-given curve file, or the shipped default."""
+    return load_csv(path) if path else default_curve()

@@ -1,0 +1,45 @@
+"""Quality of a received stream: Ip, Ia, Iobj from the stream alone or against its original.
+
+A receiver has only the stream: the reference sums P and A travel in its header (computed by
+the sender from the uncompressed texture under the stream's own threshold curve), so it
+scores exactly what the sender would.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hostd.codec import transform
+from hostd.codec.stream import Stream, curve_for
+from hostd.errors import CodecError
+from hostd.perception import indices
+from hostd.perception.thresholds import ThresholdCurve
+
+
+def stream_thresholds(stream: Stream, curve: ThresholdCurve | None = None) -> np.ndarray:
+    """b(f_k) for k = 1..N' at the stream's reference speed."""
+    return curve_for(stream, curve)(stream.frequencies_hz)
+
+
+def score_stream(
+    stream: Stream,
+    *,
+    reference_um: np.ndarray | None = None,
+    curve: ThresholdCurve | None = None,
+    a: float = indices.DEFAULT_AB[0],
+    b: float = indices.DEFAULT_AB[1],
+) -> indices.Scores:
+    """Score a decoded stream; against reference_um (N heights) if given, else its header."""
+    b_k = stream_thresholds(stream, curve)
+    Pp, Ap = indices.weighted_sums(stream.coefficients, b_k)
+    if reference_um is None:
+        P, A = stream.ref_P, stream.ref_A
+    else:
+        ref = np.asarray(reference_um, dtype=np.float64)
+        if ref.size != stream.n:
+            raise CodecError(
+                f"the reference profile has {ref.size} samples but the stream {stream.n}: "
+                "load it with the same options (--length-mm, --spacing, units) as at encode"
+            )
+        P, A = indices.weighted_sums(transform.analyze(ref, stream.n_keep), b_k)
+    return indices.scores_from_sums(P, A, Pp, Ap, a, b)

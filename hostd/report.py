@@ -1,0 +1,146 @@
+"""Rate-quality report: both methods swept, real stream bytes against Ip, Ia, Iobj (+ peers)."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from hostd.codec import stream as vtx
+from hostd.codec import transform
+from hostd.perception import indices, peer
+from hostd.perception.thresholds import ThresholdCurve
+
+TABLE_I_LEVELS = (14, 12, 10, 8, 6, 5, 4)
+TABLE_I_B0 = (-12, -8, -4, 0, 4, 8, 12)
+LEVELS = (*range(2, 17), 20, 24, 32, 48, 64)
+B0_DB = tuple(float(b) for b in range(-16, 17))
+SERIES = {  # label -> encoder settings besides the swept parameter
+    "quant": {"method": "quant"},
+    "cut (exact survivors)": {"method": "cut", "value_bits": 0},
+    "cut (16-bit survivors)": {"method": "cut", "value_bits": 16},
+}
+COLUMNS = ("series", "method", "levels", "b0_db", "value_bits", "bytes", "ratio_coeffs",
+           "ratio_profile", "kept", "Ip", "Ia", "Iobj", "st_sim", "spqi", "table_I")
+
+
+def sweep(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve,
+          ab: tuple[float, float] = indices.DEFAULT_AB, with_peers: bool = True,
+          progress: bool = True) -> list[dict]:
+    c = transform.analyze(y_um, geometry.n_keep)
+    b_k = curve(geometry.frequencies_hz())
+    P, A = indices.weighted_sums(c, b_k)
+    jobs = []
+    for label, base in SERIES.items():
+        params = LEVELS if base["method"] == "quant" else B0_DB
+        for v in params:
+            key = "levels" if base["method"] == "quant" else "b0_db"
+            jobs.append((label, {**base, key: v}))
+    peers_on = with_peers and peer.available()
+    rows = []
+    for label, kw in tqdm(jobs, desc="rate-quality", unit="stream", disable=not progress,
+                          leave=False):
+        data = vtx.encode_coefficients(c, geometry, curve, **kw)
+        s = vtx.decode(data)
+        Pp, Ap = indices.weighted_sums(s.coefficients, b_k)
+        sc = indices.scores_from_sums(P, A, Pp, Ap, *ab)
+        row = {
+            "series": label, "method": s.method, "levels": s.levels, "b0_db": s.b0_db,
+            "value_bits": s.value_bits, "bytes": s.nbytes, "ratio_coeffs": s.ratio_coeffs,
+            "ratio_profile": s.ratio_profile, "kept": int(np.count_nonzero(s.coefficients)),
+            "Ip": float(sc.Ip), "Ia": float(sc.Ia), "Iobj": float(sc.Iobj),
+            "st_sim": None, "spqi": None,
+            "table_I": (s.levels in TABLE_I_LEVELS) if s.method == "quant"
+            else (s.b0_db in TABLE_I_B0),
+        }
+        if peers_on:
+            row.update(peer.peer_scores(c, s.coefficients, geometry.n, geometry.length_mm,
+                                        geometry.speed_mm_s) or {})
+        rows.append(row)
+    return rows
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return f"{v:.6g}" if math.isfinite(v) else str(v)
+    return str(v)
+
+
+def write_csv(rows: list[dict], path: Path) -> None:
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(COLUMNS)
+        for r in rows:
+            w.writerow([_fmt(r[c]) for c in COLUMNS])
+
+
+def write_markdown(rows: list[dict], path: Path, title: str, notes: list[str]) -> None:
+    cols = ("series", "levels", "b0_db", "bytes", "ratio_coeffs", "ratio_profile", "kept",
+            "Ip", "Ia", "Iobj", "st_sim", "spqi")
+    lines = [f"# Rate-quality: {title}", ""] + [f"- {n}" for n in notes] + [""]
+    lines.append("| " + " | ".join(cols) + " |")
+    lines.append("|" + "---|" * len(cols))
+    for r in rows:
+        if r["table_I"]:
+            lines.append("| " + " | ".join(_fmt(r[c]) for c in cols) + " |")
+    lines += ["", "(Table I levels of the paper shown; the CSV holds the full sweep.)", ""]
+    path.write_text("\n".join(lines), encoding="utf-8")
+
+
+def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 5), dpi=120)
+    markers = {"quant": "o-", "cut (exact survivors)": "s-", "cut (16-bit survivors)": "^-"}
+    for label in SERIES:
+        pts = sorted(((r["bytes"], r["Iobj"], r) for r in rows if r["series"] == label),
+                     key=lambda t: (t[0], t[1]))
+        if not pts:
+            continue
+        x = [p[0] for p in pts]
+        y = [p[1] for p in pts]
+        ax.plot(x, y, markers[label], ms=4, lw=1.2, label=label)
+        for bx, iy, r in pts:
+            if r["table_I"]:
+                tag = f"L={r['levels']}" if r["method"] == "quant" else f"{r['b0_db']:+.0f} dB"
+                ax.annotate(tag, (bx, iy), fontsize=6, xytext=(3, 3), textcoords="offset points")
+    ax.axvline(raw_coeff_bytes, color="grey", ls=":", lw=1)
+    ax.text(raw_coeff_bytes, ax.get_ylim()[1] * 0.95, " 16-bit raw\n coefficients",
+            fontsize=7, color="grey", va="top")
+    ax.set_xlabel("encoded stream size [bytes] (header, payload and CRC)")
+    ax.set_ylabel("Iobj = a·Ip + b·Ia  [dimensionless]")
+    ax.set_title(f"Rate-quality: {title}", fontsize=10)
+    ax.grid(True, alpha=0.3)
+    ax.legend(title="method", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def rate_quality(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve,
+                 out_dir: str | Path, title: str,
+                 ab: tuple[float, float] = indices.DEFAULT_AB, progress: bool = True) -> dict:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = sweep(y_um, geometry, curve, ab, progress=progress)
+    notes = [
+        f"N = {geometry.n}, L = {geometry.length_mm:.6g} mm, v_ref = {geometry.speed_mm_s:g} mm/s,"
+        f" fmax = {geometry.fmax_hz:g} Hz, N' = {geometry.n_keep}",
+        f"threshold curve {curve.name} ({curve.curve_id}), (a, b) = {ab}",
+        f"16-bit raw coefficients: {2 * geometry.n_keep} bytes; raw 16-bit profile: "
+        f"{2 * geometry.n} bytes",
+    ]
+    if not peer.available():
+        notes.append(peer.NOTE_MISSING)
+    write_csv(rows, out / "rate_quality.csv")
+    write_markdown(rows, out / "rate_quality.md", title, notes)
+    plot(rows, out / "rate_quality.png", title, 2 * geometry.n_keep)
+    return {"rows": rows, "notes": notes, "dir": str(out)}
