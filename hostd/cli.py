@@ -218,6 +218,16 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     sc = score_stream(s, reference_um=ref, curve=curve, a=a, b=b)
     out = sc.as_dict()
     out["reference"] = "profile" if ref is not None else "stream_header"
+    from hostd.codec import transform
+    from hostd.perception import peer
+
+    if ref is None:
+        out["peer_note"] = "peer metrics (ST-SIM, SPQI) need the original: pass REFERENCE_PROFILE"
+    elif not peer.available():
+        out["peer_note"] = peer.NOTE_MISSING
+    else:
+        out.update(peer.peer_scores(transform.analyze(ref, s.n_keep), s.coefficients, s.n,
+                                    s.length_mm, s.speed_mm_s) or {})
     out.update(bytes=s.nbytes, ratio_coeffs=s.ratio_coeffs, ratio_profile=s.ratio_profile,
                method=s.method)
     if args.json:

@@ -55,6 +55,8 @@ def test_encode_inspect_decode_iobj(tmp_path, wood_csv):
     for key in ("P", "A", "P_prime", "A_prime", "Ip", "Ia", "Iobj", "a", "b"):
         assert alone[key] == pytest.approx(both[key], rel=1e-12), key
     assert alone["a"] == 0.581 and alone["b"] == 0.464
+    assert "peer_note" in alone
+    assert ("st_sim" in both and 0 <= both["spqi"] <= 1) or "peer_note" in both
 
 
 def test_cut_and_target_iobj(tmp_path, wood_csv):

@@ -1,0 +1,113 @@
+"""Height under the finger at any real position, band-limited for the current hand speed.
+
+The exact evaluator is the series  h(x) = Σ_k g_k(v) C'_k cos(π k (2x/dx + 1) / (2N)),  which is
+already the mirror-even, 2L-periodic extension of the patch (a hand moving past the patch
+sees a continuous texture). Faster evaluators read a precomputed table of that series
+(2N samples over one period) with linear or cubic interpolation, or the nearest sample.
+
+Speed-aware band limit: at hand speed v component k sounds at f_k = k |v| / (2L). Gains g_k
+fade from 1 to 0 with a raised cosine between f_pass = fade_start * f_stop and f_stop = min(display
+band, nyquist_fraction * fs/2), so fast strokes do not alias and speed changes do not click.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from hostd.codec import transform
+
+METHODS = ("series", "table-cubic", "table-linear", "nearest")
+
+
+@dataclass
+class BandLimitConfig:
+    display_band_hz: float = 400.0
+    sample_rate_hz: float = 3000.0
+    nyquist_fraction: float = 0.8
+    fade_start: float = 0.8  # fade begins at this fraction of f_stop
+    speed_bucket: float = 0.02  # table methods: relative speed step between cached tables
+
+
+def band_gains(k: np.ndarray, speed_mm_s: float, length_mm: float, cfg: BandLimitConfig) -> np.ndarray:
+    f_stop = min(cfg.display_band_hz, cfg.nyquist_fraction * cfg.sample_rate_hz / 2.0)
+    f_pass = cfg.fade_start * f_stop
+    f = np.abs(speed_mm_s) * k / (2.0 * length_mm)
+    g = np.ones_like(f)
+    fade = (f > f_pass) & (f < f_stop)
+    g[fade] = 0.5 * (1.0 + np.cos(np.pi * (f[fade] - f_pass) / (f_stop - f_pass)))
+    g[f >= f_stop] = 0.0
+    return g
+
+
+class HeightEvaluator:
+    """Evaluate band-limited heights (µm) at positions x (mm) for a given hand speed."""
+
+    def __init__(self, coeffs_um: np.ndarray, n: int, length_mm: float, method: str = "series",
+                 band: BandLimitConfig | None = None, dtype: type = np.float64,
+                 cache_tables: int = 16) -> None:
+        if method not in METHODS:
+            raise ValueError(f"height method must be one of {METHODS}")
+        c = np.asarray(coeffs_um, dtype=np.float64)
+        if not np.all(np.isfinite(c)):
+            raise ValueError("coefficients must be finite")
+        self.c = c
+        self.n = int(n)
+        self.length_mm = float(length_mm)
+        self.dx_mm = self.length_mm / self.n
+        self.method = method
+        self.band = band or BandLimitConfig()
+        self.dtype = dtype
+        self.k = np.arange(1, c.size + 1, dtype=np.float64)
+        self._tables: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._cache = cache_tables
+
+    def gains(self, speed_mm_s: float) -> np.ndarray:
+        return band_gains(self.k, speed_mm_s, self.length_mm, self.band)
+
+    def series(self, x_mm: np.ndarray, speed_mm_s: float) -> np.ndarray:
+        """The exact band-limited series (the reference of every other method)."""
+        x = np.asarray(x_mm, dtype=self.dtype)
+        u = (x / self.dtype(self.dx_mm) + self.dtype(0.5)) * self.dtype(np.pi / self.n)
+        w = (self.c * self.gains(speed_mm_s)).astype(self.dtype)
+        return np.cos(np.multiply.outer(u, self.k.astype(self.dtype))) @ w
+
+    def _bucket(self, speed_mm_s: float) -> int:
+        s = abs(speed_mm_s)
+        if s < 1e-9:
+            return -(1 << 30)
+        return int(np.floor(np.log(s) / np.log1p(self.band.speed_bucket)))
+
+    def table(self, speed_mm_s: float) -> np.ndarray:
+        """One period (2N samples) of the series band-limited for the speed's bucket."""
+        b = self._bucket(speed_mm_s)
+        tab = self._tables.get(b)
+        if tab is None:
+            v = 0.0 if b == -(1 << 30) else np.exp((b + 0.5) * np.log1p(self.band.speed_bucket))
+            y = transform.synthesize(self.c * self.gains(v), self.n)
+            tab = np.concatenate([y, y[::-1], y[:3]]).astype(self.dtype)  # +3 for cubic wrap
+            self._tables[b] = tab
+            if len(self._tables) > self._cache:
+                self._tables.popitem(last=False)
+        else:
+            self._tables.move_to_end(b)
+        return tab
+
+    def __call__(self, x_mm: np.ndarray, speed_mm_s: float) -> np.ndarray:
+        if self.method == "series":
+            return self.series(x_mm, speed_mm_s)
+        tab = self.table(speed_mm_s)
+        period = 2 * self.n
+        u = np.mod(np.asarray(x_mm, dtype=np.float64) / self.dx_mm, period)
+        if self.method == "nearest":
+            return tab[np.rint(u).astype(np.int64) % period]
+        i = np.floor(u).astype(np.int64)
+        t = (u - i).astype(self.dtype)
+        if self.method == "table-linear":
+            return tab[i] + t * (tab[i + 1] - tab[i])
+        # Catmull-Rom cubic through i-1, i, i+1, i+2 (i-1 wraps to the period's end).
+        p0 = tab[(i - 1) % period]
+        p1, p2, p3 = tab[i], tab[i + 1], tab[i + 2]
+        return p1 + 0.5 * t * (p2 - p0 + t * (2 * p0 - 5 * p1 + 4 * p2 - p3 + t * (3 * (p1 - p2) + p3 - p0)))

@@ -1,0 +1,75 @@
+"""The render pipeline: encoder counts -> position -> predicted x at play time -> band-limited
+height -> equalizer -> output limits -> DAC codes, in batches (frames) for the device link."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hostd.render.equalizer import ActuatorModel, Equalizer, EqualizerConfig
+from hostd.render.height import BandLimitConfig, HeightEvaluator
+from hostd.render.motion import MotionConfig, MotionEstimator
+from hostd.render.output import OutputConfig, OutputStage
+from hostd.render.position import EncoderPosition
+
+
+@dataclass
+class RenderConfig:
+    sample_rate_hz: float = 3000.0
+    samples_per_batch: int = 3  # 3 samples per 1 ms report at 3 kHz
+    um_per_count: float = 0.4
+    height_method: str = "series"
+    dtype: str = "float64"
+    latency_s: float = 0.0  # extra latency to compensate beyond the play-time stamps
+    predict: bool = True
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    band: BandLimitConfig = field(default_factory=BandLimitConfig)
+    equalizer: EqualizerConfig = field(default_factory=EqualizerConfig)
+    actuator: ActuatorModel = field(default_factory=ActuatorModel)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+
+class Renderer:
+    """Stateful: feed encoder readings, ask for batches of samples at their play times."""
+
+    def __init__(self, coeffs_um: np.ndarray, n: int, length_mm: float,
+                 cfg: RenderConfig | None = None) -> None:
+        self.cfg = cfg = cfg or RenderConfig()
+        if cfg.samples_per_batch < 1:
+            raise ValueError("samples_per_batch must be >= 1")
+        cfg.equalizer.sample_rate_hz = cfg.sample_rate_hz
+        cfg.output.sample_rate_hz = cfg.sample_rate_hz
+        cfg.band.sample_rate_hz = cfg.sample_rate_hz
+        self.position = EncoderPosition(cfg.um_per_count)
+        self.motion = MotionEstimator(cfg.motion if cfg.predict else MotionConfig(order=0, window=2))
+        self.height = HeightEvaluator(coeffs_um, n, length_mm, cfg.height_method, cfg.band,
+                                      dtype=np.float32 if cfg.dtype == "float32" else np.float64)
+        self.eq = Equalizer(cfg.actuator, cfg.equalizer)
+        self.out = OutputStage(cfg.output)
+        self.period_s = 1.0 / cfg.sample_rate_hz
+
+    def on_encoder(self, t_s: float, raw_count: int) -> None:
+        self.motion.update(t_s, self.position.update(raw_count))
+
+    def start(self) -> None:
+        self.out.start()
+
+    def stop(self) -> None:
+        self.out.stop()
+
+    def render_um(self, t_play_s: np.ndarray) -> np.ndarray:
+        """Limited displacement (µm) for samples that will be played at t_play_s."""
+        t = np.asarray(t_play_s, dtype=np.float64) + self.cfg.latency_s
+        x = np.asarray(self.motion.predict(t), dtype=np.float64)
+        h = self.height(x, self.motion.velocity_mm_s).astype(np.float64)
+        return self.out.process(self.eq(h))
+
+    def render_codes(self, t_play_s: np.ndarray) -> np.ndarray:
+        return self.out.to_codes(self.render_um(t_play_s))
+
+
+def frames(codes: np.ndarray, samples_per_batch: int) -> list[np.ndarray]:
+    """Split a run of codes into the batches the device link sends (last one may be short)."""
+    c = np.asarray(codes)
+    return [c[i : i + samples_per_batch] for i in range(0, c.size, samples_per_batch)]

@@ -1,0 +1,192 @@
+"""Rendering stages and their hard cases; each test asserts a bound."""
+
+import numpy as np
+import pytest
+
+from hostd.codec import transform
+from hostd.render import RenderConfig, Renderer, frames
+from hostd.render.equalizer import Equalizer
+from hostd.render.height import METHODS, HeightEvaluator
+from hostd.render.motion import MotionConfig, MotionEstimator
+from hostd.render.output import OutputConfig, OutputStage
+from hostd.render.position import EncoderPosition
+from hostd.texture import synth
+
+FS = 3000.0
+COUNT_UM = 0.4
+
+
+@pytest.fixture(scope="module")
+def wood():
+    p = synth.wood(seed=1)
+    return transform.analyze(p.heights_um, 160), p.n, p.length_mm
+
+
+def drive(renderer, x_of_t, seconds, glitch_at=None):
+    """Encoder at 1 kHz (quantized to 0.4 µm), output batches of 3 samples at 3 kHz."""
+    out = []
+    for i in range(int(seconds * 1000)):
+        t = i / 1000.0
+        x = x_of_t(t)
+        count = int(np.floor(x * 1000 / COUNT_UM)) & 0xFFFFFFFF
+        if glitch_at is not None and i == glitch_at:
+            count = (count + 2_000_000) & 0xFFFFFFFF
+        renderer.on_encoder(t, count)
+        out.append(renderer.render_um(t + np.arange(3) / FS))
+    return np.concatenate(out)
+
+
+def test_counter_wraps_around_without_a_jump():
+    enc = EncoderPosition(COUNT_UM)
+    start = (1 << 32) - 5
+    xs = [enc.update((start + i) & 0xFFFFFFFF) for i in range(10)]
+    assert np.allclose(np.diff(xs), COUNT_UM * 1e-3)
+    enc2 = EncoderPosition(COUNT_UM)
+    xs2 = [enc2.update((3 - i) & 0xFFFFFFFF) for i in range(10)]  # backwards through zero
+    assert np.allclose(np.diff(xs2), -COUNT_UM * 1e-3)
+
+
+def test_hand_at_rest_gives_no_output_noise_from_encoder_dither(wood):
+    r = Renderer(*wood)
+    r.start()
+    rng = np.random.default_rng(0)
+    x0 = 3.2
+    y = drive(r, lambda t: x0 + rng.choice([0, COUNT_UM * 1e-3]), 1.0)
+    steady = y[-1500:]
+    assert np.ptp(steady) <= 1e-9  # bound: no variation at all while at rest
+
+
+def test_single_glitching_sample_moves_nothing(wood):
+    a = Renderer(*wood)
+    b = Renderer(*wood)
+    a.start()
+    b.start()
+    stroke = lambda t: 50.0 * t  # noqa: E731
+    ya = drive(a, stroke, 0.5)
+    yb = drive(b, stroke, 0.5, glitch_at=300)
+    assert b.motion.glitches == 1
+    assert np.max(np.abs(ya - yb)) <= 0.05  # µm; the texture is ~10 µm peak
+
+
+def test_direction_reversal_follows_the_texture(wood):
+    c, n, length = wood
+    r = Renderer(c, n, length, RenderConfig(equalizer=type(RenderConfig().equalizer)(enabled=False)))
+    r.start()
+    x = lambda t: 2.0 + 20.0 * np.sin(2 * np.pi * 1.0 * t)  # noqa: E731  reversals at 0.25, 0.75 s
+    y = drive(r, x, 1.0)
+    ev = HeightEvaluator(c, n, length)
+    t = np.arange(y.size) / FS
+    ideal = np.array([ev.series(np.array([x(tt)]), 0.0)[0] for tt in t])
+    err = (y - ideal)[300:]  # after the soft start
+    assert np.sqrt(np.mean(err**2)) <= 0.2 * np.sqrt(np.mean(ideal**2))
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_height_methods_approximate_the_series(wood, method):
+    ev = HeightEvaluator(*wood, method=method)
+    x = np.linspace(0, 40, 5001)  # four patch lengths: crosses the mirror seams
+    ref = ev.series(x, 50.0)
+    err = np.sqrt(np.mean((ev(x, 50.0) - ref) ** 2)) / np.sqrt(np.mean(ref**2))
+    bound = {"series": 1e-12, "table-cubic": 0.01, "table-linear": 0.02, "nearest": 0.2}[method]
+    assert err <= bound
+
+
+def test_series_is_continuous_across_the_patch_edge(wood):
+    ev = HeightEvaluator(*wood)
+    L = wood[2]
+    eps = 1e-7
+    for edge in (0.0, L, 2 * L):
+        a, b = ev.series(np.array([edge - eps, edge + eps]), 0.0)
+        assert abs(a - b) <= 1e-5
+
+
+def test_fast_stroke_has_no_component_above_the_band(wood):
+    ev = HeightEvaluator(*wood)
+    v = 1000.0  # 1 m/s
+    t = np.arange(3000) / FS
+    y = ev.series(v * t, v)
+    spec = np.abs(np.fft.rfft(y * np.hanning(y.size)))
+    f = np.fft.rfftfreq(y.size, 1 / FS)
+    above = spec[f > 420].max()
+    assert above <= 1e-6 * max(spec.max(), 1e-12)
+    assert np.all(ev.gains(v)[(np.arange(1, 161) * v / (2 * wood[2])) >= 400] == 0)
+
+
+def test_equalizer_flat_within_1_db_over_10_to_400_hz():
+    lo, hi = Equalizer().flatness_db(10, 400)
+    assert -1.0 <= lo and hi <= 1.0
+    off_lo, _ = Equalizer(cfg=type(Equalizer().cfg)(enabled=False)).flatness_db(10, 400)
+    assert off_lo < -3.0  # without it the actuator loses more than 3 dB at 400 Hz
+
+
+def test_full_scale_chirp_and_step_stay_within_limits():
+    out = OutputStage()
+    out.start()
+    eq = Equalizer()
+    t = np.arange(int(2 * FS)) / FS
+    chirp = 40.0 * np.sin(2 * np.pi * (10 * t + (400 - 10) / 4 * t**2))
+    step = np.where(t > 0.5, 40.0, -40.0)
+    for sig in (chirp, step):
+        y = out.process(eq(sig))
+        assert np.max(np.abs(y)) <= out.limit_um + 1e-12
+        assert np.max(np.abs(np.diff(y))) <= out.max_step_um + 1e-12
+        assert np.all(np.isfinite(y))
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, 1e300, -1e300])
+def test_nothing_that_enters_drives_the_output_past_a_limit(bad):
+    out = OutputStage()
+    out.start()
+    x = np.full(2000, 10.0)
+    x[100:110] = bad
+    x[500] = 1e6
+    y = out.process(x)
+    codes = out.to_codes(y)
+    assert np.max(np.abs(y)) <= out.limit_um + 1e-12
+    assert np.max(np.abs(np.diff(y))) <= out.max_step_um + 1e-12
+    assert np.max(np.abs(codes.astype(int))) <= OutputConfig().limit_code
+
+
+def test_soft_start_and_stop_ramp(wood):
+    out = OutputStage()
+    out.start()
+    y = out.process(np.full(300, 20.0))
+    assert y[0] < 1.0 and abs(y[-1] - 20.0) < 1e-9
+    out.stop()
+    z = out.process(np.full(300, 20.0))
+    assert z[-1] == 0.0 and np.all(np.diff(z) <= 1e-12)
+
+
+def test_huge_coefficient_is_limited_end_to_end(wood):
+    c, n, length = wood
+    c = c.copy()
+    c[5] = 1e12
+    r = Renderer(c, n, length)
+    r.start()
+    y = drive(r, lambda t: 50.0 * t, 0.3)
+    assert np.max(np.abs(y)) <= r.out.limit_um + 1e-12
+
+
+def test_float32_tracks_float64(wood):
+    x = np.linspace(0, 20, 3001)
+    a = HeightEvaluator(*wood, dtype=np.float64).series(x, 50.0)
+    b = HeightEvaluator(*wood, dtype=np.float32).series(x, 50.0)
+    assert np.max(np.abs(a - b)) <= 1e-3 * np.max(np.abs(a))
+
+
+def test_prediction_reduces_lag_error(wood):
+    def err(predict):
+        mc = MotionEstimator(MotionConfig(order=1 if predict else 0, window=8 if predict else 2))
+        errs = []
+        for i in range(200):
+            t = i / 1000
+            mc.update(t, np.floor(50.0 * t * 1000 / COUNT_UM) * COUNT_UM / 1000)
+            errs.append(float(mc.predict(t + 0.004)) - 50.0 * (t + 0.004))
+        return np.sqrt(np.mean(np.square(errs[20:])))
+    assert err(True) <= 0.05 * err(False)
+
+
+def test_frames_group_samples():
+    f = frames(np.arange(10), 3)
+    assert [len(x) for x in f] == [3, 3, 3, 1]
+    assert np.array_equal(np.concatenate(f), np.arange(10))
