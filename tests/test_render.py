@@ -5,7 +5,7 @@ import pytest
 
 from hostd.codec import transform
 from hostd.render import RenderConfig, Renderer, frames
-from hostd.render.equalizer import Equalizer
+from hostd.render.equalizer import Equalizer, EqualizerConfig
 from hostd.render.height import METHODS, HeightEvaluator
 from hostd.render.motion import MotionConfig, MotionEstimator
 from hostd.render.output import OutputConfig, OutputStage
@@ -70,7 +70,7 @@ def test_single_glitching_sample_moves_nothing(wood):
 
 def test_direction_reversal_follows_the_texture(wood):
     c, n, length = wood
-    r = Renderer(c, n, length, RenderConfig(equalizer=type(RenderConfig().equalizer)(enabled=False)))
+    r = Renderer(c, n, length, RenderConfig(equalizer=EqualizerConfig(enabled=False)))
     r.start()
     x = lambda t: 2.0 + 20.0 * np.sin(2 * np.pi * 1.0 * t)  # noqa: E731  reversals at 0.25, 0.75 s
     y = drive(r, x, 1.0)
@@ -115,7 +115,7 @@ def test_fast_stroke_has_no_component_above_the_band(wood):
 def test_equalizer_flat_within_1_db_over_10_to_400_hz():
     lo, hi = Equalizer().flatness_db(10, 400)
     assert -1.0 <= lo and hi <= 1.0
-    off_lo, _ = Equalizer(cfg=type(Equalizer().cfg)(enabled=False)).flatness_db(10, 400)
+    off_lo, _ = Equalizer(cfg=EqualizerConfig(enabled=False)).flatness_db(10, 400)
     assert off_lo < -3.0  # without it the actuator loses more than 3 dB at 400 Hz
 
 
