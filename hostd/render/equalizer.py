@@ -4,8 +4,9 @@ Parametric default after the paper's display: no resonance up to 400 Hz, -3 dB a
 (a 2nd-order Butterworth low-pass at 270 Hz). The inverse of that is improper, so it is
 regularized: the equalizer is  H_act^-1(s) · L(s)  with L a Butterworth low-pass at
 `reg_hz` whose order matches the model's, which also caps the high-frequency gain at
-(reg_hz / fc)^order. Discretized with the bilinear transform (pre-warped at the model corner)
-and applied with scipy.signal.sosfilt, whose state is carried across batches.
+(reg_hz / fc)^order. Discretized with the bilinear transform (no pre-warping; the
+flatness figure includes that warping and the DAC's zero-order hold) and applied with
+scipy.signal.sosfilt, whose state is carried across batches.
 """
 
 from __future__ import annotations

@@ -4,7 +4,8 @@ A least-squares polynomial (order 1: velocity; order 2: velocity and acceleratio
 to the last `window` (time, position) samples. A sample that departs from the current fit's
 prediction by more than `glitch_um` (a single-count glitch is 0.4 µm; a hand cannot jump
 hundreds of µm in 1 ms) is replaced by the prediction, so one glitching reading moves
-nothing. A dead band on speed keeps a hand at rest from dithering the output.
+nothing. Below a speed dead band the hand is at rest: the held position moves only when the
+window's mean leaves a hold band, so ±1-count encoder dither does not reach the output.
 """
 
 from __future__ import annotations
@@ -43,11 +44,11 @@ class MotionEstimator:
             if abs(x_mm - pred) * 1000.0 > self.cfg.glitch_um:
                 self.glitches += 1
                 x_mm = pred
-        w = self.cfg.window
-        self._t = np.roll(self._t, -1)
-        self._x = np.roll(self._x, -1)
+        # Shift in place: no allocation per encoder reading.
+        self._t[:-1] = self._t[1:]
+        self._x[:-1] = self._x[1:]
         self._t[-1], self._x[-1] = t_s, x_mm
-        self._n = min(self._n + 1, w)
+        self._n = min(self._n + 1, self.cfg.window)
         self._fit()
 
     def _fit(self) -> None:

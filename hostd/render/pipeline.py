@@ -3,7 +3,7 @@ height -> equalizer -> output limits -> DAC codes, in batches (frames) for the d
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -38,15 +38,18 @@ class Renderer:
         self.cfg = cfg = cfg or RenderConfig()
         if cfg.samples_per_batch < 1:
             raise ValueError("samples_per_batch must be >= 1")
-        cfg.equalizer.sample_rate_hz = cfg.sample_rate_hz
-        cfg.output.sample_rate_hz = cfg.sample_rate_hz
-        cfg.band.sample_rate_hz = cfg.sample_rate_hz
+        # The pipeline's rate is the one source of truth; stage configs get copies with it,
+        # and the caller's objects are left untouched.
+        fs = cfg.sample_rate_hz
+        eq_cfg = replace(cfg.equalizer, sample_rate_hz=fs)
+        out_cfg = replace(cfg.output, sample_rate_hz=fs)
+        band_cfg = replace(cfg.band, sample_rate_hz=fs)
         self.position = EncoderPosition(cfg.um_per_count)
         self.motion = MotionEstimator(cfg.motion if cfg.predict else MotionConfig(order=0, window=2))
-        self.height = HeightEvaluator(coeffs_um, n, length_mm, cfg.height_method, cfg.band,
+        self.height = HeightEvaluator(coeffs_um, n, length_mm, cfg.height_method, band_cfg,
                                       dtype=np.float32 if cfg.dtype == "float32" else np.float64)
-        self.eq = Equalizer(cfg.actuator, cfg.equalizer)
-        self.out = OutputStage(cfg.output)
+        self.eq = Equalizer(cfg.actuator, eq_cfg)
+        self.out = OutputStage(out_cfg)
         self.period_s = 1.0 / cfg.sample_rate_hz
 
     def on_encoder(self, t_s: float, raw_count: int) -> None:
