@@ -363,6 +363,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("-o", "--out", default="rate-quality", help="output directory")
     r.add_argument("--no-progress", action="store_true")
     r.set_defaults(func=cmd_report_rate_quality)
+
+    from hostd.bench.cli import add_parser as add_bench
+
+    add_bench(sub, [loader_parent(None)])
     return ap
 
 

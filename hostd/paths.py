@@ -19,3 +19,21 @@ def config_dir() -> Path:
 
 def thresholds_dir() -> Path:
     return config_dir() / "thresholds"
+
+
+def actuators_dir() -> Path:
+    return config_dir() / "actuators"
+
+
+def scenes_dir() -> Path:
+    return config_dir() / "scenes"
+
+
+def bundled_profile():
+    """The bundled real instrument profile (config/profiles/dektak-1.csv), or None."""
+    from hostd.texture.load import LoadOptions, load_profile
+
+    p = config_dir() / "profiles" / "dektak-1.csv"
+    if not p.exists():
+        return None
+    return load_profile(p, LoadOptions(x_unit="um", y_unit="um", length_mm=None, detrend="linear"))

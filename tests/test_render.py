@@ -70,7 +70,8 @@ def test_single_glitching_sample_moves_nothing(wood):
 
 def test_direction_reversal_follows_the_texture(wood):
     c, n, length = wood
-    r = Renderer(c, n, length, RenderConfig(equalizer=EqualizerConfig(enabled=False)))
+    # the command itself is compared with the texture: no look-ahead for the actuator chain
+    r = Renderer(c, n, length, RenderConfig(equalizer=EqualizerConfig(enabled=False), latency_s=0.0))
     r.start()
     x = lambda t: 2.0 + 20.0 * np.sin(2 * np.pi * 1.0 * t)  # noqa: E731  reversals at 0.25, 0.75 s
     y = drive(r, x, 1.0)

@@ -1,37 +1,145 @@
 """Actuator model and its regularized inverse, as second-order sections at the output rate.
 
-Parametric default after the paper's display: no resonance up to 400 Hz, -3 dB at 270 Hz
-(a 2nd-order Butterworth low-pass at 270 Hz). The inverse of that is improper, so it is
-regularized: the equalizer is  H_act^-1(s) · L(s)  with L a Butterworth low-pass at
-`reg_hz` whose order matches the model's, which also caps the high-frequency gain at
-(reg_hz / fc)^order. Discretized with the bilinear transform (no pre-warping; the
-flatness figure includes that warping and the DAC's zero-order hold) and applied with
-scipy.signal.sosfilt, whose state is carried across batches.
+The actuator is modelled as  H(s) = g w0^2 / (s^2 + 2 zeta w0 s + w0^2) · exp(-s tau):
+the paper's display (flat to 400 Hz without resonance, -3 dB at 270 Hz) is the default,
+zeta = 1/sqrt(2) (Butterworth) at 270 Hz. A measured response table (Hz, gain dB, phase deg)
+can replace it: the model is then fitted to the table by least squares (scipy.optimize),
+and the table itself is kept so flatness is reported against the measurement.
+
+The inverse is improper, so it is regularized: the equalizer is  H^-1(s) · L(s)  with L a
+Butterworth low-pass at `reg_hz` of order `reg_order` (>= 2), which caps the
+high-frequency gain at about (reg_hz / corner)^2 / g. The pure delay tau cannot be inverted;
+the renderer compensates it by predicting the hand further ahead. Discretized with the
+bilinear transform; the flatness figure includes that warping and the DAC's zero-order hold.
+
+State is carried across batches. Small batches (the 3-sample, 1 ms frames of the real-time
+path) run a scalar transposed direct form II that is bit-compatible with scipy.signal.sosfilt's
+state, because a numpy call per section costs more than the arithmetic there.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+import scipy.optimize
 import scipy.signal
 
+SMALL_BATCH = 32  # at or below this many samples, filter in scalar Python
+DENORMAL_GUARD = 1e-30  # µm: filter state below this is flushed to zero
 
-@dataclass
+
+@dataclass(eq=False)
 class ActuatorModel:
     corner_hz: float = 270.0
-    order: int = 2
+    damping: float = 1.0 / math.sqrt(2.0)
+    dc_gain: float = 1.0
+    delay_s: float = 0.0
+    name: str = "paper-parametric"
+    # measured table (optional): frequencies, gain (dB) and phase (deg)
+    table_hz: np.ndarray | None = field(default=None, repr=False)
+    table_db: np.ndarray | None = field(default=None, repr=False)
+    table_deg: np.ndarray | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        for name in ("corner_hz", "damping", "dc_gain"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"actuator.{name} must be a finite number > 0")
+        if not (math.isfinite(self.delay_s) and 0 <= self.delay_s < 0.01):
+            raise ValueError("actuator.delay_s must be in [0, 0.01) s")
+
+    def analog_ba(self) -> tuple[np.ndarray, np.ndarray]:
+        w0 = 2 * math.pi * self.corner_hz
+        return np.array([self.dc_gain * w0 * w0]), np.array([1.0, 2 * self.damping * w0, w0 * w0])
 
     def response(self, f_hz: np.ndarray) -> np.ndarray:
-        """Continuous-time complex response of the actuator (displacement per command)."""
-        b, a = scipy.signal.butter(self.order, 2 * np.pi * self.corner_hz, analog=True)
-        return scipy.signal.freqs(b, a, worN=2 * np.pi * np.asarray(f_hz, dtype=np.float64))[1]
+        """The model's complex response (displacement per command), delay included."""
+        f = np.asarray(f_hz, dtype=np.float64)
+        b, a = self.analog_ba()
+        h = scipy.signal.freqs(b, a, worN=2 * np.pi * f)[1]
+        return h * np.exp(-2j * np.pi * f * self.delay_s)
+
+    def measured(self, f_hz: np.ndarray) -> np.ndarray:
+        """The measured table interpolated at f_hz (the model where there is no table)."""
+        if self.table_hz is None:
+            return self.response(f_hz)
+        f = np.asarray(f_hz, dtype=np.float64)
+        db = np.interp(f, self.table_hz, self.table_db)
+        deg = np.interp(f, self.table_hz, self.table_deg)
+        return 10 ** (db / 20) * np.exp(1j * np.deg2rad(deg))
+
+    @classmethod
+    def fit_table(cls, f_hz, gain_db, phase_deg, name: str = "measured") -> ActuatorModel:
+        f = np.asarray(f_hz, dtype=np.float64)
+        db = np.asarray(gain_db, dtype=np.float64)
+        deg = np.asarray(phase_deg, dtype=np.float64)
+        if not (f.ndim == 1 and f.size >= 4 and f.size == db.size == deg.size):
+            raise ValueError("actuator response table needs >= 4 rows of (hz, gain_db, phase_deg)")
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(db)) and np.all(np.isfinite(deg))):
+            raise ValueError("actuator response table has a non-finite value")
+        if np.any(f <= 0) or np.any(np.diff(f) <= 0):
+            raise ValueError("actuator response table: frequencies must be > 0 and increasing")
+        target = 10 ** (db / 20) * np.exp(1j * np.deg2rad(np.unwrap(np.deg2rad(deg)) * 180 / np.pi))
+
+        def resid(p):
+            m = cls(corner_hz=math.exp(p[0]), damping=math.exp(p[1]), dc_gain=math.exp(p[2]),
+                    delay_s=max(p[3], 0.0) * 1e-3)
+            d = m.response(f) / target - 1.0
+            return np.concatenate([d.real, d.imag])
+
+        guess_fc = float(np.interp(-3.0 + db[0], db[::-1], f[::-1])) if db.min() < db[0] - 3 else f[-1]
+        p0 = [math.log(max(guess_fc, 1.0)), math.log(0.7), math.log(10 ** (db[0] / 20)), 0.0]
+        sol = scipy.optimize.least_squares(resid, p0, bounds=([-np.inf, math.log(0.05), -np.inf, 0.0],
+                                                              [np.inf, math.log(5.0), np.inf, 10.0]))
+        return cls(corner_hz=math.exp(sol.x[0]), damping=math.exp(sol.x[1]), dc_gain=math.exp(sol.x[2]),
+                   delay_s=float(sol.x[3]) * 1e-3, name=name, table_hz=f, table_db=db,
+                   table_deg=deg)
+
+
+def load_actuator(path: str | Path) -> ActuatorModel:
+    """An actuator model from TOML: either [model] (corner_hz, damping, dc_gain, delay_s) or
+    [response] with equal-length arrays hz, gain_db, phase_deg (a measured table)."""
+    import tomllib
+
+    p = Path(path)
+    try:
+        doc = tomllib.loads(p.read_text())
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"{p}: cannot read actuator model ({e})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{p}: not valid TOML ({e})") from None
+    name = str(doc.get("name", p.stem))
+    unknown = set(doc) - {"name", "description", "model", "response"}
+    if unknown:
+        raise ValueError(f"{p}: unknown key {sorted(unknown)[0]!r} (expected name, description, "
+                         "model, response)")
+    if "response" in doc:
+        r = doc["response"]
+        try:
+            return ActuatorModel.fit_table(r["hz"], r["gain_db"], r["phase_deg"], name=name)
+        except KeyError as e:
+            raise ValueError(f"{p}: [response] needs key {e.args[0]!r}") from None
+        except (ValueError, TypeError) as e:
+            raise ValueError(f"{p}: {e}") from None
+    m = doc.get("model", {})
+    allowed = {"corner_hz", "damping", "dc_gain", "delay_s"}
+    bad = set(m) - allowed
+    if bad:
+        raise ValueError(f"{p}: unknown key model.{sorted(bad)[0]} (expected {sorted(allowed)})")
+    try:
+        return ActuatorModel(name=name, **{k: float(v) for k, v in m.items()})
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{p}: {e}") from None
 
 
 @dataclass
 class EqualizerConfig:
     enabled: bool = True
-    reg_hz: float = 800.0  # regularizing low-pass corner: caps gain at (reg_hz/corner)^order
+    reg_hz: float = 800.0  # regularizing low-pass corner
+    reg_order: int = 2  # order of the regularizing Butterworth (>= 2 keeps the inverse proper)
     sample_rate_hz: float = 3000.0
 
 
@@ -39,10 +147,11 @@ def design(model: ActuatorModel, cfg: EqualizerConfig) -> np.ndarray:
     """SOS of the regularized inverse at cfg.sample_rate_hz."""
     fs = cfg.sample_rate_hz
     if not (0 < model.corner_hz < cfg.reg_hz < fs / 2):
-        raise ValueError("need 0 < actuator corner < reg_hz < fs/2")
-    b_act, a_act = scipy.signal.butter(model.order, 2 * np.pi * model.corner_hz, analog=True)
-    b_reg, a_reg = scipy.signal.butter(model.order, 2 * np.pi * cfg.reg_hz, analog=True)
-    # inverse: a_act / b_act, times b_reg / a_reg
+        raise ValueError("equalizer: need 0 < actuator corner < reg_hz < sample_rate/2")
+    if not 2 <= cfg.reg_order <= 8:
+        raise ValueError("equalizer.reg_order must be 2..8")
+    b_act, a_act = model.analog_ba()
+    b_reg, a_reg = scipy.signal.butter(cfg.reg_order, 2 * np.pi * cfg.reg_hz, analog=True)
     num = np.polymul(a_act, b_reg)
     den = np.polymul(b_act, a_reg)
     bz, az = scipy.signal.bilinear(num, den, fs=fs)
@@ -56,26 +165,49 @@ class Equalizer:
         self.model = model or ActuatorModel()
         self.cfg = cfg or EqualizerConfig()
         self.sos = design(self.model, self.cfg) if self.cfg.enabled else None
-        self.zi = (np.zeros((self.sos.shape[0], 2)) if self.sos is not None else None)
+        self.zi = np.zeros((self.sos.shape[0], 2)) if self.sos is not None else None
+        self._rows = [tuple(float(v) for v in r) for r in self.sos] if self.sos is not None else []
 
     def reset(self, value_um: float = 0.0) -> None:
         if self.sos is not None:
             self.zi = scipy.signal.sosfilt_zi(self.sos) * value_um
 
     def __call__(self, x_um: np.ndarray) -> np.ndarray:
+        x = np.asarray(x_um, dtype=np.float64)
         if self.sos is None:
-            return np.asarray(x_um, dtype=np.float64)
-        y, self.zi = scipy.signal.sosfilt(self.sos, x_um, zi=self.zi)
-        return y
+            return x
+        if x.size > SMALL_BATCH:
+            y, zi = scipy.signal.sosfilt(self.sos, x, zi=self.zi)
+            zi[np.abs(zi) < DENORMAL_GUARD] = 0.0
+            self.zi = zi
+            return y
+        # scalar transposed direct form II, the same recurrence and state as sosfilt
+        ys = x.tolist()
+        zi = self.zi
+        for s, (b0, b1, b2, _a0, a1, a2) in enumerate(self._rows):
+            z0, z1 = float(zi[s, 0]), float(zi[s, 1])
+            for i, v in enumerate(ys):
+                y = b0 * v + z0
+                z0 = b1 * v - a1 * y + z1
+                z1 = b2 * v - a2 * y
+                ys[i] = y
+            # a decaying state would otherwise sink into subnormals (slow on x86) for ever
+            zi[s, 0] = z0 if abs(z0) >= DENORMAL_GUARD else 0.0
+            zi[s, 1] = z1 if abs(z1) >= DENORMAL_GUARD else 0.0
+        return np.array(ys)
 
-    def chain_response(self, f_hz: np.ndarray) -> np.ndarray:
-        """Actuator x equalizer (including the DAC's zero-order hold) at f_hz."""
+    def chain_response(self, f_hz: np.ndarray, measured: bool = True) -> np.ndarray:
+        """Actuator x equalizer (including the DAC's zero-order hold) at f_hz; the actuator
+        is the measured table when there is one (measured=True), else the model. The
+        actuator's pure delay is excluded (prediction compensates it, not the filter)."""
         f = np.asarray(f_hz, dtype=np.float64)
         fs = self.cfg.sample_rate_hz
         zoh = np.sinc(f / fs) * np.exp(-1j * np.pi * f / fs)
         eq = (scipy.signal.sosfreqz(self.sos, worN=f, fs=fs)[1] if self.sos is not None
               else np.ones_like(f, dtype=complex))
-        return self.model.response(f) * eq * zoh
+        act = self.model.measured(f) if measured else self.model.response(f)
+        act = act * np.exp(2j * np.pi * f * self.model.delay_s)
+        return act * eq * zoh
 
     def flatness_db(self, lo_hz: float = 10.0, hi_hz: float = 400.0) -> tuple[float, float]:
         """(min, max) gain in dB of actuator x equalizer over [lo, hi]."""
@@ -84,9 +216,16 @@ class Equalizer:
         return float(g.min()), float(g.max())
 
     def group_delay_ms(self, f_hz: float = 100.0) -> float:
-        """Group delay the equalizer adds at f_hz (ms)."""
+        """Group delay the equalizer adds at f_hz (ms); negative is a phase lead."""
         if self.sos is None:
             return 0.0
         b, a = scipy.signal.sos2tf(self.sos)
         _w, gd = scipy.signal.group_delay((b, a), w=[f_hz], fs=self.cfg.sample_rate_hz)
         return float(gd[0]) / self.cfg.sample_rate_hz * 1e3
+
+    def chain_delay_ms(self, f_hz: float = 100.0) -> float:
+        """Group delay of actuator x equalizer x ZOH at f_hz (ms), from the phase slope."""
+        df = 0.5
+        h = self.chain_response(np.array([f_hz - df, f_hz + df]), measured=False)
+        dphi = np.angle(h[1] / h[0])
+        return float(-dphi / (2 * np.pi * 2 * df) * 1e3) + self.model.delay_s * 1e3

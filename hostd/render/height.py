@@ -2,8 +2,9 @@
 
 The exact evaluator is the series  h(x) = Σ_k g_k(v) C'_k cos(π k (2x/dx + 1) / (2N)),  which is
 already the mirror-even, 2L-periodic extension of the patch (a hand moving past the patch
-sees a continuous texture). Faster evaluators read a precomputed table of that series
-(2N samples over one period) with linear or cubic interpolation, or the nearest sample.
+sees a continuous texture). Faster evaluators read a precomputed table of that series (one
+period, oversampled `table_oversample` times over its highest component, built by one
+inverse real FFT per speed bucket) with linear or cubic interpolation, or the nearest sample.
 
 Speed-aware band limit: at hand speed v component k sounds at f_k = k |v| / (2L). Gains g_k
 fade from 1 to 0 with a raised cosine between f_pass = fade_start * f_stop and f_stop = min(display
@@ -12,12 +13,12 @@ band, nyquist_fraction * fs/2), so fast strokes do not alias and speed changes d
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-
-from hostd.codec import transform
+import scipy.fft
 
 METHODS = ("series", "table-cubic", "table-linear", "nearest")
 
@@ -28,13 +29,14 @@ class BandLimitConfig:
     sample_rate_hz: float = 3000.0
     nyquist_fraction: float = 0.8
     fade_start: float = 0.8  # fade begins at this fraction of f_stop
-    speed_bucket: float = 0.02  # table methods: relative speed step between cached tables
+    speed_bucket: float = 0.02  # relative speed step between cached gains / tables
 
 
-def band_gains(k: np.ndarray, speed_mm_s: float, length_mm: float, cfg: BandLimitConfig) -> np.ndarray:
+def band_gains(k: np.ndarray, speed_mm_s, length_mm: float, cfg: BandLimitConfig) -> np.ndarray:
+    """Gains of components k at speed(s) v: shape k.shape, or v.shape + k.shape for arrays."""
     f_stop = min(cfg.display_band_hz, cfg.nyquist_fraction * cfg.sample_rate_hz / 2.0)
     f_pass = cfg.fade_start * f_stop
-    f = np.abs(speed_mm_s) * k / (2.0 * length_mm)
+    f = np.multiply.outer(np.abs(speed_mm_s), k) / (2.0 * length_mm)
     g = np.ones_like(f)
     fade = (f > f_pass) & (f < f_stop)
     g[fade] = 0.5 * (1.0 + np.cos(np.pi * (f[fade] - f_pass) / (f_stop - f_pass)))
@@ -47,7 +49,7 @@ class HeightEvaluator:
 
     def __init__(self, coeffs_um: np.ndarray, n: int, length_mm: float, method: str = "series",
                  band: BandLimitConfig | None = None, dtype: type = np.float64,
-                 cache_tables: int = 16) -> None:
+                 cache_tables: int = 16, table_oversample: int = 16) -> None:
         if method not in METHODS:
             raise ValueError(f"height method must be one of {METHODS}")
         c = np.asarray(coeffs_um, dtype=np.float64)
@@ -57,37 +59,61 @@ class HeightEvaluator:
         self.n = int(n)
         self.length_mm = float(length_mm)
         self.dx_mm = self.length_mm / self.n
+        self._period_mm = 2.0 * self.length_mm
         self.method = method
         self.band = band or BandLimitConfig()
         self.dtype = dtype
         self.k = np.arange(1, c.size + 1, dtype=np.float64)
+        self._k = self.k.astype(dtype)
+        self._w_bucket: int | None = None
+        self._w = self.c.astype(dtype)
         self._tables: OrderedDict[int, np.ndarray] = OrderedDict()
         self._cache = cache_tables
+        if not 2 <= table_oversample <= 1024:
+            raise ValueError("table_oversample must be 2..1024")
+        self.m = 1 << max(4, math.ceil(math.log2(table_oversample * 2 * (c.size + 1))))
+        self._idx_per_sample = self.m / (2.0 * self.n)  # table index per sample spacing
 
     def gains(self, speed_mm_s: float) -> np.ndarray:
         return band_gains(self.k, speed_mm_s, self.length_mm, self.band)
 
-    def series(self, x_mm: np.ndarray, speed_mm_s: float) -> np.ndarray:
-        """The exact band-limited series (the reference of every other method)."""
-        x = np.asarray(x_mm, dtype=self.dtype)
+    def weights(self, speed_mm_s: float) -> np.ndarray:
+        """C'_k g_k(v), cached per speed bucket (the gains change smoothly with |v|)."""
+        b = self._bucket(speed_mm_s)
+        if b != self._w_bucket:
+            v = 0.0 if b == -(1 << 30) else np.exp((b + 0.5) * np.log1p(self.band.speed_bucket))
+            self._w = (self.c * self.gains(v)).astype(self.dtype)
+            self._w_bucket = b
+        return self._w
+
+    def series(self, x_mm: np.ndarray, speed_mm_s: float, exact_gains: bool = False) -> np.ndarray:
+        """The band-limited series. With exact_gains the gains are those of the exact speed
+        (the reference of every other method); otherwise of the speed's bucket."""
+        # Reduce x to one period (2L) in float64 first: a hand that travels far in one
+        # direction (a mouse, an hour at 50 mm/s = 180 m) keeps full phase precision in float32.
+        x = np.mod(np.asarray(x_mm, dtype=np.float64), self._period_mm).astype(self.dtype)
         u = (x / self.dtype(self.dx_mm) + self.dtype(0.5)) * self.dtype(np.pi / self.n)
-        w = (self.c * self.gains(speed_mm_s)).astype(self.dtype)
-        return np.cos(np.multiply.outer(u, self.k.astype(self.dtype))) @ w
+        w = ((self.c * self.gains(speed_mm_s)).astype(self.dtype) if exact_gains
+             else self.weights(speed_mm_s))
+        return np.cos(np.multiply.outer(u, self._k)) @ w
 
     def _bucket(self, speed_mm_s: float) -> int:
         s = abs(speed_mm_s)
         if s < 1e-9:
             return -(1 << 30)
-        return int(np.floor(np.log(s) / np.log1p(self.band.speed_bucket)))
+        return math.floor(math.log(s) / math.log1p(self.band.speed_bucket))
 
     def table(self, speed_mm_s: float) -> np.ndarray:
-        """One period (2N samples) of the series band-limited for the speed's bucket."""
+        """One period of the series, band-limited for the speed's bucket, sampled at M points
+        (M = a power of two >= oversample x 2 x components; +3 samples for the cubic's wrap)."""
         b = self._bucket(speed_mm_s)
         tab = self._tables.get(b)
         if tab is None:
-            v = 0.0 if b == -(1 << 30) else np.exp((b + 0.5) * np.log1p(self.band.speed_bucket))
-            y = transform.synthesize(self.c * self.gains(v), self.n)
-            tab = np.concatenate([y, y[::-1], y[:3]]).astype(self.dtype)  # +3 for cubic wrap
+            v = 0.0 if b == -(1 << 30) else math.exp((b + 0.5) * math.log1p(self.band.speed_bucket))
+            spec = np.zeros(self.m // 2 + 1)
+            spec[1 : self.c.size + 1] = self.c * self.gains(v) * (self.m / 2)
+            y = scipy.fft.irfft(spec, self.m)  # y_j = sum_k w_k cos(2 pi k j / M)
+            tab = np.concatenate([y, y[:3]]).astype(self.dtype)
             self._tables[b] = tab
             if len(self._tables) > self._cache:
                 self._tables.popitem(last=False)
@@ -99,8 +125,8 @@ class HeightEvaluator:
         if self.method == "series":
             return self.series(x_mm, speed_mm_s)
         tab = self.table(speed_mm_s)
-        period = 2 * self.n
-        u = np.mod(np.asarray(x_mm, dtype=np.float64) / self.dx_mm, period)
+        period = self.m
+        u = np.mod((np.asarray(x_mm, dtype=np.float64) / self.dx_mm + 0.5) * self._idx_per_sample, period)
         if self.method == "nearest":
             return tab[np.rint(u).astype(np.int64) % period]
         i = np.floor(u).astype(np.int64)

@@ -20,10 +20,14 @@ class RenderConfig:
     samples_per_batch: int = 3  # 3 samples per 1 ms report at 3 kHz
     um_per_count: float = 0.4
     height_method: str = "series"
+    table_oversample: int = 16  # table methods: table points per period of the top component
     dtype: str = "float64"
-    latency_s: float = 0.0  # extra latency to compensate beyond the play-time stamps
+    # Extra look-ahead beyond the play instants: the delay between a sample's play instant and
+    # the actuator's displacement (DAC hold + actuator x equalizer + actuator dead time).
+    # None = measure it from the models (chain group delay at 100 Hz).
+    latency_s: float | None = None
     predict: bool = True
-    motion: MotionConfig = field(default_factory=MotionConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)  # see the accuracy bench
     band: BandLimitConfig = field(default_factory=BandLimitConfig)
     equalizer: EqualizerConfig = field(default_factory=EqualizerConfig)
     actuator: ActuatorModel = field(default_factory=ActuatorModel)
@@ -46,11 +50,18 @@ class Renderer:
         band_cfg = replace(cfg.band, sample_rate_hz=fs)
         self.position = EncoderPosition(cfg.um_per_count)
         self.motion = MotionEstimator(cfg.motion if cfg.predict else MotionConfig(order=0, window=2))
+        if cfg.dtype not in ("float32", "float64"):
+            raise ValueError("dtype must be float32 or float64")
         self.height = HeightEvaluator(coeffs_um, n, length_mm, cfg.height_method, band_cfg,
-                                      dtype=np.float32 if cfg.dtype == "float32" else np.float64)
+                                      dtype=np.float32 if cfg.dtype == "float32" else np.float64,
+                                      table_oversample=cfg.table_oversample)
         self.eq = Equalizer(cfg.actuator, eq_cfg)
         self.out = OutputStage(out_cfg)
         self.period_s = 1.0 / cfg.sample_rate_hz
+        self.latency_s = (self.eq.chain_delay_ms() * 1e-3 if cfg.latency_s is None
+                          else float(cfg.latency_s))
+        if not (np.isfinite(self.latency_s) and abs(self.latency_s) < 0.05):
+            raise ValueError("latency_s must be finite and within ±50 ms")
 
     def on_encoder(self, t_s: float, raw_count: int) -> None:
         self.motion.update(t_s, self.position.update(raw_count))
@@ -63,9 +74,9 @@ class Renderer:
 
     def render_um(self, t_play_s: np.ndarray) -> np.ndarray:
         """Limited displacement (µm) for samples that will be played at t_play_s."""
-        t = np.asarray(t_play_s, dtype=np.float64) + self.cfg.latency_s
-        x = np.asarray(self.motion.predict(t), dtype=np.float64)
-        h = self.height(x, self.motion.velocity_mm_s).astype(np.float64)
+        t = np.asarray(t_play_s, dtype=np.float64) + self.latency_s
+        x = self.motion.predict(t)
+        h = self.height(x, self.motion.velocity_mm_s)
         return self.out.process(self.eq(h))
 
     def render_codes(self, t_play_s: np.ndarray) -> np.ndarray:

@@ -1,0 +1,1 @@
+"""Benchmarks: what accuracy costs in time, and what each part of hostd costs."""

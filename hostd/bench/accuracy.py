@@ -1,0 +1,184 @@
+"""What accuracy costs in time: every knob of the render pipeline, its error and CPU cost.
+
+Each setting changes one knob from the shipped default. Every setting is run, in one
+process, on every texture under the paper's hand motion (metronome strokes of 40 mm at
+1.25 Hz, forward over one beat, back over two; minimum-jerk) through the closed-loop
+simulation of hostd.sim.chain: quantized encoder at 1 kHz, 1 ms transport, the device's
+buffer, the DAC's hold and the actuator model. The error is the displacement delivered
+minus the ideal display's (the exact series at the true position, true speed and true
+instant), RMS over the run after a settling time; `rms_error_pct` is relative to the RMS of
+the ideal displacement. A setting's row reports the worst texture. CPU is the renderer's
+thread CPU time per second of 3 kHz output (median over textures).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hostd.codec import transform
+from hostd.render.pipeline import RenderConfig, Renderer
+from hostd.sim import chain
+from hostd.sim.hand import Metronome
+from hostd.texture.load import Profile
+
+SETTLE_S = 0.2  # soft start (50 ms) and the filters settle before the error is measured
+
+
+@dataclass
+class Setting:
+    knob: str
+    setting: str
+    apply: Callable[[RenderConfig], RenderConfig]
+    default: bool = False
+
+
+def _same(c: RenderConfig) -> RenderConfig:
+    return c
+
+
+def settings() -> list[Setting]:
+    d = RenderConfig()
+    s: list[Setting] = []
+    for m in ("series", "table-cubic", "table-linear", "nearest"):
+        s.append(Setting("height_method", m, lambda c, m=m: replace(c, height_method=m),
+                         m == d.height_method))
+    for t in ("float64", "float32"):
+        s.append(Setting("dtype", t, lambda c, t=t: replace(c, dtype=t), t == d.dtype))
+    s.append(Setting("prediction", "off (hold last position)", lambda c: replace(c, predict=False)))
+    for order, win in ((1, 4), (1, 8), (2, 8), (2, 16), (2, 24)):
+        s.append(Setting("prediction", f"order {order}, window {win}",
+                         lambda c, o=order, w=win: replace(c, motion=replace(c.motion, order=o, window=w)),
+                         d.predict and (order, win) == (d.motion.order, d.motion.window)))
+    s.append(Setting("latency_comp", "none", lambda c: replace(c, latency_s=0.0)))
+    s.append(Setting("latency_comp", "chain delay (auto)", _same, d.latency_s is None))
+    s.append(Setting("equalizer", "off", lambda c: replace(c, equalizer=replace(c.equalizer, enabled=False))))
+    for hz, order in ((600, 2), (800, 2), (800, 4), (1200, 2), (1200, 4)):
+        s.append(Setting("equalizer", f"reg {hz} Hz, order {order}",
+                         lambda c, hz=hz, o=order: replace(c, equalizer=replace(c.equalizer, reg_hz=float(hz),
+                                                                               reg_order=o)),
+                         (hz, order) == (d.equalizer.reg_hz, d.equalizer.reg_order)))
+    for ov in (4, 16, 64):
+        s.append(Setting("table_oversample", f"table-cubic, {ov}x",
+                         lambda c, ov=ov: replace(c, height_method="table-cubic", table_oversample=ov)))
+    for b in (3, 6, 15, 30):
+        s.append(Setting("samples_per_batch", f"{b} ({b / 3:g} ms)",
+                         lambda c, b=b: replace(c, samples_per_batch=b), b == d.samples_per_batch))
+    return s
+
+
+def link_for(cfg: RenderConfig) -> chain.LinkConfig:
+    """The device buffer holds two batches plus 2 ms of margin for transport jitter."""
+    batch_s = cfg.samples_per_batch / cfg.sample_rate_hz
+    return chain.LinkConfig(transport_s=0.001, buffer_s=0.002 + batch_s)
+
+
+def texture_coeffs(p: Profile, speed_mm_s: float = 50.0) -> tuple[np.ndarray, int, float]:
+    geom = transform.Geometry(p.n, p.length_mm, speed_mm_s=speed_mm_s)
+    return transform.analyze(p.heights_um, geom.n_keep), p.n, p.length_mm
+
+
+def measure(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, hand: Metronome,
+            ref_cache: dict) -> dict:
+    r = Renderer(coeffs, n, length_mm, cfg)
+    link = link_for(cfg)
+    res = chain.run_loop(r, hand, duration_s, link)
+    delivered = chain.actuate(res.command_um, r.eq.model, cfg.sample_rate_hz)
+    key = (id(coeffs), res.t_play_s.size, res.t_play_s[0])
+    if key not in ref_cache:
+        ref_cache[key] = chain.reference(coeffs, n, length_mm, hand, res.t_play_s + r.eq.model.delay_s, r)
+    ideal = ref_cache[key]
+    keep = res.t_play_s >= SETTLE_S
+    err = delivered[keep] - ideal[keep]
+    rms_ideal = float(np.sqrt(np.mean(ideal[keep] ** 2)))
+    rms_err = float(np.sqrt(np.mean(err**2)))
+    pct = 100.0 * rms_err / rms_ideal if rms_ideal > 0 else math.inf
+    return {"rms_error_um": rms_err, "rms_error_pct": pct,
+            "cpu_ms_per_s": res.cpu_ms_per_s,
+            "batch_p99_us": float(np.percentile(res.batch_cpu_ns, 99)) / 1e3,
+            "ideal_rms_um": rms_ideal}
+
+
+def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = True) -> list[dict]:
+    from tqdm import tqdm
+
+    hand = Metronome()
+    base = RenderConfig()
+    coeffs = {name: texture_coeffs(p) for name, p in textures.items()}
+    rows = []
+    done: dict[str, dict] = {}  # the default setting is measured once and reused per knob
+    ref_cache: dict = {}
+    todo = settings()
+    bar = tqdm(total=len(todo) * len(coeffs), disable=not progress, desc="bench accuracy", unit="run",
+               leave=False)
+    for st in todo:
+        cfg = st.apply(base)
+        key = repr(cfg)
+        if key not in done:
+            per = {}
+            for name, (c, n, length) in coeffs.items():
+                per[name] = measure(c, n, length, cfg, duration_s, hand, ref_cache)
+                bar.update(1)
+            done[key] = per
+        else:
+            bar.update(len(coeffs))
+        per = done[key]
+        worst = max(per, key=lambda k: per[k]["rms_error_pct"])
+        rows.append({"knob": st.knob, "setting": st.setting, "default": st.default,
+                     "rms_error_um": per[worst]["rms_error_um"],
+                     "rms_error_pct": per[worst]["rms_error_pct"], "worst_texture": worst,
+                     "cpu_ms_per_s": float(np.median([v["cpu_ms_per_s"] for v in per.values()])),
+                     "batch_p99_us": float(np.median([v["batch_p99_us"] for v in per.values()])),
+                     "per_texture": per})
+    bar.close()
+    return rows
+
+
+def plot(rows: list[dict], path: str) -> None:
+    """Error against CPU, one panel per texture, one point per setting (* = default)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    textures = list(rows[0]["per_texture"])
+    fig, axes = plt.subplots(1, len(textures), figsize=(5.2 * len(textures), 5), sharex=True,
+                             squeeze=False)
+    knobs = list(dict.fromkeys(r["knob"] for r in rows))
+    markers = "osD^v<>p"
+    for ax, tex in zip(axes[0], textures, strict=True):
+        for i, k in enumerate(knobs):
+            rs = [r for r in rows if r["knob"] == k]
+            xs = [r["per_texture"][tex]["cpu_ms_per_s"] for r in rs]
+            ys = [r["per_texture"][tex]["rms_error_pct"] for r in rs]
+            ax.scatter(xs, ys, marker=markers[i % len(markers)], label=k, s=30)
+            for r, x, y in zip(rs, xs, ys, strict=True):
+                if not r["default"] and y > 1.3 * min(ys):  # label the settings that stand out
+                    ax.annotate(r["setting"], (x, y), fontsize=6, xytext=(3, 2), textcoords="offset points")
+        d = next(r for r in rows if r["default"])
+        ax.scatter([d["per_texture"][tex]["cpu_ms_per_s"]], [d["per_texture"][tex]["rms_error_pct"]],
+                   s=160, facecolors="none", edgecolors="k", label="defaults")
+        ax.axvline(30.0, color="0.6", ls="--", lw=0.8)
+        ax.axhline(1.0, color="0.6", ls=":", lw=0.8)
+        ax.set_yscale("log")
+        ax.set_title(tex)
+        ax.set_xlabel("CPU ms per second of 3 kHz output (dashed: 3 % of a core)")
+    axes[0][0].set_ylabel("RMS error, % of the ideal displacement's RMS (dotted: 1 %)")
+    axes[0][-1].legend(fontsize=7)
+    fig.suptitle("Render pipeline: accuracy against CPU cost, one knob changed at a time")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def table(rows: list[dict]) -> str:
+    lines = [f"{'knob':<18} {'setting':<26} {'default':<7} {'rms µm':>9} {'rms %':>8} "
+             f"{'CPU ms/s':>9} {'p99 µs':>8}  worst"]
+    for r in rows:
+        lines.append(f"{r['knob']:<18} {r['setting']:<26} {'yes' if r['default'] else '':<7} "
+                     f"{r['rms_error_um']:>9.4f} {r['rms_error_pct']:>8.3f} {r['cpu_ms_per_s']:>9.2f} "
+                     f"{r['batch_p99_us']:>8.1f}  {r['worst_texture']}")
+    return "\n".join(lines)

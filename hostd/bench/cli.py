@@ -1,0 +1,91 @@
+"""`hostd bench [accuracy|pipeline|codec|scoring|all]` (also `./run bench`, `python -m benchmarks`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def add_parser(sub, parents) -> None:
+    p = sub.add_parser("bench", help="benchmarks: what accuracy costs in time, and what each part costs",
+                       description="Benchmarks. Figures are medians/percentiles measured in one run "
+                       "on this machine; compare ratios, not absolute numbers, across machines.")
+    bsub = p.add_subparsers(dest="bench", metavar="WHAT")
+    a = bsub.add_parser("accuracy", parents=parents,
+                        help="every render knob: RMS error vs CPU ms per second of output")
+    a.add_argument("--json", action="store_true", help="print the rows as JSON")
+    a.add_argument("--plot", metavar="FILE.png", help="write error against CPU time, one point per setting")
+    a.add_argument("--duration", type=float, default=4.8, metavar="S",
+                   help="simulated seconds per setting and texture (default 4.8 = two metronome cycles)")
+    a.add_argument("--profile", action="append", default=[], metavar="FILE",
+                   help="a real profile to include (repeatable; loader options apply); default: the "
+                   "bundled instrument profile when present")
+    a.add_argument("--quiet", action="store_true", help="no progress bar")
+    q = bsub.add_parser("pipeline", help="time per 1 ms batch at default settings (p50/p99/p99.9)")
+    q.add_argument("--json", action="store_true")
+    q.add_argument("--duration", type=float, default=60.0, metavar="S", help="simulated seconds (default 60)")
+    for name, hlp in (("codec", "encode/decode times"), ("scoring", "index scoring throughput"),
+                      ("all", "pipeline, codec and scoring (accuracy is run on its own)")):
+        b = bsub.add_parser(name, help=hlp)
+        b.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench)
+
+
+def _print_rows(rows: list[dict]) -> None:
+    for r in rows:
+        print("  ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items()))
+
+
+def _textures(args) -> dict:
+    from hostd.texture import synth
+
+    tex = {"wood": synth.make("wood", seed=1), "sandpaper": synth.make("sandpaper", seed=1)}
+    if args.profile:
+        from hostd.cli import read_profile
+
+        for path in args.profile:
+            prof = read_profile(path, args, length_mm=args.length_mm)
+            tex[Path(path).stem] = prof
+    else:
+        from hostd.paths import bundled_profile
+
+        found = bundled_profile()
+        if found is not None:
+            tex[Path(found.source).stem or "real"] = found
+    return tex
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from hostd.bench import accuracy, common, micro, pipeline
+
+    what = args.bench or "all"
+    if what == "accuracy":
+        if not (0.5 <= args.duration <= 600):
+            raise SystemExit("hostd bench: error: --duration must be 0.5..600 s")
+        rows = accuracy.run(_textures(args), args.duration, progress=not (args.quiet or args.json))
+        if args.plot:
+            accuracy.plot(rows, args.plot)
+        if args.json:
+            json.dump(rows, sys.stdout, indent=1, default=float)
+            print()
+        else:
+            print(f"machine: {common.machine()}")
+            print(accuracy.table(rows))
+            if args.plot:
+                print(f"plot: {args.plot}")
+        return 0
+    rows: list[dict] = []
+    if what in ("pipeline", "all"):
+        rows.append(pipeline.run(getattr(args, "duration", 60.0)))
+    if what in ("codec", "all"):
+        rows += micro.bench_codec()
+    if what in ("scoring", "all"):
+        rows += micro.bench_scoring()
+    if args.json:
+        print(json.dumps({"machine": common.machine(), "rows": rows}, indent=1))
+    else:
+        print(f"machine: {common.machine()}")
+        _print_rows(rows)
+    return 0
