@@ -33,3 +33,25 @@ class FitError(HostdError):
 
 class QualityError(HostdError):
     """Non-finite or mismatched input to the quality indices."""
+
+
+class DeviceError(HostdError):
+    """The display cannot be reached or does not speak our protocol. exit code 3."""
+
+    exit_code = 3
+
+
+class DeviceNotFound(DeviceError):
+    """No display matched (the message lists what was seen)."""
+
+
+class DevicePermission(DeviceError):
+    """The display exists but this user may not open it (the message names the udev rule)."""
+
+
+class DeviceVersion(DeviceError):
+    """The display speaks another protocol version or has incompatible parameters."""
+
+
+class DeviceGone(DeviceError):
+    """The display went away mid-stream (unplugged)."""

@@ -1,0 +1,225 @@
+/* Host port: the firmware core running in real time on Linux.
+ *
+ * A 3 kHz tick from clock_nanosleep(TIMER_ABSTIME), the serial framing on a pseudo-terminal
+ * (its slave path is printed on stdout as "PTY <path>"), simulated encoder motion turned into
+ * quadrature pin changes, and a log of every DAC code (binary records, see log_tick).
+ *
+ * usage: hostd-fw-host [--ppm N] [--ppm-after SECONDS:N] [--motion none|constant:MM_S|metronome]
+ *                      [--log FILE] [--duration SECONDS] [--glitch-at SECONDS]
+ */
+#define _GNU_SOURCE
+#include <errno.h>
+#include <fcntl.h>
+#include <math.h>
+#include <signal.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <termios.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "fw.h"
+#include "hal.h"
+
+static int g_master = -1;
+static uint64_t g_ticks;           /* device ticks since start */
+static double g_device_period_ns;  /* nominal 333,333.3 ns, scaled by the clock error */
+static FILE *g_log;
+static int16_t g_last_dac;
+static volatile sig_atomic_t g_stop;
+static unsigned long g_send_dropped;
+
+/* The device's clock: its own tick count at the nominal rate (it is the clock master). */
+uint32_t hal_time_us(void) { return (uint32_t)((g_ticks * 1000000ull) / HP_SAMPLE_RATE_HZ); }
+
+void hal_dac_write(int16_t code) { g_last_dac = code; }
+
+void hal_send(const uint8_t *msg, size_t len) {
+    uint8_t fr[FW_FRAME_MAX + 4];
+    size_t n = fw_frame(msg, len, fr, sizeof fr);
+    if (n == 0 || g_master < 0) {
+        return;
+    }
+    ssize_t w = write(g_master, fr, n);
+    if (w != (ssize_t)n) {
+        g_send_dropped++; /* host not reading: like a NAKed IN endpoint, drop */
+    }
+}
+
+static void on_signal(int sig) {
+    (void)sig;
+    g_stop = 1;
+}
+
+static double now_s(const struct timespec *t0) {
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (double)(t.tv_sec - t0->tv_sec) + (double)(t.tv_nsec - t0->tv_nsec) * 1e-9;
+}
+
+/* Hand motion in mm at real time t (the hand lives in the real world, not on a clock). */
+enum { M_NONE, M_CONST, M_METRO };
+static int g_motion = M_NONE;
+static double g_speed = 50.0;
+
+static double hand_mm(double t) {
+    if (g_motion == M_CONST) {
+        return g_speed * t;
+    }
+    if (g_motion == M_METRO) { /* paper: 40 mm, 1.25 Hz, forward 1 beat, back 2, minimum jerk */
+        const double tf = 0.8, tb = 1.6, per = 2.4;
+        double p = fmod(t, per);
+        double s = p < tf ? p / tf : (p - tf) / tb;
+        double x = s * s * s * (10 - 15 * s + 6 * s * s);
+        return 40.0 * (p < tf ? x : 1.0 - x);
+    }
+    return 0.0;
+}
+
+static const uint8_t GRAY[4] = {0, 1, 3, 2};
+static int64_t g_enc_pos; /* true count of the simulated encoder */
+
+static void step_encoder(fw_t *f, int64_t target) {
+    while (g_enc_pos != target) {
+        g_enc_pos += (target > g_enc_pos) ? 1 : -1;
+        fw_encoder_pins(f, GRAY[(uint64_t)g_enc_pos & 3u]);
+    }
+}
+
+/* log record, 12 bytes LE: u32 tick, i16 dac code, u32 encoder count (as decoded),
+ * u16 flags (bit 0: the code came from the buffer; bit 1: underrun) */
+static void log_tick(uint32_t tick, int16_t code, uint32_t enc, uint16_t flags) {
+    if (!g_log) return;
+    uint8_t r[12] = {0};
+    for (int i = 0; i < 4; i++) r[i] = (uint8_t)(tick >> (8 * i));
+    r[4] = (uint8_t)((uint16_t)code & 0xFF);
+    r[5] = (uint8_t)((uint16_t)code >> 8);
+    for (int i = 0; i < 4; i++) r[6 + i] = (uint8_t)(enc >> (8 * i));
+    r[10] = (uint8_t)flags;
+    r[11] = (uint8_t)(flags >> 8);
+    fwrite(r, 1, sizeof r, g_log);
+}
+
+static int open_pty(char *name, size_t cap, int *slave_keep) {
+    int m = posix_openpt(O_RDWR | O_NOCTTY);
+    if (m < 0 || grantpt(m) != 0 || unlockpt(m) != 0) {
+        return -1;
+    }
+    if (ptsname_r(m, name, cap) != 0) {
+        return -1;
+    }
+    /* raw mode on the slave: no echo, no line editing, no CR/NL translation */
+    int s = open(name, O_RDWR | O_NOCTTY);
+    if (s < 0) {
+        return -1;
+    }
+    struct termios tio;
+    tcgetattr(s, &tio);
+    cfmakeraw(&tio);
+    tcsetattr(s, TCSANOW, &tio);
+    *slave_keep = s; /* kept open so the master never sees a hang-up between host sessions */
+    fcntl(m, F_SETFL, fcntl(m, F_GETFL) | O_NONBLOCK);
+    return m;
+}
+
+int main(int argc, char **argv) {
+    double ppm = 0, ppm2 = 0, ppm_after = -1, duration = -1, glitch_at = -1;
+    const char *log_path = NULL;
+    for (int i = 1; i < argc; i++) {
+        const char *a = argv[i];
+        const char *v = i + 1 < argc ? argv[i + 1] : NULL;
+        if (!strcmp(a, "--ppm") && v) {
+            ppm = atof(v), i++;
+        } else if (!strcmp(a, "--ppm-after") && v) {
+            if (sscanf(v, "%lf:%lf", &ppm_after, &ppm2) != 2) {
+                fprintf(stderr, "hostd-fw-host: --ppm-after wants SECONDS:PPM\n");
+                return 2;
+            }
+            i++;
+        } else if (!strcmp(a, "--motion") && v) {
+            if (!strcmp(v, "none")) g_motion = M_NONE;
+            else if (!strcmp(v, "metronome")) g_motion = M_METRO;
+            else if (!strncmp(v, "constant:", 9)) g_motion = M_CONST, g_speed = atof(v + 9);
+            else {
+                fprintf(stderr, "hostd-fw-host: --motion none|constant:MM_S|metronome\n");
+                return 2;
+            }
+            i++;
+        } else if (!strcmp(a, "--log") && v) {
+            log_path = v, i++;
+        } else if (!strcmp(a, "--duration") && v) {
+            duration = atof(v), i++;
+        } else if (!strcmp(a, "--glitch-at") && v) {
+            glitch_at = atof(v), i++;
+        } else {
+            fprintf(stderr, "hostd-fw-host: unknown argument %s (see the header of port/host/main.c)\n", a);
+            return 2;
+        }
+    }
+    if (fabs(ppm) > 10000 || fabs(ppm2) > 10000) {
+        fprintf(stderr, "hostd-fw-host: --ppm must be within +-10000\n");
+        return 2;
+    }
+    if (log_path && !(g_log = fopen(log_path, "wb"))) {
+        fprintf(stderr, "hostd-fw-host: cannot write %s: %s\n", log_path, strerror(errno));
+        return 1;
+    }
+    char name[128];
+    int slave = -1;
+    g_master = open_pty(name, sizeof name, &slave);
+    if (g_master < 0) {
+        fprintf(stderr, "hostd-fw-host: cannot open a pseudo-terminal: %s\n", strerror(errno));
+        return 1;
+    }
+    signal(SIGINT, on_signal);
+    signal(SIGTERM, on_signal);
+    signal(SIGPIPE, SIG_IGN);
+    printf("PTY %s\n", name);
+    fflush(stdout);
+
+    static fw_t f;
+    fw_init(&f, 0);
+    struct timespec t0, next;
+    clock_gettime(CLOCK_MONOTONIC, &t0);
+    next = t0;
+    g_device_period_ns = 1e9 / HP_SAMPLE_RATE_HZ / (1.0 + ppm * 1e-6);
+    double next_ns = 0; /* since t0 */
+    bool glitched = false;
+    uint8_t rx[4096];
+    while (!g_stop) {
+        double t = now_s(&t0);
+        if (duration > 0 && t >= duration) break;
+        if (ppm_after >= 0 && t >= ppm_after) {
+            g_device_period_ns = 1e9 / HP_SAMPLE_RATE_HZ / (1.0 + ppm2 * 1e-6);
+            ppm_after = -1;
+        }
+        next_ns += g_device_period_ns;
+        next.tv_sec = t0.tv_sec + (time_t)((t0.tv_nsec + (long long)next_ns) / 1000000000LL);
+        next.tv_nsec = (long)((t0.tv_nsec + (long long)next_ns) % 1000000000LL);
+        while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &next, NULL) == EINTR && !g_stop) {
+        }
+        for (;;) { /* everything the host has sent so far */
+            ssize_t n = read(g_master, rx, sizeof rx);
+            if (n <= 0) break;
+            fw_deframer_feed(&f, rx, (size_t)n);
+        }
+        double tt = now_s(&t0);
+        step_encoder(&f, llround(hand_mm(tt) * 1e6 / HP_UM_PER_COUNT_NM));
+        if (glitch_at >= 0 && !glitched && tt >= glitch_at) { /* one illegal transition */
+            fw_encoder_pins(&f, (uint8_t)(GRAY[(uint64_t)g_enc_pos & 3u] ^ 3u));
+            fw_encoder_pins(&f, GRAY[(uint64_t)g_enc_pos & 3u]);
+            glitched = true;
+        }
+        fw_tick(&f);
+        g_ticks++;
+        log_tick((uint32_t)g_ticks, g_last_dac, f.quad.count,
+                 (uint16_t)((f.played ? 1u : 0u) | (f.in_underrun ? 2u : 0u)));
+    }
+    if (g_log) fclose(g_log);
+    fprintf(stderr, "hostd-fw-host: %llu ticks, %u underruns, %u malformed, %lu sends dropped\n",
+            (unsigned long long)g_ticks, f.underruns, f.malformed, g_send_dropped);
+    close(slave);
+    close(g_master);
+    return 0;
+}

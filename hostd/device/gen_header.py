@@ -1,0 +1,58 @@
+"""Generate firmware/include/hostd_proto.h from protocol.toml: python -m hostd.device.gen_header [OUT]"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from hostd.device import protocol as pr
+
+HEADER = Path(__file__).resolve().parents[2] / "firmware" / "include" / "hostd_proto.h"
+_SIZES = {"B": 1, "H": 2, "I": 4, "h": 2}
+
+
+def render() -> str:
+    lines = ["/* GENERATED from hostd/device/protocol.toml by `python -m hostd.device.gen_header`.",
+             " * Do not edit: change the TOML and regenerate (a test checks this file is current). */",
+             "#ifndef HOSTD_PROTO_H", "#define HOSTD_PROTO_H", ""]
+    for k, v in pr.P.items():
+        if isinstance(v, list):
+            for i, part in zip(("MAJOR", "MINOR", "PATCH"), v, strict=True):
+                lines.append(f"#define HP_{k.upper()}_{i} {part}")
+        else:
+            val = f"{v:#x}" if k.startswith("usb") else str(v)
+            lines.append(f"#define HP_{k.upper()} {val}")
+    lines.append("")
+    for group, prefix in (("ids", "HP_ID_"), ("states", "HP_STATE_"), ("faults", "HP_FAULT_")):
+        for k, v in pr.SPEC[group].items():
+            lines.append(f"#define {prefix}{k} 0x{v:02x}")
+        lines.append("")
+    for name, lay in pr.LAYOUTS.items():
+        off = 0
+        for fname, code in lay.fields:
+            lines.append(f"#define HP_{name}_OFF_{fname.upper()} {off}")
+            off += _SIZES[code]
+        lines.append(f"#define HP_{name}_SIZE {off}")
+        xs = []
+        off = 0
+        for fname, code in lay.fields:
+            xs.append(f"X({fname}, {off}, {_SIZES[code]}, {int(code == 'h')})")
+            off += _SIZES[code]
+        lines.append("/* X(name, offset, size, is_signed) for each fixed field */")
+        lines.append(f"#define HP_{name}_FIELDS(X) " + " ".join(xs))
+        lines.append("")
+    lines.append("#endif")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    out = Path(argv[0]) if argv else HEADER
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(render())
+    print(out)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,210 @@
+"""An in-process simulated display: the firmware core's behaviour in Python.
+
+It follows firmware/src/core.c message for message (same limits, ramps, counters, STATUS
+every 3 ticks) so the daemon and the tests can run where neither USB nor a C compiler is
+available; tests/test_device.py runs the same golden vectors through both. Time is either
+real (ticks are run lazily, as many as have elapsed, whenever the host sends or receives)
+or manual (`advance(ticks)`), and the hand is any hostd.sim.hand model.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+
+from hostd.device import protocol as pr
+
+S = pr.STATES
+F = pr.FAULTS
+RAMP_STEP = max(1, pr.LIMIT_CODE // pr.P["ramp_ticks"])
+
+
+class SimDevice:
+    def __init__(self, hand=None, clock_ppm: float = 0.0) -> None:
+        self.ring: deque[int] = deque()
+        self.state = S["IDLE"]
+        self.faults = 0
+        self.out = 0
+        self.limit_code = pr.LIMIT_CODE
+        self.max_step_code = pr.MAX_STEP_CODE
+        self.timeout_ms = pr.P["default_timeout_ms"]
+        self.ticks = 0
+        self.samples_played = 0
+        self.last_rx_us = 0
+        self.last_seq = 0
+        self.underruns = 0
+        self.malformed = 0
+        self.encoder_errors = 0
+        self.in_underrun = False
+        self.hand = hand
+        self.clock_ppm = clock_ppm
+        self.outbox: deque[bytes] = deque()
+        self.dac_log: list[int] = []
+        self.played_log: list[int] = []  # codes popped from the buffer, in order
+        self.log_limit = 10_000_000
+
+    def time_us(self) -> int:
+        return (self.ticks * 1_000_000 // pr.SAMPLE_RATE_HZ) & 0xFFFFFFFF
+
+    def encoder_count(self) -> int:
+        if self.hand is None:
+            return 0
+        t = self.ticks / pr.SAMPLE_RATE_HZ * (1 + self.clock_ppm * 1e-6)  # the hand's real time
+        x_mm = float(self.hand.position_mm(t))
+        return round(x_mm * 1e6 / pr.P["um_per_count_nm"]) & 0xFFFFFFFF
+
+    def on_message(self, m: bytes) -> None:
+        try:
+            name, f = pr.decode(m)
+        except pr.ProtocolError:
+            self.malformed += 1
+            return
+        if name in ("STATUS", "IDENT") or (name == "SAMPLES" and f["flags"] != 0):
+            self.malformed += 1
+            return
+        zero_step = name == "SET_LIMITS" and f["max_step_code"] == 0
+        if zero_step or (name == "SET_TIMEOUT" and f["timeout_ms"] == 0):
+            self.malformed += 1
+            return
+        if name == "SAMPLES":
+            if len(self.ring) + f["count"] > pr.BUFFER_CAPACITY:
+                self.faults |= F["OVERFLOW"]
+            else:
+                self.ring.extend(f["codes"])
+            self.last_seq = f["seq"]
+        elif name == "START":
+            self.state = S["RUNNING"]
+            self.in_underrun = False
+        elif name == "STOP":
+            if self.state == S["RUNNING"]:
+                self.state = S["RAMP_DOWN"]
+            self.ring.clear()
+        elif name == "SET_LIMITS":
+            self.limit_code = min(f["limit_code"], pr.LIMIT_CODE)
+            self.max_step_code = min(f["max_step_code"], pr.MAX_STEP_CODE)
+        elif name == "SET_TIMEOUT":
+            self.timeout_ms = f["timeout_ms"]
+        elif name == "IDENTIFY":
+            self.outbox.append(self.ident())
+        self.last_rx_us = self.time_us()
+
+    def ident(self) -> bytes:
+        return pr.encode("IDENT", protocol_version=pr.VERSION, fw_major=pr.P["fw_version"][0],
+                         fw_minor=pr.P["fw_version"][1], fw_patch=pr.P["fw_version"][2],
+                         dac_bits=pr.P["dac_bits"], sample_rate_hz=pr.SAMPLE_RATE_HZ,
+                         limit_code=self.limit_code, max_step_code=self.max_step_code,
+                         buffer_capacity=pr.BUFFER_CAPACITY, max_samples=pr.MAX_SAMPLES,
+                         um_per_count_nm=pr.P["um_per_count_nm"])
+
+    @staticmethod
+    def _toward_zero(v: int) -> int:
+        return v - RAMP_STEP if v > RAMP_STEP else v + RAMP_STEP if v < -RAMP_STEP else 0
+
+    def tick(self) -> None:
+        self.ticks += 1
+        now = self.time_us()
+        if self.state == S["RUNNING"] and (now - self.last_rx_us) & 0xFFFFFFFF > self.timeout_ms * 1000:
+            self.state = S["RAMP_DOWN"]
+            self.faults |= F["HOST_TIMEOUT"]
+            self.ring.clear()
+        if self.state == S["RUNNING"]:
+            if self.ring:
+                target = self.ring.popleft()
+                self.in_underrun = False
+                self.samples_played += 1
+                if len(self.played_log) < self.log_limit:
+                    self.played_log.append(target)
+            else:
+                if not self.in_underrun:
+                    self.underruns += 1
+                    self.in_underrun = True
+                self.faults |= F["UNDERRUN"]
+                target = self._toward_zero(self.out)
+        else:
+            target = self._toward_zero(self.out)
+            if self.state == S["RAMP_DOWN"] and target == 0:
+                self.state = S["IDLE"]
+        lim, step = self.limit_code, self.max_step_code
+        if abs(target) > lim:
+            target = lim if target > 0 else -lim
+            self.faults |= F["CLIPPED"]
+        d = target - self.out
+        if abs(d) > step:
+            target = self.out + (step if d > 0 else -step)
+            self.faults |= F["SLEWED"]
+        self.out = target
+        if len(self.dac_log) < self.log_limit:
+            self.dac_log.append(target)
+        if self.ticks % pr.P["status_period_ticks"] == 0:
+            self.outbox.append(self.status())
+            self.faults = 0
+
+    def status(self) -> bytes:
+        return pr.encode("STATUS", state=self.state, fault_flags=self.faults, device_time_us=self.time_us(),
+                         encoder_count=self.encoder_count(), samples_played=self.samples_played & 0xFFFFFFFF,
+                         buffer_fill=len(self.ring), last_seq=self.last_seq,
+                         underruns=self.underruns & 0xFFFF, malformed=self.malformed & 0xFFFF,
+                         encoder_errors=self.encoder_errors & 0xFFFF)
+
+
+class SimTransport:
+    """A Transport whose device is a SimDevice, ticking in real time (default) or manually."""
+
+    name = "sim"
+
+    def __init__(self, device: SimDevice | None = None, realtime: bool = True, hand=None,
+                 clock_ppm: float = 0.0) -> None:
+        if hand is None and device is None:
+            from hostd.sim.hand import Metronome
+
+            hand = Metronome()
+        self.device = device or SimDevice(hand=hand, clock_ppm=clock_ppm)
+        self.realtime = realtime
+        self._t0 = time.monotonic()
+        self.closed = False
+
+    def _catch_up(self) -> None:
+        if not self.realtime:
+            return
+        rate = pr.SAMPLE_RATE_HZ * (1 + self.device.clock_ppm * 1e-6)
+        due = int((time.monotonic() - self._t0) * rate)
+        for _ in range(min(due - self.device.ticks, 3000)):  # at most 1 s per call
+            self.device.tick()
+        if due - self.device.ticks > 3000:  # far behind (debugger, suspend): jump
+            self.device.ticks = due
+
+    def advance(self, ticks: int) -> None:
+        for _ in range(ticks):
+            self.device.tick()
+
+    def send(self, msg: bytes) -> None:
+        if self.closed:
+            from hostd.errors import DeviceGone
+
+            raise DeviceGone("simulated display closed")
+        self._catch_up()
+        self.device.on_message(msg)
+
+    def recv(self, timeout_s: float = 0.0) -> bytes | None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._catch_up()
+            if self.device.outbox:
+                return self.device.outbox.popleft()
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(0.0002)
+
+    def close(self) -> None:
+        self.closed = True
+
+    def describe(self) -> str:
+        return "sim"
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+

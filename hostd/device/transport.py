@@ -1,0 +1,89 @@
+"""One interface, four backends. A transport moves whole protocol messages.
+
+Backends: "hid" (hidapi), "usb" (pyusb + libusb-package), "serial[:PORT]" (pyserial, COBS
+frames), "sim" (an in-process simulated device). "auto" tries hid, usb, serial, in that order.
+"""
+
+from __future__ import annotations
+
+import errno
+
+from hostd.device import protocol as pr
+from hostd.errors import DeviceError, DeviceGone, DeviceNotFound, DevicePermission
+
+UDEV_RULE = "systemd/70-hostd.rules"
+UDEV_FIX = (f"install the udev rule: sudo cp {UDEV_RULE} /etc/udev/rules.d/ && "
+            "sudo udevadm control --reload && sudo udevadm trigger, then re-plug the display "
+            "(or add your user to the 'hostd' group)")
+
+
+class Transport:
+    name = "transport"
+
+    def send(self, msg: bytes) -> None:
+        raise NotImplementedError
+
+    def recv(self, timeout_s: float = 0.0) -> bytes | None:
+        """One message, or None if none arrived within timeout_s. Raises DeviceGone."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+    def describe(self) -> str:
+        return self.name
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def os_error(e: OSError, what: str) -> DeviceError:
+    """Map an OS error on open/read/write to the error that says what to do."""
+    if e.errno in (errno.EACCES, errno.EPERM):
+        return DevicePermission(f"permission denied opening {what}: {UDEV_FIX}")
+    if e.errno in (errno.EIO, errno.ENODEV, errno.ENXIO, errno.EPIPE, errno.ENOENT):
+        return DeviceGone(f"{what} went away ({e.strerror or e}); re-plug it, hostd reconnects")
+    return DeviceError(f"{what}: {e}")
+
+
+def find_devices() -> list[str]:
+    """Everything that looks like a display, as transport specs (for `hostd doctor`)."""
+    from hostd.device import hidlink, seriallink, usblink
+
+    found: list[str] = []
+    for mod in (hidlink, usblink, seriallink):
+        try:
+            found += mod.enumerate_specs()
+        except DeviceError:
+            pass
+    return found
+
+
+def open_transport(spec: str = "auto", **kw) -> Transport:
+    """Open a transport from a spec: auto | hid[:PATH] | usb | serial[:PORT] | sim."""
+    from hostd.device import hidlink, seriallink, simdev, usblink
+
+    kind, _, arg = spec.partition(":")
+    if kind == "sim":
+        return simdev.SimTransport(**kw)
+    if kind == "hid":
+        return hidlink.HidTransport(arg or None)
+    if kind == "usb":
+        return usblink.UsbTransport()
+    if kind == "serial":
+        return seriallink.SerialTransport(arg or None)
+    if kind != "auto":
+        raise DeviceError(f"unknown device {spec!r}: use auto, hid[:PATH], usb, serial[:PORT] or sim")
+    seen: list[str] = []
+    for opener in (hidlink.HidTransport, usblink.UsbTransport, seriallink.SerialTransport):
+        try:
+            return opener()
+        except DevicePermission:
+            raise
+        except DeviceNotFound as e:
+            seen.append(str(e))
+    raise DeviceNotFound(f"no display {pr.USB_VID:04x}:{pr.USB_PID:04x} found on HID, USB or serial "
+                         f"({'; '.join(seen)}); plug it in, or use device = \"sim\" to run without one")
