@@ -26,6 +26,11 @@ def add_parser(sub, parents) -> None:
     q = bsub.add_parser("pipeline", help="time per 1 ms batch at default settings (p50/p99/p99.9)")
     q.add_argument("--json", action="store_true")
     q.add_argument("--duration", type=float, default=60.0, metavar="S", help="simulated seconds (default 60)")
+    lat = bsub.add_parser("latency", help="encoder change to first DAC sample, through the firmware on a pty")
+    lat.add_argument("--json", action="store_true")
+    lat.add_argument("--duration", type=float, default=8.0, metavar="S")
+    lat.add_argument("--target-fill", type=int, default=12, metavar="SAMPLES",
+                     help="the device buffer's target fill (default 12 = 4 ms)")
     for name, hlp in (("codec", "encode/decode times"), ("scoring", "index scoring throughput"),
                       ("all", "pipeline, codec and scoring (accuracy is run on its own)")):
         b = bsub.add_parser(name, help=hlp)
@@ -77,6 +82,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
                 print(f"plot: {args.plot}")
         return 0
     rows: list[dict] = []
+    if what == "latency":
+        from hostd.bench import latency
+
+        try:
+            rows.append(latency.run(args.duration, args.target_fill))
+        except RuntimeError as e:
+            raise SystemExit(f"hostd bench latency: error: {e}") from None
     if what in ("pipeline", "all"):
         rows.append(pipeline.run(getattr(args, "duration", 60.0)))
     if what in ("codec", "all"):

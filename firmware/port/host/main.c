@@ -4,7 +4,8 @@
  * (its slave path is printed on stdout as "PTY <path>"), simulated encoder motion turned into
  * quadrature pin changes, and a log of every DAC code (binary records, see log_tick).
  *
- * usage: hostd-fw-host [--ppm N] [--ppm-after SECONDS:N] [--motion none|constant:MM_S|metronome]
+ * usage: hostd-fw-host [--ppm N] [--ppm-after SECONDS:N]
+ *                      [--motion none|constant:MM_S|metronome|steps:PERIOD_S:MM]
  *                      [--log FILE] [--duration SECONDS] [--glitch-at SECONDS]
  */
 #define _GNU_SOURCE
@@ -59,13 +60,17 @@ static double now_s(const struct timespec *t0) {
 }
 
 /* Hand motion in mm at real time t (the hand lives in the real world, not on a clock). */
-enum { M_NONE, M_CONST, M_METRO };
+enum { M_NONE, M_CONST, M_METRO, M_STEPS };
 static int g_motion = M_NONE;
 static double g_speed = 50.0;
+static double g_step_period = 0.5, g_step_mm = 0.05;
 
 static double hand_mm(double t) {
     if (g_motion == M_CONST) {
         return g_speed * t;
+    }
+    if (g_motion == M_STEPS) { /* latency probe: jumps between 0 and g_step_mm every period */
+        return ((long)(t / g_step_period) % 2) ? g_step_mm : 0.0;
     }
     if (g_motion == M_METRO) { /* paper: 40 mm, 1.25 Hz, forward 1 beat, back 2, minimum jerk */
         const double tf = 0.8, tb = 1.6, per = 2.4;
@@ -141,8 +146,10 @@ int main(int argc, char **argv) {
             if (!strcmp(v, "none")) g_motion = M_NONE;
             else if (!strcmp(v, "metronome")) g_motion = M_METRO;
             else if (!strncmp(v, "constant:", 9)) g_motion = M_CONST, g_speed = atof(v + 9);
+            else if (!strncmp(v, "steps:", 6) && sscanf(v + 6, "%lf:%lf", &g_step_period, &g_step_mm) == 2)
+                g_motion = M_STEPS;
             else {
-                fprintf(stderr, "hostd-fw-host: --motion none|constant:MM_S|metronome\n");
+                fprintf(stderr, "hostd-fw-host: --motion none|constant:MM_S|metronome|steps:PERIOD_S:MM\n");
                 return 2;
             }
             i++;

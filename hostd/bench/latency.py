@@ -1,0 +1,87 @@
+"""Latency from a change of encoder position to the first DAC sample that reflects it,
+measured through the real firmware (host port) on a pseudo-terminal.
+
+The host port's hand jumps between 0 and `step_mm` every `period_s`. Its log holds, per 3 kHz
+tick, the encoder count it decoded and the DAC code it wrote, both on the device's clock; the
+latency of one step is the first tick whose code differs from the resting code minus the
+tick at which the count changed.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+FIRMWARE = ROOT / "firmware"
+EXE = FIRMWARE / "build" / "hostd-fw-host"
+
+
+def build_host_port() -> Path:
+    r = subprocess.run(["make", "-s", "-C", str(FIRMWARE), "host"], capture_output=True, text=True)
+    if r.returncode != 0 or not EXE.exists():
+        raise RuntimeError(f"cannot build the firmware host port (needs make and a C compiler): "
+                           f"{r.stderr.strip()[:300]}")
+    return EXE
+
+
+def read_log(path: Path) -> np.ndarray:
+    return np.frombuffer(path.read_bytes(), dtype=[("tick", "<u4"), ("code", "<i2"), ("enc", "<u4"),
+                                                   ("flags", "<u2")])
+
+
+def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = 0.4, step_mm: float = 0.05) -> dict:
+    from hostd.bench.accuracy import texture_coeffs
+    from hostd.device.link import DeviceLink
+    from hostd.device.pump import Pump
+    from hostd.device.seriallink import SerialTransport
+    from hostd.render import RenderConfig, Renderer
+    from hostd.texture import synth
+
+    exe = build_host_port()
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(tmp) / "dac.bin"
+        proc = subprocess.Popen([str(exe), "--motion", f"steps:{period_s}:{step_mm}", "--log", str(log),
+                                 "--duration", str(duration_s + 2)], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            port = proc.stdout.readline().split()[1]
+            t = SerialTransport(port)
+            link = DeviceLink(t, target_fill=target_fill)
+            link.handshake(timeout_s=2.0)
+            c, n, length = texture_coeffs(synth.make("sandpaper", seed=1))
+            r = Renderer(c, n, length, RenderConfig())
+            r.start()
+            pump = Pump(link, r)
+            link.poll(0.01)
+            pump.step()
+            link.start()
+            pump.run(duration_s)
+            link.poll(0.01)
+            underruns = link.stats.underruns
+            link.stop()
+            t.close()
+        finally:
+            proc.terminate()
+            proc.communicate(timeout=10)
+        rec = read_log(log)
+    enc = rec["enc"].astype(np.int64)
+    code = rec["code"].astype(np.int64)
+    changes = np.flatnonzero(np.diff(enc) != 0) + 1
+    lat_ticks = []
+    for i in changes:
+        if i < 3000:  # let start-up and the soft start pass
+            continue
+        rest = code[i - 1]
+        after = np.flatnonzero(code[i : i + 900] != rest)
+        if after.size:
+            lat_ticks.append(int(after[0]))
+    lat_ms = np.array(lat_ticks) / 3.0
+    return {"bench": "latency", "link": "pty (firmware host port)", "target_fill": target_fill,
+            "events": int(lat_ms.size), "underruns": underruns,
+            "p50_ms": float(np.median(lat_ms)) if lat_ms.size else float("nan"),
+            "min_ms": float(lat_ms.min()) if lat_ms.size else float("nan"),
+            "max_ms": float(lat_ms.max()) if lat_ms.size else float("nan")}
