@@ -288,9 +288,11 @@ def cmd_report_rate_quality(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from hostd.demo import codec_demo
+    from hostd.demo import codec_demo, daemon_demo
 
-    return codec_demo(out_dir=args.out)
+    if args.codec_only:
+        return codec_demo(out_dir=args.out)
+    return daemon_demo(out_dir=args.out, seconds_per_texture=args.seconds, force_sim=args.sim)
 
 
 # ---------------------------------------------------------------- parser
@@ -340,8 +342,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_iobj)
 
-    p = sub.add_parser("demo", help="the main job: run the demo on the embedded default")
+    p = sub.add_parser("demo", help="the main job: the daemon on the embedded default device, end to end")
     p.add_argument("--out", default=None, help="directory for the demo's files")
+    p.add_argument("--sim", action="store_true", help="use the simulated display, not the firmware host port")
+    p.add_argument("--seconds", type=_positive, default=3.5, help="play time per texture (default 3.5)")
+    p.add_argument("--codec-only", action="store_true", help="only the codec table (no daemon)")
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("fit", help="fit (a, b) of Iobj to subjective scores (CSV)")
@@ -365,8 +370,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_report_rate_quality)
 
     from hostd.bench.cli import add_parser as add_bench
+    from hostd.service.cli import add_parsers as add_service
 
     add_bench(sub, [loader_parent(None)])
+    add_service(sub)
     return ap
 
 

@@ -1,0 +1,179 @@
+"""CLI of the service: run, send, list, select, status, stop, quality, doctor."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime as dt
+import json
+import logging
+import sys
+
+from hostd.errors import HostdError
+
+
+def _conn_parent() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="daemon config (its control.socket and quality.db); default: built-in defaults")
+    p.add_argument("--socket", default=None, metavar="PATH", help="control socket (overrides --config)")
+    return p
+
+
+def _sock(args) -> str:
+    from hostd.service.client import socket_path
+
+    return args.socket or socket_path(args.config)
+
+
+def cmd_run(args) -> int:
+    from hostd.service.config import load
+    from hostd.service.daemon import Daemon
+
+    cfg = load(args.config)
+    logging.basicConfig(level=getattr(logging, args.log_level.upper()), stream=sys.stderr,
+                        format="%(asctime)s hostd %(levelname)s %(message)s" if sys.stderr.isatty()
+                        else "hostd %(levelname)s %(message)s")
+    return Daemon(cfg).run()
+
+
+def cmd_send(args) -> int:
+    from hostd.service.client import send_file
+
+    r = send_file(_sock(args), args.file, args.name)
+    print(f"accepted {r['name']}: {r['bytes']} bytes, {r['method']}, sha256 {r['sha256'][:16]}")
+    return 0
+
+
+def cmd_list(args) -> int:
+    from hostd.service.client import request
+
+    r = request(_sock(args), {"cmd": "list"})
+    for name in r["textures"]:
+        print(("* " if name == r["playing"] else "  ") + name)
+    return 0
+
+
+def cmd_select(args) -> int:
+    from hostd.service.client import request
+
+    request(_sock(args), {"cmd": "select", "name": args.name})
+    print(f"playing {args.name}")
+    return 0
+
+
+def cmd_stop(args) -> int:
+    from hostd.service.client import request
+
+    if args.daemon:
+        request(_sock(args), {"cmd": "shutdown"})
+        print("hostd is shutting down")
+    else:
+        request(_sock(args), {"cmd": "stop"})
+        print("output ramped to zero")
+    return 0
+
+
+def format_status(st: dict) -> str:
+    return (f"{st['state']:<8} {st['texture'] or '-':<18} v={st['speed_mm_s']:7.1f} mm/s  "
+            f"fill={st['fill']:3d}  underruns={st['underruns']}  misses={st['deadline_misses']}  "
+            f"late={st['late_batches']}  samples={st['samples']}")
+
+
+def cmd_status(args) -> int:
+    from hostd.service.client import request
+
+    st = request(_sock(args), {"cmd": "status"})
+    st.pop("ok", None)
+    if args.json:
+        json.dump(st, sys.stdout, indent=1)
+        print()
+    else:
+        print(format_status(st))
+        print(f"device {st['device']} ({'connected' if st['connected'] else 'not connected'}), "
+              f"library {st['library']} textures, accepted {st['accepted']}, refused {st['refused']}, "
+              f"quality pending {st['quality_pending']}")
+    return 0
+
+
+def _since(text: str | None) -> float | None:
+    if text is None:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    try:
+        t = dt.datetime.fromisoformat(text)
+    except ValueError:
+        raise HostdError(f"--since {text!r}: give unix seconds or an ISO time (2026-11-22T10:00)") from None
+    if t.tzinfo is None:
+        t = t.astimezone()
+    return t.timestamp()
+
+
+def cmd_quality(args) -> int:
+    from hostd.service import qualitylog
+    from hostd.service.config import load
+
+    db = args.db or load(args.config).quality.db
+    import sqlite3
+
+    try:
+        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        rows = qualitylog.query(con, _since(args.since))
+    except sqlite3.Error as e:
+        raise HostdError(f"cannot read the quality log {db}: {e} (is quality.db right?)") from None
+    if args.json:
+        json.dump(rows, sys.stdout, indent=1)
+        print()
+    elif args.csv:
+        w = csv.DictWriter(sys.stdout, fieldnames=list(qualitylog.COLUMNS))
+        w.writeheader()
+        w.writerows(rows)
+    else:
+        print(f"{'received':<20} {'name':<22} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8}")
+        for r in rows:
+            when = dt.datetime.fromtimestamp(r["received_at"]).strftime("%Y-%m-%d %H:%M:%S")
+            print(f"{when:<20} {r['name']:<22} {r['bytes']:>6} {r['method']:<6} {r['ip']:>8.4f} "
+                  f"{r['ia']:>8.4f} {r['iobj']:>8.4f}")
+    return 0
+
+
+def cmd_doctor(args) -> int:
+    from hostd.service.doctor import doctor
+
+    return doctor(args.config)
+
+
+def add_parsers(sub) -> None:
+    conn = _conn_parent()
+    p = sub.add_parser("run", help="run the daemon (foreground; systemd runs it as a service)")
+    p.add_argument("--config", default=None, metavar="FILE", help="config file (see config/hostd.toml)")
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    p.set_defaults(func=cmd_run)
+    p = sub.add_parser("send", parents=[conn], help="send a .vtx stream to the daemon's library")
+    p.add_argument("file")
+    p.add_argument("--name", default=None, help="name in the library (default: the file's stem)")
+    p.set_defaults(func=cmd_send)
+    p = sub.add_parser("list", parents=[conn], help="list the daemon's textures (* = playing)")
+    p.set_defaults(func=cmd_list)
+    p = sub.add_parser("select", parents=[conn], help="play a texture from the library")
+    p.add_argument("name")
+    p.set_defaults(func=cmd_select)
+    p = sub.add_parser("status", parents=[conn], help="the daemon's state and real-time counters")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_status)
+    p = sub.add_parser("stop", parents=[conn], help="stop playing (ramp to zero); --daemon stops hostd")
+    p.add_argument("--daemon", action="store_true", help="shut the daemon down")
+    p.set_defaults(func=cmd_stop)
+    p = sub.add_parser("quality", parents=[conn], help="read the quality log (Ip, Ia, Iobj per stream)")
+    p.add_argument("--since", default=None, metavar="T", help="unix seconds or ISO time")
+    p.add_argument("--db", default=None, help="the SQLite file (default: quality.db of --config)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--csv", action="store_true")
+    g.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_quality)
+    p = sub.add_parser("doctor", help="check device, permissions, real-time capability, config, database")
+    p.add_argument("--config", default=None, metavar="FILE")
+    p.set_defaults(func=cmd_doctor)

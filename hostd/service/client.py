@@ -1,0 +1,67 @@
+"""Client side of the control socket: hostd send | list | select | status | stop | quality."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import socket
+from pathlib import Path
+
+from hostd.errors import HostdError
+
+
+class ClientError(HostdError):
+    """The daemon could not be reached or refused the request."""
+
+
+def socket_path(config: str | None) -> str:
+    if os.environ.get("HOSTD_SOCKET"):
+        return os.environ["HOSTD_SOCKET"]
+    from hostd.service.config import load
+
+    return load(config).control.socket if config else load(None).control.socket
+
+
+def request(path: str, req: dict, payload: bytes = b"", timeout_s: float = 30.0) -> dict:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(timeout_s)
+    try:
+        s.connect(path)
+    except FileNotFoundError:
+        raise ClientError(f"no hostd socket at {path}: is `hostd run` running? (systemctl status hostd; "
+                          "--config or HOSTD_SOCKET name another socket)") from None
+    except ConnectionRefusedError:
+        raise ClientError(f"hostd is not running on {path} (stale socket): start it "
+                          "(systemctl start hostd)") from None
+    except PermissionError:
+        raise ClientError(f"permission denied on {path}: add yourself to the socket's group "
+                          "(sudo usermod -aG hostd $USER, then log in again)") from None
+    except OSError as e:
+        if e.errno == errno.EACCES:
+            raise ClientError(f"permission denied on {path}") from None
+        raise ClientError(f"cannot reach hostd at {path}: {e}") from None
+    try:
+        with s, s.makefile("rwb") as f:
+            f.write((json.dumps(req) + "\n").encode())
+            if payload:
+                f.write(payload)
+            f.flush()
+            line = f.readline()
+    except OSError as e:
+        raise ClientError(f"hostd at {path} closed the connection ({e})") from None
+    if not line:
+        raise ClientError(f"hostd at {path} gave no answer")
+    reply = json.loads(line)
+    if not reply.get("ok"):
+        raise ClientError(reply.get("error", "refused"))
+    return reply
+
+
+def send_file(path: str, file: str, name: str | None) -> dict:
+    p = Path(file)
+    try:
+        data = p.read_bytes()
+    except OSError as e:
+        raise ClientError(f"cannot read {file}: {e.strerror}") from None
+    return request(path, {"cmd": "send", "name": name or p.stem, "size": len(data)}, data)

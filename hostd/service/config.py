@@ -1,0 +1,201 @@
+"""The daemon's configuration: one TOML file, validated key by key before anything starts.
+
+A wrong key, type or value gives one line naming the key and the file (ConfigError, exit 2).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+from hostd.errors import ConfigError
+
+
+@dataclass
+class DeviceCfg:
+    transport: str = "auto"
+    target_fill: int = 12
+    host_timeout_ms: int = 50
+    reconnect_s: float = 1.0
+
+
+@dataclass
+class LibraryCfg:
+    dir: str = "/var/lib/hostd/library"
+    spool: str = "/var/spool/hostd"
+    max_stream_bytes: int = 1 << 20
+
+
+@dataclass
+class ControlCfg:
+    socket: str = "/run/hostd/hostd.sock"
+    group: str = "hostd"
+
+
+@dataclass
+class QualityCfg:
+    db: str = "/var/lib/hostd/quality.sqlite"
+    a: float = 0.5
+    b: float = 0.5
+    thresholds: str = ""
+
+
+@dataclass
+class RenderCfg:
+    height_method: str = "series"
+    dtype: str = "float64"
+    samples_per_batch: int = 3
+    predict_order: int = 2
+    predict_window: int = 16
+    equalizer: bool = True
+    equalizer_reg_hz: float = 800.0
+    actuator: str = "paper-parametric"
+
+
+@dataclass
+class OutputCfg:
+    travel_um: float = 80.0
+    slew_um_s: float = 60000.0
+    um_per_volt: float = 80.0 / 150.0
+    amp_gain: float = 15.0
+    dac_full_scale_v: float = 10.0
+    dac_bits: int = 16
+    ramp_s: float = 0.05
+
+
+@dataclass
+class RealtimeCfg:
+    sched_fifo_priority: int = 0
+    mlockall: bool = False
+    cpu: int = -1
+
+
+@dataclass
+class Config:
+    device: DeviceCfg = field(default_factory=DeviceCfg)
+    library: LibraryCfg = field(default_factory=LibraryCfg)
+    control: ControlCfg = field(default_factory=ControlCfg)
+    quality: QualityCfg = field(default_factory=QualityCfg)
+    render: RenderCfg = field(default_factory=RenderCfg)
+    output: OutputCfg = field(default_factory=OutputCfg)
+    realtime: RealtimeCfg = field(default_factory=RealtimeCfg)
+    path: str = "<defaults>"
+
+    def render_config(self):
+        """The RenderConfig this file describes."""
+        from hostd.render import RenderConfig
+        from hostd.render.equalizer import EqualizerConfig, load_actuator
+        from hostd.render.motion import MotionConfig
+        from hostd.render.output import OutputConfig
+
+        r = self.render
+        act_path = Path(r.actuator)
+        if not act_path.suffix:
+            from hostd.paths import actuators_dir
+
+            act_path = actuators_dir() / f"{r.actuator}.toml"
+        try:
+            actuator = load_actuator(act_path)
+        except ValueError as e:
+            raise ConfigError(f"{self.path}: render.actuator: {e}") from None
+        o = self.output
+        return RenderConfig(
+            height_method=r.height_method, dtype=r.dtype, samples_per_batch=r.samples_per_batch,
+            predict=r.predict_order > 0,
+            motion=replace(MotionConfig(), order=max(r.predict_order, 0),
+                           window=max(r.predict_window, r.predict_order + 2)),
+            equalizer=EqualizerConfig(enabled=r.equalizer, reg_hz=r.equalizer_reg_hz),
+            actuator=actuator,
+            output=OutputConfig(travel_um=o.travel_um, slew_um_s=o.slew_um_s, um_per_volt=o.um_per_volt,
+                                amp_gain=o.amp_gain, dac_full_scale_v=o.dac_full_scale_v,
+                                dac_bits=o.dac_bits, ramp_s=o.ramp_s))
+
+
+CHOICES = {
+    ("render", "height_method"): ("series", "table-cubic", "table-linear", "nearest"),
+    ("render", "dtype"): ("float32", "float64"),
+}
+RANGES = {
+    ("device", "target_fill"): (1, 227), ("device", "host_timeout_ms"): (5, 60000),
+    ("device", "reconnect_s"): (0.05, 3600), ("library", "max_stream_bytes"): (100, 1 << 30),
+    ("render", "samples_per_batch"): (1, 29), ("render", "predict_order"): (0, 2),
+    ("render", "predict_window"): (2, 256), ("render", "equalizer_reg_hz"): (300, 1499),
+    ("output", "travel_um"): (0.1, 1000), ("output", "slew_um_s"): (1, 1e7),
+    ("output", "dac_bits"): (8, 24), ("output", "ramp_s"): (0.001, 10),
+    ("realtime", "sched_fifo_priority"): (0, 99), ("realtime", "cpu"): (-1, 4095),
+    ("quality", "a"): (-1e6, 1e6), ("quality", "b"): (-1e6, 1e6),
+}
+PATHS = {("library", "dir"), ("library", "spool"), ("control", "socket"), ("quality", "db")}
+
+
+def _check(path: str, section: str, key: str, value, default):
+    where = f"{path}: {section}.{key}"
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} must be true or false, not {value!r}")
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where} must be an integer, not {value!r}")
+    elif isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise ConfigError(f"{where} must be a finite number, not {value!r}")
+        value = float(value)
+    elif isinstance(default, str) and not isinstance(value, str):
+        raise ConfigError(f"{where} must be a string, not {value!r}")
+    if (section, key) in CHOICES and value not in CHOICES[(section, key)]:
+        raise ConfigError(f"{where} must be one of {', '.join(CHOICES[(section, key)])}, not {value!r}")
+    if (section, key) in RANGES:
+        lo, hi = RANGES[(section, key)]
+        if not lo <= value <= hi:
+            raise ConfigError(f"{where} must be within {lo}..{hi}, not {value!r}")
+    if (section, key) in PATHS and not value:
+        raise ConfigError(f"{where} must not be empty")
+    return value
+
+
+def load(path: str | Path | None) -> Config:
+    """Read and validate a config file (None: the defaults)."""
+    cfg = Config()
+    if path is None:
+        return cfg
+    p = Path(path)
+    try:
+        doc = tomllib.loads(p.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: no such config file (start from config/hostd.toml)") from None
+    except PermissionError:
+        raise ConfigError(f"{p}: permission denied reading the config file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"{p}: cannot read the config file ({e})") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{p}: not valid TOML ({e})") from None
+    cfg.path = str(p)
+    sections = {f.name for f in fields(Config) if f.name != "path"}
+    for section, table in doc.items():
+        if section not in sections:
+            raise ConfigError(f"{p}: unknown section [{section}] (expected {', '.join(sorted(sections))})")
+        if not isinstance(table, dict):
+            raise ConfigError(f"{p}: {section} must be a table [{section}]")
+        sub = getattr(cfg, section)
+        known = {f.name: f for f in fields(sub)}
+        for key, value in table.items():
+            if key not in known:
+                raise ConfigError(f"{p}: unknown key {section}.{key} (expected one of "
+                                  f"{', '.join(sorted(known))})")
+            value = _check(str(p), section, key, value, getattr(sub, key))
+            if (section, key) in PATHS or (section, key) == ("quality", "thresholds"):
+                if value and not Path(value).is_absolute():
+                    value = str((p.parent / value).resolve())
+            setattr(sub, key, value)
+    cfg.render_config()  # the actuator file must load, too
+    if cfg.quality.thresholds:
+        from hostd.perception.thresholds import load_csv
+
+        try:
+            load_csv(cfg.quality.thresholds)
+        except Exception as e:
+            raise ConfigError(f"{p}: quality.thresholds: {e}") from None
+    return cfg

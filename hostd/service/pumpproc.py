@@ -1,0 +1,186 @@
+"""The real-time pump in its own process, isolated from intake and quality work.
+
+A separate process, not a thread: the parent's threads (socket, spool, SQLite, scoring)
+cannot hold a GIL that the pump needs, so Python's 5 ms switch interval never reaches it.
+The parent sends commands over a Pipe (select a texture, stop, quit); the pump publishes its
+counters in shared memory (no pickling per cycle) and log lines over the Pipe. After set-up
+it calls gc.freeze(); the steady-state loop allocates only numpy temporaries of a few samples.
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import time
+
+STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "underruns", "samples", "fill",
+               "speed_mm_s", "state", "connected", "malformed", "max_late_us", "reconnects",
+               "texture_serial", "overruns")
+STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 4}
+STATE_NAMES = {v: k for k, v in STATE_CODES.items()}
+
+
+def _realtime(rt, log) -> None:
+    if rt.cpu >= 0:
+        try:
+            os.sched_setaffinity(0, {rt.cpu})
+            log(f"pump pinned to CPU {rt.cpu}")
+        except OSError as e:
+            log(f"pump: cannot pin to CPU {rt.cpu} ({e.strerror}); running unpinned")
+    if rt.sched_fifo_priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt.sched_fifo_priority))
+            log(f"pump runs SCHED_FIFO priority {rt.sched_fifo_priority}")
+        except (OSError, AttributeError) as e:
+            log(f"pump: SCHED_FIFO {rt.sched_fifo_priority} not permitted ({getattr(e, 'strerror', e)}); "
+                "running SCHED_OTHER: grant LimitRTPRIO/CAP_SYS_NICE (see systemd/hostd.service)")
+    if rt.mlockall:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.mlockall(3) != 0:  # MCL_CURRENT | MCL_FUTURE
+            log(f"pump: mlockall failed ({os.strerror(ctypes.get_errno())}); memory may page: "
+                "raise LimitMEMLOCK")
+        else:
+            log("pump memory locked (mlockall)")
+
+
+def pump_main(cfg, conn, stats) -> None:
+    """Entry point of the pump process. cfg: hostd.service.config.Config."""
+    import signal
+
+    import numpy as np
+
+    from hostd.device.link import DeviceLink
+    from hostd.device.pump import Pump
+    from hostd.device.transport import open_transport
+    from hostd.errors import DeviceError
+    from hostd.render import Renderer
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
+
+    def log(msg: str) -> None:
+        try:
+            conn.send(("log", msg))
+        except (OSError, EOFError):
+            pass
+
+    def put(name: str, value: float) -> None:
+        stats[STAT_FIELDS.index(name)] = value
+
+    _realtime(cfg.realtime, log)
+    rcfg = cfg.render_config()
+    out = rcfg.output
+    limit_code = out.limit_code
+    max_step = int(min(out.slew_um_s / 3000.0 / out.um_per_code + 1, 32767))
+    texture = None  # (name, coeffs, n, length_mm)
+    reconnects = 0
+    put("state", STATE_CODES["starting"])
+    gc.collect()
+    gc.freeze()
+    quit_ = False
+    while not quit_:
+        # ---- connect
+        try:
+            transport = open_transport(cfg.device.transport)
+            link = DeviceLink(transport, target_fill=cfg.device.target_fill)
+            ident = link.handshake(timeout_s=2.0)
+            link.set_limits(min(limit_code, ident["limit_code"]), min(max_step, ident["max_step_code"]))
+            link.set_timeout(cfg.device.host_timeout_ms)
+        except DeviceError as e:
+            put("connected", 0)
+            put("state", STATE_CODES["waiting"])
+            log(f"device: {e}")
+            t_end = time.monotonic() + cfg.device.reconnect_s
+            while time.monotonic() < t_end and not quit_:
+                if conn.poll(0.05):
+                    cmd = conn.recv()
+                    if cmd[0] == "quit":
+                        quit_ = True
+                    elif cmd[0] == "select":
+                        texture = cmd[1]
+                    elif cmd[0] == "stop":
+                        texture = None
+            reconnects += 1
+            put("reconnects", reconnects)
+            continue
+        put("connected", 1)
+        log(f"device: {transport.describe()} firmware {ident['fw_major']}.{ident['fw_minor']}."
+            f"{ident['fw_patch']}, protocol v{ident['protocol_version']}")
+        pump = Pump(link, None)
+        playing = False
+
+        def begin(tex, pump=pump, link=link):
+            nonlocal playing
+            _, coeffs, n, length = tex
+            r = Renderer(np.asarray(coeffs), n, length, rcfg)
+            r.start()
+            pump.renderer = r
+            link.poll(0.01)
+            pump.step()  # pre-fill, then start the device
+            link.start()
+            playing = True
+            put("state", STATE_CODES["playing"])
+            put("texture_serial", stats[STAT_FIELDS.index("texture_serial")] + 1)
+
+        try:
+            if texture is not None:
+                begin(texture)
+            else:
+                put("state", STATE_CODES["idle"])
+            start = time.monotonic()
+            k = 0
+            period = 0.001
+            while True:
+                if conn.poll():
+                    cmd = conn.recv()
+                    if cmd[0] == "quit":
+                        quit_ = True
+                        break
+                    if cmd[0] == "select":
+                        texture = cmd[1]
+                        if playing:
+                            link.stop()
+                        begin(texture)
+                    elif cmd[0] == "stop":
+                        texture = None
+                        if playing:
+                            link.stop()
+                        pump.renderer = None
+                        playing = False
+                        put("state", STATE_CODES["idle"])
+                pump.step() if playing else link.poll()
+                s = link.stats.last_status
+                if s:
+                    put("fill", s["buffer_fill"])
+                    put("underruns", link.stats.underruns)
+                    put("malformed", s["malformed"])
+                if pump.renderer is not None:
+                    put("speed_mm_s", pump.renderer.motion.velocity_mm_s)
+                st = pump.stats
+                k += 1
+                put("cycles", stats[0] + 1)
+                put("samples", st.samples)
+                put("late_batches", st.late_batches)
+                due = start + k * period
+                now = time.monotonic()
+                if now > due:
+                    late = (now - due) * 1e6
+                    if late > 500:
+                        put("deadline_misses", stats[1] + 1)
+                    put("max_late_us", max(stats[10], late))
+                    k = int((now - start) / period)
+                    continue
+                time.sleep(due - now)
+        except DeviceError as e:
+            log(f"device lost while {'playing' if playing else 'idle'}: {e}; output stopped, waiting")
+            put("connected", 0)
+            put("state", STATE_CODES["waiting"])
+        finally:
+            try:
+                if quit_ and playing:
+                    link.stop()
+                transport.close()
+            except Exception:
+                pass
+    put("state", STATE_CODES["stopped"])
