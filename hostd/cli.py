@@ -371,9 +371,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     from hostd.bench.cli import add_parser as add_bench
     from hostd.service.cli import add_parsers as add_service
+    from hostd.sim.cli import add_parser as add_sim
 
     add_bench(sub, [loader_parent(None)])
     add_service(sub)
+    add_sim(sub)
     return ap
 
 

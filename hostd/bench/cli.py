@@ -31,6 +31,8 @@ def add_parser(sub, parents) -> None:
     lat.add_argument("--duration", type=float, default=8.0, metavar="S")
     lat.add_argument("--target-fill", type=int, default=12, metavar="SAMPLES",
                      help="the device buffer's target fill (default 12 = 4 ms)")
+    sb = bsub.add_parser("sim", help="scene simulation speed vs number of effects and duration")
+    sb.add_argument("--json", action="store_true")
     for name, hlp in (("codec", "encode/decode times"), ("scoring", "index scoring throughput"),
                       ("all", "pipeline, codec and scoring (accuracy is run on its own)")):
         b = bsub.add_parser(name, help=hlp)
@@ -89,6 +91,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
             rows.append(latency.run(args.duration, args.target_fill))
         except RuntimeError as e:
             raise SystemExit(f"hostd bench latency: error: {e}") from None
+    if what == "sim":
+        from hostd.bench import simbench
+
+        rows += simbench.run()
     if what in ("pipeline", "all"):
         rows.append(pipeline.run(getattr(args, "duration", 60.0)))
     if what in ("codec", "all"):
