@@ -54,15 +54,12 @@ PLAY_SETTINGS = (
 
 def _firmware_host_port() -> Path | None:
     """Build the firmware's host port (make + cc); None when it cannot be built here."""
-    import shutil
-    import subprocess
+    from hostd.device import hostport
 
-    fw = Path(__file__).resolve().parent.parent / "firmware"
-    if not (fw / "Makefile").exists() or shutil.which("make") is None:
+    try:
+        return hostport.build()
+    except RuntimeError:
         return None
-    r = subprocess.run(["make", "-s", "-C", str(fw), "host"], capture_output=True, text=True)
-    exe = fw / "build" / "hostd-fw-host"
-    return exe if r.returncode == 0 and exe.exists() else None
 
 
 def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,

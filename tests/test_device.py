@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hostd.device import gen_header
+from hostd.device import gen_header, hostport
 from hostd.device import protocol as pr
 from hostd.device.hidlink import HidTransport
 from hostd.device.link import DeviceLink
@@ -248,6 +248,7 @@ def _renderer():
 
 def test_stream_to_the_simulated_device_plays_exactly_what_was_sent():
     t = SimTransport(realtime=False)
+    t.device.played_log = []
     link = DeviceLink(t, target_fill=12)
     t.advance(3)
     link.handshake(timeout_s=0.1)
@@ -268,16 +269,10 @@ def test_stream_to_the_simulated_device_plays_exactly_what_was_sent():
 # ------------------------------------------------------------------ the real firmware on a pty
 @pytest.fixture(scope="module")
 def firmware_host():
-    exe = ROOT / "firmware" / "build" / "hostd-fw-host"
-    r = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "host"], capture_output=True, text=True)
-    if r.returncode != 0 or not exe.exists():
-        pytest.fail(f"cannot build the firmware host port: {r.stderr.strip()}")
-    return exe
-
-
-def read_log(path: Path) -> np.ndarray:
-    return np.frombuffer(path.read_bytes(), dtype=[("tick", "<u4"), ("code", "<i2"), ("enc", "<u4"),
-                                                   ("flags", "<u2")])
+    try:
+        return hostport.build()
+    except RuntimeError as e:
+        pytest.fail(str(e))
 
 
 def firmware_safety(codes: np.ndarray, limit: int = pr.LIMIT_CODE,
@@ -330,7 +325,7 @@ def test_end_to_end_with_the_firmware_host_port_under_clock_drift(firmware_host,
     assert final["underruns"] == under0, "underrun after start-up"
     assert final["malformed"] - malformed0 == 22  # the burst, counted, and nothing else
     assert final["state"] == pr.STATES["RUNNING"]
-    rec = read_log(log)
+    rec = hostport.read_log(log)
     played = rec["code"][(rec["flags"] & 1) == 1].astype(np.int64)
     sent = np.concatenate(pump.sent_codes).astype(np.int64)
     assert played.size >= 29_000  # ~10 s at 3 kHz

@@ -15,22 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
-FIRMWARE = ROOT / "firmware"
-EXE = FIRMWARE / "build" / "hostd-fw-host"
-
-
-def build_host_port() -> Path:
-    r = subprocess.run(["make", "-s", "-C", str(FIRMWARE), "host"], capture_output=True, text=True)
-    if r.returncode != 0 or not EXE.exists():
-        raise RuntimeError(f"cannot build the firmware host port (needs make and a C compiler): "
-                           f"{r.stderr.strip()[:300]}")
-    return EXE
-
-
-def read_log(path: Path) -> np.ndarray:
-    return np.frombuffer(path.read_bytes(), dtype=[("tick", "<u4"), ("code", "<i2"), ("enc", "<u4"),
-                                                   ("flags", "<u2")])
+from hostd.device import hostport
 
 
 def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = 0.4, step_mm: float = 0.05) -> dict:
@@ -41,7 +26,7 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = 0.4, s
     from hostd.render import RenderConfig, Renderer
     from hostd.texture import synth
 
-    exe = build_host_port()
+    exe = hostport.build()
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / "dac.bin"
         proc = subprocess.Popen([str(exe), "--motion", f"steps:{period_s}:{step_mm}", "--log", str(log),
@@ -67,7 +52,7 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = 0.4, s
         finally:
             proc.terminate()
             proc.communicate(timeout=10)
-        rec = read_log(log)
+        rec = hostport.read_log(log)
     enc = rec["enc"].astype(np.int64)
     code = rec["code"].astype(np.int64)
     changes = np.flatnonzero(np.diff(enc) != 0) + 1

@@ -55,21 +55,12 @@ class DeviceLink:
     # ---------------------------------------------------------------- control
     def handshake(self, timeout_s: float = 1.0) -> dict:
         """IDENTIFY, then check that the device speaks our protocol with our parameters."""
+        self.ident = None
         self.t.send(pr.encode("IDENTIFY"))
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             m = self.t.recv(0.01)
-            if m is None:
-                continue
-            try:
-                name, f = pr.decode(m)
-            except pr.ProtocolError:
-                self.stats.bad_messages_received += 1
-                continue
-            if name == "STATUS":
-                self._status(f)
-            elif name == "IDENT":
-                self.ident = f
+            if m is not None and self._take(m) == "IDENT":
                 break
         if self.ident is None:
             raise DeviceError(f"{self.t.describe()}: no answer to IDENTIFY within {timeout_s:g} s; "
@@ -115,23 +106,28 @@ class DeviceLink:
         if self.on_status is not None:
             self.on_status(f, self.device_time_s)
 
+    def _take(self, m: bytes) -> str | None:
+        """Decode and act on one message from the device; returns its name (None if bad)."""
+        try:
+            name, f = pr.decode(m)
+        except pr.ProtocolError:
+            self.stats.bad_messages_received += 1
+            return None
+        if name == "STATUS":
+            self._status(f)
+        elif name == "IDENT":
+            self.ident = f
+        return name
+
     def poll(self, timeout_s: float = 0.0) -> int:
         """Take in every message waiting; returns how many STATUS arrived."""
         n = 0
-        while True:
-            m = self.t.recv(timeout_s if n == 0 else 0.0)
-            if m is None:
-                return n
-            try:
-                name, f = pr.decode(m)
-            except pr.ProtocolError:
-                self.stats.bad_messages_received += 1
-                continue
-            if name == "STATUS":
-                self._status(f)
+        timeout = timeout_s
+        while (m := self.t.recv(timeout)) is not None:
+            timeout = 0.0
+            if self._take(m) == "STATUS":
                 n += 1
-            elif name == "IDENT":
-                self.ident = f
+        return n
 
     @property
     def in_flight(self) -> int:
@@ -152,9 +148,10 @@ class DeviceLink:
         fill = s["buffer_fill"] if s else 0
         return self.device_time_s + (fill + self.in_flight + 1) / pr.SAMPLE_RATE_HZ
 
-    def wanted(self) -> int:
+    def wanted(self, fill: float | None = None) -> int:
         """How many samples to send now to bring the device back to its target fill."""
-        return max(0, min(round(self.target_fill - self.fill_estimate()), 2 * pr.MAX_SAMPLES))
+        fill = self.fill_estimate() if fill is None else fill
+        return max(0, min(round(self.target_fill - fill), 2 * pr.MAX_SAMPLES))
 
     def send_samples(self, codes) -> None:
         codes = list(codes)

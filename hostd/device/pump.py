@@ -28,12 +28,16 @@ class PumpStats:
 
 class Pump:
     def __init__(self, link: DeviceLink, renderer, period_s: float = 0.001) -> None:
-        self.link = link
         self.renderer = renderer
         self.period_s = period_s
         self.stats = PumpStats()
         self.sent_codes: list[np.ndarray] = []  # kept when record=True (tests, demo summary)
         self.record = False
+        self.attach(link)
+
+    def attach(self, link: DeviceLink) -> None:
+        """Stream to `link` from now on (after a reconnection); the counters carry on."""
+        self.link = link
         link.on_status = self._on_status
 
     def _on_status(self, f: dict, device_time_s: float) -> None:
@@ -44,10 +48,11 @@ class Pump:
         """One cycle: poll, render, send. Returns the number of samples sent."""
         link = self.link
         link.poll()
-        n = link.wanted()
+        fill = link.fill_estimate()
+        n = link.wanted(fill)
         if n == 0 or self.renderer is None:
             return 0
-        if link.fill_estimate() < self.renderer.cfg.samples_per_batch:
+        if fill < self.renderer.cfg.samples_per_batch:
             self.stats.late_batches += 1
         t0 = link.next_play_time_s()
         t_play = t0 + np.arange(n) / pr.SAMPLE_RATE_HZ
@@ -58,14 +63,17 @@ class Pump:
         self.stats.samples += n
         return n
 
-    def run(self, duration_s: float | None = None, stop=None) -> PumpStats:
-        """Cycle until duration_s has passed or stop() returns True."""
+    def run(self, duration_s: float | None = None, stop=None, each_cycle=None) -> PumpStats:
+        """Cycle until duration_s has passed or stop() returns True; each_cycle() runs at the
+        start of every cycle (the daemon's pump takes its commands and publishes counters)."""
         start = time.monotonic()
         k = 0
         while True:
             now = time.monotonic()
             if duration_s is not None and now - start >= duration_s:
                 break
+            if each_cycle is not None:
+                each_cycle()
             if stop is not None and stop():
                 break
             self.step()

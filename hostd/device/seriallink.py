@@ -48,10 +48,6 @@ class SerialTransport(Transport):
         self.deframer = pr.Deframer()
         self._queue: list[bytes] = []
 
-    @property
-    def bad_frames(self) -> int:
-        return self.deframer.bad_frames
-
     def _gone(self, e: Exception) -> DeviceGone:
         return DeviceGone(f"serial port {self.port} went away ({e}); hostd reconnects when it returns")
 

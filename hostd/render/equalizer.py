@@ -101,16 +101,16 @@ class ActuatorModel:
 
 def load_actuator(path: str | Path) -> ActuatorModel:
     """An actuator model from TOML: either [model] (corner_hz, damping, dc_gain, delay_s) or
-    [response] with equal-length arrays hz, gain_db, phase_deg (a measured table)."""
-    import tomllib
+    [response] with equal-length arrays hz, gain_db, phase_deg (a measured table). A bare name
+    (no directory, no suffix) is a shipped model under config/actuators/."""
+    from hostd import tomlfile
 
     p = Path(path)
-    try:
-        doc = tomllib.loads(p.read_text())
-    except (OSError, UnicodeDecodeError) as e:
-        raise ValueError(f"{p}: cannot read actuator model ({e})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"{p}: not valid TOML ({e})") from None
+    if not p.suffix and len(p.parts) == 1:
+        from hostd.paths import actuators_dir
+
+        p = actuators_dir() / f"{p}.toml"
+    doc = tomlfile.read(p, "actuator model", exc=ValueError)
     name = str(doc.get("name", p.stem))
     unknown = set(doc) - {"name", "description", "model", "response"}
     if unknown:

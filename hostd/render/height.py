@@ -21,6 +21,7 @@ import numpy as np
 import scipy.fft
 
 METHODS = ("series", "table-cubic", "table-linear", "nearest")
+REST_BUCKET = -(1 << 30)  # the speed bucket of a hand at rest
 
 
 @dataclass
@@ -81,8 +82,7 @@ class HeightEvaluator:
         """C'_k g_k(v), cached per speed bucket (the gains change smoothly with |v|)."""
         b = self._bucket(speed_mm_s)
         if b != self._w_bucket:
-            v = 0.0 if b == -(1 << 30) else np.exp((b + 0.5) * np.log1p(self.band.speed_bucket))
-            self._w = (self.c * self.gains(v)).astype(self.dtype)
+            self._w = (self.c * self.gains(self._bucket_speed(b))).astype(self.dtype)
             self._w_bucket = b
         return self._w
 
@@ -100,8 +100,12 @@ class HeightEvaluator:
     def _bucket(self, speed_mm_s: float) -> int:
         s = abs(speed_mm_s)
         if s < 1e-9:
-            return -(1 << 30)
+            return REST_BUCKET
         return math.floor(math.log(s) / math.log1p(self.band.speed_bucket))
+
+    def _bucket_speed(self, b: int) -> float:
+        """The speed a bucket's gains are computed for: its geometric centre."""
+        return 0.0 if b == REST_BUCKET else math.exp((b + 0.5) * math.log1p(self.band.speed_bucket))
 
     def table(self, speed_mm_s: float) -> np.ndarray:
         """One period of the series, band-limited for the speed's bucket, sampled at M points
@@ -109,7 +113,7 @@ class HeightEvaluator:
         b = self._bucket(speed_mm_s)
         tab = self._tables.get(b)
         if tab is None:
-            v = 0.0 if b == -(1 << 30) else math.exp((b + 0.5) * math.log1p(self.band.speed_bucket))
+            v = self._bucket_speed(b)
             spec = np.zeros(self.m // 2 + 1)
             spec[1 : self.c.size + 1] = self.c * self.gains(v) * (self.m / 2)
             y = scipy.fft.irfft(spec, self.m)  # y_j = sum_k w_k cos(2 pi k j / M)

@@ -6,10 +6,10 @@ A wrong key, type or value gives one line naming the key and the file (ConfigErr
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
+from hostd import tomlfile
 from hostd.errors import ConfigError
 
 
@@ -91,13 +91,8 @@ class Config:
         from hostd.render.output import OutputConfig
 
         r = self.render
-        act_path = Path(r.actuator)
-        if not act_path.suffix:
-            from hostd.paths import actuators_dir
-
-            act_path = actuators_dir() / f"{r.actuator}.toml"
         try:
-            actuator = load_actuator(act_path)
+            actuator = load_actuator(r.actuator)
         except ValueError as e:
             raise ConfigError(f"{self.path}: render.actuator: {e}") from None
         o = self.output
@@ -162,16 +157,7 @@ def load(path: str | Path | None) -> Config:
     if path is None:
         return cfg
     p = Path(path)
-    try:
-        doc = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: no such config file (start from config/hostd.toml)") from None
-    except PermissionError:
-        raise ConfigError(f"{p}: permission denied reading the config file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{p}: cannot read the config file ({e})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{p}: not valid TOML ({e})") from None
+    doc = tomlfile.read(p, "config file", "start from config/hostd.toml")
     cfg.path = str(p)
     sections = {f.name for f in fields(Config) if f.name != "path"}
     for section, table in doc.items():

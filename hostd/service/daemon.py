@@ -108,13 +108,18 @@ class Daemon:
         self.selected = None
         return {"playing": None}
 
-    def status(self) -> dict:
+    def counters(self) -> dict:
+        """The pump's counters, from shared memory."""
         st = dict(zip(STAT_FIELDS, self.stats[:], strict=True))
         for k in STAT_FIELDS:
             if k != "speed_mm_s":
                 st[k] = int(st[k])
         st["state"] = STATE_NAMES.get(st["state"], "?")
         st["connected"] = bool(st["connected"])
+        return st
+
+    def status(self) -> dict:
+        st = self.counters()
         st.update({"texture": self.selected, "pid": os.getpid(), "pump_alive": self.proc.is_alive(),
                    "accepted": self.accepted, "refused": self.refused, "library": len(self.library.names()),
                    "quality_pending": self.quality_q.qsize(), "device": self.cfg.device.transport})
@@ -287,18 +292,18 @@ class Daemon:
                 if not self.proc.is_alive():
                     log.error("the real-time pump exited (code %s); stopping", self.proc.exitcode)
                     return 1
-                state = STATE_NAMES.get(self.stats[STAT_FIELDS.index("state")], "?")
+                st = self.counters()
+                state = st["state"]
                 if not ready and state in ("waiting", "idle", "playing"):
                     self.notifier.notify("READY=1")
                     ready = True
                 # the watchdog is fed only when the real-time loop made progress (cycles, or
                 # reconnection attempts while it waits for a device), never by a timer alone
-                progress = self.stats[0] + self.stats[STAT_FIELDS.index("reconnects")]
+                progress = st["cycles"] + st["reconnects"]
                 if progress != last_cycles:
                     self.notifier.notify("WATCHDOG=1")
                 last_cycles = progress
-                st = self.status()
-                self.notifier.notify(f"STATUS={state} {st['texture'] or '-'} fill={st['fill']} "
+                self.notifier.notify(f"STATUS={state} {self.selected or '-'} fill={st['fill']} "
                                      f"underruns={st['underruns']} misses={st['deadline_misses']}")
         finally:
             self.notifier.notify("STOPPING=1")

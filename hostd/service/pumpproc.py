@@ -15,7 +15,7 @@ import time
 
 STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "underruns", "samples", "fill",
                "speed_mm_s", "state", "connected", "malformed", "max_late_us", "reconnects",
-               "texture_serial", "overruns")
+               "texture_serial")
 STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 4}
 STATE_NAMES = {v: k for k, v in STATE_CODES.items()}
 
@@ -51,6 +51,7 @@ def pump_main(cfg, conn, stats) -> None:
 
     import numpy as np
 
+    from hostd.device import protocol as pr
     from hostd.device.link import DeviceLink
     from hostd.device.pump import Pump
     from hostd.device.transport import open_transport
@@ -72,13 +73,66 @@ def pump_main(cfg, conn, stats) -> None:
     rcfg = cfg.render_config()
     out = rcfg.output
     limit_code = out.limit_code
-    max_step = int(min(out.slew_um_s / 3000.0 / out.um_per_code + 1, 32767))
+    max_step = int(min(out.slew_um_s / pr.SAMPLE_RATE_HZ / out.um_per_code + 1, 32767))
     texture = None  # (name, coeffs, n, length_mm)
+    pump: Pump | None = None  # one pump for the process: its counters survive reconnections
+    link: DeviceLink | None = None
+    connected = playing = quit_ = False
     reconnects = 0
     put("state", STATE_CODES["starting"])
     gc.collect()
     gc.freeze()
-    quit_ = False
+
+    def begin() -> None:
+        nonlocal playing
+        _, coeffs, n, length = texture
+        r = Renderer(np.asarray(coeffs), n, length, rcfg)
+        r.start()
+        pump.renderer = r
+        link.poll(0.01)
+        pump.step()  # pre-fill, then start the device
+        link.start()
+        playing = True
+        put("state", STATE_CODES["playing"])
+        put("texture_serial", stats[STAT_FIELDS.index("texture_serial")] + 1)
+
+    def command(cmd) -> None:
+        """A command from the parent; while no device is connected only the choice is kept."""
+        nonlocal texture, playing, quit_
+        if cmd[0] == "quit":
+            quit_ = True
+        elif cmd[0] == "select":
+            texture = cmd[1]
+            if connected:
+                if playing:
+                    link.stop()
+                begin()
+        elif cmd[0] == "stop":
+            texture = None
+            if connected:
+                if playing:
+                    link.stop()
+                pump.renderer = None
+                playing = False
+                put("state", STATE_CODES["idle"])
+
+    def each_cycle() -> None:
+        while conn.poll():
+            command(conn.recv())
+        s = link.stats.last_status
+        if s:
+            put("fill", s["buffer_fill"])
+            put("underruns", link.stats.underruns)
+            put("malformed", s["malformed"])
+        if pump.renderer is not None:
+            put("speed_mm_s", pump.renderer.motion.velocity_mm_s)
+        st = pump.stats
+        put("cycles", st.cycles)
+        put("samples", st.samples)
+        put("late_batches", st.late_batches)
+        put("deadline_misses", st.deadline_misses)
+        put("max_late_us", st.max_late_us)
+
     while not quit_:
         # ---- connect
         try:
@@ -94,89 +148,32 @@ def pump_main(cfg, conn, stats) -> None:
             t_end = time.monotonic() + cfg.device.reconnect_s
             while time.monotonic() < t_end and not quit_:
                 if conn.poll(0.05):
-                    cmd = conn.recv()
-                    if cmd[0] == "quit":
-                        quit_ = True
-                    elif cmd[0] == "select":
-                        texture = cmd[1]
-                    elif cmd[0] == "stop":
-                        texture = None
+                    command(conn.recv())
             reconnects += 1
             put("reconnects", reconnects)
             continue
+        connected = True
         put("connected", 1)
         log(f"device: {transport.describe()} firmware {ident['fw_major']}.{ident['fw_minor']}."
             f"{ident['fw_patch']}, protocol v{ident['protocol_version']}")
-        pump = Pump(link, None)
+        if pump is None:
+            pump = Pump(link, None)
+        else:
+            pump.attach(link)
         playing = False
-
-        def begin(tex, pump=pump, link=link):
-            nonlocal playing
-            _, coeffs, n, length = tex
-            r = Renderer(np.asarray(coeffs), n, length, rcfg)
-            r.start()
-            pump.renderer = r
-            link.poll(0.01)
-            pump.step()  # pre-fill, then start the device
-            link.start()
-            playing = True
-            put("state", STATE_CODES["playing"])
-            put("texture_serial", stats[STAT_FIELDS.index("texture_serial")] + 1)
-
         try:
             if texture is not None:
-                begin(texture)
+                begin()
             else:
                 put("state", STATE_CODES["idle"])
-            start = time.monotonic()
-            k = 0
-            period = 0.001
-            while True:
-                if conn.poll():
-                    cmd = conn.recv()
-                    if cmd[0] == "quit":
-                        quit_ = True
-                        break
-                    if cmd[0] == "select":
-                        texture = cmd[1]
-                        if playing:
-                            link.stop()
-                        begin(texture)
-                    elif cmd[0] == "stop":
-                        texture = None
-                        if playing:
-                            link.stop()
-                        pump.renderer = None
-                        playing = False
-                        put("state", STATE_CODES["idle"])
-                pump.step() if playing else link.poll()
-                s = link.stats.last_status
-                if s:
-                    put("fill", s["buffer_fill"])
-                    put("underruns", link.stats.underruns)
-                    put("malformed", s["malformed"])
-                if pump.renderer is not None:
-                    put("speed_mm_s", pump.renderer.motion.velocity_mm_s)
-                st = pump.stats
-                k += 1
-                put("cycles", stats[0] + 1)
-                put("samples", st.samples)
-                put("late_batches", st.late_batches)
-                due = start + k * period
-                now = time.monotonic()
-                if now > due:
-                    late = (now - due) * 1e6
-                    if late > 500:
-                        put("deadline_misses", stats[1] + 1)
-                    put("max_late_us", max(stats[10], late))
-                    k = int((now - start) / period)
-                    continue
-                time.sleep(due - now)
+            pump.run(stop=lambda: quit_, each_cycle=each_cycle)
         except DeviceError as e:
             log(f"device lost while {'playing' if playing else 'idle'}: {e}; output stopped, waiting")
             put("connected", 0)
             put("state", STATE_CODES["waiting"])
         finally:
+            connected = False
+            pump.renderer = None
             try:
                 if quit_ and playing:
                     link.stop()

@@ -41,14 +41,18 @@ class LoopResult:
 
     @property
     def cpu_ms_per_s(self) -> float:
-        dur = self.t_play_s.size / (1.0 / (self.t_play_s[1] - self.t_play_s[0]))
-        return float(self.batch_cpu_ns.sum()) * 1e-6 / dur
+        duration_s = self.t_play_s.size * (self.t_play_s[1] - self.t_play_s[0])
+        return float(self.batch_cpu_ns.sum()) * 1e-6 / duration_s
+
+
+def quantize_counts(x_mm: np.ndarray, um_per_count: float) -> np.ndarray:
+    """The encoder count nearest to each position (unbounded, int64)."""
+    return np.floor(np.asarray(x_mm) * 1000.0 / um_per_count + 0.5).astype(np.int64)
 
 
 def encoder_counts(hand: Hand, t_s: np.ndarray, um_per_count: float) -> np.ndarray:
     """Ideal quadrature encoder: the count of the true position, wrapped to 32 bits."""
-    c = np.floor(hand.position_mm(t_s) * 1000.0 / um_per_count + 0.5).astype(np.int64)
-    return c % (1 << 32)
+    return quantize_counts(hand.position_mm(t_s), um_per_count) % (1 << 32)
 
 
 def run_loop(renderer: Renderer, hand: Hand, duration_s: float, link: LinkConfig | None = None,

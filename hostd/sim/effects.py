@@ -51,13 +51,15 @@ class Encoder(Effect):
             raise ValueError("effects.encoder.missed_count_prob must be <= 1")
 
     def counts(self, x_mm: np.ndarray) -> np.ndarray:
-        c = np.floor(x_mm * 1000.0 / self.p["resolution_um"] + 0.5)
+        from hostd.sim.chain import quantize_counts
+
+        c = quantize_counts(x_mm, self.p["resolution_um"])
         if self.p["noise_counts"] > 0:
-            c += np.round(self.rng.normal(0, self.p["noise_counts"], c.size))
+            c += np.round(self.rng.normal(0, self.p["noise_counts"], c.size)).astype(np.int64)
         if self.p["missed_count_prob"] > 0:  # each report may have lost counts, cumulatively
             lost = self.rng.random(c.size) < self.p["missed_count_prob"]
             c -= np.cumsum(lost)
-        return c.astype(np.int64)
+        return c
 
 
 class Transport(Effect):
@@ -123,12 +125,9 @@ class Actuator(Effect):
     PARAMS: ClassVar[dict] = {"model": "paper-parametric"}
 
     def check(self) -> None:
-        from hostd.paths import actuators_dir
         from hostd.render.equalizer import load_actuator
 
-        m = self.p["model"]
-        path = actuators_dir() / f"{m}.toml" if "/" not in m and not m.endswith(".toml") else m
-        self.model = load_actuator(path)
+        self.model = load_actuator(self.p["model"])
 
 
 class FingerLoad(Effect):

@@ -19,12 +19,12 @@ delivered Iobj equals the codec-only Iobj.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from hostd import tomlfile
 from hostd.errors import ConfigError
 
 SETTLE_S = 0.15  # soft start (50 ms) and filters settle before delivered samples count
@@ -46,14 +46,7 @@ class Scene:
 
 def load(path: str | Path) -> Scene:
     p = Path(path)
-    try:
-        doc = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{p}: no such scene (shipped ones are in config/scenes/)") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(f"{p}: cannot read the scene ({e})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{p}: not valid TOML ({e})") from None
+    doc = tomlfile.read(p, "scene", "shipped ones are in config/scenes/")
     allowed = {"name", "description", "duration_s", "seed", "texture", "hand", "effects"}
     for k in doc:
         if k not in allowed:
@@ -156,6 +149,7 @@ def _fit_coefficients(x_mm: np.ndarray, y_um: np.ndarray, n: int, length_mm: flo
 
 def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dict:
     """Simulate the scene with the effects in `only` (default: all the scene names)."""
+    from hostd.device import protocol as pr
     from hostd.perception import indices
     from hostd.quality import score_stream, stream_thresholds
     from hostd.render import RenderConfig, Renderer
@@ -192,7 +186,7 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
         t_true_status = t_dev_status / scale
         x_status = hand.position_mm(t_true_status)
         counts = (es.encoder.counts(x_status) if es.encoder
-                  else np.floor(x_status * 1000.0 / IDEAL_COUNT_UM + 0.5).astype(np.int64))
+                  else chain.quantize_counts(x_status, IDEAL_COUNT_UM))
         arrive = es.transport.arrivals(t_true_status) if es.transport else t_true_status.copy()
         order = np.argsort(arrive, kind="stable")  # jitter can reorder: the host takes them as they come
         arrive_sorted = arrive[order].tolist()
@@ -228,7 +222,7 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
                 in_underrun = True
                 prev = out[j * b - 1] if j > 0 else 0.0
                 for i in np.flatnonzero(late):  # the device ramps toward zero (50 ms)
-                    step = r.out.limit_um / 150.0
+                    step = r.out.limit_um / pr.P["ramp_ticks"]
                     prev = prev - step if prev > step else prev + step if prev < -step else 0.0
                     y[i] = prev
             else:
@@ -264,7 +258,7 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
             "rms_error_um": float(np.sqrt(np.mean((y - intended) ** 2))),
             "rms_texture_um": float(np.sqrt(np.mean(intended**2))),
             "underruns": underruns, "latency_ms": chain_ms,
-            "_trace": {"t": t_deliver[keep], "x": x, "delivered": y, "intended": intended,
+            "_trace": {"t": t_deliver[keep], "delivered": y, "intended": intended,
                        "fit": fit, "b_k": b_k, "codec": s.coefficients, "fs": FS}}
 
 
@@ -298,6 +292,12 @@ def plot(result: dict, out_dir: str | Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    def save(fig, path: Path) -> Path:
+        fig.tight_layout()
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        return path
+
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
     last = result["runs"][-1]
@@ -311,10 +311,7 @@ def plot(result: dict, out_dir: str | Path) -> list[Path]:
     ax.set_ylabel("displacement, µm")
     ax.legend(fontsize=8)
     ax.set_title(f"{result['scene']}: intended vs delivered over a stroke")
-    fig.tight_layout()
-    p1 = d / f"{result['scene']}-stroke.png"
-    fig.savefig(p1, dpi=110)
-    plt.close(fig)
+    p1 = save(fig, d / f"{result['scene']}-stroke.png")
     fig, ax = plt.subplots(figsize=(7, 4))
     kk = np.arange(1, tr["codec"].size + 1)
     err = np.abs(tr["fit"][1:] - tr["codec"])
@@ -324,10 +321,6 @@ def plot(result: dict, out_dir: str | Path) -> list[Path]:
     ax.set_ylabel("amplitude, µm")
     ax.legend(fontsize=8)
     ax.set_title(f"{result['scene']}: spectrum of the error against the threshold")
-    fig.tight_layout()
-    p2 = d / f"{result['scene']}-error-spectrum.png"
-    fig.savefig(p2, dpi=110)
-    plt.close(fig)
-    return [p1, p2]
+    return [p1, save(fig, d / f"{result['scene']}-error-spectrum.png")]
 
 
