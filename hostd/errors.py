@@ -55,3 +55,8 @@ class DeviceVersion(DeviceError):
 
 class DeviceGone(DeviceError):
     """The display went away mid-stream (unplugged)."""
+
+
+class DeviceBusy(DeviceError):
+    """A transient I/O condition (write timeout, EAGAIN): retried, never a reason to drop
+    the device; only a vanished device (ENODEV, EIO, hang-up) is DeviceGone."""

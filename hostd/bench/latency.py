@@ -40,13 +40,12 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = 0.4, s
             c, n, length = texture_coeffs(synth.make("sandpaper", seed=1))
             r = Renderer(c, n, length, RenderConfig())
             r.start()
-            pump = Pump(link, r)
+            pump = Pump(link, None)
             link.poll(0.01)
-            pump.step()
-            link.start()
+            pump.begin(r)
             pump.run(duration_s)
             link.poll(0.01)
-            underruns = link.stats.underruns
+            underruns = pump.health.underruns
             link.stop()
             t.close()
         finally:

@@ -4,8 +4,16 @@ The device is the clock master. Every STATUS reports its buffer fill and the seq
 of the last SAMPLES message it took in; messages sent after that are still in flight. The
 host keeps fill + in flight at a target by sending just what is missing (the feedback of
 asynchronous USB audio), so a device clock that runs fast or slow by ±500 ppm is followed
-without an underrun. Play instants are in the device's clock: the next sample sent plays
-(fill + in flight + 1) ticks after the latest STATUS's device time.
+without an underrun. Play instants are in the device's clock.
+
+"Now" in the device's clock is the host's monotonic clock plus an offset, estimated as the
+largest (device time - host arrival time) over recent STATUS messages: a STATUS is never
+received before it is sent, so the freshest one gives the tightest bound, and a backlog of
+stale ones (read after a host stall) does not fool it. The bound decays at 1000 ppm so a
+slow device clock is followed.
+
+Transient write errors (a timeout, EAGAIN) are retried within the cycle and counted; only a
+vanished device (DeviceGone) ends the link.
 """
 
 from __future__ import annotations
@@ -15,7 +23,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from hostd.device import protocol as pr
-from hostd.errors import DeviceError, DeviceVersion
+from hostd.errors import DeviceBusy, DeviceError, DeviceVersion
 
 
 @dataclass
@@ -25,15 +33,7 @@ class LinkStats:
     samples_sent: int = 0
     bad_messages_received: int = 0
     last_status: dict = field(default_factory=dict)
-    underruns_at_start: int | None = None
-
-    @property
-    def underruns(self) -> int:
-        """Device underruns since streaming started."""
-        s = self.last_status
-        if not s or self.underruns_at_start is None:
-            return 0
-        return (s["underruns"] - self.underruns_at_start) & 0xFFFF
+    io_retries: int = 0  # transient write errors retried
 
 
 class DeviceLink:
@@ -50,7 +50,11 @@ class DeviceLink:
         self._last_us: int | None = None
         self.device_time_s = 0.0
         self.status_host_time = 0.0
+        self._offset_s: float | None = None  # device time - host monotonic time (lower bound)
+        self._offset_host_t = 0.0
+        self._fill_from_seq: int | None = None  # after reset_stream: fill counts from this seq
         self.on_status = None  # callback(status dict, device_time_s)
+        self.retry_budget_s = 0.0005  # how long one message may be retried within a cycle
 
     # ---------------------------------------------------------------- control
     def handshake(self, timeout_s: float = 1.0) -> dict:
@@ -75,19 +79,51 @@ class DeviceLink:
                 raise DeviceVersion(f"{self.t.describe()} reports {key}={f[key]}, hostd expects {want}")
         return f
 
+    def _send(self, msg: bytes, must: bool = False) -> None:
+        """Send one message; a transient error is retried for retry_budget_s (a control
+        message that must arrive: up to 50 ms), then DeviceBusy is raised."""
+        deadline = time.monotonic() + (0.05 if must else self.retry_budget_s)
+        while True:
+            try:
+                self.t.send(msg)
+                self.stats.messages_sent += 1
+                return
+            except DeviceBusy:
+                self.stats.io_retries += 1
+                if time.monotonic() >= deadline:
+                    raise
+                time.sleep(0.0001)
+
     def set_limits(self, limit_code: int, max_step_code: int) -> None:
-        self.t.send(pr.encode("SET_LIMITS", limit_code=limit_code, max_step_code=max_step_code))
+        self._send(pr.encode("SET_LIMITS", limit_code=limit_code, max_step_code=max_step_code), True)
 
     def set_timeout(self, timeout_ms: int) -> None:
-        self.t.send(pr.encode("SET_TIMEOUT", timeout_ms=timeout_ms))
+        self._send(pr.encode("SET_TIMEOUT", timeout_ms=timeout_ms), True)
 
     def start(self) -> None:
-        self.t.send(pr.encode("START"))
-        self.stats.messages_sent += 1
+        self._send(pr.encode("START"), True)
 
     def stop(self) -> None:
-        self.t.send(pr.encode("STOP"))
+        self._send(pr.encode("STOP"), True)
         self._unacked.clear()
+
+    def reset_stream(self) -> None:
+        """STOP, and forget what the device holds: it clears its buffer when it takes STOP,
+        so until it acknowledges a SAMPLES message sent after this, its reported fill is
+        stale and counts as zero."""
+        self.stop()
+        self._fill_from_seq = (self._seq + 1) & 0xFFFF
+
+    def next_seq(self) -> int:
+        return (self._seq + 1) & 0xFFFF
+
+    def acked(self, seq: int) -> bool:
+        """Has the device taken the SAMPLES message `seq` (or a later one)?"""
+        s = self.stats.last_status
+        return bool(s) and ((s["last_seq"] - seq) & 0xFFFF) < 0x8000 and self._seq_sent_since(seq)
+
+    def _seq_sent_since(self, seq: int) -> bool:
+        return ((self._seq - seq) & 0xFFFF) < 0x8000
 
     # ---------------------------------------------------------------- status
     def _status(self, f: dict) -> None:
@@ -96,11 +132,22 @@ class DeviceLink:
             self._time_hi += 1 << 32
         self._last_us = us
         self.device_time_s = (self._time_hi + us) * 1e-6
-        self.status_host_time = time.monotonic()
+        now = self.t.now()
+        self.status_host_time = now
+        off = self.device_time_s - now
+        if self._offset_s is None or off < self._offset_s - 30.0:  # first, or the device reset
+            self._offset_s = off
+        else:
+            decayed = self._offset_s - 1e-3 * (now - self._offset_host_t)
+            self._offset_s = max(off, decayed)
+        self._offset_host_t = now
         # messages up to last_seq have reached the device
         last = f["last_seq"]
         while self._unacked and ((last - self._unacked[0][0]) & 0xFFFF) < 0x8000:
             self._unacked.popleft()
+        if self._fill_from_seq is not None and ((last - self._fill_from_seq) & 0xFFFF) < 0x8000 \
+                and self._seq_sent_since(self._fill_from_seq):
+            self._fill_from_seq = None  # the device has taken STOP and what followed it
         self.stats.statuses += 1
         self.stats.last_status = f
         if self.on_status is not None:
@@ -133,32 +180,60 @@ class DeviceLink:
     def in_flight(self) -> int:
         return sum(c for _, c in self._unacked)
 
-    def fill_estimate(self) -> float:
-        """Samples queued on the device now: its last report, plus what is in flight, minus
-        what it has played since the report (host time elapsed x rate)."""
+    def device_now_s(self) -> float:
+        """The device's clock now (its latest STATUS's time if none has set the offset yet)."""
+        if self._offset_s is None:
+            return self.device_time_s
+        return max(self.device_time_s, self.t.now() + self._offset_s)
+
+    def _device_fill(self) -> float:
+        """Samples in the device's buffer now, from its latest report: minus what it has
+        played since (only while it runs), zero while its report predates a reset_stream."""
         s = self.stats.last_status
-        if not s:
-            return float(self.in_flight)
-        played = (time.monotonic() - self.status_host_time) * pr.SAMPLE_RATE_HZ
-        return max(0.0, s["buffer_fill"] - played) + self.in_flight
+        if not s or self._fill_from_seq is not None:
+            return 0.0
+        fill = float(s["buffer_fill"])
+        if s["state"] == pr.STATES["RUNNING"]:
+            fill -= (self.device_now_s() - self.device_time_s) * pr.SAMPLE_RATE_HZ
+        return max(0.0, fill)
+
+    def fill_estimate(self) -> float:
+        """Samples queued on the device now, plus those in flight to it."""
+        return self._device_fill() + self.in_flight
 
     def next_play_time_s(self) -> float:
-        """Device-clock instant at which the next sample sent will be played."""
+        """Device-clock instant at which the next sample sent will be played: after what the
+        device holds and what is in flight, and never before now."""
         s = self.stats.last_status
-        fill = s["buffer_fill"] if s else 0
-        return self.device_time_s + (fill + self.in_flight + 1) / pr.SAMPLE_RATE_HZ
+        fill = s["buffer_fill"] if s and self._fill_from_seq is None else 0
+        queued = self.device_time_s + (fill + self.in_flight + 1) / pr.SAMPLE_RATE_HZ
+        return max(queued, self.device_now_s() + (self.in_flight + 1) / pr.SAMPLE_RATE_HZ)
 
     def wanted(self, fill: float | None = None) -> int:
         """How many samples to send now to bring the device back to its target fill."""
         fill = self.fill_estimate() if fill is None else fill
         return max(0, min(round(self.target_fill - fill), 2 * pr.MAX_SAMPLES))
 
-    def send_samples(self, codes) -> None:
+    def wanted_to_prime(self) -> int:
+        """Samples to send before START: the whole target at once."""
+        return max(0, round(self.target_fill - self.fill_estimate()))
+
+    def send_samples(self, codes) -> int:
+        """Send codes in SAMPLES messages; returns how many went out (a transient error after
+        the first message ends the call early; before it, DeviceBusy is raised)."""
         codes = list(codes)
+        sent = 0
         for i in range(0, len(codes), pr.MAX_SAMPLES):
             part = codes[i : i + pr.MAX_SAMPLES]
-            self._seq = (self._seq + 1) & 0xFFFF
-            self.t.send(pr.encode("SAMPLES", seq=self._seq, codes=part))
-            self._unacked.append((self._seq, len(part)))
-            self.stats.messages_sent += 1
+            seq = (self._seq + 1) & 0xFFFF
+            try:
+                self._send(pr.encode("SAMPLES", seq=seq, codes=part))
+            except DeviceBusy:
+                if sent == 0:
+                    raise
+                break
+            self._seq = seq
+            self._unacked.append((seq, len(part)))
             self.stats.samples_sent += len(part)
+            sent += len(part)
+        return sent

@@ -1,20 +1,51 @@
 """The real-time pump: every cycle, read the device's status, render what the device's
-buffer is missing for the instants it will play it, and send it.
+buffer is missing for the instants it will play it, and send it; and whenever a texture is
+selected but the device is not playing it, bring it back.
 
 Absolute-deadline scheduling (the next cycle is due at start + k x period, not "now +
 period"), so a late cycle does not shift the ones after it; lateness past half a period is
-counted as a deadline miss. The renderer supplies codes for device-clock play instants.
+counted as a deadline miss, a pause longer than the device's buffer as a stall.
+
+Recovery. Machines stall a process for 100 ms and more (even under SCHED_FIFO). The device
+then runs dry (underrun: it ramps to zero and keeps running) or, after its host timeout,
+ramps to zero and goes idle. The pump watches every STATUS and, as soon as it runs again:
+  - device idle / ramping down while a texture is selected (host timeout, a reset, idle after
+    a stall): STOP (clears what the device buffered while idle), re-prime the buffer, START;
+  - device running but dry (underrun): refill at once;
+and in both cases the output restarts with a soft start from zero (the device's own ramp
+took it there), and the jitter buffer's fill target rises. Each episode is logged once when
+it ends, with its cause and how long the device played nothing from its buffer.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from hostd.device import protocol as pr
+from hostd.device.health import HOST_TIMEOUT_BIT, RUNNING, UNDERRUN_BIT, DeviceHealth
 from hostd.device.link import DeviceLink
+from hostd.errors import DeviceBusy
+
+
+@dataclass
+class JitterConfig:
+    """The device buffer's fill target adapts: up after an underrun, slowly down after."""
+
+    base_fill: int = 12  # samples (4 ms at 3 kHz): the configured target
+    max_fill: int = 90  # samples (30 ms): the most it rises to
+    rise_factor: float = 2.0  # after an underrun: target = min(max, target x factor)
+    decay_every_s: float = 2.0  # while the host keeps up: one sample less every this often
+
+    def __post_init__(self) -> None:
+        hi = pr.BUFFER_CAPACITY - pr.MAX_SAMPLES
+        if not 1 <= self.base_fill <= self.max_fill <= hi:
+            raise ValueError(f"jitter buffer: need 1 <= base_fill <= max_fill <= {hi} samples")
+        if not (self.rise_factor >= 1.0 and self.decay_every_s > 0):
+            raise ValueError("jitter buffer: rise_factor >= 1 and decay_every_s > 0")
 
 
 @dataclass
@@ -23,70 +54,282 @@ class PumpStats:
     deadline_misses: int = 0
     late_batches: int = 0  # a batch sent when the device had less than one batch queued
     max_late_us: float = 0.0
-    samples: int = 0
+    samples: int = 0  # samples sent (host side; what was PLAYED comes from the device)
+    stalls: int = 0  # host pauses longer than the device's buffer
+    longest_stall_ms: float = 0.0
+    recoveries: int = 0  # episodes where the device stopped playing and was brought back
+    io_retries: int = 0  # transient write errors retried within the cycle
+    io_dropped: int = 0  # messages given up after retries (the device's host timeout covers it)
+    implausible_speed: int = 0  # motion estimates rejected as physically impossible
+    relocks: int = 0  # motion estimator restarts after a real jump
+    # stall intervals in host monotonic time (start, end), the latest 256, for tests/benches
+    stall_log: deque = field(default_factory=lambda: deque(maxlen=256))
+    # step durations (µs, thread CPU) for percentiles, a ring of the latest 65536 cycles
+    step_us: np.ndarray = field(default_factory=lambda: np.zeros(65536))
+
+
+@dataclass
+class _Episode:
+    cause: str
+    silent_since_s: float  # device time of the last sample played from the buffer before it
+    host_start: float  # host time it was noticed
+
+
+def _log_nothing(_msg: str) -> None:
+    pass
 
 
 class Pump:
-    def __init__(self, link: DeviceLink, renderer, period_s: float = 0.001) -> None:
+    """One device link, one renderer (None = nothing selected), the recovery state machine."""
+
+    def __init__(self, link: DeviceLink, renderer, period_s: float = 0.001,
+                 jitter: JitterConfig | None = None, log=None) -> None:
         self.renderer = renderer
         self.period_s = period_s
         self.stats = PumpStats()
+        self.health = DeviceHealth()
+        self.jitter = jitter or JitterConfig(base_fill=link.target_fill,
+                                             max_fill=max(link.target_fill, JitterConfig.max_fill))
+        self.log = log or _log_nothing
         self.sent_codes: list[np.ndarray] = []  # kept when record=True (tests, demo summary)
         self.record = False
+        self._episode: _Episode | None = None
+        self._started = False  # START sent for the current selection
+        self._guard_seq: int | None = None  # state is judged once this SAMPLES seq is acked
+        self._guard_host_t = 0.0
+        self._last_played_dev_s: float | None = None
+        self._last_samples_played: int | None = None
+        self._flags_seen = 0  # fault bits in the statuses taken since the last step
+        self._under_seen = 0  # device underrun episodes counted at the last step
+        self._last_decay = link.t.now()
+        self._last_cycle_start: float | None = None
+        self._fill = self.jitter.base_fill
         self.attach(link)
 
+    # ------------------------------------------------------------------ wiring
     def attach(self, link: DeviceLink) -> None:
         """Stream to `link` from now on (after a reconnection); the counters carry on."""
         self.link = link
         link.on_status = self._on_status
+        link.target_fill = self._fill
+        self.health.new_device()
+        self._last_samples_played = None
+        self._started = False
+        self._episode = None
 
     def _on_status(self, f: dict, device_time_s: float) -> None:
-        if self.renderer is not None:
-            self.renderer.on_encoder(device_time_s, f["encoder_count"])
+        self.health.update(f)
+        self._flags_seen |= f["fault_flags"]
+        sp = f["samples_played"]
+        if (self._last_samples_played is not None and sp != self._last_samples_played
+                and f["state"] == RUNNING):
+            self._last_played_dev_s = device_time_s
+        self._last_samples_played = sp
+        r = self.renderer
+        if r is not None:
+            r.on_encoder(device_time_s, f["encoder_count"])
 
-    def step(self) -> int:
-        """One cycle: poll, render, send. Returns the number of samples sent."""
+    @property
+    def recovering(self) -> bool:
+        """A texture is selected and the device is not (yet, or no longer) playing it."""
+        if self.renderer is None:
+            return False
+        s = self.link.stats.last_status
+        return self._episode is not None or not s or s["state"] != RUNNING
+
+    @property
+    def target_fill(self) -> int:
+        return self._fill
+
+    def _set_fill(self, n: int) -> None:
+        self._fill = max(self.jitter.base_fill, min(self.jitter.max_fill, int(n)))
+        self.link.target_fill = self._fill
+
+    # ------------------------------------------------------------------ playback control
+    def begin(self, renderer) -> None:
+        """Play `renderer` from now: stop what plays, prime the buffer, start (soft start)."""
+        self.renderer = renderer
+        self.health.select(renderer is not None)
+        self._episode = None
+        if renderer is None:
+            if self._started:
+                self.link.stop()
+            self._started = False
+            return
+        self._restart(first=True)
+
+    def end(self) -> None:
+        """Stop playing (the device ramps to zero)."""
+        self.begin(None)
+
+    def _restart(self, first: bool = False) -> None:
         link = self.link
-        link.poll()
-        fill = link.fill_estimate()
-        n = link.wanted(fill)
-        if n == 0 or self.renderer is None:
+        r = self.renderer
+        if not first or self._started:
+            link.reset_stream()  # STOP: the device drops what it buffered while not playing
+        r.out.restart_from(0.0)  # the device ramped to zero; fade in from there
+        link.poll(0.0)
+        self._send(link.wanted_to_prime())  # pre-fill, then start
+        link.start()
+        self._started = True
+        self._guard_seq = link.next_seq()  # the first SAMPLES after START
+        self._guard_host_t = link.t.now()
+        self._under_seen = self.health.underruns
+        self._flags_seen = 0
+
+    def _state_known(self) -> bool:
+        """Do the statuses reflect our latest START? (messages are handled in order: once the
+        device acknowledges a SAMPLES message sent after START, it has taken START too)"""
+        if self._guard_seq is None:
+            return True
+        if self.link.acked(self._guard_seq) or self.link.t.now() - self._guard_host_t > 0.1:
+            self._guard_seq = None
+            return True
+        return False
+
+    def _supervise(self) -> None:
+        """Compare what the device does with what it should do; act on a difference."""
+        s = self.link.stats.last_status
+        if not s or self.renderer is None or not self._state_known():
+            self._flags_seen = 0
+            return
+        flags, self._flags_seen = self._flags_seen, 0
+        under = self.health.underruns
+        new_underrun = under != self._under_seen
+        self._under_seen = under
+        if self._episode is None:
+            cause = None
+            if s["state"] != RUNNING:
+                cause = "host timeout" if flags & HOST_TIMEOUT_BIT else "device idle"
+            elif new_underrun or flags & UNDERRUN_BIT:
+                cause = "underrun"
+            if cause is None:
+                return
+            since = self._last_played_dev_s
+            if since is None:
+                since = self.link.device_time_s
+            self._episode = _Episode(cause, since, self.link.t.now())
+            if cause == "underrun":
+                self._set_fill(self._fill * self.jitter.rise_factor)
+                self.renderer.out.restart_from(0.0)
+            else:
+                if flags & UNDERRUN_BIT or new_underrun:
+                    self._set_fill(self._fill * self.jitter.rise_factor)
+                self._restart()
+            return
+        # an episode is open: is the device playing again?
+        if s["state"] != RUNNING:
+            if self._episode.cause == "underrun":  # the underrun outlasted the host timeout
+                self._episode.cause = "host timeout" if flags & HOST_TIMEOUT_BIT else "device idle"
+            self._restart()
+            return
+        if flags & UNDERRUN_BIT or self._last_played_dev_s is None \
+                or self._last_played_dev_s <= self._episode.silent_since_s:
+            return
+        ep, self._episode = self._episode, None
+        self.stats.recoveries += 1
+        silent_ms = (self._last_played_dev_s - ep.silent_since_s) * 1e3
+        pause = ""
+        if self.stats.stall_log:
+            a, b = self.stats.stall_log[-1]
+            if ep.host_start - b < 0.05:
+                pause = f" (the host paused {(b - a) * 1e3:.0f} ms)"
+        self.log(f"playback recovered after {ep.cause}{pause}: {silent_ms:.0f} ms without samples from "
+                 f"the buffer; fill target now {self._fill / pr.SAMPLE_RATE_HZ * 1e3:.1f} ms")
+
+    def _decay(self) -> None:
+        now = self.link.t.now()
+        if self._episode is not None or self._fill <= self.jitter.base_fill:
+            self._last_decay = now
+        elif now - self._last_decay >= self.jitter.decay_every_s:
+            self._set_fill(self._fill - 1)
+            self._last_decay = now
+
+    # ------------------------------------------------------------------ one cycle
+    def _send(self, n: int) -> int:
+        if n <= 0 or self.renderer is None:
             return 0
-        if fill < self.renderer.cfg.samples_per_batch:
-            self.stats.late_batches += 1
+        link = self.link
         t0 = link.next_play_time_s()
         t_play = t0 + np.arange(n) / pr.SAMPLE_RATE_HZ
         codes = self.renderer.render_codes(t_play)
-        link.send_samples(codes.tolist())
+        try:
+            sent = link.send_samples(codes.tolist())
+        except DeviceBusy:
+            self.stats.io_dropped += 1
+            return 0
         if self.record:
-            self.sent_codes.append(codes)
-        self.stats.samples += n
-        return n
+            self.sent_codes.append(codes[:sent])
+        self.stats.samples += sent
+        return sent
+
+    def step(self) -> int:
+        """One cycle: poll, supervise, render, send. Returns the number of samples sent."""
+        link = self.link
+        link.poll()
+        if self.renderer is None:
+            return 0
+        self._supervise()
+        fill = link.fill_estimate()
+        n = link.wanted(fill)
+        if n == 0:
+            return 0
+        if fill < self.renderer.cfg.samples_per_batch:
+            self.stats.late_batches += 1
+        sent = self._send(n)
+        m = self.renderer.motion
+        self.stats.relocks, self.stats.implausible_speed = m.relocks, m.implausible
+        return sent
 
     def run(self, duration_s: float | None = None, stop=None, each_cycle=None) -> PumpStats:
         """Cycle until duration_s has passed or stop() returns True; each_cycle() runs at the
         start of every cycle (the daemon's pump takes its commands and publishes counters)."""
         start = time.monotonic()
         k = 0
+        st = self.stats
+        ring = st.step_us
         while True:
             now = time.monotonic()
             if duration_s is not None and now - start >= duration_s:
                 break
+            last = self._last_cycle_start
+            if last is not None and now - last > self._fill / pr.SAMPLE_RATE_HZ:
+                # a host pause longer than the buffer: the device may have run dry
+                if now - last > max(2 * self.period_s, 0.004):
+                    st.stalls += 1
+                    st.longest_stall_ms = max(st.longest_stall_ms, (now - last) * 1e3)
+                    st.stall_log.append((last, now))
+            self._last_cycle_start = now
             if each_cycle is not None:
                 each_cycle()
             if stop is not None and stop():
                 break
-            self.step()
-            self.stats.cycles += 1
+            c0 = time.thread_time()
+            try:
+                self.step()
+            except DeviceBusy:
+                st.io_dropped += 1
+            ring[st.cycles % ring.size] = (time.thread_time() - c0) * 1e6
+            self._decay()
+            st.cycles += 1
+            st.io_retries = self.link.stats.io_retries
             k += 1
             due = start + k * self.period_s
             now = time.monotonic()
             if now > due:
                 late = (now - due) * 1e6
-                self.stats.max_late_us = max(self.stats.max_late_us, late)
+                st.max_late_us = max(st.max_late_us, late)
                 if late > self.period_s * 0.5e6:
-                    self.stats.deadline_misses += 1
+                    st.deadline_misses += 1
                 k = int((now - start) / self.period_s)  # skip missed cycles, keep the grid
                 continue
             time.sleep(max(0.0, due - now))
-        return self.stats
+        return st
+
+    def step_percentiles_us(self) -> tuple[float, float, float]:
+        """p50, p99, p99.9 of the CPU time of one cycle (the latest 65536 cycles)."""
+        n = min(self.stats.cycles, self.stats.step_us.size)
+        if n == 0:
+            return (0.0, 0.0, 0.0)
+        p = np.percentile(self.stats.step_us[:n], [50, 99, 99.9])
+        return (float(p[0]), float(p[1]), float(p[2]))

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import os
 import time
 
 from hostd.device import protocol as pr
 from hostd.device.transport import Transport, os_error
-from hostd.errors import DeviceGone, DeviceNotFound
+from hostd.errors import DeviceBusy, DeviceGone, DeviceNotFound
 
 
 def enumerate_specs() -> list[str]:
@@ -34,7 +35,7 @@ class SerialTransport(Transport):
             port = specs[0].split(":", 1)[1]
         self.port = port
         try:
-            self.ser = serial.Serial(port, baudrate=baudrate, timeout=0, write_timeout=0.5)
+            self.ser = serial.Serial(port, baudrate=baudrate, timeout=0, write_timeout=0)
         except serial.SerialException as e:
             inner = e.__context__ if isinstance(e.__context__, OSError) else None
             if inner is None and e.errno is not None:
@@ -47,6 +48,13 @@ class SerialTransport(Transport):
             raise DeviceNotFound(f"cannot open serial port {port} ({e})") from None
         self.deframer = pr.Deframer()
         self._queue: list[bytes] = []
+        # Writes go straight to the non-blocking fd (one layer less on the real-time path, and
+        # pyserial's write() can report a timeout after writing everything): what the port
+        # does not take now waits here, in order, and goes out first on the next call.
+        import fcntl
+
+        fcntl.fcntl(self.ser.fd, fcntl.F_SETFL, fcntl.fcntl(self.ser.fd, fcntl.F_GETFL) | os.O_NONBLOCK)
+        self._pending = b""
 
     def _gone(self, e: Exception) -> DeviceGone:
         return DeviceGone(f"serial port {self.port} went away ({e}); hostd reconnects when it returns")
@@ -54,17 +62,38 @@ class SerialTransport(Transport):
     def send(self, msg: bytes) -> None:
         self.send_raw(pr.frame(msg))
 
-    def send_raw(self, data: bytes) -> None:
-        import serial
+    MAX_PENDING = 4096  # bytes (about 60 ms of SAMPLES): past this the port is stuck
 
+    def send_raw(self, data: bytes) -> None:
+        if self._pending:
+            data = self._pending + data
+            self._pending = b""
+        self._pending = data[self._write(data):]
+        if len(self._pending) > self.MAX_PENDING:
+            # the device has not read for a long while: drop what waits, resynchronize its
+            # deframer with a delimiter (the cut frame fails its CRC and is counted), retry later
+            self._pending = b"\x00"
+            raise DeviceBusy(f"serial port {self.port}: the device is not reading; output dropped")
+
+    def _write(self, data: bytes) -> int:
         try:
-            self.ser.write(data)
-        except (OSError, serial.SerialException) as e:
+            return os.write(self.ser.fd, data)
+        except BlockingIOError:
+            return 0
+        except OSError as e:
+            err = os_error(e, f"serial port {self.port}")
+            if isinstance(err, DeviceBusy):
+                return 0
             raise self._gone(e) from None
+
+    def flush_pending(self) -> None:
+        if self._pending:
+            self._pending = self._pending[self._write(self._pending):]
 
     def recv(self, timeout_s: float = 0.0) -> bytes | None:
         import serial
 
+        self.flush_pending()
         deadline = time.monotonic() + timeout_s
         while not self._queue:
             try:

@@ -172,6 +172,11 @@ class SimTransport(Transport):
         if due - self.device.ticks > 3000:  # far behind (debugger, suspend): jump
             self.device.ticks = due
 
+    def now(self) -> float:
+        if self.realtime:
+            return time.monotonic()
+        return self.device.ticks / pr.SAMPLE_RATE_HZ  # manual: host time follows the device
+
     def advance(self, ticks: int) -> None:
         for _ in range(ticks):
             self.device.tick()

@@ -7,9 +7,10 @@ frames), "sim" (an in-process simulated device). "auto" tries hid, usb, serial, 
 from __future__ import annotations
 
 import errno
+import time
 
 from hostd.device import protocol as pr
-from hostd.errors import DeviceError, DeviceGone, DeviceNotFound, DevicePermission
+from hostd.errors import DeviceBusy, DeviceError, DeviceGone, DeviceNotFound, DevicePermission
 
 UDEV_RULE = "systemd/70-hostd.rules"
 UDEV_FIX = (f"install the udev rule: sudo cp {UDEV_RULE} /etc/udev/rules.d/ && "
@@ -30,6 +31,11 @@ class Transport:
     def close(self) -> None:
         pass
 
+    def now(self) -> float:
+        """The host clock the link measures against (a simulation on a manual clock gives its
+        own, so that the device's clock and the host's advance together)."""
+        return time.monotonic()
+
     def describe(self) -> str:
         return self.name
 
@@ -40,10 +46,15 @@ class Transport:
         self.close()
 
 
+TRANSIENT_ERRNOS = (errno.EAGAIN, errno.EWOULDBLOCK, errno.ETIMEDOUT, errno.EINTR, errno.ENOBUFS)
+
+
 def os_error(e: OSError, what: str) -> DeviceError:
     """Map an OS error on open/read/write to the error that says what to do."""
     if e.errno in (errno.EACCES, errno.EPERM):
         return DevicePermission(f"permission denied opening {what}: {UDEV_FIX}")
+    if e.errno in TRANSIENT_ERRNOS:
+        return DeviceBusy(f"{what}: {e.strerror or e} (transient; retried)")
     if e.errno in (errno.EIO, errno.ENODEV, errno.ENXIO, errno.EPIPE, errno.ENOENT):
         return DeviceGone(f"{what} went away ({e.strerror or e}); re-plug it, hostd reconnects")
     return DeviceError(f"{what}: {e}")

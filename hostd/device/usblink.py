@@ -8,8 +8,8 @@ from __future__ import annotations
 import errno
 
 from hostd.device import protocol as pr
-from hostd.device.transport import UDEV_FIX, Transport
-from hostd.errors import DeviceError, DeviceGone, DeviceNotFound, DevicePermission
+from hostd.device.transport import TRANSIENT_ERRNOS, UDEV_FIX, Transport
+from hostd.errors import DeviceBusy, DeviceError, DeviceGone, DeviceNotFound, DevicePermission
 
 
 def _find(find=None, **kw):
@@ -56,6 +56,8 @@ class UsbTransport(Transport):
         code = getattr(e, "errno", None)
         if code in (errno.EACCES, errno.EPERM):
             return DevicePermission(f"permission denied on {self.where}: {UDEV_FIX}")
+        if code in TRANSIENT_ERRNOS or type(e).__name__ == "USBTimeoutError":
+            return DeviceBusy(f"{self.where}: {e} (transient; retried)")
         if code in (errno.ENODEV, errno.EIO, errno.EPIPE):
             return DeviceGone(f"{self.where} went away ({e}); re-plug it, hostd reconnects")
         return DeviceError(f"{self.where}: {e}")

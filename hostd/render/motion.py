@@ -4,8 +4,15 @@ A least-squares polynomial (order 1: velocity; order 2: velocity and acceleratio
 to the last `window` (time, position) samples. A sample that departs from the current fit's
 prediction by more than `glitch_um` (a single-count glitch is 0.4 µm; a hand cannot jump
 hundreds of µm in 1 ms) is replaced by the prediction, so one glitching reading moves
-nothing. Below a speed dead band the hand is at rest: the held position moves only when the
-window's mean leaves a hold band, so ±1-count encoder dither does not reach the output.
+nothing. But readings that disagree with the prediction `relock_reports` times in a row, and
+agree with each other, are a real move (the device caught up after a host stall, the hand was
+lifted and set down): the fit restarts from them (`relocks` counts it; the renderer
+crossfades across the discontinuity). A gap in the readings longer than `max_gap_s` also
+restarts the fit: a prediction that far ahead is no reference. A speed estimate beyond
+`max_speed_mm_s` is physically impossible for a hand: it is rejected (`implausible` counts
+it) and the fit restarts from the newest reading. Below a speed dead band the hand is at
+rest: the held position moves only when the window's mean leaves a hold band, so ±1-count
+encoder dither does not reach the output.
 
 This runs once per encoder reading (1 kHz) on the real-time path. Readings come evenly
 spaced (device timestamps), so the least-squares solution matrix depends only on the
@@ -34,6 +41,9 @@ class MotionConfig:
     rest_speed_mm_s: float = 0.2  # below this the hand is at rest: no extrapolation
     rest_hold_um: float = 1.0  # at rest, the held position moves only past this band (dither)
     max_predict_s: float = 0.05
+    relock_reports: int = 3  # consecutive disagreeing readings that mean a real move
+    max_gap_s: float = 0.02  # readings further apart than this restart the fit
+    max_speed_mm_s: float = 3000.0  # faster than any hand: an estimate above it is rejected
 
 
 class MotionEstimator:
@@ -41,7 +51,10 @@ class MotionEstimator:
         self.cfg = cfg = cfg or MotionConfig()
         if cfg.order not in (0, 1, 2) or cfg.window < cfg.order + 2:
             raise ValueError("order must be 0, 1 or 2 and window >= order + 2")
-        for name in ("glitch_um", "rest_speed_mm_s", "rest_hold_um", "max_predict_s"):
+        if cfg.relock_reports < 1:
+            raise ValueError("relock_reports must be >= 1")
+        for name in ("glitch_um", "rest_speed_mm_s", "rest_hold_um", "max_predict_s", "max_gap_s",
+                     "max_speed_mm_s"):
             v = getattr(cfg, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"motion.{name} must be a finite number >= 0")
@@ -55,6 +68,25 @@ class MotionEstimator:
         self._uniform = 0  # how many of the latest spacings equal _dt_us
         self._cache: dict[tuple[int, int, int], tuple[list[float], ...]] = {}
         self.glitches = 0
+        self.relocks = 0
+        self.implausible = 0
+        self._outliers: list[tuple[float, float]] = []
+        self._since_restart = 1 << 30  # readings since the fit last restarted
+        # the fit in force before the latest re-lock: (c0, c1, c2, t_ref), for a crossfade
+        self.previous_fit: tuple[float, float, float, float] | None = None
+
+    def _restart(self, readings: list[tuple[float, float]]) -> None:
+        self.previous_fit = (self._c0, self._c1, self._c2, self._t_ref)
+        self._t.clear()
+        self._x.clear()
+        self._outliers.clear()
+        self._rest_x = None
+        self._dt_us = -1
+        self._uniform = 0
+        self._since_restart = 0
+        for t, x in readings:
+            self._append(t, x)
+        self._fit()
 
     def update(self, t_s: float, x_mm: float) -> None:
         t_s, x_mm = float(t_s), float(x_mm)
@@ -63,18 +95,46 @@ class MotionEstimator:
             return
         if self._t and t_s <= self._t[-1]:
             return  # a stale or repeated reading adds nothing
-        if len(self._t) >= self.cfg.order + 2:
+        cfg = self.cfg
+        if self._t and t_s - self._t[-1] > cfg.max_gap_s:
+            self.relocks += 1
+            self._restart([(t_s, x_mm)])
+            return
+        if len(self._t) >= cfg.order + 2:
             pred = self.predict_one(t_s)
-            if abs(x_mm - pred) * 1000.0 > self.cfg.glitch_um:
+            if abs(x_mm - pred) * 1000.0 > cfg.glitch_um:
+                out = self._outliers
+                out.append((t_s, x_mm))
+                if len(out) > cfg.relock_reports:
+                    del out[0]
+                if len(out) >= cfg.relock_reports and self._consistent(out):
+                    self.relocks += 1
+                    self._restart(list(out))
+                    return
                 self.glitches += 1
                 x_mm = pred
+            else:
+                self._outliers.clear()
+        self._append(t_s, x_mm)
+        self._fit()
+        if abs(self._c1) > cfg.max_speed_mm_s:
+            self.implausible += 1
+            self._restart([(self._t[-1], self._x[-1])])
+
+    def _consistent(self, pts: list[tuple[float, float]]) -> bool:
+        """Do these readings agree with each other (one hand, moving at most max_speed)?"""
+        xs = [x for _, x in pts]
+        span_s = pts[-1][0] - pts[0][0]
+        return (max(xs) - min(xs)) * 1000.0 <= self.cfg.glitch_um + self.cfg.max_speed_mm_s * span_s * 1000.0
+
+    def _append(self, t_s: float, x_mm: float) -> None:
+        self._since_restart += 1
         if self._t:
             dt_us = round((t_s - self._t[-1]) * 1e6)
             self._uniform = self._uniform + 1 if dt_us == self._dt_us else 1
             self._dt_us = dt_us
         self._t.append(t_s)
         self._x.append(x_mm)
-        self._fit()
 
     def _weights(self, tau_ms: np.ndarray, order: int) -> tuple[list[float], ...]:
         """Rows of the least-squares solution matrix: coefficients = W @ x."""
@@ -88,6 +148,8 @@ class MotionEstimator:
         tr = t[-1]
         self._t_ref = tr
         order = min(self.cfg.order, n - 1)
+        if self._since_restart < 2 * (self.cfg.order + 1):
+            order = min(order, 1)  # a fresh restart: too few readings for an acceleration
         if order == 0:
             self._c0, self._c1, self._c2 = x[-1], 0.0, 0.0
             self._rest_x = None
@@ -118,6 +180,13 @@ class MotionEstimator:
     @property
     def velocity_mm_s(self) -> float:
         return self._c1
+
+    def predict_previous(self, t_s: np.ndarray) -> np.ndarray:
+        """The fit in force before the latest restart, extrapolated (for a crossfade)."""
+        c0, c1, c2, tr = self.previous_fit or (self._c0, 0.0, 0.0, self._t_ref)
+        m = self.cfg.max_predict_s
+        dt = (np.asarray(t_s, dtype=np.float64) - tr).clip(-m, m)
+        return c0 + dt * (c1 + dt * c2)
 
     def predict_one(self, t_s: float) -> float:
         m = self.cfg.max_predict_s

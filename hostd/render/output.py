@@ -63,6 +63,13 @@ class OutputStage:
     def stop(self) -> None:
         self.target_envelope = 0.0
 
+    def restart_from(self, um: float = 0.0) -> None:
+        """Soft start again from a known output (the device's, after it ramped to zero on a
+        stall or an underrun): the envelope starts from zero, so nothing jumps."""
+        self.last_um = float(um)
+        self.envelope = 0.0
+        self.target_envelope = 1.0
+
     @property
     def silent(self) -> bool:
         return self.envelope == 0.0 and self.target_envelope == 0.0 and self.last_um == 0.0

@@ -32,6 +32,7 @@ class RenderConfig:
     equalizer: EqualizerConfig = field(default_factory=EqualizerConfig)
     actuator: ActuatorModel = field(default_factory=ActuatorModel)
     output: OutputConfig = field(default_factory=OutputConfig)
+    relock_fade_s: float = 0.01  # crossfade across a re-lock of the motion estimate
 
 
 class Renderer:
@@ -62,9 +63,17 @@ class Renderer:
                           else float(cfg.latency_s))
         if not (np.isfinite(self.latency_s) and abs(self.latency_s) < 0.05):
             raise ValueError("latency_s must be finite and within ±50 ms")
+        self._xfade_n = max(1, round(cfg.relock_fade_s * fs))
+        self._xfade_left = 0
 
     def on_encoder(self, t_s: float, raw_count: int) -> None:
-        self.motion.update(t_s, self.position.update(raw_count))
+        m = self.motion
+        before = m.relocks + m.implausible
+        m.update(t_s, self.position.update(raw_count))
+        if m.relocks + m.implausible != before:
+            # the position estimate restarted (a real jump, or after a gap): fade from the
+            # old estimate's texture to the new one instead of jumping
+            self._xfade_left = self._xfade_n
 
     def start(self) -> None:
         self.out.start()
@@ -76,7 +85,14 @@ class Renderer:
         """Limited displacement (µm) for samples that will be played at t_play_s."""
         t = np.asarray(t_play_s, dtype=np.float64) + self.latency_s
         x = self.motion.predict(t)
-        h = self.height(x, self.motion.velocity_mm_s)
+        v = self.motion.velocity_mm_s
+        h = self.height(x, v)
+        if self._xfade_left > 0:  # linear crossfade, old estimate -> new, over relock_fade_s
+            k = np.arange(self._xfade_n - self._xfade_left, self._xfade_n - self._xfade_left + h.size)
+            w = np.minimum(1.0, (k + 1) / self._xfade_n)
+            h_old = self.height(self.motion.predict_previous(t), v)
+            h = w * h + (1.0 - w) * h_old
+            self._xfade_left = max(0, self._xfade_left - h.size)
         return self.out.process(self.eq(h))
 
     def render_codes(self, t_play_s: np.ndarray) -> np.ndarray:

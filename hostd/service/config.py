@@ -17,6 +17,7 @@ from hostd.errors import ConfigError
 class DeviceCfg:
     transport: str = "auto"
     target_fill: int = 12
+    max_fill: int = 90
     host_timeout_ms: int = 50
     reconnect_s: float = 1.0
 
@@ -113,7 +114,8 @@ CHOICES = {
     ("render", "dtype"): ("float32", "float64"),
 }
 RANGES = {
-    ("device", "target_fill"): (1, 227), ("device", "host_timeout_ms"): (5, 60000),
+    ("device", "target_fill"): (1, 227), ("device", "max_fill"): (1, 227),
+    ("device", "host_timeout_ms"): (5, 60000),
     ("device", "reconnect_s"): (0.05, 3600), ("library", "max_stream_bytes"): (100, 1 << 30),
     ("render", "samples_per_batch"): (1, 29), ("render", "predict_order"): (0, 2),
     ("render", "predict_window"): (2, 256), ("render", "equalizer_reg_hz"): (300, 1499),

@@ -21,11 +21,14 @@ import threading
 import time
 from pathlib import Path
 
+from hostd.device.health import STATE_NAMES as DEVICE_STATES
+from hostd.device.health import fault_names
+from hostd.device.protocol import SAMPLE_RATE_HZ
 from hostd.errors import ConfigError, HostdError
 from hostd.service import qualitylog
 from hostd.service.config import Config
 from hostd.service.library import Library, check_name
-from hostd.service.pumpproc import STAT_FIELDS, STATE_NAMES, pump_main
+from hostd.service.pumpproc import FLOAT_FIELDS, STAT_FIELDS, STATE_NAMES, pump_main
 
 log = logging.getLogger("hostd")
 MAX_HEADER = 4096
@@ -112,10 +115,16 @@ class Daemon:
         """The pump's counters, from shared memory."""
         st = dict(zip(STAT_FIELDS, self.stats[:], strict=True))
         for k in STAT_FIELDS:
-            if k != "speed_mm_s":
+            if k not in FLOAT_FIELDS:
                 st[k] = int(st[k])
         st["state"] = STATE_NAMES.get(st["state"], "?")
         st["connected"] = bool(st["connected"])
+        # from the device's own STATUS counters (hostd.device.health)
+        code = st["device_state"]
+        st["device_state"] = DEVICE_STATES.get(code, "unknown") if st["connected"] else "unknown"
+        st["device_faults"] = fault_names(st.pop("device_fault_bits"))
+        st["underruns"] = st["device_underruns"]  # the name older clients read
+        st["target_fill_ms"] = round(st["target_fill"] / SAMPLE_RATE_HZ * 1e3, 2)
         return st
 
     def status(self) -> dict:
@@ -303,8 +312,9 @@ class Daemon:
                 if progress != last_cycles:
                     self.notifier.notify("WATCHDOG=1")
                 last_cycles = progress
-                self.notifier.notify(f"STATUS={state} {self.selected or '-'} fill={st['fill']} "
-                                     f"underruns={st['underruns']} misses={st['deadline_misses']}")
+                self.notifier.notify(f"STATUS={state} {self.selected or '-'} device={st['device_state']} "
+                                     f"played={st['played_fraction']:.2%} underruns={st['device_underruns']} "
+                                     f"stalls={st['stalls']} recoveries={st['recoveries']}")
         finally:
             self.notifier.notify("STOPPING=1")
             try:

@@ -13,10 +13,19 @@ import gc
 import os
 import time
 
-STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "underruns", "samples", "fill",
+# Counters published in shared memory (float64 each). The device_* fields and
+# played_fraction come from the device's own STATUS counters (hostd.device.health), never
+# from what the host sent; stalls/recoveries/target_fill describe the host's side.
+STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "speed_mm_s", "state", "connected", "malformed", "max_late_us", "reconnects",
-               "texture_serial")
-STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 4}
+               "texture_serial", "device_state", "device_fault_bits", "device_underruns",
+               "device_samples_played", "played_fraction", "device_resets", "stalls",
+               "longest_stall_ms", "recoveries", "target_fill", "implausible_speed", "relocks",
+               "io_retries", "io_dropped", "batch_p50_us", "batch_p99_us", "batch_p999_us",
+               "device_time_s")
+FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
+                "batch_p50_us", "batch_p99_us", "batch_p999_us"}
+STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 4, "recovering": 5}
 STATE_NAMES = {v: k for k, v in STATE_CODES.items()}
 
 
@@ -53,7 +62,7 @@ def pump_main(cfg, conn, stats) -> None:
 
     from hostd.device import protocol as pr
     from hostd.device.link import DeviceLink
-    from hostd.device.pump import Pump
+    from hostd.device.pump import JitterConfig, Pump
     from hostd.device.transport import open_transport
     from hostd.errors import DeviceError
     from hostd.render import Renderer
@@ -83,15 +92,16 @@ def pump_main(cfg, conn, stats) -> None:
     gc.collect()
     gc.freeze()
 
+    jitter = JitterConfig(base_fill=cfg.device.target_fill,
+                          max_fill=max(cfg.device.target_fill, cfg.device.max_fill))
+
     def begin() -> None:
         nonlocal playing
         _, coeffs, n, length = texture
         r = Renderer(np.asarray(coeffs), n, length, rcfg)
         r.start()
-        pump.renderer = r
         link.poll(0.01)
-        pump.step()  # pre-fill, then start the device
-        link.start()
+        pump.begin(r)  # pre-fill, then start the device (soft start)
         playing = True
         put("state", STATE_CODES["playing"])
         put("texture_serial", stats[STAT_FIELDS.index("texture_serial")] + 1)
@@ -104,34 +114,50 @@ def pump_main(cfg, conn, stats) -> None:
         elif cmd[0] == "select":
             texture = cmd[1]
             if connected:
-                if playing:
-                    link.stop()
                 begin()
         elif cmd[0] == "stop":
             texture = None
             if connected:
-                if playing:
-                    link.stop()
-                pump.renderer = None
+                pump.end()
                 playing = False
                 put("state", STATE_CODES["idle"])
+
+    last_pct = [0.0]
+
+    def publish() -> None:
+        s = link.stats.last_status
+        if s:
+            put("fill", s["buffer_fill"])
+            put("malformed", s["malformed"])
+            put("device_time_s", s["device_time_us"] * 1e-6)  # the device's clock (wraps at 2^32 µs)
+        h = pump.health
+        put("device_state", h.state)
+        put("device_fault_bits", h.recent_fault_bits())
+        put("device_underruns", h.underruns)
+        put("device_samples_played", h.samples_played)
+        put("played_fraction", h.played_fraction)
+        put("device_resets", h.resets)
+        if pump.renderer is not None:
+            put("speed_mm_s", pump.renderer.motion.velocity_mm_s)
+            put("state", STATE_CODES["recovering" if pump.recovering else "playing"])
+        st = pump.stats
+        for name in ("cycles", "samples", "late_batches", "deadline_misses", "max_late_us", "stalls",
+                     "longest_stall_ms", "recoveries", "implausible_speed", "relocks", "io_retries",
+                     "io_dropped"):
+            put(name, getattr(st, name))
+        put("target_fill", pump.target_fill)
+        now = time.monotonic()
+        if now - last_pct[0] >= 1.0:  # percentiles once a second, off the per-cycle budget
+            last_pct[0] = now
+            p50, p99, p999 = pump.step_percentiles_us()
+            put("batch_p50_us", p50)
+            put("batch_p99_us", p99)
+            put("batch_p999_us", p999)
 
     def each_cycle() -> None:
         while conn.poll():
             command(conn.recv())
-        s = link.stats.last_status
-        if s:
-            put("fill", s["buffer_fill"])
-            put("underruns", link.stats.underruns)
-            put("malformed", s["malformed"])
-        if pump.renderer is not None:
-            put("speed_mm_s", pump.renderer.motion.velocity_mm_s)
-        st = pump.stats
-        put("cycles", st.cycles)
-        put("samples", st.samples)
-        put("late_batches", st.late_batches)
-        put("deadline_misses", st.deadline_misses)
-        put("max_late_us", st.max_late_us)
+        publish()
 
     while not quit_:
         # ---- connect
@@ -157,7 +183,7 @@ def pump_main(cfg, conn, stats) -> None:
         log(f"device: {transport.describe()} firmware {ident['fw_major']}.{ident['fw_minor']}."
             f"{ident['fw_patch']}, protocol v{ident['protocol_version']}")
         if pump is None:
-            pump = Pump(link, None)
+            pump = Pump(link, None, jitter=jitter, log=log)
         else:
             pump.attach(link)
         playing = False

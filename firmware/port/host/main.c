@@ -7,6 +7,14 @@
  * usage: hostd-fw-host [--ppm N] [--ppm-after SECONDS:N]
  *                      [--motion none|constant:MM_S|metronome|steps:PERIOD_S:MM]
  *                      [--log FILE] [--duration SECONDS] [--glitch-at SECONDS]
+ *                      [--jump-at SECONDS:MM] [--clock FILE]
+ *
+ * --clock writes, for every tick, when it actually ran: 12-byte records LE u32 tick, f64
+ * CLOCK_MONOTONIC seconds (so tests can place host events, e.g. a SIGCONT, on the device's
+ * tick axis even when the host port itself ran late).
+ * --jump-at moves the simulated hand by MM at once at SECONDS (and keeps it there): a real
+ * jump (the hand lifted and set down elsewhere), which the host's motion estimate must re-lock
+ * to. The encoder still steps through every count in between, within one tick.
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -27,6 +35,7 @@ static int g_master = -1;
 static uint64_t g_ticks;           /* device ticks since start */
 static double g_device_period_ns;  /* nominal 333,333.3 ns, scaled by the clock error */
 static FILE *g_log;
+static FILE *g_clock;
 static int16_t g_last_dac;
 static volatile sig_atomic_t g_stop;
 static unsigned long g_send_dropped;
@@ -64,8 +73,12 @@ enum { M_NONE, M_CONST, M_METRO, M_STEPS };
 static int g_motion = M_NONE;
 static double g_speed = 50.0;
 static double g_step_period = 0.5, g_step_mm = 0.05;
+static double g_jump_at = -1, g_jump_mm = 0;
 
-static double hand_mm(double t) {
+static double motion_mm(double t);
+static double hand_mm(double t) { return motion_mm(t) + (g_jump_at >= 0 && t >= g_jump_at ? g_jump_mm : 0.0); }
+
+static double motion_mm(double t) {
     if (g_motion == M_CONST) {
         return g_speed * t;
     }
@@ -93,7 +106,9 @@ static void step_encoder(fw_t *f, int64_t target) {
 }
 
 /* log record, 12 bytes LE: u32 tick, i16 dac code, u32 encoder count (as decoded),
- * u16 flags (bit 0: the code came from the buffer; bit 1: underrun) */
+ * u16 flags (bit 0: the code came from the buffer; bit 1: underrun; bit 2: this tick ran more
+ * than 1 ms after its due time: the simulated device itself was held up by the host OS, an
+ * artefact of the host port that a real device does not have; bit 3: the device was RUNNING) */
 static void log_tick(uint32_t tick, int16_t code, uint32_t enc, uint16_t flags) {
     if (!g_log) return;
     uint8_t r[12] = {0};
@@ -159,6 +174,18 @@ int main(int argc, char **argv) {
             duration = atof(v), i++;
         } else if (!strcmp(a, "--glitch-at") && v) {
             glitch_at = atof(v), i++;
+        } else if (!strcmp(a, "--clock") && v) {
+            if (!(g_clock = fopen(v, "wb"))) {
+                fprintf(stderr, "hostd-fw-host: cannot write %s: %s\n", v, strerror(errno));
+                return 1;
+            }
+            i++;
+        } else if (!strcmp(a, "--jump-at") && v) {
+            if (sscanf(v, "%lf:%lf", &g_jump_at, &g_jump_mm) != 2 || g_jump_at < 0 || fabs(g_jump_mm) > 1000) {
+                fprintf(stderr, "hostd-fw-host: --jump-at wants SECONDS:MM (|MM| <= 1000)\n");
+                return 2;
+            }
+            i++;
         } else {
             fprintf(stderr, "hostd-fw-host: unknown argument %s (see the header of port/host/main.c)\n", a);
             return 2;
@@ -182,13 +209,14 @@ int main(int argc, char **argv) {
     signal(SIGINT, on_signal);
     signal(SIGTERM, on_signal);
     signal(SIGPIPE, SIG_IGN);
-    printf("PTY %s\n", name);
-    fflush(stdout);
-
     static fw_t f;
     fw_init(&f, 0);
     struct timespec t0, next;
     clock_gettime(CLOCK_MONOTONIC, &t0);
+    /* T0: CLOCK_MONOTONIC of tick 0, so tests can map host events to ticks (tick k is due at
+     * T0 + k / 3000 s at 0 ppm) */
+    printf("PTY %s T0 %.6f\n", name, (double)t0.tv_sec + (double)t0.tv_nsec * 1e-9);
+    fflush(stdout);
     next = t0;
     g_device_period_ns = 1e9 / HP_SAMPLE_RATE_HZ / (1.0 + ppm * 1e-6);
     double next_ns = 0; /* since t0 */
@@ -206,12 +234,21 @@ int main(int argc, char **argv) {
         next.tv_nsec = (long)((t0.tv_nsec + (long long)next_ns) % 1000000000LL);
         while (clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME, &next, NULL) == EINTR && !g_stop) {
         }
+        bool late = now_s(&t0) - next_ns * 1e-9 > 1e-3;
         for (;;) { /* everything the host has sent so far */
             ssize_t n = read(g_master, rx, sizeof rx);
             if (n <= 0) break;
             fw_deframer_feed(&f, rx, (size_t)n);
         }
         double tt = now_s(&t0);
+        if (g_clock) {
+            struct timespec tn;
+            clock_gettime(CLOCK_MONOTONIC, &tn);
+            uint32_t k = (uint32_t)(g_ticks + 1);
+            double hs = (double)tn.tv_sec + (double)tn.tv_nsec * 1e-9;
+            fwrite(&k, sizeof k, 1, g_clock);
+            fwrite(&hs, sizeof hs, 1, g_clock);
+        }
         step_encoder(&f, llround(hand_mm(tt) * 1e6 / HP_UM_PER_COUNT_NM));
         if (glitch_at >= 0 && !glitched && tt >= glitch_at) { /* one illegal transition */
             fw_encoder_pins(&f, (uint8_t)(GRAY[(uint64_t)g_enc_pos & 3u] ^ 3u));
@@ -221,9 +258,11 @@ int main(int argc, char **argv) {
         fw_tick(&f);
         g_ticks++;
         log_tick((uint32_t)g_ticks, g_last_dac, f.quad.count,
-                 (uint16_t)((f.played ? 1u : 0u) | (f.in_underrun ? 2u : 0u)));
+                 (uint16_t)((f.played ? 1u : 0u) | (f.in_underrun ? 2u : 0u) | (late ? 4u : 0u) |
+                            (f.state == HP_STATE_RUNNING ? 8u : 0u)));
     }
     if (g_log) fclose(g_log);
+    if (g_clock) fclose(g_clock);
     fprintf(stderr, "hostd-fw-host: %llu ticks, %u underruns, %u malformed, %lu sends dropped\n",
             (unsigned long long)g_ticks, f.underruns, f.malformed, g_send_dropped);
     close(slave);

@@ -1,0 +1,126 @@
+"""Playback health from the device's own counters, never from the host's bookkeeping.
+
+Every STATUS carries the device's state, its sticky fault flags, and wrapping counters
+(samples played from the buffer: u32; underrun episodes: u16) stamped with the device's own
+clock (u32 µs). `DeviceHealth` unwraps them into totals since the daemon started, and keeps
+the played fraction of the current selection: samples the device played from its buffer
+over the samples due (device time elapsed x 3 kHz) since the texture was selected.
+
+Counters are accumulated as wrap-aware deltas between consecutive STATUS messages, so a lost
+STATUS (a host stall overflows the link's buffer) loses nothing, and a new device or a device
+reset (its counters go back, or its clock does) starts a new baseline instead of a negative
+count. Nothing here allocates per STATUS beyond a few Python floats.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from hostd.device import protocol as pr
+
+STATE_NAMES = {v: k.lower() for k, v in pr.STATES.items()}  # 0 idle, 1 running, 2 ramp_down
+FAULT_NAMES = tuple((name.lower(), bit) for name, bit in pr.FAULTS.items())
+RUNNING = pr.STATES["RUNNING"]
+UNDERRUN_BIT = pr.FAULTS["UNDERRUN"]
+HOST_TIMEOUT_BIT = pr.FAULTS["HOST_TIMEOUT"]
+# a gap in device time between two STATUS messages longer than this is not a gap: the
+# device clock went back or jumped (a reset, another device); the counters re-baseline
+MAX_GAP_US = 600_000_000
+
+
+def fault_names(flags: int) -> list[str]:
+    return [name for name, bit in FAULT_NAMES if flags & bit]
+
+
+@dataclass
+class HealthSnapshot:
+    device_state: str
+    device_faults: list[str]
+    device_underruns: int
+    device_samples_played: int
+    played_fraction: float
+    device_resets: int
+
+
+class DeviceHealth:
+    """Feed every STATUS (in arrival order); read totals and the current selection's figures."""
+
+    def __init__(self, fault_window_s: float = 1.0) -> None:
+        self.fault_window_s = fault_window_s
+        self.underruns = 0  # episodes since the daemon started (all devices, wrap-aware)
+        self.samples_played = 0  # from the buffer, since the daemon started
+        self.resets = 0  # counters or clock went back: a device reset or another device
+        self.state = -1
+        self.flags = 0  # the latest STATUS's fault flags
+        self._recent_flags: dict[int, float] = {}  # fault bit -> device time (s) last seen
+        self._last: dict | None = None
+        self._time_s = 0.0  # unwrapped device time of the latest STATUS (this device)
+        # the current selection
+        self._sel_active = False
+        self._sel_due = 0.0  # ticks due since selection (device time x rate)
+        self._sel_played = 0
+        self._sel_started = False
+
+    # ------------------------------------------------------------ input
+    def new_device(self) -> None:
+        """A (re)connected device: its counters start a new baseline."""
+        self._last = None
+
+    def select(self, active: bool) -> None:
+        """A texture was selected (True) or playback stopped (False): restart the fraction."""
+        self._sel_active = active
+        self._sel_due = 0.0
+        self._sel_played = 0
+        self._sel_started = False
+
+    def update(self, f: dict) -> None:
+        last = self._last
+        self._last = f
+        self.state = f["state"]
+        self.flags = f["fault_flags"]
+        if last is None:
+            return
+        dt_us = (f["device_time_us"] - last["device_time_us"]) & 0xFFFFFFFF
+        d_played = (f["samples_played"] - last["samples_played"]) & 0xFFFFFFFF
+        d_under = (f["underruns"] - last["underruns"]) & 0xFFFF
+        if dt_us > MAX_GAP_US or d_played > dt_us * pr.SAMPLE_RATE_HZ // 1_000_000 + 3:
+            # the clock or a counter went back (it wrapped "forwards" by nearly 2^32): a reset
+            self.resets += 1
+            return
+        self._time_s += dt_us * 1e-6
+        self.samples_played += d_played
+        self.underruns += d_under
+        for bit in (b for _, b in FAULT_NAMES if self.flags & b):
+            self._recent_flags[bit] = self._time_s
+        if self._sel_active:
+            if not self._sel_started and f["state"] == RUNNING:
+                self._sel_started = True  # count from the first STATUS that shows it running
+            if self._sel_started:
+                self._sel_due += dt_us * 1e-6 * pr.SAMPLE_RATE_HZ
+                self._sel_played += d_played
+
+    # ------------------------------------------------------------ output
+    @property
+    def state_name(self) -> str:
+        return STATE_NAMES.get(self.state, "unknown")
+
+    def recent_faults(self) -> list[str]:
+        """Fault names the device reported within the last fault_window_s of device time."""
+        t0 = self._time_s - self.fault_window_s
+        return [name for name, bit in FAULT_NAMES if self._recent_flags.get(bit, -1e300) >= t0]
+
+    def recent_fault_bits(self) -> int:
+        t0 = self._time_s - self.fault_window_s
+        return sum(bit for bit, t in self._recent_flags.items() if t >= t0)
+
+    @property
+    def played_fraction(self) -> float:
+        """Samples played from the buffer over samples due since the selection (1.0 until
+        the device has run for a full STATUS period; NaN-free)."""
+        if self._sel_due < 1.0:
+            return 1.0 if self._sel_active else 0.0
+        return min(1.0, self._sel_played / self._sel_due)
+
+    def snapshot(self) -> HealthSnapshot:
+        return HealthSnapshot(self.state_name, self.recent_faults(), self.underruns,
+                              self.samples_played, self.played_fraction, self.resets)
