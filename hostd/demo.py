@@ -154,11 +154,18 @@ def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
         if fw is not None:
             fw.terminate()
             fw.wait(10)
-    spb = 3
     print("summary")
-    print(f"  frames sent {st['samples'] // spb} ({st['samples']} samples), deadline misses "
-          f"{st['deadline_misses']}, late batches {st['late_batches']}, device underruns {st['underruns']}, "
-          f"streams accepted {st['accepted']}, refused {st['refused']}")
+    print(f"  the device played {st['device_samples_played']} samples from its buffer, "
+          f"{st['device_underruns']} underrun episode(s) (its own counters); host stalls {st['stalls']} "
+          f"(longest {st['longest_stall_ms']:.0f} ms), recoveries {st['recoveries']}, deadline misses "
+          f"{st['deadline_misses']}; streams accepted {st['accepted']}, refused {st['refused']}")
+    if fw is not None and (out / "dac.bin").exists():
+        from hostd.device import hostport
+
+        fig = hostport.playback_figures(hostport.read_log(out / "dac.bin"), to_last_played=True)
+        print(f"  firmware DAC log: played from the buffer {fig['played_fraction']:.2%} of the ticks from "
+              f"the first sample to the last (texture switches included), {fig['underrun_episodes']} underrun "
+              f"episode(s), longest silence {fig['longest_silence_ms']:.0f} ms")
     print(f"  quality log ({out / 'quality.sqlite'}): {len(rows)} rows")
     print(f"  {'name':<16} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8}")
     for r in rows:

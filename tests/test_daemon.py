@@ -154,6 +154,12 @@ def test_spool_intake_and_quality_log(daemon, capsys):
     st = json.loads(capsys.readouterr().out)
     for key in ("deadline_misses", "underruns", "late_batches", "fill", "state", "texture"):
         assert key in st
+    # the health contract: from the device's own counters
+    assert st["device_state"] in ("idle", "running", "ramp_down")
+    assert isinstance(st["device_faults"], list) and all(isinstance(f, str) for f in st["device_faults"])
+    for key in ("device_underruns", "device_samples_played", "stalls", "recoveries"):
+        assert isinstance(st[key], int) and st[key] >= 0
+    assert 0.0 <= st["played_fraction"] <= 1.0
 
 
 def test_quality_log_survives_kill_9_and_nothing_acknowledged_is_lost(tmp_path):

@@ -64,7 +64,8 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     try:
         _wait(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 30, "the device")
         vtx = tmp_path / "wood.vtx"
-        assert main(["encode", "synthetic:wood:1", "-o", str(vtx), "--method", "quant", "--levels", "14"]) == 0
+        assert main(["encode", "synthetic:wood:1", "-o", str(vtx), "--method", "quant",
+                     "--levels", "14"]) == 0
         send_file(sock, str(vtx), "wood")
         request(sock, {"cmd": "select", "name": "wood"})
         _wait(lambda: request(sock, {"cmd": "status"})["device_samples_played"] > 3000, 20, "playback")

@@ -86,15 +86,17 @@ def runs(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(d[0::2].tolist(), d[1::2].tolist(), strict=True))
 
 
-def playback_figures(rec: np.ndarray, rate_hz: float = 3000.0) -> dict:
+def playback_figures(rec: np.ndarray, rate_hz: float = 3000.0, to_last_played: bool = False) -> dict:
     """What the DAC log says about playback, from the first sample played from the buffer to
     the end of the log: the played fraction, the underrun episodes (the device's own count,
     rising edges of bit 1), and the silences (runs of ticks with nothing from the buffer)
-    with their start ticks and lengths. The ground truth for tests and `hostd bench soak`."""
+    with their start ticks and lengths. The ground truth for tests and `hostd bench soak`.
+    to_last_played: end at the last sample played (a run that stopped playback on purpose)."""
     played = (rec["flags"] & PLAYED) != 0
     first = int(np.argmax(played)) if played.any() else rec.size
-    r = rec[first:]
-    p = played[first:]
+    end = rec.size - int(np.argmax(played[::-1])) if to_last_played and played.any() else rec.size
+    r = rec[first:end]
+    p = played[first:end]
     silences = [(int(r["tick"][a]), (b - a) / rate_hz * 1e3) for a, b in runs(~p)]
     under = [int(r["tick"][a]) for a, _ in runs((r["flags"] & UNDERRUN) != 0)]
     late = [(int(r["tick"][a]), int(r["tick"][b - 1])) for a, b in runs((r["flags"] & LATE_TICK) != 0)]

@@ -75,9 +75,14 @@ def cmd_stop(args) -> int:
 
 
 def format_status(st: dict) -> str:
-    return (f"{st['state']:<8} {st['texture'] or '-':<18} v={st['speed_mm_s']:7.1f} mm/s  "
-            f"fill={st['fill']:3d}  underruns={st['underruns']}  misses={st['deadline_misses']}  "
-            f"late={st['late_batches']}  samples={st['samples']}")
+    """One line: the daemon's state, then what the DEVICE reports (its state, faults, the
+    share of the current texture it played from its buffer, its underruns), then the host's
+    side (stalls, recoveries, the jitter buffer's target)."""
+    faults = ",".join(st["device_faults"]) or "ok"
+    return (f"{st['state']:<10} {st['texture'] or '-':<16} device {st['device_state']:<9} {faults:<8} "
+            f"played {st['played_fraction']:7.2%}  underruns {st['device_underruns']}  "
+            f"v={st['speed_mm_s']:6.1f} mm/s  stalls {st['stalls']}  recoveries {st['recoveries']}  "
+            f"buffer {st['target_fill_ms']:g} ms")
 
 
 def cmd_status(args) -> int:

@@ -96,8 +96,14 @@ def doctor(config: str | None) -> int:
             from hostd.service.client import request
 
             st = request(str(sock), {"cmd": "status"}, timeout_s=2.0)
-            ok(f"running (pid {st['pid']}), {st['state']}, underruns {st['underruns']}, "
-               f"deadline misses {st['deadline_misses']}")
+            ok(f"running (pid {st['pid']}), {st['state']}; device {st['device_state']}"
+               f"{' ' + ','.join(st['device_faults']) if st['device_faults'] else ''}, "
+               f"played {st['played_fraction']:.2%} of the current texture, device underruns "
+               f"{st['device_underruns']}, host stalls {st['stalls']} (longest "
+               f"{st['longest_stall_ms']:.0f} ms), recoveries {st['recoveries']}")
+            if st["texture"] and st["played_fraction"] < 0.99:
+                note("the display played less than 99 % of the time: see `hostd status`; host stalls "
+                     "are what it recovers from (docs/daemon.md, real-time settings)")
         except HostdError as e:
             bad(str(e), "systemctl restart hostd")
     else:
