@@ -31,6 +31,11 @@ def add_parser(sub, parents) -> None:
     lat.add_argument("--duration", type=float, default=8.0, metavar="S")
     lat.add_argument("--target-fill", type=int, default=12, metavar="SAMPLES",
                      help="the device buffer's target fill (default 12 = 4 ms)")
+    so = bsub.add_parser("soak", help="the daemon playing for minutes on the firmware's host port: "
+                         "played fraction, underruns, silences from the DAC log")
+    so.add_argument("--json", action="store_true")
+    so.add_argument("--minutes", type=float, default=10.0, metavar="M", help="how long (default 10)")
+    so.add_argument("--load", action="store_true", help="a CPU hog on the other core meanwhile")
     sb = bsub.add_parser("sim", help="scene simulation speed vs number of effects and duration")
     sb.add_argument("--json", action="store_true")
     for name, hlp in (("codec", "encode/decode times"), ("scoring", "index scoring throughput"),
@@ -66,6 +71,7 @@ def _textures(args) -> dict:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from hostd.bench import accuracy, common, micro, pipeline
+    from hostd.errors import HostdError
 
     what = args.bench or "all"
     if what == "accuracy":
@@ -91,6 +97,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
             rows.append(latency.run(args.duration, args.target_fill))
         except RuntimeError as e:
             raise SystemExit(f"hostd bench latency: error: {e}") from None
+    if what == "soak":
+        from hostd.bench import soak
+
+        if not (0.05 <= args.minutes <= 24 * 60):
+            raise SystemExit("hostd bench soak: error: --minutes must be 0.05..1440")
+        try:
+            rows.append(soak.run(args.minutes, args.load, progress=not args.json))
+        except (RuntimeError, HostdError) as e:
+            raise SystemExit(f"hostd bench soak: error: {e}") from None
     if what == "sim":
         from hostd.bench import simbench
 
