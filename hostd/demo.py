@@ -165,7 +165,8 @@ def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
         fig = hostport.playback_figures(hostport.read_log(out / "dac.bin"), to_last_played=True)
         print(f"  firmware DAC log: played from the buffer {fig['played_fraction']:.2%} of the ticks "
               f"from the first sample to the last (texture switches included), "
-              f"{fig['underrun_episodes']} underrun episode(s), longest silence {fig['longest_silence_ms']:.0f} ms")
+              f"{fig['underrun_episodes']} underrun episode(s), "
+              f"longest silence {fig['longest_silence_ms']:.0f} ms")
     print(f"  quality log ({out / 'quality.sqlite'}): {len(rows)} rows")
     print(f"  {'name':<16} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8}")
     for r in rows:
