@@ -270,6 +270,7 @@ class Pump:
         if self.renderer is None:
             return 0
         self._supervise()
+        self._decay()
         fill = link.fill_estimate()
         n = link.wanted(fill)
         if n == 0:
@@ -310,7 +311,6 @@ class Pump:
             except DeviceBusy:
                 st.io_dropped += 1
             ring[st.cycles % ring.size] = (time.thread_time() - c0) * 1e6
-            self._decay()
             st.cycles += 1
             st.io_retries = self.link.stats.io_retries
             k += 1

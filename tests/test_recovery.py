@@ -1,0 +1,203 @@
+"""Recovery, health figures, the adaptive jitter buffer, motion re-lock and transient I/O,
+on the simulated device with a manual clock (deterministic; the firmware end to end is in
+tests/test_playback.py)."""
+
+from __future__ import annotations
+
+import errno
+
+import numpy as np
+import pytest
+
+from hostd.device import protocol as pr
+from hostd.device.health import DeviceHealth
+from hostd.device.link import DeviceLink
+from hostd.device.pump import JitterConfig, Pump
+from hostd.device.simdev import SimTransport
+from hostd.errors import DeviceBusy, DeviceGone
+from hostd.render.motion import MotionConfig, MotionEstimator
+from tests.test_device import _renderer
+
+
+def _playing(target_fill: int = 12, **jitter):
+    t = SimTransport(realtime=False)
+    link = DeviceLink(t, target_fill=target_fill)
+    t.advance(3)
+    link.handshake(timeout_s=0.1)
+    logs: list[str] = []
+    pump = Pump(link, None, log=logs.append,
+                jitter=JitterConfig(base_fill=target_fill, **jitter) if jitter else None)
+    pump.begin(_renderer())
+    return t, link, pump, logs
+
+
+def _cycles(t, pump, n, per=3):
+    played = []
+    for _ in range(n):
+        t.advance(per)
+        pump.step()
+        played.append(t.device.samples_played)
+    return np.array(played)
+
+
+@pytest.mark.parametrize("stall_ms, cause", [(20, "underrun"), (100, "host timeout"), (300, "host timeout"),
+                                             (2000, "host timeout")])
+def test_after_a_stall_playback_resumes_in_the_first_cycle_and_is_counted_once(stall_ms, cause):
+    t, link, pump, logs = _playing()
+    _cycles(t, pump, 500)
+    t.advance(stall_ms * 3)  # the host does not run; the device does
+    played = _cycles(t, pump, 500)
+    assert played[1] > played[0] or played[2] > played[1], "not playing again within 2 ms"
+    assert t.device.state == pr.STATES["RUNNING"]
+    assert pump.stats.recoveries == 1 and len(logs) == 1 and cause in logs[0]
+    assert pump.health.underruns == t.device.underruns  # the device's count, not ours
+    # the fraction is the device's: played over due since selection
+    due = (t.device.ticks - 3) - 12
+    assert abs(pump.health.played_fraction - t.device.samples_played / due) < 0.01
+    assert pump.target_fill > 12  # the jitter buffer rose after the underrun
+
+
+def test_a_selected_texture_is_restarted_after_the_device_went_idle_on_its_own():
+    t, link, pump, logs = _playing()
+    _cycles(t, pump, 200)
+    t.device.on_message(pr.encode("STOP"))  # e.g. a device that reset its playout
+    _cycles(t, pump, 200)
+    assert t.device.state == pr.STATES["RUNNING"] and pump.stats.recoveries == 1
+    assert "device idle" in logs[0]
+
+
+def test_restart_is_a_soft_start_and_the_old_buffer_is_not_played():
+    t, link, pump, logs = _playing()
+    t.device.played_log = []
+    _cycles(t, pump, 1000)
+    t.advance(900)  # 300 ms: host timeout, the device ramps to zero and goes idle
+    n0 = len(t.device.played_log)
+    _cycles(t, pump, 300)
+    after = np.abs(np.array(t.device.played_log[n0:]))
+    steady = np.abs(np.array(t.device.played_log[:n0][-600:])).max()
+    assert after[:15].max() <= 0.3 * steady  # fades in from zero
+    assert after[300:].max() >= 0.5 * steady  # and comes back to the texture's amplitude
+
+
+def test_jitter_buffer_rises_after_underruns_bounded_and_decays_while_the_host_keeps_up():
+    t, link, pump, logs = _playing(target_fill=12, max_fill=90, decay_every_s=0.05)
+    peak = 0
+    for _ in range(6):  # underrun after underrun
+        _cycles(t, pump, 50)
+        t.advance(60)  # 20 ms
+        _cycles(t, pump, 5)
+        peak = max(peak, pump.target_fill)
+    assert peak == 90  # bounded
+    assert link.target_fill == peak  # the link's flow control follows it
+    _cycles(t, pump, 3000)  # 3 s with no trouble: one sample less every 50 ms
+    assert 12 <= pump.target_fill < peak - 30
+
+
+def test_health_counters_unwrap_and_rebaseline_on_a_device_reset():
+    h = DeviceHealth()
+    h.select(True)
+
+    def st(t_us, played, under, state=1, flags=0):
+        h.update({"state": state, "fault_flags": flags, "device_time_us": t_us & 0xFFFFFFFF,
+                  "samples_played": played & 0xFFFFFFFF, "underruns": under & 0xFFFF})
+
+    base_t, base_p = (1 << 32) - 2000, (1 << 32) - 6
+    st(base_t, base_p, 0xFFFF)
+    st(base_t + 1000, base_p + 3, 0xFFFF)
+    st(base_t + 4000, base_p + 12, 1, flags=pr.FAULTS["UNDERRUN"])  # both wrap here
+    assert h.samples_played == 12 and h.underruns == 2
+    assert "underrun" in h.recent_faults()
+    st(500, 0, 0, state=0)  # a reset: the clock and the counters went back
+    st(1500, 3, 0, state=0)
+    assert h.resets == 1 and h.samples_played == 15 and h.underruns == 2
+    assert h.state_name == "idle"
+
+
+def test_single_glitch_is_rejected_but_a_real_jump_relocks_within_5_reports():
+    m = MotionEstimator(MotionConfig())
+    for i in range(50):
+        m.update(i * 1e-3, 20.0 * i * 1e-3)
+    m.update(50e-3, 5.0)  # one wild reading
+    assert m.glitches == 1 and m.relocks == 0 and abs(m.predict_one(51e-3) - 20.0 * 51e-3) < 1e-3
+    for i in range(51, 100):
+        m.update(i * 1e-3, 20.0 * i * 1e-3)
+    jump = 0.5
+    locked_at = None
+    for k, i in enumerate(range(100, 130)):
+        x = 20.0 * i * 1e-3 + jump
+        m.update(i * 1e-3, x)
+        if locked_at is None and abs(m.predict_one(i * 1e-3) - x) < 1e-3 and abs(m.velocity_mm_s - 20) < 1:
+            locked_at = k + 1
+    assert m.relocks == 1 and locked_at is not None and locked_at <= 5
+
+
+def test_speed_estimate_stays_physical():
+    m = MotionEstimator(MotionConfig(order=1, window=3, relock_reports=1, glitch_um=1e9))
+    m.update(0.0, 0.0)
+    m.update(1e-3, 0.0)
+    m.update(2e-3, 50.0)  # 50 mm in 1 ms: 50,000 mm/s
+    assert abs(m.velocity_mm_s) <= MotionConfig().max_speed_mm_s and m.implausible == 1
+
+
+class _Port:
+    """A serial port stand-in: takes `accept` bytes per write, then EAGAIN."""
+
+    def __init__(self):
+        self.fd = -1
+        self.accept = 1 << 30
+        self.data = b""
+
+
+def test_serial_write_that_would_block_is_kept_and_sent_in_order(monkeypatch):
+    from hostd.device import seriallink
+
+    tr = seriallink.SerialTransport.__new__(seriallink.SerialTransport)
+    tr.port, tr._pending, tr._queue = "/dev/fake", b"", []
+    port = _Port()
+
+    def write(fd, data):
+        if port.accept <= 0:
+            raise BlockingIOError(errno.EAGAIN, "would block")
+        n = min(len(data), port.accept)
+        port.accept -= n
+        port.data += bytes(data[:n])
+        return n
+
+    monkeypatch.setattr(seriallink.os, "write", write)
+    tr.ser = port
+    port.accept = 5
+    tr.send_raw(b"0123456789")  # half taken, half kept
+    tr.send_raw(b"abc")  # nothing taken: kept behind the first
+    port.accept = 1 << 30
+    tr.flush_pending()
+    assert port.data == b"0123456789abc"
+    port.accept = 0
+    with pytest.raises(DeviceBusy):  # a port that never takes anything: dropped, not "gone"
+        for _ in range(1000):
+            tr.send_raw(b"x" * 63)
+
+    def gone(fd, data):
+        raise OSError(errno.EIO, "I/O error")
+
+    monkeypatch.setattr(seriallink.os, "write", gone)
+    with pytest.raises(DeviceGone):
+        tr.send_raw(b"y")
+
+
+def test_transient_errors_are_retried_within_the_cycle_and_not_a_lost_device():
+    t = SimTransport(realtime=False)
+    link = DeviceLink(t, target_fill=12)
+    t.advance(3)
+    link.handshake(timeout_s=0.1)
+    real, fails = t.send, [3]
+
+    def flaky(msg):
+        if fails[0] > 0:
+            fails[0] -= 1
+            raise DeviceBusy("EAGAIN")
+        real(msg)
+
+    t.send = flaky
+    link.retry_budget_s = 1.0
+    assert link.send_samples([1, 2, 3]) == 3
+    assert link.stats.io_retries == 3 and link.in_flight == 3
