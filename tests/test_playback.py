@@ -136,8 +136,8 @@ def test_a_real_jump_of_the_hand_is_relocked_within_5_reports(port_factory, tmp_
         trace = []
         on_status = pump._on_status
 
-        def spy(f, t_s):
-            on_status(f, t_s)
+        def spy(f, t_s, fresh=True):
+            on_status(f, t_s, fresh)
             m = r.motion
             trace.append((t_s, f["encoder_count"] * 0.4e-3, m.predict_one(t_s), m.velocity_mm_s))
 

@@ -53,7 +53,10 @@ class DeviceLink:
         self._offset_s: float | None = None  # device time - host monotonic time (lower bound)
         self._offset_host_t = 0.0
         self._fill_from_seq: int | None = None  # after reset_stream: fill counts from this seq
-        self.on_status = None  # callback(status dict, device_time_s)
+        # callback(status dict, device_time_s, fresh): fresh is False for a STATUS that a newer
+        # one in the same poll makes stale (a backlog read after a host stall): counters and
+        # faults still count, but nothing needs its encoder reading
+        self.on_status = None
         self.retry_budget_s = 0.0005  # how long one message may be retried within a cycle
 
     # ---------------------------------------------------------------- control
@@ -126,7 +129,7 @@ class DeviceLink:
         return ((self._seq - seq) & 0xFFFF) < 0x8000
 
     # ---------------------------------------------------------------- status
-    def _status(self, f: dict) -> None:
+    def _status(self, f: dict, fresh: bool = True) -> None:
         us = f["device_time_us"]
         if self._last_us is not None and us < self._last_us and self._last_us - us > 1 << 31:
             self._time_hi += 1 << 32
@@ -151,9 +154,9 @@ class DeviceLink:
         self.stats.statuses += 1
         self.stats.last_status = f
         if self.on_status is not None:
-            self.on_status(f, self.device_time_s)
+            self.on_status(f, self.device_time_s, fresh)
 
-    def _take(self, m: bytes) -> str | None:
+    def _take(self, m: bytes, fresh: bool = True) -> str | None:
         """Decode and act on one message from the device; returns its name (None if bad)."""
         try:
             name, f = pr.decode(m)
@@ -161,18 +164,24 @@ class DeviceLink:
             self.stats.bad_messages_received += 1
             return None
         if name == "STATUS":
-            self._status(f)
+            self._status(f, fresh)
         elif name == "IDENT":
             self.ident = f
         return name
 
+    FRESH = 32  # statuses of one poll whose encoder readings are used (the motion window's 16, +)
+
     def poll(self, timeout_s: float = 0.0) -> int:
         """Take in every message waiting; returns how many STATUS arrived."""
-        n = 0
+        msgs = []
         timeout = timeout_s
         while (m := self.t.recv(timeout)) is not None:
             timeout = 0.0
-            if self._take(m) == "STATUS":
+            msgs.append(m)
+        stale = len(msgs) - self.FRESH
+        n = 0
+        for i, m in enumerate(msgs):
+            if self._take(m, fresh=i >= stale) == "STATUS":
                 n += 1
         return n
 

@@ -50,6 +50,10 @@ class Layout:
     variable: bool  # trailing i16 array (SAMPLES)
 
     @property
+    def names(self) -> tuple[str, ...]:
+        return _NAMES_CACHE.setdefault(self.name, tuple(f for f, _ in self.fields))
+
+    @property
     def size(self) -> int:
         return self.fixed.size
 
@@ -66,6 +70,7 @@ def _layout(name: str, spec: list[str]) -> Layout:
     return Layout(name, tuple(fields), struct.Struct("<" + "".join(c for _, c in fields)), variable)
 
 
+_NAMES_CACHE: dict[str, tuple[str, ...]] = {}
 LAYOUTS: dict[str, Layout] = {k: _layout(k, v) for k, v in SPEC["layouts"].items()}
 
 
@@ -102,7 +107,7 @@ def decode(msg: bytes) -> tuple[str, dict]:
     lay = LAYOUTS[name]
     if len(msg) < lay.size:
         raise ProtocolError(f"{name} needs {lay.size} bytes, got {len(msg)}")
-    out = dict(zip((f for f, _ in lay.fields), lay.fixed.unpack_from(msg), strict=True))
+    out = dict(zip(lay.names, lay.fixed.unpack_from(msg), strict=True))
     end = lay.size
     if lay.variable:
         n = out["count"]
@@ -112,7 +117,7 @@ def decode(msg: bytes) -> tuple[str, dict]:
         if len(msg) < end:
             raise ProtocolError(f"SAMPLES with {n} samples needs {end} bytes, got {len(msg)}")
         out["codes"] = list(struct.unpack_from(f"<{n}h", msg, lay.size))
-    if any(msg[end:]):
+    if len(msg) > end and msg[end:] != bytes(len(msg) - end):
         raise ProtocolError(f"{name}: non-zero bytes after the message")
     return name, out
 

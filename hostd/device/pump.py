@@ -62,8 +62,8 @@ class PumpStats:
     io_dropped: int = 0  # messages given up after retries (the device's host timeout covers it)
     implausible_speed: int = 0  # motion estimates rejected as physically impossible
     relocks: int = 0  # motion estimator restarts after a real jump
-    # stall intervals in host monotonic time (start, end), the latest 256, for tests/benches
-    stall_log: deque = field(default_factory=lambda: deque(maxlen=256))
+    # stall intervals in host monotonic time (start, end), the latest 4096, for tests/benches
+    stall_log: deque = field(default_factory=lambda: deque(maxlen=4096))
     # step durations (µs, thread CPU) for percentiles, a ring of the latest 65536 cycles
     step_us: np.ndarray = field(default_factory=lambda: np.zeros(65536))
 
@@ -117,7 +117,7 @@ class Pump:
         self._started = False
         self._episode = None
 
-    def _on_status(self, f: dict, device_time_s: float) -> None:
+    def _on_status(self, f: dict, device_time_s: float, fresh: bool = True) -> None:
         self.health.update(f)
         self._flags_seen |= f["fault_flags"]
         sp = f["samples_played"]
@@ -126,7 +126,7 @@ class Pump:
             self._last_played_dev_s = device_time_s
         self._last_samples_played = sp
         r = self.renderer
-        if r is not None:
+        if r is not None and fresh:
             r.on_encoder(device_time_s, f["encoder_count"])
 
     @property
