@@ -113,7 +113,8 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     fig = hostport.playback_figures(rec[rec["tick"] <= g + 1])
     assert st["device_underruns"] == fig["underrun_episodes"] >= 1
     assert st["device_samples_played"] == int(played[: g + 1 - tick0 + 1].sum())
-    assert st["recoveries"] == len(fig["silences"]) >= len(stalls), (st, fig["silences"])
+    # every pause was recovered from; a burst of silences inside one episode counts once
+    assert len(stalls) <= st["recoveries"] <= len(fig["silences"]), (st, fig["silences"])
     assert st["stalls"] >= len(stalls)
     assert abs(st["played_fraction"] - fig["played_fraction"]) < 0.01
     assert st["device_state"] == "running" and st["state"] == "playing"

@@ -124,10 +124,12 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
         "played_fraction": round(fig["played_fraction"], 6),
         "underrun_episodes": fig["underrun_episodes"],
         "silences": len(fig["silences"]),
+        # silences followed by playback again: the recoveries the device saw
+        "recoveries": fig["recovered_silences"],
         "longest_silence_ms": round(fig["longest_silence_ms"], 1),
         "device_underruns": st["device_underruns"],  # the daemon's health figure, to compare
         "stalls": st["stalls"], "longest_stall_ms": round(st["longest_stall_ms"], 1),
-        "recoveries": st["recoveries"],
+        "host_recoveries": st["recoveries"],  # episodes the host saw (a burst of silences counts once)
         "pump_cpu_share": round((cpu1 - cpu0) / wall, 4) if pump else None,
         "batch_p50_us": round(st["batch_p50_us"], 1), "batch_p99_us": round(st["batch_p99_us"], 1),
         "batch_p999_us": round(st["batch_p999_us"], 1),

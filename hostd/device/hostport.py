@@ -97,7 +97,8 @@ def playback_figures(rec: np.ndarray, rate_hz: float = 3000.0, to_last_played: b
     end = rec.size - int(np.argmax(played[::-1])) if to_last_played and played.any() else rec.size
     r = rec[first:end]
     p = played[first:end]
-    silences = [(int(r["tick"][a]), (b - a) / rate_hz * 1e3) for a, b in runs(~p)]
+    gaps = runs(~p)
+    silences = [(int(r["tick"][a]), (b - a) / rate_hz * 1e3) for a, b in gaps]
     under = [int(r["tick"][a]) for a, _ in runs((r["flags"] & UNDERRUN) != 0)]
     late = [(int(r["tick"][a]), int(r["tick"][b - 1])) for a, b in runs((r["flags"] & LATE_TICK) != 0)]
     return {
@@ -106,6 +107,7 @@ def playback_figures(rec: np.ndarray, rate_hz: float = 3000.0, to_last_played: b
         "underrun_episodes": len(under),
         "underrun_ticks": under,
         "silences": silences,  # (start tick, length ms)
+        "recovered_silences": sum(1 for _, b in gaps if b < p.size),  # followed by playback
         "longest_silence_ms": max((s for _, s in silences), default=0.0),
         "late_tick_runs": late,  # (first tick, last tick) where the simulated device ran late
     }
