@@ -139,8 +139,9 @@ def test_a_real_jump_of_the_hand_is_relocked_within_5_reports(port_factory, tmp_
 
         def spy(f, t_s, fresh=True):
             on_status(f, t_s, fresh)
-            m = r.motion
-            trace.append((t_s, f["encoder_count"] * 0.4e-3, m.predict_one(t_s), m.velocity_mm_s))
+            if fresh:  # a reading the estimator was fed
+                m = r.motion
+                trace.append((t_s, f["encoder_count"] * 0.4e-3, m.predict_one(t_s), m.velocity_mm_s))
 
         link.on_status = spy
         link.poll(0.01)
@@ -149,17 +150,19 @@ def test_a_real_jump_of_the_hand_is_relocked_within_5_reports(port_factory, tmp_
         link.stop()
     tr = np.array(trace)
     tr = tr[(tr[:, 0] > 2.0) & (tr[:, 0] < 3.5)]  # around the jump (2.5 s)
-    true_x, est_x, v = tr[:, 1], tr[:, 2], tr[:, 3]
-    jumps = np.flatnonzero(np.abs(np.diff(true_x)) > 0.2) + 1
+    t_s, true_x, est_x, v = tr[:, 0], tr[:, 1], tr[:, 2], tr[:, 3]
+    # the jump: 0.5 mm between readings 1 ms apart (a host stall also makes the readings jump,
+    # by the way the hand went meanwhile: 20 mm/s x the gap)
+    step = np.diff(true_x) - 20.0 * np.diff(t_s)
+    jumps = np.flatnonzero(np.abs(step - 0.5) < 0.05) + 1
     assert jumps.size == 1, "one jump of 0.5 mm"
     j = int(jumps[0])
+    # locked = within 5 µm and 3 mm/s (the jump is 500 µm)
     ok = (np.abs(est_x - true_x) < 0.005) & (np.abs(v - 20.0) < 3.0)
     after = ok[j:]
     k = int(np.argmax(after))
     assert after.any() and k <= 5, f"re-locked after {k} reports"
-    # and stays locked (the host port samples the hand at its real tick times, which jitter
-    # under load against the ticks' stamps: a looser band here)
-    assert (np.abs(est_x - true_x)[j + k : j + k + 500] < 0.02).mean() > 0.98
+    assert after[k : k + 500].mean() > 0.95  # and stays locked
     assert r.motion.relocks >= 1 and np.abs(v).max() < 100.0  # no runaway speed
     codes = hostport.read_log(log)["code"].astype(np.int64)
     assert np.abs(np.diff(codes)).max() <= pr.MAX_STEP_CODE

@@ -240,7 +240,10 @@ int main(int argc, char **argv) {
             if (n <= 0) break;
             fw_deframer_feed(&f, rx, (size_t)n);
         }
-        double tt = now_s(&t0);
+        /* the hand's time is the tick's due time: when the OS holds the host port up, the
+         * simulated hand waits with the device (a real device is never late; a late host port
+         * must not turn its own lateness into encoder jitter) */
+        double tt = next_ns * 1e-9;
         if (g_clock) {
             struct timespec tn;
             clock_gettime(CLOCK_MONOTONIC, &tn);
