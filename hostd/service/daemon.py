@@ -41,6 +41,8 @@ class Notifier:
                 import sdnotify
 
                 self.n = sdnotify.SystemdNotifier()
+                if self.n.socket is not None:  # never block the main loop on a full notify queue
+                    self.n.socket.setblocking(False)
             except ImportError:
                 log.warning("sdnotify is not installed: systemd readiness and watchdog disabled")
 
@@ -286,9 +288,12 @@ class Daemon:
         last_cycles = -1.0
         try:
             while not self.stop_event.wait(0.2):
-                while self.conn.poll():
-                    _kind, msg = self.conn.recv()
-                    log.info("%s", msg)
+                try:
+                    while self.conn.poll():
+                        _kind, msg = self.conn.recv()
+                        log.info("%s", msg)
+                except (EOFError, OSError):
+                    pass  # the pump is gone: said just below
                 if not self.proc.is_alive():
                     log.error("the real-time pump exited (code %s); stopping", self.proc.exitcode)
                     return 1
