@@ -54,7 +54,8 @@ class Notifier:
 class Daemon:
     def __init__(self, cfg: Config) -> None:
         self.cfg = cfg
-        self.library = Library(cfg.library.dir, cfg.library.max_stream_bytes)
+        self.library = Library(cfg.library.dir, cfg.library.max_stream_bytes, cfg.library.max_n,
+                               cfg.library.max_n_keep)
         self.spool = Path(cfg.library.spool)
         self.spool.mkdir(parents=True, exist_ok=True)
         (self.spool / "rejected").mkdir(exist_ok=True)
