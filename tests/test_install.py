@@ -122,3 +122,27 @@ def test_etc_overrides_the_shipped_data(tmp_path, monkeypatch):
     assert paths.find("thresholds", "default.csv") == tmp_path / "thresholds" / "default.csv"
     site = thresholds.default_curve()
     assert len(site.freq_hz) == 3 and len(shipped.freq_hz) != 3
+
+
+def test_install_service_from_the_wheel(venv, tmp_path):
+    stage = tmp_path / "root"
+    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage), "--dry-run")
+    assert r.returncode == 0 and "would install" in r.stdout, r.stderr
+    assert not stage.exists()  # a dry run writes nothing
+    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage))
+    assert r.returncode == 0, r.stderr
+    unit = stage / "etc/systemd/system/hostd.service"
+    for f in (unit, stage / "etc/udev/rules.d/70-hostd.rules", stage / "etc/sysusers.d/hostd.conf",
+              stage / "etc/tmpfiles.d/hostd.conf", stage / "etc/hostd/hostd.toml"):
+        assert f.is_file() and (f.stat().st_mode & 0o777) == 0o644, f
+    exe = venv / "bin" / "hostd"
+    assert f"ExecStart={exe} run --config /etc/hostd/hostd.toml" in unit.read_text()
+    assert "systemctl daemon-reload" in r.stdout  # another prefix: the commands are printed, not run
+    # an edited config is never overwritten
+    (stage / "etc/hostd/hostd.toml").write_text("# mine\n")
+    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage))
+    assert r.returncode == 0 and "kept" in r.stdout
+    assert (stage / "etc/hostd/hostd.toml").read_text() == "# mine\n"
+    if shutil.which("systemd-analyze"):
+        v = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True)
+        assert v.returncode == 0, v.stderr
