@@ -126,21 +126,11 @@ def _read_stream(path: str):
 
 
 def _write_bytes_atomic(path: str, data: bytes) -> None:
-    import os
-    import tempfile
+    """Output files: hostd.fileio.write_output (atomic for regular files, write-through for
+    devices and FIFOs, '-' is stdout, the umask honoured)."""
+    from hostd.fileio import write_output
 
-    from hostd.errors import HostdError as _E
-
-    target = Path(path)
-    try:
-        fd, tmp = tempfile.mkstemp(dir=target.parent or ".", prefix=f".{target.name}.")
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-    except OSError as exc:
-        raise _E(f"cannot write {path}: {exc.strerror or exc}") from None
+    write_output(path, data)
 
 
 # ---------------------------------------------------------------- commands

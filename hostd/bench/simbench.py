@@ -5,14 +5,14 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
-from hostd.paths import scenes_dir
+from hostd.paths import find
 from hostd.sim import scene
 
 
 def run(durations=(2.4, 9.6)) -> list[dict]:
     rows = []
     for name in ("ideal", "paper-experiment", "worst-case"):
-        base = scene.load(scenes_dir() / f"{name}.toml")
+        base = scene.load(find("scenes", f"{name}.toml"))
         for dur in durations:
             sc = replace(base, duration_s=dur)
             t0 = time.perf_counter()

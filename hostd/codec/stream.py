@@ -199,6 +199,8 @@ def _quant_payload(q: np.ndarray) -> bytes:
 
 def _parse_quant(raw: bytes, n_keep: int) -> np.ndarray:
     qmin, pos = _read_zigzag_varint(raw, 0)
+    if not -(1 << 53) < qmin < 1 << 53:  # before any int64 arithmetic (-2**63 defeats np.abs)
+        raise StreamError("quantization index out of range")
     if pos >= len(raw):
         raise StreamError("quantization payload truncated")
     width = raw[pos]

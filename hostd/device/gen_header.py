@@ -7,7 +7,8 @@ from pathlib import Path
 
 from hostd.device import protocol as pr
 
-HEADER = Path(__file__).resolve().parents[2] / "firmware" / "include" / "hostd_proto.h"
+_ROOT = Path(__file__).resolve().parents[2]
+HEADER = _ROOT / "firmware" / "include" / "hostd_proto.h"
 _SIZES = {"B": 1, "H": 2, "I": 4, "h": 2}
 
 
@@ -47,7 +48,14 @@ def render() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    out = Path(argv[0]) if argv else HEADER
+    if argv:
+        out = Path(argv[0])
+    elif (_ROOT / "firmware" / "Makefile").is_file() and (_ROOT / "pyproject.toml").is_file():
+        out = HEADER  # a source checkout: regenerate the firmware's header in place
+    else:  # an installed package: never write into site-packages
+        print("gen_header: no source tree here (hostd is installed as a package): give the output "
+              "file, e.g. python -m hostd.device.gen_header firmware/include/hostd_proto.h", file=sys.stderr)
+        return 2
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(render())
     print(out)

@@ -107,9 +107,9 @@ def load_actuator(path: str | Path) -> ActuatorModel:
 
     p = Path(path)
     if not p.suffix and len(p.parts) == 1:
-        from hostd.paths import actuators_dir
+        from hostd.paths import find
 
-        p = actuators_dir() / f"{p}.toml"
+        p = find("actuators", f"{p}.toml")
     doc = tomlfile.read(p, "actuator model", exc=ValueError)
     name = str(doc.get("name", p.stem))
     unknown = set(doc) - {"name", "description", "model", "response"}

@@ -151,6 +151,12 @@ def cmd_doctor(args) -> int:
     return doctor(args.config)
 
 
+def cmd_install_service(args) -> int:
+    from hostd.service.install import install
+
+    return install(args.prefix, dry_run=args.dry_run)
+
+
 def add_parsers(sub) -> None:
     conn = _conn_parent()
     p = sub.add_parser("run", help="run the daemon (foreground; systemd runs it as a service)")
@@ -179,6 +185,12 @@ def add_parsers(sub) -> None:
     g.add_argument("--csv", action="store_true")
     g.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_quality)
+    p = sub.add_parser("install-service", help="install the systemd unit, udev rule, sysusers, tmpfiles "
+                       "and a default config (pointing the unit at this installation)")
+    p.add_argument("--prefix", default="/", help="install under this root (default /; another root only "
+                   "stages the files and prints the commands)")
+    p.add_argument("--dry-run", action="store_true", help="say what would be installed; write nothing")
+    p.set_defaults(func=cmd_install_service)
     p = sub.add_parser("doctor", help="check device, permissions, real-time capability, config, database")
     p.add_argument("--config", default=None, metavar="FILE")
     p.set_defaults(func=cmd_doctor)

@@ -27,12 +27,15 @@ class LibraryCfg:
     dir: str = "/var/lib/hostd/library"
     spool: str = "/var/spool/hostd"
     max_stream_bytes: int = 1 << 20
+    max_n: int = 1 << 20
+    max_n_keep: int = 16384
 
 
 @dataclass
 class ControlCfg:
     socket: str = "/run/hostd/hostd.sock"
     group: str = "hostd"
+    max_clients: int = 16
 
 
 @dataclass
@@ -123,7 +126,10 @@ RANGES = {
     ("output", "dac_bits"): (8, 24), ("output", "ramp_s"): (0.001, 10),
     ("realtime", "sched_fifo_priority"): (0, 99), ("realtime", "cpu"): (-1, 4095),
     ("quality", "a"): (-1e6, 1e6), ("quality", "b"): (-1e6, 1e6),
+    ("library", "max_n"): (2, 1 << 22), ("library", "max_n_keep"): (1, 1 << 22),
+    ("control", "max_clients"): (1, 256),
 }
+TRANSPORT_KINDS = ("auto", "hid", "usb", "serial", "sim")
 PATHS = {("library", "dir"), ("library", "spool"), ("control", "socket"), ("quality", "db")}
 
 
@@ -150,6 +156,11 @@ def _check(path: str, section: str, key: str, value, default):
             raise ConfigError(f"{where} must be within {lo}..{hi}, not {value!r}")
     if (section, key) in PATHS and not value:
         raise ConfigError(f"{where} must not be empty")
+    if (section, key) == ("device", "transport"):
+        kind, colon, arg = value.partition(":")
+        if kind not in TRANSPORT_KINDS or (colon and (kind not in ("hid", "serial") or not arg)):
+            raise ConfigError(f"{where} must be auto, hid, hid:/dev/hidrawN, usb, serial, serial:PORT or "
+                              f"sim, not {value!r}")
     return value
 
 

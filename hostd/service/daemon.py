@@ -44,6 +44,8 @@ class Notifier:
                 import sdnotify
 
                 self.n = sdnotify.SystemdNotifier()
+                if self.n.socket is not None:  # never block the main loop on a full notify queue
+                    self.n.socket.setblocking(False)
             except ImportError:
                 log.warning("sdnotify is not installed: systemd readiness and watchdog disabled")
 
@@ -55,7 +57,8 @@ class Notifier:
 class Daemon:
     def __init__(self, cfg: Config) -> None:
         self.cfg = cfg
-        self.library = Library(cfg.library.dir, cfg.library.max_stream_bytes)
+        self.library = Library(cfg.library.dir, cfg.library.max_stream_bytes, cfg.library.max_n,
+                               cfg.library.max_n_keep)
         self.spool = Path(cfg.library.spool)
         self.spool.mkdir(parents=True, exist_ok=True)
         (self.spool / "rejected").mkdir(exist_ok=True)
@@ -295,9 +298,12 @@ class Daemon:
         last_cycles = -1.0
         try:
             while not self.stop_event.wait(0.2):
-                while self.conn.poll():
-                    _kind, msg = self.conn.recv()
-                    log.info("%s", msg)
+                try:
+                    while self.conn.poll():
+                        _kind, msg = self.conn.recv()
+                        log.info("%s", msg)
+                except (EOFError, OSError):
+                    pass  # the pump is gone: said just below
                 if not self.proc.is_alive():
                     log.error("the real-time pump exited (code %s); stopping", self.proc.exitcode)
                     return 1

@@ -54,8 +54,7 @@ def doctor(config: str | None) -> int:
         ok(f"udev rule installed: {rule}")
     else:
         bad("udev rule not installed: a non-root daemon cannot open the display",
-            "sudo cp systemd/70-hostd.rules /etc/udev/rules.d/ && sudo udevadm control --reload "
-            "&& sudo udevadm trigger")
+            "sudo hostd install-service (installs the rule and reloads udev)")
     print("real time")
     soft, _hard = resource.getrlimit(resource.RLIMIT_RTPRIO)
     if soft > 0 or os.geteuid() == 0:
@@ -75,7 +74,7 @@ def doctor(config: str | None) -> int:
         else:
             bad(f"{what} {p} is not writable by this user",
                 f"sudo install -d -o hostd -g hostd {p} "
-                "(systemd-tmpfiles does this: systemd/hostd-tmpfiles.conf)")
+                "(sudo hostd install-service sets up systemd-tmpfiles for it)")
     db = Path(cfg.quality.db)
     if db.exists():
         try:

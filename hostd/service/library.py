@@ -1,66 +1,71 @@
 """The texture library: accepted streams stored atomically under their names.
 
-A stream is written to a temporary file in the same directory, fsynced, renamed over its
-final name and the directory fsynced, so after a crash a name holds either the whole old
-stream or the whole new one, never half of one.
+A stream is written with hostd.fileio.write_output (a uniquely named temporary file in the
+same directory, fsynced, renamed over its final name, the directory fsynced), one writer per
+name at a time, so after a crash or a race of same-name uploads a name holds exactly one
+whole accepted stream, never half of one or a mix.
 """
 
 from __future__ import annotations
 
 import hashlib
-import os
 import re
+import threading
 from pathlib import Path
 
 from hostd.codec import stream as vtx
 from hostd.errors import HostdError, StreamError
+from hostd.fileio import is_temporary, write_output
 
-NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}\Z")
 
 
 def check_name(name: str) -> str:
-    if not NAME_RE.match(name) or name.endswith(".tmp"):
+    if not isinstance(name, str) or not NAME_RE.match(name) or name.endswith(".tmp"):
         raise HostdError(f"bad texture name {name!r}: use 1-64 letters, digits, '.', '_' or '-'")
     return name
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o640)
-    try:
-        os.write(fd, data)
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
-    dfd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dfd)
-    finally:
-        os.close(dfd)
-
-
 class Library:
-    def __init__(self, directory: str | Path, max_bytes: int = 1 << 20) -> None:
+    def __init__(self, directory: str | Path, max_bytes: int = 1 << 20, max_n: int = 1 << 22,
+                 max_n_keep: int = 1 << 22) -> None:
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.max_bytes = max_bytes
-        for stale in self.dir.glob(".*.tmp"):  # a crash mid-write leaves only these
-            stale.unlink(missing_ok=True)
+        self.max_n = max_n
+        self.max_n_keep = max_n_keep
+        self._locks: dict[str, threading.Lock] = {}
+        self._locks_guard = threading.Lock()
+        for stale in self.dir.iterdir():  # a crash mid-write leaves only temporaries
+            if is_temporary(stale.name):
+                stale.unlink(missing_ok=True)
 
     def path(self, name: str) -> Path:
         return self.dir / f"{check_name(name)}.vtx"
+
+    def lock(self, name: str) -> threading.Lock:
+        with self._locks_guard:
+            return self._locks.setdefault(name, threading.Lock())
 
     def validate(self, data: bytes) -> vtx.Stream:
         if len(data) > self.max_bytes:
             raise StreamError(f"stream of {len(data)} bytes exceeds the limit of {self.max_bytes} "
                               "(library.max_stream_bytes)")
-        return vtx.decode(data)  # raises StreamError with the decoder's message
+        s = vtx.decode(data)  # raises StreamError with the decoder's message
+        if s.n > self.max_n:
+            raise StreamError(f"stream has N = {s.n} samples, more than this daemon plays "
+                              f"({self.max_n}, library.max_n)")
+        if s.n_keep > self.max_n_keep:
+            raise StreamError(f"stream has N' = {s.n_keep} coefficients, more than this daemon plays "
+                              f"({self.max_n_keep}, library.max_n_keep)")
+        return s
 
     def add(self, name: str, data: bytes) -> tuple[vtx.Stream, str]:
         """Validate and store; returns the decoded stream and its SHA-256."""
         s = self.validate(data)
-        write_atomic(self.path(name), data)
+        path = self.path(name)
+        with self.lock(name):
+            write_output(path, data, mode=0o640)
         return s, hashlib.sha256(data).hexdigest()
 
     def names(self) -> list[str]:
@@ -68,6 +73,7 @@ class Library:
 
     def read(self, name: str) -> bytes:
         p = self.path(name)
-        if not p.exists():
-            raise HostdError(f"no texture named {name!r} (hostd list shows the library)")
-        return p.read_bytes()
+        try:
+            return p.read_bytes()
+        except FileNotFoundError:
+            raise HostdError(f"no texture named {name!r} (hostd list shows the library)") from None

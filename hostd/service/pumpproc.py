@@ -87,6 +87,12 @@ def pump_main(cfg, conn, stats) -> None:
     pump: Pump | None = None  # one pump for the process: its counters survive reconnections
     link: DeviceLink | None = None
     connected = playing = quit_ = False
+
+    def on_sigterm(*_) -> None:  # systemctl kill, or the parent's terminate(): ramp to zero, exit 0
+        nonlocal quit_
+        quit_ = True
+
+    signal.signal(signal.SIGTERM, on_sigterm)
     reconnects = 0
     put("state", STATE_CODES["starting"])
     gc.collect()

@@ -18,12 +18,12 @@ def add_parser(sub) -> None:
 def cmd_sim(args) -> int:
     from pathlib import Path
 
-    from hostd.paths import scenes_dir
+    from hostd.paths import find
     from hostd.sim import scene
 
     path = Path(args.scene)
     if not path.exists() and not path.suffix:
-        path = scenes_dir() / f"{args.scene}.toml"
+        path = find("scenes", f"{args.scene}.toml")
     sc = scene.load(path)
     progress = not (args.quiet or args.json) and sc.duration_s > 3 and sys.stderr.isatty()
     result = scene.report(sc, progress=progress)

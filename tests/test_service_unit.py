@@ -1,0 +1,179 @@
+"""The systemd unit starts: `hostd run` under the unit's own seccomp filter (SystemCallFilter=,
+MemoryDenyWriteExecute=, RestrictAddressFamilies=, LimitNOFILE=, Environment=, UMask=) reaches
+READY=1 and plays; the pump ramps down and exits cleanly on SIGTERM; the unit's other settings."""
+
+from __future__ import annotations
+
+import grp
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from hostd.cli import main
+from hostd.service.client import ClientError, request, send_file
+
+ROOT = Path(__file__).resolve().parent.parent
+UNIT = ROOT / "systemd" / "hostd.service"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import unit_sandbox  # noqa: E402
+
+
+def _cfg(d: Path) -> Path:
+    group = grp.getgrgid(os.getegid()).gr_name  # the socket's chown runs (needs @chown)
+    p = d / "hostd.toml"
+    p.write_text(f'[device]\ntransport = "sim"\n[library]\ndir = "lib"\nspool = "spool"\n'
+                 f'[control]\nsocket = "hostd.sock"\ngroup = "{group}"\n[quality]\ndb = "q.sqlite"\n')
+    return p
+
+
+def _unit_env() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OPENBLAS", "OMP"))}
+    for line in unit_sandbox.unit_settings(UNIT).get("Environment", []):
+        for kv in line.split():
+            k, v = kv.split("=", 1)
+            env[k] = v
+    return env
+
+
+def _wait_socket(sock: str, proc: subprocess.Popen, log: Path) -> None:
+    for _ in range(150):
+        if proc.poll() is not None:
+            pytest.fail(f"hostd exited with {proc.returncode}:\n{log.read_text()[-3000:]}")
+        try:
+            request(sock, {"cmd": "status"}, timeout_s=2)
+            return
+        except ClientError:
+            time.sleep(0.1)
+    pytest.fail(log.read_text()[-3000:])
+
+
+def test_hostd_run_starts_and_plays_under_the_units_seccomp_filter(tmp_path):
+    lib, why = unit_sandbox.libseccomp()
+    if lib is None:
+        pytest.skip(why)
+    text, source = unit_sandbox.groups_text()
+    allowed = unit_sandbox.allowed_syscalls(UNIT, unit_sandbox.parse_groups(text))
+    assert "mbind" in allowed and "fchown" in allowed, source
+    assert "reboot" not in allowed and "mount" not in allowed and "ptrace" not in allowed
+    cfg = _cfg(tmp_path)
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(tmp_path / "notify"))
+    notify.settimeout(0.2)
+    env = _unit_env()
+    env["NOTIFY_SOCKET"] = str(tmp_path / "notify")
+    nofile = int(unit_sandbox.unit_settings(UNIT)["LimitNOFILE"][-1])
+    umask = int(unit_sandbox.unit_settings(UNIT)["UMask"][-1], 8)
+
+    def limits() -> None:
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
+        os.umask(umask)
+
+    log = tmp_path / "log.txt"
+    proc = subprocess.Popen([sys.executable, unit_sandbox.__file__, str(UNIT), "--", sys.executable, "-m",
+                             "hostd", "run", "--config", str(cfg)], cwd=tmp_path, env=env,
+                            stderr=open(log, "w"), preexec_fn=limits)
+    msgs: list[str] = []
+    done = threading.Event()
+
+    def drain() -> None:  # as systemd does: read every notification
+        while not done.is_set():
+            try:
+                msgs.extend(notify.recv(4096).decode().split("\n"))
+            except TimeoutError:
+                pass
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    try:
+        deadline = time.monotonic() + 30
+        while "READY=1" not in msgs and time.monotonic() < deadline:
+            if proc.poll() is not None:
+                sig = -proc.returncode if proc.returncode < 0 else 0
+                pytest.fail(f"hostd died under the unit's filter (exit {proc.returncode}"
+                            f"{', SIGSYS: a syscall the filter forbids' if sig == signal.SIGSYS else ''}):\n"
+                            + log.read_text()[-3000:])
+            time.sleep(0.05)
+        assert "READY=1" in msgs, log.read_text()[-3000:]
+        sock = str(tmp_path / "hostd.sock")
+        _wait_socket(sock, proc, log)
+        out = tmp_path / "w.vtx"
+        assert main(["encode", "synthetic:wood:3", "-o", str(out), "--method", "quant", "--levels", "8"]) == 0
+        send_file(sock, str(out), None)
+        request(sock, {"cmd": "select", "name": "w"})
+        for _ in range(200):
+            if request(sock, {"cmd": "status"})["state"] == "playing":
+                break
+            time.sleep(0.1)
+        a = request(sock, {"cmd": "status"})
+        time.sleep(0.5)
+        b = request(sock, {"cmd": "status"})
+        assert b["state"] == "playing" and b["samples"] > a["samples"] + 300, (a, b)
+        for _ in range(50):  # the quality worker (SQLite, scoring) runs under the filter too
+            if request(sock, {"cmd": "quality"})["rows"]:
+                break
+            time.sleep(0.1)
+        else:
+            pytest.fail("no quality row: " + log.read_text()[-2000:])
+        assert "WATCHDOG=1" in msgs
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(20) == 0, log.read_text()[-3000:]
+        assert "STOPPING=1" in msgs
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        done.set()
+        reader.join()
+        notify.close()
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        out += [int(x) for x in (task / "children").read_text().split()]
+    return out
+
+
+def test_pump_ramps_to_zero_and_exits_cleanly_on_sigterm(tmp_path):
+    """KillMode=mixed / systemctl kill: a SIGTERM to the pump stops output (ramp) and exits 0."""
+    cfg = _cfg(tmp_path)
+    log = tmp_path / "log.txt"
+    proc = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)], cwd=tmp_path,
+                            stderr=open(log, "w"))
+    try:
+        sock = str(tmp_path / "hostd.sock")
+        _wait_socket(sock, proc, log)
+        out = tmp_path / "w.vtx"
+        assert main(["encode", "synthetic:wood:3", "-o", str(out), "--method", "quant", "--levels", "8"]) == 0
+        send_file(sock, str(out), None)
+        request(sock, {"cmd": "select", "name": "w"})
+        for _ in range(200):  # the pump's start-up (imports) can take seconds on a loaded machine
+            if request(sock, {"cmd": "status"})["state"] == "playing":
+                break
+            time.sleep(0.1)
+        pumps = [p for p in _children(proc.pid)
+                 if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()]
+        assert len(pumps) == 1
+        os.kill(pumps[0], signal.SIGTERM)
+        proc.wait(15)
+        text = log.read_text()
+        assert "the real-time pump exited (code 0)" in text, text[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_unit_settings():
+    s = unit_sandbox.unit_settings(UNIT)
+    assert s["KillMode"] == ["mixed"]
+    assert "systemd-udev-settle" not in UNIT.read_text()
+    for key in ("LimitNOFILE", "TasksMax", "MemoryMax"):
+        assert key in s, key
