@@ -18,10 +18,12 @@ CURVE = thresholds.default_curve()
 
 
 def direct(c, cp, b, a_w, b_w):
-    P = sum(ck * ck / (bk * bk) for ck, bk in zip(c, b, strict=True))
-    A = sum(abs(ck) / bk for ck, bk in zip(c, b, strict=True))
-    Pp = sum(ck * ck / (bk * bk) for ck, bk in zip(cp, b, strict=True))
-    Ap = sum(abs(ck) / bk for ck, bk in zip(cp, b, strict=True))
+    # Exact sums (fsum): Ip of a near-lossless variant is a difference of nearly equal sums,
+    # which a naive left-to-right sum would get wrong in the 12th digit.
+    P = math.fsum(ck * ck / (bk * bk) for ck, bk in zip(c, b, strict=True))
+    A = math.fsum(abs(ck) / bk for ck, bk in zip(c, b, strict=True))
+    Pp = math.fsum(ck * ck / (bk * bk) for ck, bk in zip(cp, b, strict=True))
+    Ap = math.fsum(abs(ck) / bk for ck, bk in zip(cp, b, strict=True))
     ip = abs(P - Pp) / ((P + Pp) / 2)
     ia = abs(A - Ap) / ((A + Ap) / 2)
     return P, A, Pp, Ap, ip, ia, a_w * ip + b_w * ia

@@ -6,6 +6,8 @@ Threshold-cut (eq. 7):           T_k = 0 if |C_k| < b(f_k) 10^(b0/20) else C_k
 
 from __future__ import annotations
 
+import decimal
+import functools
 import math
 from dataclasses import dataclass
 
@@ -66,11 +68,30 @@ def quantize(coeffs_um: np.ndarray, levels: int) -> Quantized:
     return Quantized(q=q, step_um=step, levels=levels)
 
 
+@functools.lru_cache(maxsize=4096)
+def db_to_ratio(db: float) -> float:
+    """10^(db/20), the same bits on every CPU.
+
+    libm's pow has CPU-specific variants (glibc picks an FMA build at run time) that may differ
+    in the last bit; this factor reaches stream bytes (cut decisions, shaped steps), so it is
+    computed in decimal arithmetic (libmpdec, integers only) at 40 digits and rounded once.
+    """
+    if not math.isfinite(db):
+        raise CodecError(f"a level in dB must be finite, got {db}")
+    ctx = decimal.Context(prec=40)
+    # 10^e with e = db / 20 rounded to float64 first, as `10.0 ** (db / 20.0)` would.
+    x = ctx.multiply(decimal.Decimal(db / 20.0), ctx.ln(decimal.Decimal(10)))
+    r = float(ctx.exp(x))
+    if not (r > 0 and math.isfinite(r)):
+        raise CodecError(f"{db} dB is out of range (10^(dB/20) must be a finite number > 0)")
+    return r
+
+
 def cut_level_um(threshold_um: np.ndarray, b0_db: float) -> np.ndarray:
     """b(f_k) 10^(b0/20): the shifted threshold below which amplitudes are removed."""
     if not math.isfinite(b0_db):
         raise CodecError(f"--b0 must be a finite number of dB, got {b0_db}")
-    return np.asarray(threshold_um, dtype=np.float64) * 10.0 ** (b0_db / 20.0)
+    return np.asarray(threshold_um, dtype=np.float64) * db_to_ratio(float(b0_db))
 
 
 def threshold_cut(coeffs_um: np.ndarray, threshold_um: np.ndarray, b0_db: float) -> np.ndarray:

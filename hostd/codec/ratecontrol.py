@@ -16,6 +16,7 @@ import numpy as np
 
 from hostd.codec import stream as vtx
 from hostd.codec import transform
+from hostd.codec.methods import db_to_ratio
 from hostd.errors import CodecError
 from hostd.perception import indices
 from hostd.perception.thresholds import ThresholdCurve
@@ -52,11 +53,25 @@ def _settings(coeffs: np.ndarray, b_k: np.ndarray) -> Iterator[dict]:
     nz = np.abs(coeffs) > 0
     b0s = list(B0_GRID_DB)
     if np.any(nz):  # a shift low enough to keep every nonzero coefficient
-        lowest = float(np.min(20 * np.log10(np.abs(coeffs[nz]) / b_k[nz])))
-        b0s.append(math.floor(lowest) - 1.0)
+        b0s.append(keep_all_b0_db(coeffs[nz], b_k[nz]))
     for vb in vtx.VALUE_BITS:
         for b0 in b0s:
             yield {"method": "cut", "b0_db": float(b0), "value_bits": vb}
+
+
+def keep_all_b0_db(coeffs: np.ndarray, b_k: np.ndarray) -> float:
+    """A whole-dB shift 1 dB below the lowest |C_k| / b_k, settled with exact comparisons.
+
+    The logarithm only gives a first guess; the result is fixed by comparing against
+    methods.db_to_ratio, so it is the same on every CPU (libm's log10 is not).
+    """
+    r = float(np.min(np.abs(coeffs) / b_k))
+    d = math.floor(20.0 * math.log10(r))
+    while db_to_ratio(d + 1.0) <= r:
+        d += 1
+    while db_to_ratio(float(d)) > r:
+        d -= 1
+    return float(d) - 1.0
 
 
 def candidates(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve,

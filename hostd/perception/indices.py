@@ -2,10 +2,18 @@
 
 All functions are vectorized: coefficient arrays may carry leading axes (one row per
 compressed variant) and the sums are taken over the last axis, k = 1..N'.
+
+The sums P and A travel in stream headers, so they must come out bit-identical on every CPU:
+each term is one IEEE operation per element (no fused multiply-add, no SIMD-width-dependent
+reduction), and the terms are added with `math.fsum`, which is correctly rounded and so
+independent of the order and width of any summation kernel (numpy's dot/sum are not: their
+BLAS and SIMD kernels differ per CPU in the last bit). P' and A' of a decoded stream are
+computed by the same function, so a lossless stream scores exactly Iobj = 0.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,16 +45,34 @@ def weights(threshold_um: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return inv * inv, inv
 
 
+def exact_sum(terms: np.ndarray) -> np.ndarray:
+    """Correctly rounded sum over the last axis (math.fsum per row): the same bits on every CPU."""
+    t = np.asarray(terms, dtype=np.float64)
+    try:
+        if t.ndim == 1:
+            return np.float64(math.fsum(t.tolist()))
+        rows = t.reshape(-1, t.shape[-1]).tolist()
+        return np.array([math.fsum(r) for r in rows], dtype=np.float64).reshape(t.shape[:-1])
+    except OverflowError:
+        raise QualityError("a weighted sum overflows float64; the coefficients are too large") from None
+
+
 def weighted_sums(coeffs_um: np.ndarray, threshold_um: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """P = sum C_k^2 / b(f_k)^2 and A = sum |C_k| / b(f_k) over the last axis."""
+    """P = sum C_k^2 / b(f_k)^2 and A = sum |C_k| / b(f_k) over the last axis.
+
+    Terms: (C_k * C_k) * (1/b_k)^2 and |C_k| * (1/b_k), each an elementwise IEEE operation;
+    sums: `exact_sum` (correctly rounded). Bit-identical on every CPU.
+    """
     c = np.asarray(coeffs_um, dtype=np.float64)
     _finite("coefficients", c)
     w2, w1 = weights(threshold_um)
     if c.shape[-1] != w1.shape[-1]:
         raise QualityError(f"{c.shape[-1]} coefficients but {w1.shape[-1]} thresholds")
-    if c.ndim == 1:
-        return np.float64((c * c) @ w2), np.float64(np.abs(c) @ w1)
-    return (c * c) @ w2, np.abs(c) @ w1
+    P = exact_sum(np.multiply(np.multiply(c, c), w2))
+    A = exact_sum(np.multiply(np.abs(c), w1))
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(A))):
+        raise QualityError("weighted sums overflow float64; the coefficients are too large")
+    return P, A
 
 
 def relative_error(x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:

@@ -40,8 +40,26 @@ class ThresholdCurve:
         object.__setattr__(self, "_id", curve_id_bytes(f, b))
 
     def __call__(self, f_hz: np.ndarray | float) -> np.ndarray:
-        """b(f) in µm; f may be any shape."""
-        return np.interp(np.asarray(f_hz, dtype=np.float64), self.freq_hz, self.threshold_um)
+        """b(f) in µm; f may be any shape.
+
+        np.interp's formula, b_j + s_j (f - f_j) with s_j = (b_{j+1} - b_j) / (f_{j+1} - f_j),
+        written as separate elementwise operations so that no compiler can fuse them into a
+        multiply-add: b(f_k) reaches stream bytes (the reference sums, the shaped steps) and
+        must be the same bits on every CPU.
+        """
+        f = np.asarray(f_hz, dtype=np.float64)
+        xp, fp = self.freq_hz, self.threshold_um
+        if xp.size == 1:
+            return np.full(f.shape, fp[0])
+        j = np.clip(np.searchsorted(xp, f, side="right") - 1, 0, xp.size - 2)
+        slope = np.divide(np.subtract(fp[j + 1], fp[j]), np.subtract(xp[j + 1], xp[j]))
+        out = np.add(np.multiply(slope, np.subtract(f, xp[j])), fp[j])
+        out = np.where(f == xp[j], fp[j], out)
+        out = np.where(f <= xp[0], fp[0], out)
+        out = np.where(f >= xp[-1], fp[-1], out)
+        if np.any(np.isnan(f)):
+            raise ThresholdError("threshold asked at a NaN frequency")
+        return out[()]
 
     @property
     def id_bytes(self) -> bytes:

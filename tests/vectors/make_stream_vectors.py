@@ -1,4 +1,4 @@
-"""Regenerate the golden .vtx vectors: python tests/vectors/make_stream_vectors.py
+"""Regenerate the golden .vtx vectors: python -m tests.vectors.make_stream_vectors
 
 Each vector is NAME.vtx plus NAME.json with the header fields and the decoded coefficients
 (JSON numbers written with Python's repr, which round-trips float64 exactly). A decoder in
@@ -26,23 +26,41 @@ CASES = {
 }
 
 
-def profile() -> np.ndarray:
-    """A small deterministic profile: 2000 samples over 2 mm (N' = 32 at 50 mm/s, 400 Hz)."""
+PROFILE_FILE = HERE / "profile_2000.f64"
+
+
+def formula_profile() -> np.ndarray:
+    """How profile_2000.f64 was made (2000 samples over 2 mm, N' = 32 at 50 mm/s, 400 Hz).
+
+    Kept as documentation only: numpy's sin/cos have CPU-specific SIMD kernels, so the vectors
+    are made from the stored float64 file, which is the same input on every machine.
+    """
     n = 2000
     x = np.arange(n) / n
     return (3.0 * np.cos(np.pi * 3 * (x + 0.5 / n)) + 0.5 * np.sin(2 * np.pi * 11 * x)
             + 0.05 * np.cos(np.pi * 29 * x) + 0.2 * np.sin(2 * np.pi * 2.3 * x) ** 3)
 
 
-def main() -> None:
+def profile() -> np.ndarray:
+    """The vectors' input profile: 2000 little-endian float64 heights (µm) from PROFILE_FILE."""
+    return np.frombuffer(PROFILE_FILE.read_bytes(), dtype="<f8").astype(np.float64)
+
+
+def build() -> dict[str, bytes]:
+    """Every vector's stream bytes, made from profile(): what the files must hold."""
     y = profile()
     geom = transform.Geometry(n=y.size, length_mm=2.0)
     curve = thresholds.default_curve()
-    for name, kw in CASES.items():
-        data = vtx.encode_profile(y, geom, curve, **kw)
+    return {name: vtx.encode_profile(y, geom, curve, **kw) for name, kw in CASES.items()}
+
+
+def main() -> None:
+    if not PROFILE_FILE.exists():
+        PROFILE_FILE.write_bytes(formula_profile().astype("<f8").tobytes())
+    for name, data in build().items():
         s = vtx.decode(data)
         info = s.summary()
-        info["encode"] = kw
+        info["encode"] = CASES[name]
         (HERE / f"{name}.vtx").write_bytes(data)
         (HERE / f"{name}.json").write_text(json.dumps(info, indent=1) + "\n")
         print(name, len(data))
