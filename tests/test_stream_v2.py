@@ -257,3 +257,39 @@ def test_typed_one_line_errors():
         vtx.decode(big + struct.pack("<H", binascii.crc_hqx(big, 0xFFFF)))  # CRC-16 on > 4 KiB
     assert vtx.decode(_recrc(good[:-2])).method == "shaped"
     assert zlib.crc32(b"") == 0  # (the CRC-32 is zlib's; see the spec)
+
+
+# ---------------------------------------------------------------- everywhere a stream is read
+
+
+def test_daemon_library_and_quality_log_read_v1_and_v2(tmp_path):
+    from hostd.service.library import Library
+    from hostd.service.qualitylog import score_row
+
+    y, geom = _wood()
+    lib = Library(tmp_path)
+    for data in (stream2.encode_profile(y, geom, CURVE, method="shaped", g_db=-6.0),
+                 vtx.encode_profile(y, geom, CURVE, method="quant", levels=8)):
+        s = lib.validate(data)
+        row = score_row(data, "t", "0" * 64, 0.0, *indices.DEFAULT_AB)
+        assert row["method"] == s.method and 0 <= row["iobj"] < 0.5
+
+
+def test_cli_encode_defaults_to_v2_and_writes_v1_on_request(tmp_path, capsys):
+    from hostd.cli import main
+
+    out2, out1 = tmp_path / "a.vtx", tmp_path / "b.vtx"
+    assert main(["encode", "synthetic:wood:5", "-o", str(out2), "--method", "shaped", "--g", "-6"]) == 0
+    assert main(["encode", "synthetic:wood:5", "-o", str(out1), "--format", "v1", "--method", "quant",
+                 "--levels", "14"]) == 0
+    assert vtx.decode(out2.read_bytes()).version == 2 and vtx.decode(out1.read_bytes()).version == 1
+    capsys.readouterr()
+    assert main(["inspect", "--json", str(out2)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["guard_wsnr_db"] > 10 and info["g_db"] == -6.0
+    assert main(["iobj", "--json", "synthetic:wood:5", str(out1)]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["guard_source"] == "profile" and 0 < info["wsnr_db"] < 30
+    assert main(["encode", "synthetic:wood:5", "-o", str(out1), "--format", "v1", "--method",
+                 "shaped", "--g", "0"]) == 2
+    assert "format v2" in capsys.readouterr().err

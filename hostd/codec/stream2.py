@@ -84,6 +84,7 @@ PAPER_GEOMETRY = IntGeometry(n=20000, spacing_pm=500_000, speed_um_s=50_000, fma
 
 def int_geometry(geometry: transform.Geometry) -> IntGeometry:
     """The v2 geometry of a float one: spacing in pm, speed in µm/s, fmax in mHz (rounded)."""
+    geometry.n_keep  # noqa: B018 - refuses N' outside 1..N-1 with the option to change
     g = IntGeometry(geometry.n, round(geometry.spacing_um * 1e6), round(geometry.speed_mm_s * 1e3),
                     round(geometry.fmax_hz * 1e3))
     if g.spacing_pm < 1 or g.speed_um_s < 1 or g.fmax_mhz < 1:
