@@ -63,7 +63,11 @@ def test_rate_quality_report_writes_table_and_plot(tmp_path, source):
     b0s = {float(r["b0_db"]) for r in rows if r["method"] == "cut"}
     assert {14, 12, 10, 8, 6, 5, 4} <= levels and {-12, -8, -4, 0, 4, 8, 12} <= b0s
     for r in rows:
-        assert np.isfinite(float(r["Iobj"])) and int(r["bytes"]) > vtx.HEADER_SIZE
+        assert np.isfinite(float(r["Iobj"])) and np.isfinite(float(r["wsnr_db"]))
+        if r["version"] == "1":
+            assert int(r["bytes"]) > vtx.HEADER_SIZE
+    v2 = [r for r in rows if r["series"] == "v2 shaped"]
+    assert len(v2) >= 20 and {float(r["g_db"]) for r in v2} >= {-12.0, 0.0, 6.0}
     png = (tmp_path / "rate_quality.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     assert "| series |" in (tmp_path / "rate_quality.md").read_text()
