@@ -61,25 +61,28 @@ class Encoder:
 
     def bit(self, probs: list[int], i: int, b: int) -> None:
         p = probs[i]
-        bound = (self.range >> PROB_BITS) * p
+        r = self.range
+        bound = (r >> 11) * p  # PROB_BITS
         if b:
             self.low += bound
-            self.range -= bound
-            probs[i] = p - (p >> ADAPT_SHIFT)
+            r -= bound
+            probs[i] = p - (p >> 4)  # ADAPT_SHIFT
         else:
-            self.range = bound
-            probs[i] = p + ((PROB_ONE - p) >> ADAPT_SHIFT)
-        while self.range < TOP:
-            self.range <<= 8
+            r = bound
+            probs[i] = p + ((2048 - p) >> 4)
+        while r < 0x1000000:  # TOP
+            r <<= 8
             self._shift_low()
+        self.range = r
 
     def bypass(self, b: int) -> None:
-        self.range >>= 1
+        r = self.range >> 1
         if b:
-            self.low += self.range
-        while self.range < TOP:
-            self.range <<= 8
+            self.low += r
+        while r < 0x1000000:
+            r <<= 8
             self._shift_low()
+        self.range = r
 
     def finish(self) -> bytes:
         # Any value in [low, low + range) decodes the same; take the one with the most
@@ -113,31 +116,38 @@ class Decoder:
 
     def bit(self, probs: list[int], i: int) -> int:
         p = probs[i]
-        bound = (self.range >> PROB_BITS) * p
-        if self.code < bound:
-            self.range = bound
-            probs[i] = p + ((PROB_ONE - p) >> ADAPT_SHIFT)
+        r = self.range
+        code = self.code
+        bound = (r >> 11) * p  # PROB_BITS
+        if code < bound:
+            r = bound
+            probs[i] = p + ((2048 - p) >> 4)  # ADAPT_SHIFT
             b = 0
         else:
-            self.code -= bound
-            self.range -= bound
-            probs[i] = p - (p >> ADAPT_SHIFT)
+            code -= bound
+            r -= bound
+            probs[i] = p - (p >> 4)
             b = 1
-        while self.range < TOP:
-            self.range <<= 8
-            self.code = ((self.code << 8) | self._next()) & MASK32
+        while r < 0x1000000:  # TOP
+            r <<= 8
+            code = ((code << 8) | self._next()) & 0xFFFFFFFF
+        self.range = r
+        self.code = code
         return b
 
     def bypass(self) -> int:
-        self.range >>= 1
-        if self.code >= self.range:
-            self.code -= self.range
+        r = self.range >> 1
+        code = self.code
+        if code >= r:
+            code -= r
             b = 1
         else:
             b = 0
-        while self.range < TOP:
-            self.range <<= 8
-            self.code = ((self.code << 8) | self._next()) & MASK32
+        while r < 0x1000000:
+            r <<= 8
+            code = ((code << 8) | self._next()) & 0xFFFFFFFF
+        self.range = r
+        self.code = code
         return b
 
 
@@ -147,23 +157,25 @@ def _eg_encode(enc: Encoder, probs: list[int], v: int) -> None:
     v1 = v + 1
     n = v1.bit_length() - 1
     last = len(probs) - 1
+    bit, bypass = enc.bit, enc.bypass
     for i in range(n):
-        enc.bit(probs, min(i, last), 1)
-    enc.bit(probs, min(n, last), 0)
+        bit(probs, i if i < last else last, 1)
+    bit(probs, n if n < last else last, 0)
     for i in range(n - 1, -1, -1):
-        enc.bypass((v1 >> i) & 1)
+        bypass((v1 >> i) & 1)
 
 
 def _eg_decode(dec: Decoder, probs: list[int]) -> int:
     n = 0
     last = len(probs) - 1
-    while dec.bit(probs, min(n, last)):
+    bit, bypass = dec.bit, dec.bypass
+    while bit(probs, n if n < last else last):
         n += 1
         if n > EG_MAX_PREFIX:
             raise StreamError("entropy-coded number too long")
     v1 = 1
     for _ in range(n):
-        v1 = (v1 << 1) | dec.bypass()
+        v1 = (v1 << 1) | bypass()
     return v1 - 1
 
 
@@ -183,15 +195,17 @@ def encode_indices(q: np.ndarray) -> bytes:
             n_sig = i + 1
     _eg_encode(enc, p_sig, n_sig)
     a1 = a2 = 0
+    bit, bypass = enc.bit, enc.bypass
+    last = n_sig - 1
     for i in range(n_sig):
         v = vals[i]
-        a = abs(v)
-        ctx = min(2, a1) + min(2, a2)
-        if i != n_sig - 1:
-            enc.bit(p_zero, ctx, 1 if a else 0)
+        a = -v if v < 0 else v
+        ctx = (a1 if a1 < 2 else 2) + (a2 if a2 < 2 else 2)
+        if i != last:
+            bit(p_zero, ctx, 1 if a else 0)
         if a:
-            enc.bypass(1 if v < 0 else 0)
-            enc.bit(p_gt1, ctx, 1 if a > 1 else 0)
+            bypass(1 if v < 0 else 0)
+            bit(p_gt1, ctx, 1 if a > 1 else 0)
             if a > 1:
                 _eg_encode(enc, p_mag, a - 2)
         a2, a1 = a1, a
@@ -210,14 +224,16 @@ def decode_indices(data: bytes, n_keep: int) -> np.ndarray:
         raise StreamError(f"entropy-coded payload claims {n_sig} significant components, N' = {n_keep}")
     out = [0] * n_keep
     a1 = a2 = 0
+    bit, bypass = dec.bit, dec.bypass
+    last = n_sig - 1
     for i in range(n_sig):
-        ctx = min(2, a1) + min(2, a2)
-        nz = 1 if i == n_sig - 1 else dec.bit(p_zero, ctx)
+        ctx = (a1 if a1 < 2 else 2) + (a2 if a2 < 2 else 2)
+        nz = 1 if i == last else bit(p_zero, ctx)
         a = 0
         if nz:
-            neg = dec.bypass()
+            neg = bypass()
             a = 1
-            if dec.bit(p_gt1, ctx):
+            if bit(p_gt1, ctx):
                 a = 2 + _eg_decode(dec, p_mag)
                 if a > MAX_ABS_INDEX:
                     raise StreamError("entropy-coded index out of range")

@@ -240,6 +240,7 @@ def encode_coefficients(
         g_db = check_g_db(float(g_db))
         params = _zigzag(round(g_db / G_UNIT_DB))
         q = shaped_quantize(c, b_k, g_db)
+        decoded = shaped_values(q, b_k, g_db)
     elif method == "quant":
         if levels is None:
             raise CodecError("--method quant needs --levels L")
@@ -248,6 +249,7 @@ def encode_coefficients(
             raise CodecError("quantization indices beyond 2^40: use --format v1")
         params = _varint(qz.levels) + struct.pack("<d", qz.step_um)
         q = qz.q
+        decoded = q.astype(np.float64) * qz.step_um
     else:
         if b0_db is None:
             raise CodecError("--method cut needs --b0 DB")
@@ -263,6 +265,7 @@ def encode_coefficients(
             step = 1.0
         q = np.where(keep, np.rint(np.divide(c, step)), 0.0).astype(np.int64)
         params = _zigzag(b0u) + bytes([value_bits]) + struct.pack("<d", step)
+        decoded = q.astype(np.float64) * step
     embed = embed_curve if embed_curve is not None else curve.id_bytes not in th.shipped_curves()
     flags = METHOD_IDS[method] | (FLAG_CURVE_EMBEDDED if embed else 0)
     geo = b""
@@ -275,8 +278,7 @@ def encode_coefficients(
     guard_at = len(body) - 1
     body += (params
              + (curve.to_bytes() if embed else b"") + rangecoder.encode_indices(q))
-    # The guard byte records the wSNR of what the receiver will decode (decoded for real).
-    decoded = decode(bytes(body) + _crc(bytes(body))).coefficients
+    # The guard byte records the wSNR of what the receiver decodes (the decoder's formulas).
     body[guard_at] = guard.header_code(guard.weighted_snr_db(c, decoded, b_k))
     return bytes(body) + _crc(bytes(body))
 
