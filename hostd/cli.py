@@ -137,29 +137,43 @@ def _write_bytes_atomic(path: str, data: bytes) -> None:
 
 
 def cmd_encode(args: argparse.Namespace) -> int:
-    from hostd.codec import ratecontrol, stream, transform
+    from hostd.codec import ratecontrol, stream, stream2, transform
     from hostd.errors import CodecError
     from hostd.perception import thresholds
 
     prof = read_profile(args.profile, args)
     curve = thresholds.resolve(args.thresholds)
     geom = transform.Geometry(prof.n, prof.length_mm, args.speed, args.fmax)
+    if args.format == "v2" and args.coder != "auto":
+        raise CodecError("--coder applies to --format v1 only (v2 has one entropy coder, the "
+                         "adaptive range coder)")
+    if args.format == "v1" and args.method == "shaped":
+        raise CodecError("--method shaped needs --format v2 (the default)")
+    value_bits = args.value_bits if args.value_bits is not None else (16 if args.format == "v2" else 0)
     if args.target_iobj is not None:
-        choice = ratecontrol.smallest_within(prof.heights_um, geom, curve, args.target_iobj,
-                                             ab=_ab(args))
-        data = choice.data
-        print(f"chose {choice.describe()}", file=sys.stderr)
+        res = ratecontrol.search(prof.heights_um, geom, curve, args.target_iobj, method=args.method,
+                                 fmt=args.format, guard_db=None if args.no_guard else args.guard_db,
+                                 ab=_ab(args))
+        for note in res.notes:
+            print(f"note: {note}", file=sys.stderr)
+        data = res.best.data
+        print(f"chose {res.best.describe()} after {res.encodes} encodes in "
+              f"{res.seconds * 1e3:.0f} ms CPU", file=sys.stderr)
+    elif args.method is None:
+        raise CodecError("give --method shaped|quant|cut (or --target-iobj X)")
+    elif args.format == "v2":
+        data = stream2.encode_profile(prof.heights_um, geom, curve, method=args.method,
+                                      g_db=args.g, levels=args.levels, b0_db=args.b0,
+                                      value_bits=value_bits)
     else:
-        if args.method is None:
-            raise CodecError("give --method quant|cut (or --target-iobj X)")
         data = stream.encode_profile(
             prof.heights_um, geom, curve, method=args.method, levels=args.levels,
-            b0_db=args.b0, value_bits=args.value_bits, coder=args.coder,
+            b0_db=args.b0, value_bits=value_bits, coder=args.coder,
         )
     _write_bytes_atomic(args.output, data)
     s = stream.decode(data)
     print(
-        f"{args.output}: {s.method}, N={s.n}, N'={s.n_keep}, {s.nbytes} bytes "
+        f"{args.output}: v{s.version} {s.method}, N={s.n}, N'={s.n_keep}, {s.nbytes} bytes "
         f"({100 * s.ratio_coeffs:.1f}% of 16-bit coefficients, "
         f"{100 * s.ratio_profile:.2f}% of the 16-bit profile)",
         file=sys.stderr,
@@ -181,6 +195,10 @@ def cmd_decode(args: argparse.Namespace) -> int:
 def cmd_inspect(args: argparse.Namespace) -> int:
     s = _read_stream(args.stream)
     info = s.summary()
+    if "guard_wsnr_db" not in info:
+        info["guard_wsnr_db"] = None
+        info["guard_note"] = ("a v1 stream does not record its wSNR: "
+                              "hostd iobj REFERENCE_PROFILE STREAM measures it")
     if args.json:
         _dump(info)
         return 0
@@ -208,6 +226,9 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     sc = score_stream(s, reference_um=ref, curve=curve, a=a, b=b)
     out = sc.as_dict()
     out["reference"] = "profile" if ref is not None else "stream_header"
+    from hostd.quality import guard_report
+
+    out.update(guard_report(s, reference_um=ref, curve=curve))
     from hostd.codec import transform
     from hostd.perception import peer
 
@@ -302,15 +323,27 @@ def build_parser() -> argparse.ArgumentParser:
                        help="compress a height profile into a .vtx stream")
     p.add_argument("profile", help="profile file (csv/txt/npy) or synthetic:wood[:SEED]")
     p.add_argument("-o", "--output", required=True, help="output .vtx file")
-    p.add_argument("--method", choices=["quant", "cut"], default=None)
+    p.add_argument("--format", choices=["v2", "v1"], default="v2",
+                   help="stream format (default v2; v1 is the original 84-byte-header format)")
+    p.add_argument("--method", choices=["shaped", "quant", "cut"], default=None,
+                   help="shaped: step g·b(f_k) (v2 only); quant, cut: the paper's methods")
+    p.add_argument("--g", type=_finite, default=None,
+                   help="shaped: step relative to the detection threshold, dB (multiple of 0.25)")
     p.add_argument("--levels", type=int, default=None, help="quantization steps L (quant)")
     p.add_argument("--b0", type=_finite, default=None, help="threshold shift b0 in dB (cut)")
-    p.add_argument("--value-bits", type=int, default=0, choices=[0, 8, 16, 32],
-                   help="cut survivors: 0 = exact float64 (default), else integers of this width")
+    p.add_argument("--value-bits", type=int, default=None, choices=[0, 8, 16, 32],
+                   help="cut survivors: 0 = exact float64 (v1 only; the v1 default), else "
+                   "integers of this width (v2 default 16)")
     p.add_argument("--coder", default="auto", choices=["auto", "none", "deflate"],
-                   help="lossless entropy stage (default auto: the smaller)")
+                   help="v1 lossless entropy stage (default auto: the smaller)")
     p.add_argument("--target-iobj", type=_finite, default=None,
-                   help="rate control: the smallest stream whose Iobj <= X")
+                   help="rate control: the smallest stream whose Iobj <= X and whose wSNR passes "
+                   "the guard (only --method's knob when given, else every method)")
+    p.add_argument("--guard-db", type=_finite, default=25.0,
+                   help="rate control's waveform guard: threshold-weighted SNR >= this, dB "
+                   "(default 25)")
+    p.add_argument("--no-guard", action="store_true",
+                   help="rate control on Iobj alone (can return a wrong waveform; see docs)")
     p.set_defaults(func=cmd_encode)
 
     p = sub.add_parser("decode", help="reconstruct heights (µm, one per line) from a stream")

@@ -43,3 +43,21 @@ def score_stream(
             )
         P, A = indices.weighted_sums(transform.analyze(ref, stream.n_keep), b_k)
     return indices.scores_from_sums(P, A, Pp, Ap, a, b)
+
+
+def guard_report(stream: Stream, *, reference_um: np.ndarray | None = None,
+                 curve: ThresholdCurve | None = None) -> dict:
+    """The waveform guard of a stream: measured against the original when given, else the
+    sender's value from a v2 header (a lower bound in 0.5 dB steps), else unavailable."""
+    from hostd.perception import guard
+
+    if reference_um is not None:
+        b_k = stream_thresholds(stream, curve)
+        c = transform.analyze(np.asarray(reference_um, dtype=np.float64), stream.n_keep)
+        return {"wsnr_db": guard.weighted_snr_db(c, stream.coefficients, b_k),
+                "nmr_max_db": guard.max_nmr_db(c, stream.coefficients, b_k),
+                "guard_source": "profile"}
+    if stream.guard_wsnr_db is not None:
+        return {"wsnr_db": stream.guard_wsnr_db, "guard_source": "stream_header"}
+    return {"wsnr_db": None, "guard_source": "unavailable: a v1 stream does not record it; "
+            "pass REFERENCE_PROFILE"}

@@ -23,8 +23,13 @@ SERIES = {  # label -> encoder settings besides the swept parameter
     "cut (exact survivors)": {"method": "cut", "value_bits": 0},
     "cut (16-bit survivors)": {"method": "cut", "value_bits": 16},
 }
-COLUMNS = ("series", "method", "levels", "b0_db", "value_bits", "bytes", "ratio_coeffs",
-           "ratio_profile", "kept", "Ip", "Ia", "Iobj", "st_sim", "spqi", "table_I")
+# Stream v2 (issue 14): the threshold-shaped quantizer swept over its knob g.
+V2_SERIES = {"v2 shaped": {"method": "shaped"}}
+G_DB = tuple(float(g) for g in np.arange(-30.0, 15.0 + 1e-9, 1.5))
+G_TABLE = (-24.0, -18.0, -12.0, -6.0, 0.0, 6.0, 12.0)
+COLUMNS = ("series", "version", "method", "levels", "b0_db", "g_db", "value_bits", "bytes",
+           "ratio_coeffs", "ratio_profile", "kept", "Ip", "Ia", "Iobj", "wsnr_db", "st_sim", "spqi",
+           "table_I")
 
 
 def sweep(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve,
@@ -39,28 +44,62 @@ def sweep(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve,
         for v in params:
             key = "levels" if base["method"] == "quant" else "b0_db"
             jobs.append((label, {**base, key: v}))
+    jobs += v2_jobs()
     peers_on = with_peers and peer.available()
     rows = []
     for label, kw in tqdm(jobs, desc="rate-quality", unit="stream", disable=not progress,
                           leave=False):
-        data = vtx.encode_coefficients(c, geometry, curve, **kw)
+        data = _encode(label, kw, c, geometry, curve)
         s = vtx.decode(data)
         Pp, Ap = indices.weighted_sums(s.coefficients, b_k)
         sc = indices.scores_from_sums(P, A, Pp, Ap, *ab)
         row = {
-            "series": label, "method": s.method, "levels": s.levels, "b0_db": s.b0_db,
+            "series": label, "version": s.version, "method": s.method, "levels": s.levels,
+            "b0_db": s.b0_db, "g_db": s.g_db,
             "value_bits": s.value_bits, "bytes": s.nbytes, "ratio_coeffs": s.ratio_coeffs,
             "ratio_profile": s.ratio_profile, "kept": int(np.count_nonzero(s.coefficients)),
             "Ip": float(sc.Ip), "Ia": float(sc.Ia), "Iobj": float(sc.Iobj),
+            "wsnr_db": guard_column(c, s.coefficients, b_k),
             "st_sim": None, "spqi": None,
-            "table_I": (s.levels in TABLE_I_LEVELS) if s.method == "quant"
-            else (s.b0_db in TABLE_I_B0),
+            "table_I": _in_table(s),
         }
         if peers_on:
             row.update(peer.peer_scores(c, s.coefficients, geometry.n, geometry.length_mm,
                                         geometry.speed_mm_s) or {})
         rows.append(row)
     return rows
+
+
+def v2_jobs() -> list[tuple[str, dict]]:
+    """The v2 series: the shaped quantizer at every g of G_DB."""
+    return [(label, {**base, "g_db": g}) for label, base in V2_SERIES.items() for g in G_DB]
+
+
+def _encode(label: str, kw: dict, c: np.ndarray, geometry: transform.Geometry,
+            curve: ThresholdCurve) -> bytes:
+    if label in V2_SERIES:
+        from hostd.codec import stream2
+
+        ig = stream2.int_geometry(geometry)
+        if ig.n_keep != c.size:
+            raise ValueError("this geometry is not representable exactly in stream v2")
+        return stream2.encode_coefficients(c, ig, curve, **kw)
+    return vtx.encode_coefficients(c, geometry, curve, **kw)
+
+
+def guard_column(c: np.ndarray, decoded: np.ndarray, b_k: np.ndarray) -> float:
+    """The waveform guard (threshold-weighted SNR, dB) of a decoded stream."""
+    from hostd.perception import guard
+
+    return guard.weighted_snr_db(c, decoded, b_k)
+
+
+def _in_table(s) -> bool:
+    if s.method == "quant":
+        return s.levels in TABLE_I_LEVELS
+    if s.method == "shaped":
+        return s.g_db in G_TABLE
+    return s.b0_db in TABLE_I_B0
 
 
 def _fmt(v) -> str:
@@ -80,8 +119,8 @@ def write_csv(rows: list[dict], path: Path) -> None:
 
 
 def write_markdown(rows: list[dict], path: Path, title: str, notes: list[str]) -> None:
-    cols = ("series", "levels", "b0_db", "bytes", "ratio_coeffs", "ratio_profile", "kept",
-            "Ip", "Ia", "Iobj", "st_sim", "spqi")
+    cols = ("series", "levels", "b0_db", "g_db", "bytes", "ratio_coeffs", "ratio_profile", "kept",
+            "Ip", "Ia", "Iobj", "wsnr_db", "st_sim", "spqi")
     lines = [f"# Rate-quality: {title}", ""] + [f"- {n}" for n in notes] + [""]
     lines.append("| " + " | ".join(cols) + " |")
     lines.append("|" + "---|" * len(cols))
@@ -99,8 +138,9 @@ def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int) -> None
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 5), dpi=120)
-    markers = {"quant": "o-", "cut (exact survivors)": "s-", "cut (16-bit survivors)": "^-"}
-    for label in SERIES:
+    markers = {"quant": "o-", "cut (exact survivors)": "s-", "cut (16-bit survivors)": "^-",
+               "v2 shaped": "d-"}
+    for label in (*SERIES, *V2_SERIES):
         pts = sorted(((r["bytes"], r["Iobj"], r) for r in rows if r["series"] == label),
                      key=lambda t: (t[0], t[1]))
         if not pts:
@@ -110,7 +150,9 @@ def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int) -> None
         ax.plot(x, y, markers[label], ms=4, lw=1.2, label=label)
         for bx, iy, r in pts:
             if r["table_I"]:
-                tag = f"L={r['levels']}" if r["method"] == "quant" else f"{r['b0_db']:+.0f} dB"
+                tag = (f"L={r['levels']}" if r["method"] == "quant"
+                       else f"g={r['g_db']:+.0f} dB" if r["method"] == "shaped"
+                       else f"{r['b0_db']:+.0f} dB")
                 ax.annotate(tag, (bx, iy), fontsize=6, xytext=(3, 3), textcoords="offset points")
     ax.axvline(raw_coeff_bytes, color="grey", ls=":", lw=1)
     ax.text(raw_coeff_bytes, ax.get_ylim()[1] * 0.95, " 16-bit raw\n coefficients",

@@ -63,7 +63,65 @@ def test_rate_quality_report_writes_table_and_plot(tmp_path, source):
     b0s = {float(r["b0_db"]) for r in rows if r["method"] == "cut"}
     assert {14, 12, 10, 8, 6, 5, 4} <= levels and {-12, -8, -4, 0, 4, 8, 12} <= b0s
     for r in rows:
-        assert np.isfinite(float(r["Iobj"])) and int(r["bytes"]) > vtx.HEADER_SIZE
+        assert np.isfinite(float(r["Iobj"])) and np.isfinite(float(r["wsnr_db"]))
+        if r["version"] == "1":
+            assert int(r["bytes"]) > vtx.HEADER_SIZE
+    v2 = [r for r in rows if r["series"] == "v2 shaped"]
+    assert len(v2) >= 20 and {float(r["g_db"]) for r in v2} >= {-12.0, 0.0, 6.0}
     png = (tmp_path / "rate_quality.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     assert "| series |" in (tmp_path / "rate_quality.md").read_text()
+
+
+# ---------------------------------------------------------------- bisection with the waveform guard
+
+
+@pytest.mark.parametrize("fmt,method", [("v2", "shaped"), ("v2", "quant"), ("v1", "quant"),
+                                        ("v2", "cut")])
+def test_search_returns_a_stream_meeting_target_and_guard(wood, fmt, method):
+    from hostd.perception import guard
+
+    r = ratecontrol.search(*wood, CURVE, 0.05, method=method, fmt=fmt, guard_db=25.0)
+    s = vtx.decode(r.best.data)
+    assert s.method == method and s.version == int(fmt[1])
+    sc = score_stream(s)  # as a receiver scores it: from the header
+    c = transform.analyze(wood[0], s.n_keep)
+    w = guard.weighted_snr_db(c, s.coefficients, CURVE(s.frequencies_hz))
+    assert float(sc.Iobj) <= 0.05 and w >= 25.0
+    assert r.encodes <= 20  # a bisection, not every candidate
+
+
+def test_search_only_searches_the_given_method_and_finds_the_exhaustive_optimum(wood):
+    """Neither quality nor bytes are strictly monotone in L (here L = 136 passes, 137..150 do
+    not): the bisection returns a passing boundary L within a few percent of the exhaustive
+    optimum, in a fraction of the encodes."""
+    from hostd.perception import guard
+
+    r = ratecontrol.search(*wood, CURVE, 0.05, method="quant", fmt="v1", guard_db=25.0)
+    c = transform.analyze(wood[0], wood[1].n_keep)
+    b = CURVE(wood[1].frequencies_hz())
+    passing = {}
+    for L in range(2, ratecontrol.MAX_L + 1):
+        s = vtx.decode(vtx.encode_coefficients(c, wood[1], CURVE, method="quant", levels=L))
+        if float(score_stream(s).Iobj) <= 0.05 and guard.weighted_snr_db(c, s.coefficients, b) >= 25:
+            passing[L] = s.nbytes
+    L = r.best.setting["levels"]
+    assert L in passing and L - 1 not in passing
+    assert r.best.nbytes <= 1.05 * min(passing.values())
+    assert r.encodes <= 20
+
+
+def test_the_guard_rejects_what_iobj_alone_accepts(wood):
+    loose = ratecontrol.search(*wood, CURVE, 0.05, guard_db=None)
+    guarded = ratecontrol.search(*wood, CURVE, 0.05)
+    assert loose.best.wsnr_db < 25.0 <= guarded.best.wsnr_db
+    assert loose.best.nbytes < guarded.best.nbytes
+
+
+def test_degenerate_and_unreachable_targets_are_reported(wood):
+    r = ratecontrol.search(*wood, CURVE, 5.0)
+    assert r.notes and "degenerate" in r.notes[0]
+    with pytest.raises(CodecError, match="no cut stream reaches"):
+        ratecontrol.search(*wood, CURVE, 0.0, method="cut")
+    with pytest.raises(CodecError, match="not available"):
+        ratecontrol.search(*wood, CURVE, 0.05, method="shaped", fmt="v1")

@@ -38,10 +38,16 @@ def add_parser(sub, parents) -> None:
     so.add_argument("--load", action="store_true", help="a CPU hog on the other core meanwhile")
     sb = bsub.add_parser("sim", help="scene simulation speed vs number of effects and duration")
     sb.add_argument("--json", action="store_true")
-    for name, hlp in (("codec", "encode/decode times"), ("scoring", "index scoring throughput"),
+    for name, hlp in (("codec", "encode/decode times; v2 vs v1 bytes at Iobj <= 0.05 with the guard"),
+                      ("scoring", "index scoring throughput"),
                       ("all", "pipeline, codec and scoring (accuracy is run on its own)")):
         b = bsub.add_parser(name, help=hlp)
         b.add_argument("--json", action="store_true")
+        if name == "codec":
+            b.add_argument("--tune-deadzone", action="store_true",
+                           help="only the shaped quantizer's dead-zone / reconstruction table")
+            b.add_argument("--guard-calibration", action="store_true",
+                           help="only wSNR against SPQI of shaped streams (the guard's default)")
     p.set_defaults(func=cmd_bench)
 
 
@@ -112,8 +118,20 @@ def cmd_bench(args: argparse.Namespace) -> int:
         rows += simbench.run()
     if what in ("pipeline", "all"):
         rows.append(pipeline.run(getattr(args, "duration", 60.0)))
-    if what in ("codec", "all"):
+    if what == "codec" and args.tune_deadzone:
+        from hostd.bench import codec2
+
+        rows += codec2.tune_deadzone_rows()
+    elif what == "codec" and args.guard_calibration:
+        from hostd.bench import codec2
+
+        rows += codec2.guard_calibration_rows()
+    elif what in ("codec", "all"):
+        from hostd.bench import codec2
+
         rows += micro.bench_codec()
+        rows += codec2.time_rows()
+        rows += codec2.rate_rows()
     if what in ("scoring", "all"):
         rows += micro.bench_scoring()
     if args.json:

@@ -111,3 +111,57 @@ def threshold_cut(coeffs_um: np.ndarray, threshold_um: np.ndarray, b0_db: float)
 
 def apply_cut(coeffs_um: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return np.where(keep, np.asarray(coeffs_um, dtype=np.float64), 0.0)
+
+
+# ---------------------------------------------------------------- threshold-shaped quantizer
+# Delta_k = G b(f_k), G = 10^(g/20): the error of every component is shaped along the detection
+# threshold, as an audio codec shapes its noise under the masking curve. Components far below
+# the threshold quantize to 0 on their own. Dead zone and reconstruction points (chosen by
+# measurement, docs/stream-format.md "Threshold-shaped quantizer"):
+#   q_k  = sign(C_k) floor(|C_k| / Delta_k + SHAPED_RHO)
+#   C'_k = sign(q_k) (|q_k| - SHAPED_DELTA) Delta_k      (0 when q_k = 0)
+SHAPED_RHO = 0.5
+SHAPED_DELTA = 0.0
+G_UNIT_DB = 0.25  # the knob g is stored in quarter-dB steps
+G_MIN_DB = -60.0
+G_MAX_DB = 120.0
+
+
+def check_g_db(g_db: float) -> float:
+    """g must be finite, within G_MIN_DB..G_MAX_DB and a multiple of 0.25 dB."""
+    if isinstance(g_db, bool) or not math.isfinite(g_db):
+        raise CodecError(f"--g must be a finite number of dB, got {g_db!r}")
+    units = round(g_db / G_UNIT_DB)
+    if units * G_UNIT_DB != g_db:
+        raise CodecError(f"--g must be a multiple of {G_UNIT_DB} dB, got {g_db}")
+    if not G_MIN_DB <= g_db <= G_MAX_DB:
+        raise CodecError(f"--g must be within {G_MIN_DB:g}..{G_MAX_DB:g} dB, got {g_db}")
+    return float(g_db)
+
+
+def shaped_steps(threshold_um: np.ndarray, g_db: float) -> np.ndarray:
+    """Delta_k = 10^(g/20) b(f_k), µm."""
+    return np.multiply(np.asarray(threshold_um, dtype=np.float64), db_to_ratio(check_g_db(g_db)))
+
+
+def shaped_quantize(coeffs_um: np.ndarray, threshold_um: np.ndarray, g_db: float) -> np.ndarray:
+    """Integer indices q_k of the threshold-shaped quantizer (int64)."""
+    c = np.asarray(coeffs_um, dtype=np.float64)
+    if not np.all(np.isfinite(c)):
+        raise CodecError("coefficients contain NaN or Inf")
+    step = shaped_steps(threshold_um, g_db)
+    if step.shape != c.shape:
+        raise CodecError("one threshold per coefficient is needed")
+    mag = np.floor(np.add(np.divide(np.abs(c), step), SHAPED_RHO))
+    if np.any(mag >= float(1 << 40)):
+        raise CodecError(f"g = {g_db} dB is too fine for these amplitudes: raise --g")
+    q = mag.astype(np.int64)
+    return np.where(c < 0, -q, q)
+
+
+def shaped_values(q: np.ndarray, threshold_um: np.ndarray, g_db: float) -> np.ndarray:
+    """C'_k from indices: sign(q) (|q| - SHAPED_DELTA) Delta_k."""
+    q = np.asarray(q, dtype=np.int64)
+    step = shaped_steps(threshold_um, g_db)
+    mag = np.multiply(np.subtract(np.abs(q).astype(np.float64), SHAPED_DELTA), step)
+    return np.where(q < 0, -mag, np.where(q == 0, 0.0, mag))

@@ -59,6 +59,9 @@ class Stream:
     coefficients: np.ndarray
     nbytes: int
     payload_bytes: int
+    version: int = VERSION
+    g_db: float | None = None  # shaped (v2): the knob, dB relative to the threshold
+    guard_wsnr_db: float | None = None  # v2: the sender's wSNR (lower bound, 0.5 dB steps)
 
     @property
     def spacing_um(self) -> float:
@@ -85,7 +88,7 @@ class Stream:
 
     def summary(self) -> dict:
         out = {
-            "version": VERSION,
+            "version": self.version,
             "n": self.n,
             "length_mm": self.length_mm,
             "spacing_um": self.spacing_um,
@@ -103,7 +106,12 @@ class Stream:
             "ref_P": self.ref_P,
             "ref_A": self.ref_A,
         }
-        if self.method == "quant":
+        if self.guard_wsnr_db is not None:
+            out["guard_wsnr_db"] = self.guard_wsnr_db
+        if self.method == "shaped":
+            out["g_db"] = self.g_db
+            out["kept"] = int(np.count_nonzero(self.coefficients))
+        elif self.method == "quant":
             out["levels"] = self.levels
             out["step_um"] = self.step_um
         else:
@@ -402,6 +410,10 @@ def _finite_pos(name: str, v: float) -> None:
 def decode(data: bytes) -> Stream:
     """Parse and validate a .vtx stream; every malformed input raises StreamError."""
     data = bytes(data)
+    if data[:1] == b"V" and len(data) >= 2 and data[1] >> 4 == 2:  # version 2 (stream2.py)
+        from hostd.codec import stream2
+
+        return stream2.decode(data)
     size = len(data)
     if size > MAX_STREAM_BYTES:
         raise StreamError(f"stream of {size} bytes exceeds the {MAX_STREAM_BYTES}-byte limit")

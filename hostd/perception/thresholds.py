@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hostd import paths
 from hostd.errors import ThresholdError
+from hostd.paths import thresholds_dir
 
 MAX_POINTS = 4096
 
@@ -28,6 +28,7 @@ class ThresholdCurve:
     threshold_um: np.ndarray
     name: str = "custom"
     _id: bytes = field(init=False, repr=False)
+    _slopes: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         f = np.array(self.freq_hz, dtype=np.float64).reshape(-1)
@@ -38,6 +39,10 @@ class ThresholdCurve:
         object.__setattr__(self, "freq_hz", f)
         object.__setattr__(self, "threshold_um", b)
         object.__setattr__(self, "_id", curve_id_bytes(f, b))
+        # per-segment slopes (b_{j+1} - b_j) / (f_{j+1} - f_j), as np.interp computes them
+        slopes = np.divide(np.subtract(b[1:], b[:-1]), np.subtract(f[1:], f[:-1])) if f.size > 1 \
+            else np.zeros(0)
+        object.__setattr__(self, "_slopes", slopes)
 
     def __call__(self, f_hz: np.ndarray | float) -> np.ndarray:
         """b(f) in µm; f may be any shape.
@@ -50,14 +55,14 @@ class ThresholdCurve:
         f = np.asarray(f_hz, dtype=np.float64)
         xp, fp = self.freq_hz, self.threshold_um
         if xp.size == 1:
-            return np.full(f.shape, fp[0])
-        j = np.clip(np.searchsorted(xp, f, side="right") - 1, 0, xp.size - 2)
-        slope = np.divide(np.subtract(fp[j + 1], fp[j]), np.subtract(xp[j + 1], xp[j]))
-        out = np.add(np.multiply(slope, np.subtract(f, xp[j])), fp[j])
-        out = np.where(f == xp[j], fp[j], out)
-        out = np.where(f <= xp[0], fp[0], out)
-        out = np.where(f >= xp[-1], fp[-1], out)
-        if np.any(np.isnan(f)):
+            return np.full(f.shape, fp[0])[()]
+        j = np.minimum(np.maximum(np.searchsorted(xp, f, side="right") - 1, 0), xp.size - 2)
+        x0 = xp[j]
+        y0 = fp[j]
+        out = np.add(np.multiply(self._slopes[j], np.subtract(f, x0)), y0)
+        out = np.where(f == x0, y0, out)
+        out = np.where(f <= xp[0], fp[0], np.where(f >= xp[-1], fp[-1], out))
+        if np.isnan(out).any():
             raise ThresholdError("threshold asked at a NaN frequency")
         return out[()]
 
@@ -143,14 +148,13 @@ def load_csv(path: str | Path) -> ThresholdCurve:
 
 
 def default_curve() -> ThresholdCurve:
-    return load_csv(paths.find("thresholds", "default.csv"))
+    return load_csv(thresholds_dir() / "default.csv")
 
 
 def shipped_curves() -> dict[bytes, ThresholdCurve]:
-    """Every curve under thresholds/ (the override's and the shipped ones), keyed by its 8-byte
-    id (cached until files change)."""
-    files = tuple(sorted((str(p), p.stat().st_mtime_ns) for d in reversed(paths.search_dirs("thresholds"))
-                         if d.is_dir() for p in d.glob("*.csv")))
+    """Every curve under config/thresholds/, keyed by its 8-byte id (cached until files change)."""
+    d = thresholds_dir()
+    files = tuple(sorted((str(p), p.stat().st_mtime_ns) for p in d.glob("*.csv"))) if d.is_dir() else ()
     return _load_dir(files)
 
 

@@ -46,12 +46,40 @@ def profile() -> np.ndarray:
     return np.frombuffer(PROFILE_FILE.read_bytes(), dtype="<f8").astype(np.float64)
 
 
+# Version 2 (stream2.py). "paper" vectors use the paper's geometry (N = 20000, 0.5 µm, 50 mm/s,
+# 400 Hz: no geometry bytes) with C_1..C_160 taken from the stored profile's amplitudes.
+CASES_V2 = {
+    "v2_shaped_gm9": dict(method="shaped", g_db=-9.0),
+    "v2_shaped_gp3": dict(method="shaped", g_db=3.0),
+    "v2_shaped_all_zero": dict(method="shaped", g_db=40.0),
+    "v2_shaped_embedded_curve": dict(method="shaped", g_db=-6.0, embed_curve=True),
+    "v2_quant_l14": dict(method="quant", levels=14),
+    "v2_cut_b0p0_16bit": dict(method="cut", b0_db=0.0, value_bits=16),
+    "v2_paper_shaped_gm6": dict(method="shaped", g_db=-6.0, paper=True),
+    "v2_paper_quant_l8": dict(method="quant", levels=8, paper=True),
+}
+
+
+def build_v2(name: str) -> bytes:
+    from hostd.codec import stream2
+
+    kw = dict(CASES_V2[name])
+    y = profile()
+    curve = thresholds.default_curve()
+    if kw.pop("paper", False):
+        c = transform.amplitudes(y)[1:161] * 3.0
+        return stream2.encode_coefficients(c, stream2.PAPER_GEOMETRY, curve, **kw)
+    return stream2.encode_profile(y, transform.Geometry(n=y.size, length_mm=2.0), curve, **kw)
+
+
 def build() -> dict[str, bytes]:
     """Every vector's stream bytes, made from profile(): what the files must hold."""
     y = profile()
     geom = transform.Geometry(n=y.size, length_mm=2.0)
     curve = thresholds.default_curve()
-    return {name: vtx.encode_profile(y, geom, curve, **kw) for name, kw in CASES.items()}
+    out = {name: vtx.encode_profile(y, geom, curve, **kw) for name, kw in CASES.items()}
+    out.update({name: build_v2(name) for name in CASES_V2})
+    return out
 
 
 def main() -> None:
@@ -60,7 +88,7 @@ def main() -> None:
     for name, data in build().items():
         s = vtx.decode(data)
         info = s.summary()
-        info["encode"] = CASES[name]
+        info["encode"] = CASES.get(name) or CASES_V2[name]
         (HERE / f"{name}.vtx").write_bytes(data)
         (HERE / f"{name}.json").write_text(json.dumps(info, indent=1) + "\n")
         print(name, len(data))
