@@ -68,6 +68,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from hostd.bench import accuracy, common, micro, pipeline
 
     what = args.bench or "all"
+    if args.bench is None:  # `hostd bench` alone runs "all": its options take their defaults
+        args.json = getattr(args, "json", False)
     if what == "accuracy":
         if not (0.5 <= args.duration <= 600):
             raise SystemExit("hostd bench: error: --duration must be 0.5..600 s")

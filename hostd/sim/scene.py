@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from hostd import tomlfile
-from hostd.errors import ConfigError
+from hostd.errors import ConfigError, ProfileError
 
 SETTLE_S = 0.15  # soft start (50 ms) and filters settle before delivered samples count
 FS = 3000.0
@@ -121,11 +121,13 @@ def _stream(sc: Scene):
     if t:
         raise ValueError(f"texture: unknown field {next(iter(t))!r} (expected profile|stream, method, "
                          "levels, b0_db, value_bits)")
-    if not profile.startswith("synthetic:"):
+    if not synth.is_spec(profile):
         raise ValueError("texture.profile: only synthetic:KIND[:SEED] here; encode real profiles with "
                          "hostd encode and name the .vtx as texture.stream")
-    parts = profile.split(":")
-    prof = synth.make(parts[1], seed=int(parts[2]) if len(parts) > 2 else 0)
+    try:
+        prof = synth.from_spec(profile)
+    except ProfileError as e:
+        raise ValueError(f"texture.profile: {e}") from None
     geom = transform.Geometry(prof.n, prof.length_mm)
     return vtx.decode(vtx.encode_profile(prof.heights_um, geom, thresholds.default_curve(), **kw))
 
