@@ -1,7 +1,8 @@
 """Micro-benchmarks of the codec and of scoring.
 
 Each figure is the median of repeated runs in this process, measured in CPU time
-(time.process_time_ns) to be robust to other load on a shared machine.
+of the working thread (time.thread_time_ns, BLAS limited to that thread) to be robust to other
+load on a shared machine.
 """
 
 from __future__ import annotations

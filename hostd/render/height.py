@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
+from hostd.render.series import phase_rad as series_phase
+
 METHODS = ("series", "table-cubic", "table-linear", "nearest")
 REST_BUCKET = -(1 << 30)  # the speed bucket of a hand at rest
 
@@ -104,8 +106,7 @@ class HeightEvaluator:
         (the reference of every other method); otherwise of the speed's bucket."""
         # Reduce x to one period (2L) in float64 first: a hand that travels far in one
         # direction (a mouse, an hour at 50 mm/s = 180 m) keeps full phase precision in float32.
-        x = np.mod(np.asarray(x_mm, dtype=np.float64), self._period_mm).astype(self.dtype)
-        u = (x / self.dtype(self.dx_mm) + self.dtype(0.5)) * self.dtype(np.pi / self.n)
+        u = series_phase(x_mm, self.n, self.length_mm).astype(self.dtype)
         w = ((self.c * self.gains(speed_mm_s)).astype(self.dtype) if exact_gains
              else self.weights(speed_mm_s))
         return np.cos(np.multiply.outer(u, self._k)) @ w

@@ -11,7 +11,8 @@ effects asked for (hostd.sim.effects) and simulates:
   batch by batch on what the host would see, when it would see it.
 
 Delivered quality: the displacement the finger received is fitted, by least squares, onto the
-patch's cosine basis at the hand's true positions (the mirror-even series the codec uses), and
+patch's cosine series at the hand's true positions (normal equations from a nonuniform Fourier
+transform, hostd.render.series.project) (the mirror-even series the codec uses), and
 the fitted C'_k are scored with the same index as the codec (Ip, Ia, Iobj against the stream
 header's reference). With an ideal chain this recovers the decoded coefficients, so the
 delivered Iobj equals the codec-only Iobj.
@@ -118,9 +119,10 @@ def _stream(sc: Scene):
               "value_bits": int(t.pop("value_bits", 16))}
     else:
         raise ValueError(f"texture.method must be quant or cut, not {method!r}")
+    fmax_hz = float(t.pop("fmax_hz", 400.0))
     if t:
         raise ValueError(f"texture: unknown field {next(iter(t))!r} (expected profile|stream, method, "
-                         "levels, b0_db, value_bits)")
+                         "levels, b0_db, value_bits, fmax_hz)")
     if not synth.is_spec(profile):
         raise ValueError("texture.profile: only synthetic:KIND[:SEED] here; encode real profiles with "
                          "hostd encode and name the .vtx as texture.stream")
@@ -128,25 +130,8 @@ def _stream(sc: Scene):
         prof = synth.from_spec(profile)
     except ProfileError as e:
         raise ValueError(f"texture.profile: {e}") from None
-    geom = transform.Geometry(prof.n, prof.length_mm)
+    geom = transform.Geometry(prof.n, prof.length_mm, fmax_hz=fmax_hz)
     return vtx.decode(vtx.encode_profile(prof.heights_um, geom, thresholds.default_curve(), **kw))
-
-
-def _fit_coefficients(x_mm: np.ndarray, y_um: np.ndarray, n: int, length_mm: float,
-                      n_keep: int) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares C'_0..C'_N' of y = C'_0 + sum_k C'_k cos(pi k (2x/dx + 1) / (2N)), and
-    the basis. Normal equations solved by Cholesky: over many strokes the cosines are nearly
-    orthogonal, so the Gram matrix is well conditioned (lstsq is 5x slower here)."""
-    import scipy.linalg
-
-    u = (np.mod(x_mm, 2 * length_mm) / (length_mm / n) + 0.5) * (np.pi / n)
-    basis = np.cos(np.multiply.outer(u, np.arange(n_keep + 1, dtype=np.float64)))
-    gram = basis.T @ basis
-    try:
-        coef = scipy.linalg.cho_solve(scipy.linalg.cho_factor(gram), basis.T @ y_um)
-    except np.linalg.LinAlgError:  # positions that do not cover the patch: fall back
-        coef, *_ = np.linalg.lstsq(basis, y_um, rcond=None)
-    return coef, basis
 
 
 def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dict:
@@ -248,8 +233,11 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
     keep = t_deliver >= SETTLE_S + lead_s
     x = hand.position_mm(t_deliver[keep])
     y = delivered[keep]
-    fit, basis = _fit_coefficients(x, y, n, length, s.n_keep)
-    intended = basis[:, 1:] @ coeffs  # the codec's texture at the true positions
+    from hostd.render import series
+
+    theta = series.phase_rad(x, n, length)
+    fit = series.project(theta, y, s.n_keep)
+    intended = series.evaluate(coeffs, theta)  # the codec's texture at the true positions
     b_k = stream_thresholds(s)
     pp, ap = indices.weighted_sums(fit[1:], b_k)
     sc_del = indices.scores_from_sums(s.ref_P, s.ref_A, pp, ap)
