@@ -153,3 +153,17 @@ def test_series_transforms_match_the_direct_sums():
     th_u = series.phase_rad(0.0, n, length) + m * 0.0123
     assert np.allclose(series.evaluate_uniform(c[1:], float(th_u[0]), 0.0123, 500),
                        np.cos(np.multiply.outer(th_u, np.arange(1, K + 1))) @ c[1:], atol=1e-9)
+
+
+def test_threshold_crossings_and_band_limited_intended(tmp_path):
+    f = np.array([10.0, 20.0, 30.0, 40.0])
+    err = np.array([0.1, 0.3, 0.3, 0.1])
+    b = np.full(4, 0.2)
+    assert np.allclose(scene.threshold_crossings(f, err, b), [15.0, 35.0])
+    res = scene.report(scene.load(write_scene(tmp_path, "[effects.dac]\n", duration=1.0)), progress=False)
+    tr = res["runs"][0]["_trace"]
+    sl = slice(0, 600)
+    # the no-effect chain delivers the band-limited texture, not the full-band one
+    assert np.allclose(scene.band_limited(tr, sl), tr["delivered"][sl], atol=1e-6)
+    paths = scene.plot(res, tmp_path / "plots")
+    assert all(p.stat().st_size > 10_000 for p in paths)

@@ -249,7 +249,10 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
             "rms_texture_um": float(np.sqrt(np.mean(intended**2))),
             "underruns": underruns, "latency_ms": chain_ms,
             "_trace": {"t": t_deliver[keep], "delivered": y, "intended": intended,
-                       "fit": fit, "b_k": b_k, "codec": s.coefficients, "fs": FS}}
+                       "x_mm": x, "speed_mm_s": hand.velocity_mm_s(t_deliver[keep]),
+                       "fit": fit, "b_k": b_k, "codec": s.coefficients, "fs": FS,
+                       "f_k_hz": np.asarray(s.frequencies_hz, dtype=np.float64), "n": n,
+                       "length_mm": length, "band": r.height.band}}
 
 
 def report(sc: Scene, progress: bool = True) -> dict:
@@ -276,7 +279,37 @@ def strip(result: dict) -> dict:
     return r
 
 
+def band_limited(tr: dict, sl: slice) -> np.ndarray:
+    """The ideal display over trace samples sl: the codec's series with the band gains of the
+    hand's true speed at each sample (what a perfect chain delivers)."""
+    from hostd.render import series
+    from hostd.render.height import band_gains
+
+    c = tr["codec"]
+    k = np.arange(1, c.size + 1, dtype=np.float64)
+    g = band_gains(k, tr["speed_mm_s"][sl], tr["length_mm"], tr["band"])  # samples x K
+    theta = series.phase_rad(tr["x_mm"][sl], tr["n"], tr["length_mm"])
+    return np.einsum("ij,ij->i", np.cos(np.multiply.outer(theta, k)), g * c)
+
+
+def threshold_crossings(f_hz: np.ndarray, err: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Frequencies (Hz) where |error| crosses the detection threshold (linear interpolation
+    of err - b between neighbouring components)."""
+    d = err - b
+    i = np.flatnonzero(np.sign(d[:-1]) * np.sign(d[1:]) < 0)
+    return f_hz[i] + (f_hz[i + 1] - f_hz[i]) * d[i] / (d[i] - d[i + 1])
+
+
 def plot(result: dict, out_dir: str | Path) -> list[Path]:
+    """Two figures per scene.
+
+    <scene>-stroke.png: over the first 0.8 s, the band-limited intended displacement (the
+    ideal display: the codec's texture with the band gains of the hand's true speed), the
+    delivered displacement with no effect and with the scene's effects, and below them the
+    hand's speed. <scene>-error-spectrum.png: per component, |delivered - codec| amplitude
+    against f_k in Hz (at the stream's reference speed) for the no-effect run and the run with
+    every effect, the detection threshold b(f_k), and where the error crosses it.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -290,27 +323,51 @@ def plot(result: dict, out_dir: str | Path) -> list[Path]:
 
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
-    last = result["runs"][-1]
-    tr = last["_trace"]
-    fig, ax = plt.subplots(figsize=(9, 4))
-    k = slice(0, min(tr["t"].size, int(0.8 * tr["fs"])))  # one forward stroke of the metronome
-    ax.plot(tr["t"][k], tr["intended"][k], lw=0.8, label="intended (codec texture at the true position)")
-    label = "+".join(last["effects"]) or "ideal"
-    ax.plot(tr["t"][k], tr["delivered"][k], lw=0.8, label=f"delivered ({label})")
-    ax.set_xlabel("time, s")
+    base, last = result["runs"][0], result["runs"][-1]
+    tr, tb = last["_trace"], base["_trace"]
+    label = ("+".join(last["effects"]) if len(last["effects"]) <= 2
+             else f"all {len(last['effects'])} effects") or "no effect"
+    n_show = min(tr["t"].size, tb["t"].size, int(0.8 * tr["fs"]))  # one metronome stroke
+    sl = slice(0, n_show)
+    fig, (ax, axv) = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True,
+                                  gridspec_kw={"height_ratios": [3, 1]})
+    ax.plot(tb["t"][sl], tb["delivered"][sl], lw=1.8, color="C0", alpha=0.6, label="delivered, no effect")
+    if last is not base:
+        ax.plot(tr["t"][sl], tr["delivered"][sl], lw=0.8, color="C3", label=f"delivered, {label}")
+    ax.plot(tb["t"][sl], band_limited(tb, sl), lw=0.7, color="k", ls="--",
+            label="intended: band-limited for the hand's speed (ideal display)")
     ax.set_ylabel("displacement, µm")
-    ax.legend(fontsize=8)
-    ax.set_title(f"{result['scene']}: intended vs delivered over a stroke")
+    ax.legend(fontsize=7, loc="lower left", ncols=3, bbox_to_anchor=(0, 1.0), frameon=False)
+    fig.suptitle(f"{result['scene']}: intended vs delivered over a stroke", fontsize=10)
+    ax.grid(True, alpha=0.3)
+    axv.plot(tb["t"][sl], tb["speed_mm_s"][sl], color="k", lw=1)
+    axv.set_ylabel("hand speed\nmm/s", fontsize=8)
+    axv.set_xlabel("time, s")
+    axv.grid(True, alpha=0.3)
     p1 = save(fig, d / f"{result['scene']}-stroke.png")
-    fig, ax = plt.subplots(figsize=(7, 4))
-    kk = np.arange(1, tr["codec"].size + 1)
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    f = tr["f_k_hz"]
+    b = tr["b_k"]
+    err0 = np.abs(tb["fit"][1:] - tb["codec"])
     err = np.abs(tr["fit"][1:] - tr["codec"])
-    ax.semilogy(kk, err + 1e-12, lw=0.8, label="|delivered − codec| per component")
-    ax.semilogy(kk, tr["b_k"], lw=1.2, label="detection threshold b(f_k)")
-    ax.set_xlabel("component k (f_k = k v/2L at the stream's reference speed)")
+    ax.semilogy(f, err0, lw=0.8, color="C0", label="|delivered − codec|, no effect")
+    if last is not base:
+        ax.semilogy(f, err, lw=0.8, color="C3", label=f"|delivered − codec|, {label}")
+    ax.semilogy(f, b, lw=1.6, color="k", label="detection threshold b(f)")
+    cross = threshold_crossings(f, err, b)
+    for i, fc in enumerate(cross):
+        ax.axvline(fc, color="C3", ls=":", lw=0.9, label="error crosses the threshold" if i == 0 else None)
+    above = err > b
+    if above.any():
+        ax.plot(f[above], err[above], "o", ms=2.5, color="C3", label="components above the threshold")
+    top = float(max(err.max(), err0.max(), b.max())) * 2
+    bottom = max(float(b.min()) * 1e-3, top * 1e-6)  # from 3 decades below the threshold
+    ax.set_ylim(bottom, top)
+    ax.set_xlabel("frequency f_k = k v_ref / 2L, Hz (at the stream's reference speed)")
     ax.set_ylabel("amplitude, µm")
-    ax.legend(fontsize=8)
-    ax.set_title(f"{result['scene']}: spectrum of the error against the threshold")
+    ax.legend(fontsize=7, loc="lower left")
+    ax.grid(True, which="both", alpha=0.25)
+    ax.set_title(f"{result['scene']}: spectrum of the delivered error against the threshold"
+                 f" ({cross.size} crossing{'s' if cross.size != 1 else ''})", fontsize=10)
     return [p1, save(fig, d / f"{result['scene']}-error-spectrum.png")]
-
-
