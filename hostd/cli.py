@@ -288,6 +288,8 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     out["reference"] = "profile" if ref is not None else "stream_header"
     out["reference_mismatch"] = False
     if ref is not None:
+        from hostd.quality import reference_mismatch
+
         mismatch = reference_mismatch(s, out["P"], out["A"])
         out["reference_mismatch"] = mismatch is not None
         if mismatch:
@@ -310,19 +312,6 @@ def cmd_iobj(args: argparse.Namespace) -> int:
         for k, v in out.items():
             print(f"{k:>14}: {v}")
     return 0
-
-
-def reference_mismatch(s, P: float, A: float, rel: float = 1e-6) -> str | None:
-    """None when the reference's P and A match the stream header's (the stream's own original),
-    else a sentence for the user."""
-    def close(x: float, y: float) -> bool:
-        return abs(x - y) <= rel * max(abs(x), abs(y), 1e-300)
-
-    if close(P, s.ref_P) and close(A, s.ref_A):
-        return None
-    return (f"the reference is not this stream's original: its P = {P:.6g}, A = {A:.6g}, the "
-            f"stream header's P = {s.ref_P:.6g}, A = {s.ref_A:.6g}; check the file, seed and "
-            "loading options (--length-mm, --offset-mm, units), or score with the header alone")
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -386,6 +375,45 @@ def cmd_report_rate_quality(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_render(args: argparse.Namespace) -> int:
+    import io
+
+    import scipy.io.wavfile
+
+    from hostd.api import render_stroke
+    from hostd.errors import ConfigError
+
+    s = _read_stream(args.stream)
+    if not (0 < args.seconds <= 3600):
+        raise ConfigError(f"--seconds must be within 0..3600, got {args.seconds:g}")
+    if not (1000 <= args.rate <= 384000):
+        raise ConfigError(f"--rate must be 1000..384000 Hz, got {args.rate:g}")
+    out = render_stroke(s, speed_mm_s=args.speed, seconds=args.seconds, rate_hz=args.rate,
+                        x0_mm=args.start_mm)
+    h = out["height_um"]
+    peak = float(np.max(np.abs(h))) if h.size else 0.0
+    full = args.full_scale_um
+    x = h / full
+    clipped = int(np.count_nonzero(np.abs(x) > 1.0))
+    if clipped:
+        warn("render", f"{clipped} samples exceed the WAV full scale (peak {peak:.3g} µm > "
+             f"--full-scale-um {full:g}) and were clipped: raise --full-scale-um")
+    x = np.clip(x, -1.0, 1.0)
+    data = (np.round(x * 32767).astype(np.int16) if args.format == "int16" else x.astype(np.float32))
+    buf = io.BytesIO()
+    scipy.io.wavfile.write(buf, round(args.rate), data)
+    _write_bytes_atomic(args.output, buf.getvalue())
+    info = {"output": args.output, "samples": int(h.size), "rate_hz": float(args.rate),
+            "speed_mm_s": args.speed, "seconds": args.seconds, "format": args.format,
+            "full_scale_um": full, "peak_um": peak, "clipped": clipped}
+    if args.json:
+        _dump(info)
+    else:
+        print(f"{args.output}: {h.size} samples at {args.rate:g} Hz ({args.format}), peak {peak:.4g} µm, "
+              f"full scale ±{full:g} µm = ±1.0", file=sys.stderr)
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from hostd.demo import codec_demo, daemon_demo
 
@@ -442,6 +470,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="curve the stream was made with, if not embedded or shipped")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_iobj)
+
+    p = sub.add_parser("render", help="the displacement a hand at constant speed feels, as a WAV file")
+    p.add_argument("stream", help=".vtx stream")
+    p.add_argument("-o", "--output", required=True, help="output .wav file")
+    p.add_argument("--speed", type=_finite, default=50.0, help="hand speed, mm/s (default 50)")
+    p.add_argument("--seconds", type=_positive, default=5.0, help="duration, s (default 5)")
+    p.add_argument("--rate", type=_positive, default=48000.0,
+                   help="WAV sample rate, Hz (default 48000; 3000 = the device's rate)")
+    p.add_argument("--start-mm", type=_finite, default=0.0, help="start position, mm (default 0)")
+    p.add_argument("--full-scale-um", type=_positive, default=40.0,
+                   help="displacement at WAV full scale (±1.0), µm (default 40 = half the piezo's "
+                   "80 µm travel, the output stage's limit)")
+    p.add_argument("--format", choices=["int16", "float32"], default="int16",
+                   help="WAV samples: int16 PCM (default, round(32767 h / full scale)) or float32")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("demo", help="the main job: the daemon on the embedded default device, end to end")
     p.add_argument("--out", default=None, help="directory for the demo's files")
