@@ -36,6 +36,9 @@ def add_parser(sub, parents) -> None:
     ob = bsub.add_parser("offline", help="goals: shipped scenes at N'=1600 < 5 s, rate-quality "
                          "report at N'=160 < 3 s (CPU time of the working thread)")
     ob.add_argument("--json", action="store_true")
+    lb = bsub.add_parser("load", help="reading a large two-column CSV against np.loadtxt (goal <= 1.5x)")
+    lb.add_argument("--lines", type=int, default=2_000_000)
+    lb.add_argument("--json", action="store_true")
     for name, hlp in (("codec", "encode/decode times"), ("scoring", "index scoring throughput"),
                       ("all", "pipeline, codec and scoring (accuracy is run on its own)")):
         b = bsub.add_parser(name, help=hlp)
@@ -100,6 +103,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from hostd.bench import simbench
 
         rows += simbench.run()
+    if what == "load":
+        rows += micro.bench_load(args.lines)
     if what == "offline":
         from hostd.bench import simbench
 
