@@ -61,3 +61,16 @@ def guard_report(stream: Stream, *, reference_um: np.ndarray | None = None,
         return {"wsnr_db": stream.guard_wsnr_db, "guard_source": "stream_header"}
     return {"wsnr_db": None, "guard_source": "unavailable: a v1 stream does not record it; "
             "pass REFERENCE_PROFILE"}
+
+
+def reference_mismatch(s, P: float, A: float, rel: float = 1e-6) -> str | None:
+    """None when the reference's P and A match the stream header's (the stream's own original),
+    else a sentence for the user."""
+    def close(x: float, y: float) -> bool:
+        return abs(x - y) <= rel * max(abs(x), abs(y), 1e-300)
+
+    if close(P, s.ref_P) and close(A, s.ref_A):
+        return None
+    return (f"the reference is not this stream's original: its P = {P:.6g}, A = {A:.6g}, the "
+            f"stream header's P = {s.ref_P:.6g}, A = {s.ref_A:.6g}; check the file, seed and "
+            "loading options (--length-mm, --offset-mm, units), or score with the header alone")

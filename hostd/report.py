@@ -131,38 +131,85 @@ def write_markdown(rows: list[dict], path: Path, title: str, notes: list[str]) -
     path.write_text("\n".join(lines), encoding="utf-8")
 
 
-def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int) -> None:
+def _place_labels(ax, items: list[tuple[float, float, str]], fontsize: float = 6.5) -> None:
+    """Annotate points without overlaps: each label takes the first of a few offsets whose box
+    (estimated in pixels) does not overlap an earlier label or point; a label that finds no
+    free place is left out (its point stays, the CSV holds every value)."""
+    fig = ax.figure
+    fig.canvas.draw()
+    to_px = ax.transData.transform
+    char_w, line_h = 0.62 * fontsize * fig.dpi / 72, 1.25 * fontsize * fig.dpi / 72
+    placed: list[tuple[float, float, float, float]] = []
+    points = [tuple(to_px((x, y))) for x, y, _ in items]
+    offsets = ((4, 3), (4, -10), (-8, 5), (-8, -12), (6, 10), (6, -16))
+    for (x, y, text), (px, py) in zip(items, points, strict=True):
+        w = char_w * len(text)
+        for dx, dy in offsets:
+            x0 = px + dx if dx >= 0 else px + dx - w
+            box = (x0, py + dy, x0 + w, py + dy + line_h)
+            hits_label = any(not (box[2] < b[0] or box[0] > b[2] or box[3] < b[1] or box[1] > b[3])
+                             for b in placed)
+            hits_point = any(box[0] - 2 <= qx <= box[2] + 2 and box[1] - 2 <= qy <= box[3] + 2
+                             for qx, qy in points)
+            inside = (ax.bbox.x0 <= box[0] and box[2] <= ax.bbox.x1
+                      and ax.bbox.y0 <= box[1] and box[3] <= ax.bbox.y1)
+            if inside and not (hits_label or hits_point):
+                placed.append(box)
+                ax.annotate(text, (x, y), xytext=(dx if dx >= 0 else dx - w * 72 / fig.dpi, dy),
+                            textcoords="offset points", fontsize=fontsize)
+                break
+
+
+def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int,
+         ab: tuple[float, float] | None = None) -> None:
+    """Three panels sharing the byte axis: Iobj = a Ip + b Ia (with a, b), Ip and Ia. Table I
+    settings of the paper are labelled (L = levels for quant, b0 in dB for cut) where there
+    is room; the cut series with 16-bit survivors shares the b0 labels of the exact one."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 5), dpi=120)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5), dpi=110, sharex=True)
     markers = {"quant": "o-", "cut (exact survivors)": "s-", "cut (16-bit survivors)": "^-",
                "v2 shaped": "d-"}
-    for label in (*SERIES, *V2_SERIES):
-        pts = sorted(((r["bytes"], r["Iobj"], r) for r in rows if r["series"] == label),
-                     key=lambda t: (t[0], t[1]))
-        if not pts:
-            continue
-        x = [p[0] for p in pts]
-        y = [p[1] for p in pts]
-        ax.plot(x, y, markers[label], ms=4, lw=1.2, label=label)
-        for bx, iy, r in pts:
-            if r["table_I"]:
-                tag = (f"L={r['levels']}" if r["method"] == "quant"
-                       else f"g={r['g_db']:+.0f} dB" if r["method"] == "shaped"
-                       else f"{r['b0_db']:+.0f} dB")
-                ax.annotate(tag, (bx, iy), fontsize=6, xytext=(3, 3), textcoords="offset points")
-    ax.axvline(raw_coeff_bytes, color="grey", ls=":", lw=1)
-    ax.text(raw_coeff_bytes, ax.get_ylim()[1] * 0.95, " 16-bit raw\n coefficients",
-            fontsize=7, color="grey", va="top")
-    ax.set_xlabel("encoded stream size [bytes] (header, payload and CRC)")
-    ax.set_ylabel("Iobj = a·Ip + b·Ia  [dimensionless]")
-    ax.set_title(f"Rate-quality: {title}", fontsize=10)
-    ax.grid(True, alpha=0.3)
-    ax.legend(title="method", fontsize=8)
+    a_, b_ = ab if ab is not None else (None, None)
+    panels = (("Iobj", "Iobj = a·Ip + b·Ia" + (f"  (a = {a_:g}, b = {b_:g})" if ab else "")),
+              ("Ip", "Ip: relative error of the threshold-weighted power"),
+              ("Ia", "Ia: relative error of the threshold-weighted amplitude"))
+    all_labels = []
+    for ax, (key, label) in zip(axes, panels, strict=True):
+        labels = []
+        for series_label in (*SERIES, *V2_SERIES):
+            pts = sorted(((r["bytes"], r[key], r) for r in rows if r["series"] == series_label),
+                         key=lambda t: (t[0], t[1]))
+            if not pts:
+                continue
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], markers.get(series_label, "o-"), ms=3.5,
+                    lw=1.1, label=series_label)
+            if series_label == "cut (16-bit survivors)":
+                continue  # same b0 settings as the exact series: one set of labels is enough
+            for bx, iy, r in pts:
+                if r["table_I"]:
+                    tag = (f"L={r['levels']}" if r["method"] == "quant"
+                           else f"g={r['g_db']:+.0f} dB" if r["method"] == "shaped"
+                           else f"{r['b0_db']:+.0f} dB")
+                    labels.append((bx, iy, tag))
+        ax.axvline(raw_coeff_bytes, color="grey", ls=":", lw=1)
+        ax.text(raw_coeff_bytes, 0.98, " 16-bit raw\n coefficients", transform=ax.get_xaxis_transform(),
+                fontsize=7, color="grey", va="top")
+        ax.set_xscale("log")  # quant's steep small-stream end gets room next to cut's long tail
+        ax.set_xlabel("encoded stream size [bytes, log scale] (header, payload, CRC)")
+        ax.set_ylabel(f"{key} [dimensionless]")
+        ax.set_title(label, fontsize=9)
+        ax.grid(True, alpha=0.3)
+        ax.set_ylim(bottom=0)
+        all_labels.append(labels)
+    axes[0].legend(title="method", fontsize=8)
+    fig.suptitle(f"Rate-quality: {title}", fontsize=11)
     fig.tight_layout()
+    for ax, labels in zip(axes, all_labels, strict=True):  # after the layout: final pixel scale
+        _place_labels(ax, labels)
     fig.savefig(path)
     plt.close(fig)
 
@@ -184,5 +231,5 @@ def rate_quality(y_um: np.ndarray, geometry: transform.Geometry, curve: Threshol
         notes.append(peer.NOTE_MISSING)
     write_csv(rows, out / "rate_quality.csv")
     write_markdown(rows, out / "rate_quality.md", title, notes)
-    plot(rows, out / "rate_quality.png", title, 2 * geometry.n_keep)
+    plot(rows, out / "rate_quality.png", title, 2 * geometry.n_keep, ab=ab)
     return {"rows": rows, "notes": notes, "dir": str(out)}

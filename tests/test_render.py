@@ -6,7 +6,7 @@ import pytest
 from hostd.codec import transform
 from hostd.render import RenderConfig, Renderer, frames
 from hostd.render.equalizer import Equalizer, EqualizerConfig
-from hostd.render.height import METHODS, HeightEvaluator
+from hostd.render.height import METHODS, BandLimitConfig, HeightEvaluator, band_edges_hz
 from hostd.render.motion import MotionConfig, MotionEstimator
 from hostd.render.output import OutputConfig, OutputStage
 from hostd.render.position import EncoderPosition
@@ -101,16 +101,29 @@ def test_series_is_continuous_across_the_patch_edge(wood):
         assert abs(a - b) <= 1e-5
 
 
-def test_fast_stroke_has_no_component_above_the_band(wood):
+def test_fast_stroke_has_no_component_above_the_aliasing_limit(wood):
     ev = HeightEvaluator(*wood)
-    v = 1000.0  # 1 m/s
+    f_pass, f_stop = band_edges_hz(ev.band)
+    assert (f_pass, f_stop) == (400.0, 1200.0)
+    v = 4000.0  # 4 m/s: component 160 would sound at 3200 Hz
     t = np.arange(3000) / FS
     y = ev.series(v * t, v)
     spec = np.abs(np.fft.rfft(y * np.hanning(y.size)))
     f = np.fft.rfftfreq(y.size, 1 / FS)
-    above = spec[f > 420].max()
+    above = spec[f > f_stop + 20].max()
     assert above <= 1e-6 * max(spec.max(), 1e-12)
-    assert np.all(ev.gains(v)[(np.arange(1, 161) * v / (2 * wood[2])) >= 400] == 0)
+    assert np.all(ev.gains(v)[(np.arange(1, 161) * v / (2 * wood[2])) >= f_stop] == 0)
+
+
+def test_every_kept_component_plays_at_full_amplitude_at_the_reference_speed(wood):
+    c, n, length = wood
+    geom = transform.Geometry(n, length)  # v_ref 50 mm/s, f_max 400 Hz
+    ev = HeightEvaluator(c[: geom.n_keep], n, length)
+    g = ev.gains(geom.speed_mm_s)
+    assert g.size == geom.n_keep and np.all(g == 1.0)
+    assert np.all(ev.gains(2 * geom.speed_mm_s)[geom.n_keep // 2 + 1 :] < 1.0)  # faster: fades
+    with pytest.raises(ValueError, match="pass band"):
+        band_edges_hz(BandLimitConfig(pass_band_hz=1300.0))
 
 
 def test_equalizer_flat_within_1_db_over_10_to_400_hz():

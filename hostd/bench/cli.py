@@ -38,6 +38,12 @@ def add_parser(sub, parents) -> None:
     so.add_argument("--load", action="store_true", help="a CPU hog on the other core meanwhile")
     sb = bsub.add_parser("sim", help="scene simulation speed vs number of effects and duration")
     sb.add_argument("--json", action="store_true")
+    ob = bsub.add_parser("offline", help="goals: shipped scenes at N'=1600 < 5 s, rate-quality "
+                         "report at N'=160 < 3 s (CPU time of the working thread)")
+    ob.add_argument("--json", action="store_true")
+    lb = bsub.add_parser("load", help="reading a large two-column CSV against np.loadtxt (goal <= 1.5x)")
+    lb.add_argument("--lines", type=int, default=2_000_000)
+    lb.add_argument("--json", action="store_true")
     for name, hlp in (("codec", "encode/decode times; v2 vs v1 bytes at Iobj <= 0.05 with the guard"),
                       ("scoring", "index scoring throughput"),
                       ("all", "pipeline, codec and scoring (accuracy is run on its own)")):
@@ -80,6 +86,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from hostd.errors import HostdError
 
     what = args.bench or "all"
+    if args.bench is None:  # `hostd bench` alone runs "all": its options take their defaults
+        args.json = getattr(args, "json", False)
     if what == "accuracy":
         if not (0.5 <= args.duration <= 600):
             raise SystemExit("hostd bench: error: --duration must be 0.5..600 s")
@@ -116,6 +124,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from hostd.bench import simbench
 
         rows += simbench.run()
+    if what == "load":
+        rows += micro.bench_load(args.lines)
+    if what == "offline":
+        from hostd.bench import simbench
+
+        rows += simbench.run_offline()
     if what in ("pipeline", "all"):
         rows.append(pipeline.run(getattr(args, "duration", 60.0)))
     if what == "codec" and args.tune_deadzone:

@@ -8,14 +8,29 @@ import time
 import numpy as np
 
 
+def one_blas_thread():
+    """A context in which BLAS/OpenMP pools run one thread (threadpoolctl), so that the CPU time
+    of the calling thread is all the work: an idle second BLAS thread spinning on another core
+    is neither charged nor needed. A no-op context when threadpoolctl is missing."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        import contextlib
+
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=1)
+
+
 def cpu_median_s(fn, repeat: int, inner: int = 1) -> float:
-    """Median over `repeat` runs of the CPU time (process_time) of `inner` calls, per call."""
+    """Median over `repeat` runs of the CPU time of this thread (time.thread_time) for `inner`
+    calls, per call, with BLAS limited to this thread (see one_blas_thread)."""
     times = []
-    for _ in range(repeat):
-        t0 = time.process_time_ns()
-        for _ in range(inner):
-            fn()
-        times.append((time.process_time_ns() - t0) / inner)
+    with one_blas_thread():
+        for _ in range(repeat):
+            t0 = time.thread_time_ns()
+            for _ in range(inner):
+                fn()
+            times.append((time.thread_time_ns() - t0) / inner)
     return float(np.median(times)) * 1e-9
 
 

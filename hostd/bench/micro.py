@@ -1,7 +1,8 @@
 """Micro-benchmarks of the codec and of scoring.
 
 Each figure is the median of repeated runs in this process, measured in CPU time
-(time.process_time_ns) to be robust to other load on a shared machine.
+of the working thread (time.thread_time_ns, BLAS limited to that thread) to be robust to other
+load on a shared machine.
 """
 
 from __future__ import annotations
@@ -44,4 +45,29 @@ def bench_scoring() -> list[dict]:
         t = cpu_median_s(lambda v=variants: indices.score(c, v, b), repeat=9)
         rows.append({"bench": "scoring", "variants": m, "n_keep": 160, "seconds": t,
                      "scores_per_s": m / t})
+    return rows
+
+
+def bench_load(lines: int = 2_000_000) -> list[dict]:
+    """Loading a two-column CSV of `lines` rows (written to a temporary file): the profile
+    loader's text reader against np.loadtxt on the same file (goal: within 1.5x), and a
+    10 mm patch of it (the reader stops once x has passed the patch)."""
+    import tempfile
+    from pathlib import Path
+
+    from hostd.texture.load import LoadOptions, load_profile, read_columns
+
+    rng = np.random.default_rng(0)
+    rows = []
+    with tempfile.TemporaryDirectory() as d:
+        f = Path(d) / "big.csv"
+        np.savetxt(f, np.column_stack([np.arange(lines) * 0.5, rng.normal(0, 3, lines)]),
+                   delimiter=",", fmt="%.6f", header="x_um,height_um")
+        ref = cpu_median_s(lambda: np.loadtxt(f, delimiter=","), repeat=3)
+        ours = cpu_median_s(lambda: read_columns(f), repeat=3)
+        whole = cpu_median_s(lambda: load_profile(f, LoadOptions(length_mm=None)), repeat=3)
+        patch = cpu_median_s(lambda: load_profile(f, LoadOptions(length_mm=10.0)), repeat=3)
+        rows.append({"bench": "load", "lines": lines, "mib": f.stat().st_size / 2**20,
+                     "np_loadtxt_s": ref, "read_columns_s": ours, "ratio": ours / ref,
+                     "load_profile_whole_s": whole, "load_profile_10mm_s": patch})
     return rows

@@ -48,7 +48,8 @@ class Geometry:
             raise CodecError(
                 f"fmax {self.fmax_hz} Hz is below the first component "
                 f"({self.speed_mm_s / (2 * self.length_mm):.4g} Hz at {self.speed_mm_s} mm/s over "
-                f"{self.length_mm} mm): raise --fmax or --length-mm"
+                f"{self.length_mm:.4g} mm): the patch is too short for this speed; check --x-unit (is x "
+                f"really in that unit?), lower --speed, or raise --length-mm / --fmax"
             )
         if k >= self.n:
             raise CodecError(

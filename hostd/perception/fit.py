@@ -42,10 +42,20 @@ class FitResult:
     n_used: int
     excluded: list[dict] = field(default_factory=list)
     metrics: dict[str, dict[str, float]] = field(default_factory=dict)
+    se_a: float | None = None  # standard errors of the unconstrained least-squares fit
+    se_b: float | None = None
+    ci_a: tuple[float, float] | None = None  # bootstrap percentile intervals (ci_level)
+    ci_b: tuple[float, float] | None = None
+    ci_level: float = 0.95
+    warnings: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {
             "a": self.a, "b": self.b, "nonnegative": self.nonnegative, "n_used": self.n_used,
+            "se_a": self.se_a, "se_b": self.se_b,
+            "ci_a": list(self.ci_a) if self.ci_a else None,
+            "ci_b": list(self.ci_b) if self.ci_b else None, "ci_level": self.ci_level,
+            "warnings": self.warnings,
             "excluded": self.excluded, "metrics": self.metrics,
             "legend": {
                 "r2_pearson": "squared Pearson correlation of index and scores (the paper's R^2)",
@@ -74,9 +84,64 @@ def _solve(X: np.ndarray, y: np.ndarray, nonnegative: bool) -> np.ndarray:
     return np.linalg.lstsq(X, y, rcond=None)[0]
 
 
+MIN_PER_PARAMETER = 5  # fewer stimuli per fitted weight than this: a warning
+
+
+def standard_errors(X: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, float] | None:
+    """Standard errors of the no-intercept least-squares weights w:
+    se_j = sqrt(s^2 [(X^T X)^-1]_jj), s^2 = sum (y - X w)^2 / (n - p). None when n <= p."""
+    n, p = X.shape
+    if n <= p:
+        return None
+    s2 = float(((y - X @ w) ** 2).sum()) / (n - p)
+    cov = s2 * np.linalg.inv(X.T @ X)
+    return float(math.sqrt(cov[0, 0])), float(math.sqrt(cov[1, 1]))
+
+
+def bootstrap_intervals(X: np.ndarray, y: np.ndarray, nonnegative: bool, n_boot: int = 2000,
+                        level: float = 0.95, seed: int = 0):
+    """Percentile intervals of (a, b) over n_boot resamples of the stimuli (with replacement);
+    resamples whose Ip, Ia are collinear are skipped. None with fewer than 3 stimuli."""
+    n = X.shape[0]
+    if n < 3:
+        return None
+    rng = np.random.default_rng(seed)
+    est = []
+    for _ in range(n_boot):
+        i = rng.integers(0, n, n)
+        Xi = X[i]
+        if np.linalg.matrix_rank(Xi) < 2:
+            continue
+        est.append(_solve(Xi, y[i], nonnegative))
+    if len(est) < n_boot // 2:
+        return None
+    e = np.array(est)
+    lo, hi = 100 * (1 - level) / 2, 100 * (1 + level) / 2
+    return (tuple(float(v) for v in np.percentile(e[:, 0], [lo, hi])),
+            tuple(float(v) for v in np.percentile(e[:, 1], [lo, hi])))
+
+
+def check_scale(stimuli: list[Stimulus], scale_min: float, scale_max: float) -> None:
+    """Scores must lie on the rating scale [scale_min, scale_max]."""
+    for s in stimuli:
+        if not (scale_min <= s.score <= scale_max):
+            raise FitError(f"{s.texture} {s.method} {s.level}: score {s.score} is outside the "
+                           f"rating scale {scale_min:g}..{scale_max:g}: fix the score, or set "
+                           "--scale-min/--scale-max")
+
+
 def fit(stimuli: list[Stimulus], *, nonnegative: bool = False,
-        scale_max: float | None = None, exclude_saturated: bool = False) -> FitResult:
-    """Fit (a, b); stimuli with a mean score at scale_max are excluded when asked (flagged)."""
+        scale_max: float | None = None, exclude_saturated: bool = False,
+        scale_min: float | None = None, n_boot: int = 2000) -> FitResult:
+    """Fit Iobj = a Ip + b Ia to the scores by least squares without intercept (eq. 13-15).
+
+    Stimuli with a mean score at scale_max are excluded when asked (flagged). Scores outside
+    [scale_min, scale_max] are refused (when the scale is given). Returns (a, b), their
+    standard errors (unconstrained fit) and bootstrap percentile intervals (2000 resamples,
+    seeded: reproducible), and warnings (fewer than 5 stimuli per fitted weight).
+    """
+    if scale_max is not None:
+        check_scale(stimuli, -math.inf if scale_min is None else scale_min, scale_max)
     for s in stimuli:
         if exclude_saturated and scale_max is not None and s.score >= scale_max:
             s.excluded = f"saturated: mean score {s.score} at the top of the scale ({scale_max})"
@@ -108,7 +173,15 @@ def fit(stimuli: list[Stimulus], *, nonnegative: bool = False,
                 m[k] = None  # an index that is constant over the stimuli has no correlation
     excluded = [{"texture": s.texture, "method": s.method, "level": s.level, "why": s.excluded}
                 for s in stimuli if s.excluded]
-    return FitResult(a, b, nonnegative, len(used), excluded, metrics)
+    se = standard_errors(X, y, np.array([a, b]))
+    ci = bootstrap_intervals(X, y, nonnegative, n_boot) if n_boot else None
+    warns = []
+    if len(used) < 2 * MIN_PER_PARAMETER:
+        warns.append(f"only {len(used)} stimuli for 2 weights (fewer than {MIN_PER_PARAMETER} per "
+                     "parameter): (a, b) are poorly determined; see their intervals")
+    return FitResult(a, b, nonnegative, len(used), excluded, metrics,
+                     se_a=se[0] if se else None, se_b=se[1] if se else None,
+                     ci_a=ci[0] if ci else None, ci_b=ci[1] if ci else None, warnings=warns)
 
 
 def read_scores(path: str | Path, score_one=None) -> list[Stimulus]:
@@ -143,8 +216,9 @@ def read_scores(path: str | Path, score_one=None) -> list[Stimulus]:
                 if score_one is None:
                     raise FitError(f"{p}:{i}: no Ip/Ia and no way to score a stream")
                 prof = r.get("profile") or None
-                ip, ia = score_one(p.parent / r["stream"],
-                                   (p.parent / prof) if prof else None)
+                if prof and not prof.startswith("synthetic:"):
+                    prof = str(p.parent / prof)
+                ip, ia = score_one(p.parent / r["stream"], prof)
         except (ValueError, TypeError):
             raise FitError(f"{p}:{i}: score, Ip and Ia must be numbers") from None
         out.append(Stimulus(r["texture"], r["method"], r["level"], score, ip, ia))

@@ -12,6 +12,7 @@ print a note instead of failing.
 from __future__ import annotations
 
 import warnings
+from functools import lru_cache
 
 import numpy as np
 
@@ -30,24 +31,36 @@ def available() -> bool:
 
 def played_signal(coeffs_um: np.ndarray, n: int, length_mm: float, speed_mm_s: float,
                   duration_s: float = 1.0, fs_hz: float = FS_HZ) -> np.ndarray:
-    """Height under a finger moving at constant speed: sum_k C_k cos(pi k (2 x/dx + 1) / (2N))."""
-    c = np.asarray(coeffs_um, dtype=np.float64)
+    """Height under a finger moving at constant speed v from x = 0, sampled at fs:
+    h(t_m) = sum_k C_k cos(k theta(v t_m)), theta as in hostd.render.series (one chirp-z
+    transform, FFT-based: no samples x N' cosine matrix)."""
+    from hostd.render import series
+
     dx_mm = length_mm / n
-    t = np.arange(round(duration_s * fs_hz)) / fs_hz
-    u = (2.0 * (speed_mm_s * t) / dx_mm + 1.0) * (np.pi / (2.0 * n))  # phase per unit k
-    k = np.arange(1, c.size + 1, dtype=np.float64)
-    return np.cos(np.outer(u, k)) @ c
+    theta0 = float(series.phase_rad(0.0, n, length_mm))
+    dtheta = np.pi * speed_mm_s / (dx_mm * n * fs_hz)  # phase step per sample at speed v
+    return series.evaluate_uniform(coeffs_um, theta0, dtheta, round(duration_s * fs_hz))
+
+
+@lru_cache(maxsize=8)
+def _reference_signal(key: bytes, n: int, length_mm: float, speed_mm_s: float,
+                      duration_s: float) -> np.ndarray:
+    sig = played_signal(np.frombuffer(key, dtype=np.float64), n, length_mm, speed_mm_s, duration_s)
+    sig.flags.writeable = False
+    return sig
 
 
 def peer_scores(ref_coeffs_um: np.ndarray, coeffs_um: np.ndarray, n: int, length_mm: float,
                 speed_mm_s: float, duration_s: float = 1.0) -> dict[str, float] | None:
-    """{'st_sim': .., 'spqi': ..} (1 = identical), or None when vibromaf is not installed."""
+    """{'st_sim': .., 'spqi': ..} (1 = identical), or None when vibromaf is not installed.
+    The reference's played signal is cached (a sweep scores many variants of one original)."""
     if not available():
         return None
     from vibromaf.metrics.spqi import spqi
     from vibromaf.metrics.stsim import st_sim
 
-    ref = played_signal(ref_coeffs_um, n, length_mm, speed_mm_s, duration_s)
+    key = np.ascontiguousarray(ref_coeffs_um, dtype=np.float64).tobytes()
+    ref = _reference_signal(key, int(n), float(length_mm), float(speed_mm_s), float(duration_s))
     dist = played_signal(coeffs_um, n, length_mm, speed_mm_s, duration_s)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -6,9 +6,13 @@ sees a continuous texture). Faster evaluators read a precomputed table of that s
 period, oversampled `table_oversample` times over its highest component, built by one
 inverse real FFT per speed bucket) with linear or cubic interpolation, or the nearest sample.
 
-Speed-aware band limit: at hand speed v component k sounds at f_k = k |v| / (2L). Gains g_k
-fade from 1 to 0 with a raised cosine between f_pass = fade_start * f_stop and f_stop = min(display
-band, nyquist_fraction * fs/2), so fast strokes do not alias and speed changes do not click.
+Speed-aware band limit: at hand speed v component k sounds at f_k = k |v| / (2L). Gains g_k are
+1 up to f_pass = pass_band_hz (the codec's f_max, 400 Hz: at the reference speed every kept
+component sounds at or below f_max, so a hand at v_ref feels every kept component at full
+amplitude) and fade to 0 with a raised cosine between f_pass and f_stop = nyquist_fraction *
+fs/2 (1200 Hz at 3 kHz: the aliasing limit of the output, with a 20 % guard), so fast strokes
+do not alias and speed changes do not click. `stop_band_hz` can lower f_stop (a documented
+band, e.g. an actuator that must not see more than 600 Hz); it never goes below f_pass.
 """
 
 from __future__ import annotations
@@ -20,23 +24,34 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
+from hostd.render.series import phase_rad as series_phase
+
 METHODS = ("series", "table-cubic", "table-linear", "nearest")
 REST_BUCKET = -(1 << 30)  # the speed bucket of a hand at rest
 
 
 @dataclass
 class BandLimitConfig:
-    display_band_hz: float = 400.0
+    pass_band_hz: float = 400.0  # full amplitude up to here: the codec's f_max at v_ref
     sample_rate_hz: float = 3000.0
-    nyquist_fraction: float = 0.8
-    fade_start: float = 0.8  # fade begins at this fraction of f_stop
+    nyquist_fraction: float = 0.8  # the fade ends at this fraction of fs/2 (aliasing limit)
+    stop_band_hz: float | None = None  # optional earlier end of the fade (a documented band)
     speed_bucket: float = 0.02  # relative speed step between cached gains / tables
+
+
+def band_edges_hz(cfg: BandLimitConfig) -> tuple[float, float]:
+    """(f_pass, f_stop) in Hz: gains are 1 below f_pass, 0 from f_stop, a raised cosine between."""
+    f_alias = cfg.nyquist_fraction * cfg.sample_rate_hz / 2.0
+    f_stop = f_alias if cfg.stop_band_hz is None else min(cfg.stop_band_hz, f_alias)
+    if not (0 < cfg.pass_band_hz < f_stop):
+        raise ValueError(f"the pass band ({cfg.pass_band_hz} Hz) must be > 0 and below the end of "
+                         f"the fade ({f_stop} Hz: stop_band_hz or {cfg.nyquist_fraction} x fs/2)")
+    return float(cfg.pass_band_hz), float(f_stop)
 
 
 def band_gains(k: np.ndarray, speed_mm_s, length_mm: float, cfg: BandLimitConfig) -> np.ndarray:
     """Gains of components k at speed(s) v: shape k.shape, or v.shape + k.shape for arrays."""
-    f_stop = min(cfg.display_band_hz, cfg.nyquist_fraction * cfg.sample_rate_hz / 2.0)
-    f_pass = cfg.fade_start * f_stop
+    f_pass, f_stop = band_edges_hz(cfg)
     f = np.multiply.outer(np.abs(speed_mm_s), k) / (2.0 * length_mm)
     g = np.ones_like(f)
     fade = (f > f_pass) & (f < f_stop)
@@ -91,8 +106,7 @@ class HeightEvaluator:
         (the reference of every other method); otherwise of the speed's bucket."""
         # Reduce x to one period (2L) in float64 first: a hand that travels far in one
         # direction (a mouse, an hour at 50 mm/s = 180 m) keeps full phase precision in float32.
-        x = np.mod(np.asarray(x_mm, dtype=np.float64), self._period_mm).astype(self.dtype)
-        u = (x / self.dtype(self.dx_mm) + self.dtype(0.5)) * self.dtype(np.pi / self.n)
+        u = series_phase(x_mm, self.n, self.length_mm).astype(self.dtype)
         w = ((self.c * self.gains(speed_mm_s)).astype(self.dtype) if exact_gains
              else self.weights(speed_mm_s))
         return np.cos(np.multiply.outer(u, self._k)) @ w

@@ -148,7 +148,7 @@ def cmd_quality(args) -> int:
 def cmd_doctor(args) -> int:
     from hostd.service.doctor import doctor
 
-    return doctor(args.config)
+    return doctor(args.config, json_out=args.json)
 
 
 def cmd_install_service(args) -> int:
@@ -193,4 +193,5 @@ def add_parsers(sub) -> None:
     p.set_defaults(func=cmd_install_service)
     p = sub.add_parser("doctor", help="check device, permissions, real-time capability, config, database")
     p.add_argument("--config", default=None, metavar="FILE")
+    p.add_argument("--json", action="store_true", help="print the checks as one JSON object")
     p.set_defaults(func=cmd_doctor)

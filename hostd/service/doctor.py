@@ -12,21 +12,36 @@ from hostd.device import protocol as pr
 from hostd.errors import HostdError
 
 
-def doctor(config: str | None) -> int:
+def doctor(config: str | None, json_out: bool = False) -> int:
+    """Print the checks (or, with json_out, one JSON object: checks and problem count)."""
     problems = 0
+    checks: list[dict] = []
+    section = ""
+
+    def head(name: str) -> None:
+        nonlocal section
+        section = name
+        if not json_out:
+            print(name)
 
     def ok(msg: str) -> None:
-        print(f"  ok    {msg}")
+        checks.append({"section": section, "status": "ok", "message": msg})
+        if not json_out:
+            print(f"  ok    {msg}")
 
     def bad(msg: str, fix: str) -> None:
         nonlocal problems
         problems += 1
-        print(f"  FAIL  {msg}\n        fix: {fix}")
+        checks.append({"section": section, "status": "fail", "message": msg, "fix": fix})
+        if not json_out:
+            print(f"  FAIL  {msg}\n        fix: {fix}")
 
     def note(msg: str) -> None:
-        print(f"  note  {msg}")
+        checks.append({"section": section, "status": "note", "message": msg})
+        if not json_out:
+            print(f"  note  {msg}")
 
-    print("config")
+    head("config")
     from hostd.service.config import load
 
     try:
@@ -35,7 +50,7 @@ def doctor(config: str | None) -> int:
     except HostdError as e:
         bad(str(e), "correct the key named above (config/hostd.toml documents every key)")
         cfg = load(None)
-    print("device")
+    head("device")
     from hostd.device.transport import find_devices
 
     found = find_devices()
@@ -55,7 +70,7 @@ def doctor(config: str | None) -> int:
     else:
         bad("udev rule not installed: a non-root daemon cannot open the display",
             "sudo hostd install-service (installs the rule and reloads udev)")
-    print("real time")
+    head("real time")
     soft, _hard = resource.getrlimit(resource.RLIMIT_RTPRIO)
     if soft > 0 or os.geteuid() == 0:
         ok(f"SCHED_FIFO allowed (RLIMIT_RTPRIO {soft})")
@@ -64,7 +79,7 @@ def doctor(config: str | None) -> int:
              "the systemd unit grants LimitRTPRIO=20")
     ml_soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
     note(f"RLIMIT_MEMLOCK {ml_soft if ml_soft >= 0 else 'unlimited'} bytes (mlockall needs it large)")
-    print("storage")
+    head("storage")
     for what, d in (("library", cfg.library.dir), ("spool", cfg.library.spool)):
         p = Path(d)
         if p.is_dir() and os.access(p, os.W_OK):
@@ -89,7 +104,7 @@ def doctor(config: str | None) -> int:
     else:
         ok(f"quality log {db} will be created")
     sock = Path(cfg.control.socket)
-    print("daemon")
+    head("daemon")
     if sock.exists():
         try:
             from hostd.service.client import request
@@ -107,5 +122,10 @@ def doctor(config: str | None) -> int:
             bad(str(e), "systemctl restart hostd")
     else:
         note(f"not running (no socket at {sock})")
-    print(f"{problems} problem(s)")
+    if json_out:
+        import json
+
+        print(json.dumps({"problems": problems, "checks": checks}))
+    else:
+        print(f"{problems} problem(s)")
     return 1 if problems else 0

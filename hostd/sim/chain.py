@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.signal
 
+from hostd.render import series
 from hostd.render.equalizer import ActuatorModel
 from hostd.render.height import HeightEvaluator
 from hostd.render.pipeline import Renderer
@@ -106,7 +107,7 @@ def reference(coeffs_um: np.ndarray, n: int, length_mm: float, hand: Hand, t_s: 
     x = hand.position_mm(t_s)
     v = hand.velocity_mm_s(t_s)
     out = np.empty(t_s.size)
-    u_all = (x / ev.dx_mm + 0.5) * (np.pi / ev.n)
+    u_all = series.phase_rad(x, ev.n, ev.length_mm)
     for i in range(0, t_s.size, chunk):
         u = u_all[i : i + chunk]
         g = ev.gains(v[i : i + chunk])

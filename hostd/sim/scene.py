@@ -11,7 +11,8 @@ effects asked for (hostd.sim.effects) and simulates:
   batch by batch on what the host would see, when it would see it.
 
 Delivered quality: the displacement the finger received is fitted, by least squares, onto the
-patch's cosine basis at the hand's true positions (the mirror-even series the codec uses), and
+patch's cosine series at the hand's true positions (normal equations from a nonuniform Fourier
+transform, hostd.render.series.project) (the mirror-even series the codec uses), and
 the fitted C'_k are scored with the same index as the codec (Ip, Ia, Iobj against the stream
 header's reference). With an ideal chain this recovers the decoded coefficients, so the
 delivered Iobj equals the codec-only Iobj.
@@ -25,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from hostd import tomlfile
-from hostd.errors import ConfigError
+from hostd.errors import ConfigError, ProfileError
 
 SETTLE_S = 0.15  # soft start (50 ms) and filters settle before delivered samples count
 FS = 3000.0
@@ -118,33 +119,19 @@ def _stream(sc: Scene):
               "value_bits": int(t.pop("value_bits", 16))}
     else:
         raise ValueError(f"texture.method must be quant or cut, not {method!r}")
+    fmax_hz = float(t.pop("fmax_hz", 400.0))
     if t:
         raise ValueError(f"texture: unknown field {next(iter(t))!r} (expected profile|stream, method, "
-                         "levels, b0_db, value_bits)")
-    if not profile.startswith("synthetic:"):
+                         "levels, b0_db, value_bits, fmax_hz)")
+    if not synth.is_spec(profile):
         raise ValueError("texture.profile: only synthetic:KIND[:SEED] here; encode real profiles with "
                          "hostd encode and name the .vtx as texture.stream")
-    parts = profile.split(":")
-    prof = synth.make(parts[1], seed=int(parts[2]) if len(parts) > 2 else 0)
-    geom = transform.Geometry(prof.n, prof.length_mm)
-    return vtx.decode(vtx.encode_profile(prof.heights_um, geom, thresholds.default_curve(), **kw))
-
-
-def _fit_coefficients(x_mm: np.ndarray, y_um: np.ndarray, n: int, length_mm: float,
-                      n_keep: int) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares C'_0..C'_N' of y = C'_0 + sum_k C'_k cos(pi k (2x/dx + 1) / (2N)), and
-    the basis. Normal equations solved by Cholesky: over many strokes the cosines are nearly
-    orthogonal, so the Gram matrix is well conditioned (lstsq is 5x slower here)."""
-    import scipy.linalg
-
-    u = (np.mod(x_mm, 2 * length_mm) / (length_mm / n) + 0.5) * (np.pi / n)
-    basis = np.cos(np.multiply.outer(u, np.arange(n_keep + 1, dtype=np.float64)))
-    gram = basis.T @ basis
     try:
-        coef = scipy.linalg.cho_solve(scipy.linalg.cho_factor(gram), basis.T @ y_um)
-    except np.linalg.LinAlgError:  # positions that do not cover the patch: fall back
-        coef, *_ = np.linalg.lstsq(basis, y_um, rcond=None)
-    return coef, basis
+        prof = synth.from_spec(profile)
+    except ProfileError as e:
+        raise ValueError(f"texture.profile: {e}") from None
+    geom = transform.Geometry(prof.n, prof.length_mm, fmax_hz=fmax_hz)
+    return vtx.decode(vtx.encode_profile(prof.heights_um, geom, thresholds.default_curve(), **kw))
 
 
 def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dict:
@@ -246,8 +233,11 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
     keep = t_deliver >= SETTLE_S + lead_s
     x = hand.position_mm(t_deliver[keep])
     y = delivered[keep]
-    fit, basis = _fit_coefficients(x, y, n, length, s.n_keep)
-    intended = basis[:, 1:] @ coeffs  # the codec's texture at the true positions
+    from hostd.render import series
+
+    theta = series.phase_rad(x, n, length)
+    fit = series.project(theta, y, s.n_keep)
+    intended = series.evaluate(coeffs, theta)  # the codec's texture at the true positions
     b_k = stream_thresholds(s)
     pp, ap = indices.weighted_sums(fit[1:], b_k)
     sc_del = indices.scores_from_sums(s.ref_P, s.ref_A, pp, ap)
@@ -259,7 +249,10 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
             "rms_texture_um": float(np.sqrt(np.mean(intended**2))),
             "underruns": underruns, "latency_ms": chain_ms,
             "_trace": {"t": t_deliver[keep], "delivered": y, "intended": intended,
-                       "fit": fit, "b_k": b_k, "codec": s.coefficients, "fs": FS}}
+                       "x_mm": x, "speed_mm_s": hand.velocity_mm_s(t_deliver[keep]),
+                       "fit": fit, "b_k": b_k, "codec": s.coefficients, "fs": FS,
+                       "f_k_hz": np.asarray(s.frequencies_hz, dtype=np.float64), "n": n,
+                       "length_mm": length, "band": r.height.band}}
 
 
 def report(sc: Scene, progress: bool = True) -> dict:
@@ -286,7 +279,37 @@ def strip(result: dict) -> dict:
     return r
 
 
+def band_limited(tr: dict, sl: slice) -> np.ndarray:
+    """The ideal display over trace samples sl: the codec's series with the band gains of the
+    hand's true speed at each sample (what a perfect chain delivers)."""
+    from hostd.render import series
+    from hostd.render.height import band_gains
+
+    c = tr["codec"]
+    k = np.arange(1, c.size + 1, dtype=np.float64)
+    g = band_gains(k, tr["speed_mm_s"][sl], tr["length_mm"], tr["band"])  # samples x K
+    theta = series.phase_rad(tr["x_mm"][sl], tr["n"], tr["length_mm"])
+    return np.einsum("ij,ij->i", np.cos(np.multiply.outer(theta, k)), g * c)
+
+
+def threshold_crossings(f_hz: np.ndarray, err: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Frequencies (Hz) where |error| crosses the detection threshold (linear interpolation
+    of err - b between neighbouring components)."""
+    d = err - b
+    i = np.flatnonzero(np.sign(d[:-1]) * np.sign(d[1:]) < 0)
+    return f_hz[i] + (f_hz[i + 1] - f_hz[i]) * d[i] / (d[i] - d[i + 1])
+
+
 def plot(result: dict, out_dir: str | Path) -> list[Path]:
+    """Two figures per scene.
+
+    <scene>-stroke.png: over the first 0.8 s, the band-limited intended displacement (the
+    ideal display: the codec's texture with the band gains of the hand's true speed), the
+    delivered displacement with no effect and with the scene's effects, and below them the
+    hand's speed. <scene>-error-spectrum.png: per component, |delivered - codec| amplitude
+    against f_k in Hz (at the stream's reference speed) for the no-effect run and the run with
+    every effect, the detection threshold b(f_k), and where the error crosses it.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -300,27 +323,51 @@ def plot(result: dict, out_dir: str | Path) -> list[Path]:
 
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
-    last = result["runs"][-1]
-    tr = last["_trace"]
-    fig, ax = plt.subplots(figsize=(9, 4))
-    k = slice(0, min(tr["t"].size, int(0.8 * tr["fs"])))  # one forward stroke of the metronome
-    ax.plot(tr["t"][k], tr["intended"][k], lw=0.8, label="intended (codec texture at the true position)")
-    label = "+".join(last["effects"]) or "ideal"
-    ax.plot(tr["t"][k], tr["delivered"][k], lw=0.8, label=f"delivered ({label})")
-    ax.set_xlabel("time, s")
+    base, last = result["runs"][0], result["runs"][-1]
+    tr, tb = last["_trace"], base["_trace"]
+    label = ("+".join(last["effects"]) if len(last["effects"]) <= 2
+             else f"all {len(last['effects'])} effects") or "no effect"
+    n_show = min(tr["t"].size, tb["t"].size, int(0.8 * tr["fs"]))  # one metronome stroke
+    sl = slice(0, n_show)
+    fig, (ax, axv) = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True,
+                                  gridspec_kw={"height_ratios": [3, 1]})
+    ax.plot(tb["t"][sl], tb["delivered"][sl], lw=1.8, color="C0", alpha=0.6, label="delivered, no effect")
+    if last is not base:
+        ax.plot(tr["t"][sl], tr["delivered"][sl], lw=0.8, color="C3", label=f"delivered, {label}")
+    ax.plot(tb["t"][sl], band_limited(tb, sl), lw=0.7, color="k", ls="--",
+            label="intended: band-limited for the hand's speed (ideal display)")
     ax.set_ylabel("displacement, µm")
-    ax.legend(fontsize=8)
-    ax.set_title(f"{result['scene']}: intended vs delivered over a stroke")
+    ax.legend(fontsize=7, loc="lower left", ncols=3, bbox_to_anchor=(0, 1.0), frameon=False)
+    fig.suptitle(f"{result['scene']}: intended vs delivered over a stroke", fontsize=10)
+    ax.grid(True, alpha=0.3)
+    axv.plot(tb["t"][sl], tb["speed_mm_s"][sl], color="k", lw=1)
+    axv.set_ylabel("hand speed\nmm/s", fontsize=8)
+    axv.set_xlabel("time, s")
+    axv.grid(True, alpha=0.3)
     p1 = save(fig, d / f"{result['scene']}-stroke.png")
-    fig, ax = plt.subplots(figsize=(7, 4))
-    kk = np.arange(1, tr["codec"].size + 1)
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    f = tr["f_k_hz"]
+    b = tr["b_k"]
+    err0 = np.abs(tb["fit"][1:] - tb["codec"])
     err = np.abs(tr["fit"][1:] - tr["codec"])
-    ax.semilogy(kk, err + 1e-12, lw=0.8, label="|delivered − codec| per component")
-    ax.semilogy(kk, tr["b_k"], lw=1.2, label="detection threshold b(f_k)")
-    ax.set_xlabel("component k (f_k = k v/2L at the stream's reference speed)")
+    ax.semilogy(f, err0, lw=0.8, color="C0", label="|delivered − codec|, no effect")
+    if last is not base:
+        ax.semilogy(f, err, lw=0.8, color="C3", label=f"|delivered − codec|, {label}")
+    ax.semilogy(f, b, lw=1.6, color="k", label="detection threshold b(f)")
+    cross = threshold_crossings(f, err, b)
+    for i, fc in enumerate(cross):
+        ax.axvline(fc, color="C3", ls=":", lw=0.9, label="error crosses the threshold" if i == 0 else None)
+    above = err > b
+    if above.any():
+        ax.plot(f[above], err[above], "o", ms=2.5, color="C3", label="components above the threshold")
+    top = float(max(err.max(), err0.max(), b.max())) * 2
+    bottom = max(float(b.min()) * 1e-3, top * 1e-6)  # from 3 decades below the threshold
+    ax.set_ylim(bottom, top)
+    ax.set_xlabel("frequency f_k = k v_ref / 2L, Hz (at the stream's reference speed)")
     ax.set_ylabel("amplitude, µm")
-    ax.legend(fontsize=8)
-    ax.set_title(f"{result['scene']}: spectrum of the error against the threshold")
+    ax.legend(fontsize=7, loc="lower left")
+    ax.grid(True, which="both", alpha=0.25)
+    ax.set_title(f"{result['scene']}: spectrum of the delivered error against the threshold"
+                 f" ({cross.size} crossing{'s' if cross.size != 1 else ''})", fontsize=10)
     return [p1, save(fig, d / f"{result['scene']}-error-spectrum.png")]
-
-

@@ -6,8 +6,10 @@ taken from the start (or an offset) of the profile.
 
 from __future__ import annotations
 
+import io
 import math
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -47,6 +49,9 @@ class LoadOptions:
     length_mm: float | None = 10.0  # patch length; None = whole profile
     offset_mm: float = 0.0
     detrend: str = "none"  # none | mean | linear
+    columns: tuple[int, ...] | None = None  # 0-based (x, height) or (height,) of a text file
+    decimal_comma: bool = False
+    progress: bool = False  # a progress bar on stderr while reading large files
 
 
 def unit_factor(unit: str, axis: str) -> float:
@@ -58,12 +63,195 @@ def unit_factor(unit: str, axis: str) -> float:
         ) from None
 
 
-def read_columns(path: Path) -> np.ndarray:
-    """Numeric rows of a text file as an (n, 1) or (n, 2) array; non-numeric lines are skipped."""
+def parse_columns(spec: str | None) -> tuple[int, ...] | None:
+    """'--columns 2,3' (1-based x,height) or '3' (heights only) -> 0-based indices."""
+    if spec is None or str(spec).strip() == "":
+        return None
     try:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        cols = tuple(int(t) - 1 for t in str(spec).split(","))
+    except ValueError:
+        raise ProfileError(f"--columns {spec!r}: give X,Y (1-based, e.g. 1,2) or Y alone") from None
+    if not 1 <= len(cols) <= 2 or min(cols) < 0 or len(set(cols)) != len(cols):
+        raise ProfileError(f"--columns {spec!r}: give X,Y (1-based, e.g. 1,2) or Y alone")
+    return cols
+
+
+PROGRESS_BYTES = 1 << 26  # progress bar on files above 64 MiB
+_NUM_TOKEN = re.compile(rb"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf|infinity)$", re.I)
+
+
+def _split(line: bytes, delim: bytes | None) -> list[bytes]:
+    return line.split(delim) if delim is not None else line.split()
+
+
+def _is_num(tok: bytes) -> bool:
+    return bool(_NUM_TOKEN.match(tok.strip()))
+
+
+def _data_layout(head: bytes, decimal_comma: bool):
+    """(byte offset of the first data line, its line number, delimiter, numeric columns) or None.
+
+    A data line is one whose non-empty fields are all numbers, followed by lines of the same
+    shape (instrument preambles such as a Dektak export's are skipped)."""
+    lines = head.split(b"\n")
+    offset = 0
+    for i, raw in enumerate(lines[:-1]):
+        line = raw.split(b"#", 1)[0].strip()
+        if decimal_comma:
+            line = line.replace(b",", b".")
+        delim = b"," if b"," in line else b";" if b";" in line else b"\t" if b"\t" in line else None
+        toks = _split(line, delim)
+        cols = [j for j, t in enumerate(toks) if t.strip()]
+        if line and cols and all(_is_num(toks[j]) for j in cols):
+            following = [r.split(b"#", 1)[0].strip() for r in lines[i + 1 : i + 4]]
+            following = [(r.replace(b",", b".") if decimal_comma else r) for r in following if r]
+            if all([j for j, t in enumerate(_split(r, delim)) if t.strip()] == cols
+                   and all(_is_num(t) for t in _split(r, delim) if t.strip()) for r in following):
+                return offset, i + 1, delim, cols
+        offset += len(raw) + 1
+    return None
+
+
+class _Source:
+    """A text file read by numpy's C parser, block by block: drives the progress bar and ends
+    the input early once an ascending x column has passed the patch's end."""
+
+    def __init__(self, fh, bar, delim: str | None, xcol: int | None, stop_x: float | None) -> None:
+        self.fh, self.bar, self.delim, self.xcol, self.stop_x = fh, bar, delim, xcol, stop_x
+        self.x0: float | None = None
+        self.stopped = False
+
+    def _x(self, line: str) -> float | None:
+        toks = line.split(self.delim) if self.delim else line.split()
+        try:
+            return float(toks[self.xcol])
+        except (IndexError, ValueError):
+            return None
+
+    def read(self, size: int = -1) -> str:
+        if self.stopped:
+            return ""
+        block = self.fh.read(size)
+        self.bar.update(len(block))
+        if self.stop_x is None or self.xcol is None or not block:
+            return block
+        if self.x0 is None:
+            self.x0 = self._x(block.split("\n", 1)[0])
+        end = block.rfind("\n")  # the last complete line of this block ends here
+        if end <= 0:
+            return block
+        x = self._x(block[block.rfind("\n", 0, end) + 1 : end])
+        if x is not None and self.x0 is not None and x - self.x0 > self.stop_x:
+            self.stopped = True
+            return block[: end + 1]
+        return block
+
+
+def read_columns(path: Path, columns: tuple[int, ...] | None = None, decimal_comma: bool = False,
+                 stop_x: float | None = None, progress: bool = False) -> np.ndarray:
+    """Numeric rows of a text file as an (n, 1) or (n, 2) array of float64.
+
+    Fast path: find the first data line (skipping any instrument preamble), then one pass of
+    numpy's C parser (the reader behind `np.loadtxt`) over the rest, fed block by block so
+    that a progress bar can follow it and reading can stop once an ascending x column has run
+    `stop_x` past its first value (a patch of a huge file). Files whose rows change shape or
+    hold text further down fall back to a line-by-line reader that skips non-numeric lines
+    and keeps the most common width.
+    """
+    try:
+        size = path.stat().st_size
+        fh = path.open("r", encoding="latin-1", newline="")
     except OSError as exc:
         raise ProfileError(f"cannot read {path}: {exc.strerror or exc}") from None
+    with fh:
+        head = fh.read(1 << 16).encode("latin-1")
+        layout = _data_layout(head, decimal_comma)
+        if layout is None or decimal_comma:
+            fh.seek(0)
+            if layout is None:
+                return _read_columns_slow(fh.read().encode("latin-1"), path, columns, decimal_comma)
+        if decimal_comma:  # the C parser has no decimal-comma option: translate the text first
+            _off, first_line, delim, found = layout
+            text = fh.read()[_off:].replace(",", ".")
+            usecols = _usecols(path, found, columns, first_line)
+            arr = _parse(io.StringIO(text), delim, usecols, None)
+            return arr if arr is not None else _read_columns_slow(
+                text.encode("latin-1"), path, columns, False)
+        offset, first_line, delim, found = layout
+        usecols = _usecols(path, found, columns, first_line)
+        est_rows = _estimate_rows(head[offset:], size - offset)
+        if est_rows > MAX_ROWS and stop_x is None:
+            raise ProfileError(
+                f"{path} holds about {est_rows:,} rows ({size / 2**20:.0f} MiB), more than the "
+                f"{MAX_ROWS:,} a profile may have: take a patch with --length-mm (and --offset-mm)")
+        from tqdm import tqdm
+
+        for attempt_stop in ((stop_x, None) if stop_x is not None else (None,)):
+            fh.seek(offset)
+            with tqdm(total=size - offset, unit="B", unit_scale=True, desc=f"reading {path.name}",
+                      disable=not (progress and size >= PROGRESS_BYTES), leave=False) as bar:
+                src = _Source(fh, bar, None if delim is None else delim.decode(),
+                              usecols[0] if len(usecols) == 2 else None, attempt_stop)
+                arr = _parse(src, delim, usecols, first_line)
+            if arr is None:
+                fh.seek(0)
+                return _read_columns_slow(fh.read().encode("latin-1"), path, columns, False)
+            if not src.stopped or np.all(np.diff(arr[:, 0]) > 0):
+                break  # an early stop is only trusted on an ascending x column
+    if arr.shape[0] == 0:
+        raise ProfileError(f"{path}: no numeric rows found")
+    if arr.shape[0] > MAX_ROWS:
+        raise ProfileError(f"{path}: more than {MAX_ROWS:,} rows: take a patch with --length-mm "
+                           "(and --offset-mm)")
+    return arr
+
+
+def _parse(src, delim: bytes | None, usecols: tuple[int, ...], first_line: int | None):
+    """numpy's C reader on a file-like (fast, with our block hook), else np.loadtxt; None when
+    the text does not have one shape all along (the caller falls back)."""
+    d = None if delim is None else delim.decode()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "input contained no data"
+        try:
+            try:
+                from numpy.lib._npyio_impl import _load_from_filelike
+
+                arr = _load_from_filelike(
+                    src, delimiter=d, comment="#", quote='"', imaginary_unit="j", usecols=list(usecols),
+                    skiplines=0, max_rows=-1, converters=None, dtype=np.dtype(np.float64),
+                    encoding="latin-1", filelike=True, byte_converters=False)
+            except (ImportError, TypeError):  # numpy changed its internals: the public reader
+                lines = iter(lambda: src.read(1 << 20), "")
+                arr = np.loadtxt(io.StringIO("".join(lines)), dtype=np.float64, comments="#",
+                                 delimiter=d, usecols=usecols, ndmin=2)
+        except ValueError:
+            return None
+    return arr.reshape(arr.shape[0], -1) if arr.ndim != 2 else arr
+
+
+def _usecols(path: Path, found: list[int], columns: tuple[int, ...] | None, line: int) -> tuple[int, ...]:
+    if columns is not None:
+        if max(columns) >= max(found) + 1:
+            raise ProfileError(f"{path}:{line}: --columns asks for column {max(columns) + 1} but the "
+                               f"data rows have {len(found)} fields")
+        return columns
+    if len(found) > 2:
+        raise ProfileError(f"{path}:{line}: the data rows have {len(found)} numeric columns: choose "
+                           "x and height with --columns X,Y (1-based), or the heights with --columns Y")
+    return tuple(found)
+
+
+def _estimate_rows(sample: bytes, data_bytes: int) -> int:
+    lines = max(sample.count(b"\n"), 1)
+    return int(data_bytes / max(len(sample), 1) * lines)
+
+
+def _read_columns_slow(data: bytes, path: Path, columns: tuple[int, ...] | None,
+                       decimal_comma: bool) -> np.ndarray:
+    """Line by line: non-numeric lines skipped, the most common row width kept."""
+    text = data.decode("utf-8", errors="replace")
+    if decimal_comma:
+        text = text.replace(",", ".")
     rows: list[list[float]] = []
     widths: dict[int, int] = {}
     for raw in text.splitlines():
@@ -71,6 +259,10 @@ def read_columns(path: Path) -> np.ndarray:
         if not line:
             continue
         toks = [t for t in _SPLIT.split(line) if t]
+        if columns is not None:
+            if len(toks) <= max(columns):
+                continue
+            toks = [toks[c] for c in columns]
         try:
             vals = [float(t) for t in toks]
         except ValueError:
@@ -79,21 +271,46 @@ def read_columns(path: Path) -> np.ndarray:
             rows.append(vals)
             widths[len(vals)] = widths.get(len(vals), 0) + 1
         if len(rows) > MAX_ROWS:
-            raise ProfileError(f"{path}: more than {MAX_ROWS} rows")
+            raise ProfileError(f"{path}: more than {MAX_ROWS:,} rows: take a patch with --length-mm")
     if not rows:
-        raise ProfileError(f"{path}: no numeric rows of one or two columns found")
+        raise ProfileError(f"{path}: no numeric rows of one or two columns found "
+                           "(choose columns with --columns X,Y; decimal commas need --decimal-comma)")
     width = max(widths, key=lambda w: widths[w])
     arr = np.array([r for r in rows if len(r) == width], dtype=np.float64)
     return arr.reshape(-1, width)
 
 
-def load_array(path: str | Path) -> np.ndarray:
+def nonfinite_lines(path: Path, decimal_comma: bool = False, limit: int = 3) -> list[int]:
+    """Line numbers (1-based) of the first data lines holding NaN or Inf (for the error message)."""
+    out = []
+    with path.open("rb") as fh:
+        for i, raw in enumerate(fh, start=1):
+            toks = _SPLIT.split(raw.split(b"#", 1)[0].decode("latin-1").strip())
+            if any(t.lower().lstrip("+-") in ("nan", "inf", "infinity") for t in toks):
+                out.append(i)
+                if len(out) >= limit:
+                    break
+    return out
+
+
+def load_array(path: str | Path, opts: LoadOptions | None = None) -> np.ndarray:
+    opts = opts or LoadOptions()
     p = Path(path)
     if p.suffix.lower() == ".npy":
         try:
-            arr = np.load(p, allow_pickle=False)
+            arr = np.load(p, allow_pickle=False, mmap_mode="r")
         except (OSError, ValueError) as exc:
             raise ProfileError(f"cannot read {p} as .npy: {exc}") from None
+        if np.iscomplexobj(arr):
+            raise ProfileError(f"{p} holds complex numbers ({arr.dtype}): heights must be real; save "
+                               "np.real(a) (or np.abs(a)) if that is what you mean")
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+                or arr.dtype == np.bool_):
+            raise ProfileError(f"{p}: dtype {arr.dtype} is not numeric")
+        if opts.columns is not None:
+            if arr.ndim != 2 or max(opts.columns) >= arr.shape[1]:
+                raise ProfileError(f"{p}: --columns does not fit an array of shape {arr.shape}")
+            arr = arr[:, list(opts.columns)]
         arr = np.asarray(arr, dtype=np.float64)
         if arr.ndim == 1:
             return arr.reshape(-1, 1)
@@ -101,10 +318,16 @@ def load_array(path: str | Path) -> np.ndarray:
             return arr
         if arr.ndim == 2 and arr.shape[0] == 2:
             return arr.T.copy()
-        raise ProfileError(f"{p}: expected heights (N,) or (N, 2) x/height columns, got {arr.shape}")
+        raise ProfileError(f"{p}: expected heights (N,) or (N, 2) x/height columns, got {arr.shape} "
+                           "(choose columns with --columns X,Y)")
     if not p.exists():
         raise ProfileError(f"no such profile file: {p}")
-    return read_columns(p)
+    stop_x = None
+    if opts.length_mm is not None and math.isfinite(opts.length_mm):
+        # a patch of a two-column file: read no further than it needs (plus a margin)
+        end_um = (max(opts.offset_mm, 0.0) + opts.length_mm) * 1000.0
+        stop_x = 1.01 * end_um / unit_factor(opts.x_unit, "x")
+    return read_columns(p, opts.columns, opts.decimal_comma, stop_x=stop_x, progress=opts.progress)
 
 
 def load_profile(path: str | Path, opts: LoadOptions | None = None) -> Profile:
@@ -112,10 +335,22 @@ def load_profile(path: str | Path, opts: LoadOptions | None = None) -> Profile:
     opts = opts or LoadOptions()
     fx = unit_factor(opts.x_unit, "x")
     fy = unit_factor(opts.y_unit, "y")
-    arr = load_array(path)
-    if not np.all(np.isfinite(arr)):
-        bad = int(np.count_nonzero(~np.isfinite(arr).all(axis=1)))
-        raise ProfileError(f"{path}: {bad} rows hold NaN or Inf; clean the file first")
+    arr = load_array(path, opts)
+    finite = np.isfinite(arr).all(axis=1)
+    if not finite.all():
+        bad = int(np.count_nonzero(~finite))
+        where = ""
+        if Path(path).suffix.lower() != ".npy":
+            lines = nonfinite_lines(Path(path), opts.decimal_comma)
+            where = f" (line{'s' if len(lines) > 1 else ''} {', '.join(map(str, lines))}" \
+                f"{', ...' if bad > len(lines) else ''})" if lines else ""
+        else:
+            where = f" (rows {', '.join(str(i) for i in np.flatnonzero(~finite)[:3])})"
+        raise ProfileError(f"{path}: {bad} row{'s' if bad > 1 else ''} hold NaN or Inf{where}; "
+                           "clean the file first")
+    if arr.shape[0] < 2:
+        raise ProfileError(f"{path}: holds {arr.shape[0]} sample; a profile needs at least 2 "
+                           "(is this the right file, or are the columns right?)")
     if arr.shape[1] == 1:
         if opts.spacing is None:
             raise ProfileError(f"{path} has one column of heights: give the spacing with --spacing")
@@ -161,6 +396,8 @@ def cut_patch(y_um: np.ndarray, dx_um: float, opts: LoadOptions, name: str = "")
 
     The patch length is N * spacing (the DCT's period convention), so N = round(L / dx).
     """
+    if y_um.size < 2:
+        raise ProfileError(f"{name}: holds {y_um.size} sample; a profile needs at least 2")
     start = round(opts.offset_mm * 1000.0 / dx_um)
     if start < 0 or start >= y_um.size - 1:
         raise ProfileError(f"{name}: offset {opts.offset_mm} mm is outside the profile")
@@ -173,6 +410,11 @@ def cut_patch(y_um: np.ndarray, dx_um: float, opts: LoadOptions, name: str = "")
         n = min(avail, round(opts.length_mm * 1000.0 / dx_um))
     if n < 2:
         raise ProfileError(f"{name}: the patch holds fewer than 2 samples")
+    from hostd.codec.transform import MAX_SAMPLES
+
+    if n > MAX_SAMPLES:
+        raise ProfileError(f"{name}: the patch would hold {n:,} samples, more than {MAX_SAMPLES:,}: "
+                           "take a shorter patch with --length-mm, or resample with a coarser --spacing")
     y = np.array(y_um[start : start + n], dtype=np.float64)
     if opts.detrend == "mean":
         y -= y.mean()

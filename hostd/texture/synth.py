@@ -98,3 +98,37 @@ def make(kind: str, seed: int = 0, **kw) -> Profile:
     except KeyError:
         raise ProfileError(f"unknown synthetic texture {kind!r}: use wood or sandpaper") from None
     return gen(seed=seed, **kw)
+
+
+SPEC_PREFIX = "synthetic:"
+SPEC_HELP = "synthetic:KIND[:SEED] with KIND wood or sandpaper and SEED an integer >= 0"
+
+
+def is_spec(spec: str) -> bool:
+    """True for a 'synthetic:...' profile name (which is not a file)."""
+    return str(spec).startswith(SPEC_PREFIX)
+
+
+def parse_spec(spec: str) -> tuple[str, int]:
+    """'synthetic:KIND[:SEED]' -> (KIND, SEED); the one parser of that syntax (CLI, scenes, API)."""
+    parts = str(spec).split(":")
+    if parts[0] + ":" != SPEC_PREFIX or not 2 <= len(parts) <= 3 or not parts[1]:
+        raise ProfileError(f"bad synthetic profile {spec!r}: use {SPEC_HELP}")
+    kind = parts[1]
+    if kind not in GENERATORS:
+        raise ProfileError(f"unknown synthetic texture {kind!r}: use wood or sandpaper")
+    seed = 0
+    if len(parts) == 3:
+        try:
+            seed = int(parts[2])
+        except ValueError:
+            raise ProfileError(f"bad seed {parts[2]!r} in {spec!r}: use {SPEC_HELP}") from None
+        if seed < 0:
+            raise ProfileError(f"bad seed {seed} in {spec!r}: the seed must be an integer >= 0")
+    return kind, seed
+
+
+def from_spec(spec: str) -> Profile:
+    """The whole synthetic profile a 'synthetic:KIND[:SEED]' name stands for (µm, 0.5 µm spacing)."""
+    kind, seed = parse_spec(spec)
+    return make(kind, seed)
