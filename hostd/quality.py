@@ -63,9 +63,13 @@ def guard_report(stream: Stream, *, reference_um: np.ndarray | None = None,
             "pass REFERENCE_PROFILE"}
 
 
-def reference_mismatch(s, P: float, A: float, rel: float = 1e-6) -> str | None:
+def reference_mismatch(s, P: float, A: float, rel: float | None = None) -> str | None:
     """None when the reference's P and A match the stream header's (the stream's own original),
-    else a sentence for the user."""
+    else a sentence for the user. The tolerance is the header's precision: exact float64 in v1
+    (1e-6 relative, for re-loading rounding), 17 significant bits in v2 (2^-16 relative)."""
+    if rel is None:
+        rel = 1e-6 if getattr(s, "version", 1) == 1 else 2.0 ** -16
+
     def close(x: float, y: float) -> bool:
         return abs(x - y) <= rel * max(abs(x), abs(y), 1e-300)
 

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hostd import paths
 from hostd.errors import ThresholdError
-from hostd.paths import thresholds_dir
 
 MAX_POINTS = 4096
 
@@ -148,13 +148,14 @@ def load_csv(path: str | Path) -> ThresholdCurve:
 
 
 def default_curve() -> ThresholdCurve:
-    return load_csv(thresholds_dir() / "default.csv")
+    return load_csv(paths.find("thresholds", "default.csv"))
 
 
 def shipped_curves() -> dict[bytes, ThresholdCurve]:
-    """Every curve under config/thresholds/, keyed by its 8-byte id (cached until files change)."""
-    d = thresholds_dir()
-    files = tuple(sorted((str(p), p.stat().st_mtime_ns) for p in d.glob("*.csv"))) if d.is_dir() else ()
+    """Every curve under thresholds/ (the override's and the shipped ones), keyed by its 8-byte
+    id (cached until files change)."""
+    files = tuple(sorted((str(p), p.stat().st_mtime_ns) for d in reversed(paths.search_dirs("thresholds"))
+                         if d.is_dir() for p in d.glob("*.csv")))
     return _load_dir(files)
 
 

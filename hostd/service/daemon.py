@@ -186,8 +186,8 @@ class Daemon:
                     p.unlink()
                 except HostdError as e:
                     dest = self.spool / "rejected" / p.name
+                    dest.with_suffix(".vtx.error").write_text(str(e) + "\n")  # the reason first
                     os.replace(p, dest)
-                    dest.with_suffix(".vtx.error").write_text(str(e) + "\n")
                 except OSError as e:
                     log.error("spool: cannot take in %s: %s", p, e)
 
