@@ -127,7 +127,8 @@ def test_board_image_carries_the_same_descriptors(dumped, tmp_path):
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     syms = {}
-    for line in subprocess.run([nm, "-S", str(ELF)], capture_output=True, text=True, check=True).stdout.splitlines():
+    listing = subprocess.run([nm, "-S", str(ELF)], capture_output=True, text=True, check=True).stdout
+    for line in listing.splitlines():
         parts = line.split()
         if len(parts) == 4:
             syms[parts[3]] = (int(parts[0], 16), int(parts[1], 16))
