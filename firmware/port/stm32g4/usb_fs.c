@@ -14,6 +14,7 @@
 
 #include "board.h"
 #include "regs.h"
+#include "usb_epr.h"
 #include "usbd.h"
 
 #define PMA_EP0_TX 0x40u
@@ -51,23 +52,14 @@ static void pma_read(uint32_t off, uint8_t *p, uint32_t n) {
     }
 }
 
-/* Set the toggle fields of EPnR to `want` (STAT_RX, STAT_TX, DTOG_RX, DTOG_TX as selected by
- * `which`), leave the others, and clear the CTR flags in `clear_ctr` only. */
 static void ep_write(unsigned ep, uint16_t which, uint16_t want, uint16_t clear_ctr) {
-    uint16_t r = USB_EPR(ep);
-    uint16_t v = (uint16_t)((r & USB_EP_KEEP) | USB_EP_CTR_RX | USB_EP_CTR_TX);
-    v = (uint16_t)(v & ~clear_ctr);
-    v = (uint16_t)(v | ((r ^ want) & which));
-    USB_EPR(ep) = v;
+    USB_EPR(ep) = usb_epr_value(USB_EPR(ep), which, want, clear_ctr);
 }
 #define STAT_RX(s) ((uint16_t)((s) << 12))
 #define STAT_TX(s) ((uint16_t)((s) << 4))
 
 static void ep_open(unsigned ep, uint16_t type, uint16_t stat_rx, uint16_t stat_tx) {
-    uint16_t r = USB_EPR(ep);
-    const uint16_t toggles = USB_EP_STAT_RX | USB_EP_STAT_TX | USB_EP_DTOG_RX | USB_EP_DTOG_TX;
-    uint16_t want = (uint16_t)(STAT_RX(stat_rx) | STAT_TX(stat_tx)); /* data toggles 0 */
-    USB_EPR(ep) = (uint16_t)(type | ep | USB_EP_CTR_RX | USB_EP_CTR_TX | ((r ^ want) & toggles));
+    USB_EPR(ep) = usb_epr_open(USB_EPR(ep), type, (uint16_t)ep, stat_rx, stat_tx);
 }
 
 /* ---- usbd_hw_t ---- */

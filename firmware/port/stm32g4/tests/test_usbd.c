@@ -6,6 +6,7 @@
 #include <string.h>
 
 #include "check.h"
+#include "usb_epr.h"
 #include "usbd.h"
 
 int g_checks, g_failures;
@@ -237,6 +238,50 @@ static void test_stalls_and_features(void) {
     CHECK_EQ(u.state, USBD_ADDRESS);
 }
 
+/* A model of an EPnR write (RM0440 45.6.2): toggle bits flip where 1 is written, CTR flags
+ * clear where 0 is written (and may be set by the hardware between the driver's read and
+ * its write), EP_TYPE / EP_KIND / EA take the written value, SETUP is read-only. */
+static uint16_t epr_model_write(uint16_t cur, uint16_t w, uint16_t set_by_hw) {
+    const uint16_t ctr = USB_EP_CTR_RX | USB_EP_CTR_TX, plain = USB_EP_TYPE | USB_EP_KIND | USB_EP_EA;
+    uint16_t toggles = (uint16_t)((cur ^ w) & USB_EP_TOGGLES);
+    uint16_t flags = (uint16_t)((cur | set_by_hw) & (w | (uint16_t)~ctr) & ctr);
+    return (uint16_t)(toggles | flags | (w & plain) | (cur & USB_EP_SETUP));
+}
+
+static void test_endpoint_register_writes(void) {
+    uint32_t x = 12345;
+    long bad = 0;
+    for (int i = 0; i < 200000; i++) {
+        x = x * 1664525u + 1013904223u;
+        uint16_t cur = (uint16_t)(x >> 16);
+        x = x * 1664525u + 1013904223u;
+        uint16_t which = (uint16_t)((x >> 16) & USB_EP_TOGGLES), want = (uint16_t)(x & USB_EP_TOGGLES);
+        x = x * 1664525u + 1013904223u;
+        /* the driver clears only a flag it read as set */
+        uint16_t clear = (uint16_t)((x >> 16) & cur & (USB_EP_CTR_RX | USB_EP_CTR_TX));
+        uint16_t hw = (uint16_t)(x & (USB_EP_CTR_RX | USB_EP_CTR_TX));
+        uint16_t after = epr_model_write(cur, usb_epr_value(cur, which, want, clear), hw);
+        /* the selected toggles reach `want`, the others stay */
+        if ((after & USB_EP_TOGGLES) != (uint16_t)((want & which) | (cur & USB_EP_TOGGLES & ~which))) bad++;
+        /* only the flags asked for are cleared; one the hardware set meanwhile survives */
+        uint16_t ctr = USB_EP_CTR_RX | USB_EP_CTR_TX;
+        if ((after & ctr) != (uint16_t)(((cur | hw) & ctr) & ~clear)) bad++;
+        if ((after & (USB_EP_TYPE | USB_EP_KIND | USB_EP_EA | USB_EP_SETUP)) !=
+            (cur & (USB_EP_TYPE | USB_EP_KIND | USB_EP_EA | USB_EP_SETUP)))
+            bad++;
+        /* opening: type, address, stats, toggles 0, flags untouched */
+        uint16_t srx = (uint16_t)(x >> 30), stx = (uint16_t)((x >> 28) & 3u);
+        uint16_t opened = epr_model_write(cur, usb_epr_open(cur, USB_EP_TYPE_INTERRUPT, 1, srx, stx), 0);
+        if ((opened & (USB_EP_TYPE | USB_EP_EA)) != (USB_EP_TYPE_INTERRUPT | 1u)) bad++;
+        if ((opened & USB_EP_TOGGLES) != (uint16_t)((srx << 12) | (stx << 4))) bad++;
+        if ((opened & ctr) != (cur & ctr)) bad++;
+    }
+    CHECK_EQ(bad, 0);
+    /* and the model is not trivially satisfied: writing back what was read flips toggles */
+    uint16_t cur = (uint16_t)(USB_EP_STAT_TX | USB_EP_CTR_RX);
+    CHECK(epr_model_write(cur, cur, 0) != cur);
+}
+
 static void hex(const char *name, const uint8_t *p, size_t n) {
     printf("%s ", name);
     for (size_t i = 0; i < n; i++) printf("%02x", p[i]);
@@ -255,6 +300,7 @@ int main(int argc, char **argv) {
     }
     test_linux_enumeration();
     test_stalls_and_features();
+    test_endpoint_register_writes();
     printf("usb control requests: %d checks, %d failures\n", g_checks, g_failures);
     return g_failures ? 1 : 0;
 }
