@@ -9,6 +9,7 @@ int qemu_main(void);
 
 void Reset_Handler(void);
 void Fault_Handler(void);
+void SysTick_Handler(void) __attribute__((weak, alias("Fault_Handler")));
 /* crti/crtn are left out (-nostartfiles): nothing here has constructors */
 void _init(void);
 void _fini(void);
@@ -17,7 +18,8 @@ void _fini(void) {}
 
 __attribute__((section(".vectors"), used)) static void (*const vectors[16])(void) = {
     (void (*)(void))&_estack, Reset_Handler, Fault_Handler, Fault_Handler, Fault_Handler,
-    Fault_Handler, Fault_Handler,
+    Fault_Handler, Fault_Handler, 0, 0, 0, 0, Fault_Handler, Fault_Handler, 0, Fault_Handler,
+    SysTick_Handler,
 };
 
 #define SCB_CPACR (*(volatile uint32_t *)0xE000ED88u)
