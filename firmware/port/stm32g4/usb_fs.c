@@ -131,7 +131,7 @@ static void ep1_in_load(const uint8_t *msg, size_t len) {
 }
 
 void usb_fs_send(const uint8_t *msg, size_t len) {
-    if (len > HP_REPORT_SIZE) {
+    if (len == 0 || len > HP_REPORT_SIZE) {
         return;
     }
     uint32_t m = irq_save();
