@@ -29,12 +29,20 @@ static uint8_t g_pending[HP_REPORT_SIZE]; /* a reply (IDENT) waiting for the IN 
 static volatile uint8_t g_pending_len;
 static volatile uint32_t g_in_dropped; /* STATUS reports dropped while the host had not polled */
 
+#ifdef USB_FS_SIM
+#include "usb_fs_sim.h" /* tests/: a model of the peripheral in place of the registers */
+#else
 static uint32_t irq_save(void) {
     uint32_t p;
     __asm volatile("mrs %0, primask\n cpsid i" : "=r"(p)::"memory");
     return p;
 }
 static void irq_restore(uint32_t p) { __asm volatile("msr primask, %0" ::"r"(p) : "memory"); }
+/* EPnR and ISTR writes have side effects (toggle, clear-on-0): they go through these */
+static uint16_t epr_get(unsigned ep) { return USB_EPR(ep); }
+static void epr_set(unsigned ep, uint16_t v) { USB_EPR(ep) = v; }
+static void istr_write(uint16_t v) { USB_ISTR = v; }
+#endif
 
 static void pma_write(uint32_t off, const uint8_t *p, uint32_t n, uint32_t pad_to) {
     for (uint32_t i = 0; i < pad_to; i += 2) {
@@ -53,13 +61,13 @@ static void pma_read(uint32_t off, uint8_t *p, uint32_t n) {
 }
 
 static void ep_write(unsigned ep, uint16_t which, uint16_t want, uint16_t clear_ctr) {
-    USB_EPR(ep) = usb_epr_value(USB_EPR(ep), which, want, clear_ctr);
+    epr_set(ep, usb_epr_value(epr_get(ep), which, want, clear_ctr));
 }
 #define STAT_RX(s) ((uint16_t)((s) << 12))
 #define STAT_TX(s) ((uint16_t)((s) << 4))
 
 static void ep_open(unsigned ep, uint16_t type, uint16_t stat_rx, uint16_t stat_tx) {
-    USB_EPR(ep) = usb_epr_open(USB_EPR(ep), type, (uint16_t)ep, stat_rx, stat_tx);
+    epr_set(ep, usb_epr_open(epr_get(ep), type, (uint16_t)ep, stat_rx, stat_tx));
 }
 
 /* ---- usbd_hw_t ---- */
@@ -123,7 +131,7 @@ static const usbd_hw_t HW = {NULL, hw_ep0_send, hw_ep0_recv, hw_ep0_stall, hw_se
 
 /* ---- endpoint 1 IN: one report in flight; STATUS is dropped when the host has not taken the
  * last one yet (a newer one follows within 1 ms), any other reply waits in g_pending ---- */
-static bool ep1_in_busy(void) { return ((USB_EPR(1) & USB_EP_STAT_TX) >> 4) == USB_EP_STAT_VALID; }
+static bool ep1_in_busy(void) { return ((epr_get(1) & USB_EP_STAT_TX) >> 4) == USB_EP_STAT_VALID; }
 static void ep1_in_load(const uint8_t *msg, size_t len) {
     pma_write(PMA_EP1_TX, msg, (uint32_t)len, HP_REPORT_SIZE);
     USB_COUNT_TX(1) = HP_REPORT_SIZE;
@@ -162,12 +170,12 @@ static void usb_reset(void) {
 void USB_LP_IRQHandler(void) {
     uint16_t istr = USB_ISTR;
     if (istr & USB_ISTR_RESET) {
-        USB_ISTR = (uint16_t)~USB_ISTR_RESET;
+        istr_write((uint16_t)~USB_ISTR_RESET);
         usb_reset();
     }
     while ((istr = USB_ISTR) & USB_ISTR_CTR) {
         unsigned ep = istr & USB_ISTR_EP_ID;
-        uint16_t r = USB_EPR(ep);
+        uint16_t r = epr_get(ep);
         uint8_t buf[64];
         if (ep == 0) {
             if (r & USB_EP_CTR_TX) {
@@ -215,7 +223,7 @@ void USB_LP_IRQHandler(void) {
     }
     /* suspend, wake-up, errors, SOF: acknowledged, nothing to do (the device is bus powered
      * and keeps running; the host timeout ramps the output down when the host goes away) */
-    USB_ISTR = (uint16_t)~(USB_ISTR_SUSP | USB_ISTR_WKUP | USB_ISTR_ERR | USB_ISTR_PMAOVR | USB_ISTR_SOF);
+    istr_write((uint16_t)~(USB_ISTR_SUSP | USB_ISTR_WKUP | USB_ISTR_ERR | USB_ISTR_PMAOVR | USB_ISTR_SOF));
 }
 
 void usb_fs_init(fw_t *f, const uint32_t uid[3]) {
@@ -227,7 +235,7 @@ void usb_fs_init(fw_t *f, const uint32_t uid[3]) {
     for (volatile int i = 0; i < 200; i++) { /* t_STARTUP: 1 us */
     }
     USB_CNTR = 0;
-    USB_ISTR = 0;
+    istr_write(0);
     USB_BTABLE = 0;
     USB_CNTR = USB_CNTR_CTRM | USB_CNTR_RESETM;
     USB_BCDR |= USB_BCDR_DPPU; /* D+ pull-up: the host sees a full-speed device */
