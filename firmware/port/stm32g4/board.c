@@ -13,15 +13,14 @@
 #include "board.h"
 #include "hal.h"
 #include "regs.h"
+#include "tick.h"
 
 static fw_t g_fw;
 static board_encoder_t g_enc;
-static uint16_t g_enc_last;
-static uint32_t g_time_us; /* the device clock: tick count x 1e6 / 3000, like the host port */
-static uint8_t g_phase;    /* 0, 1, 2: the tick period cycles through 56666, 56667, 56667 */
+static tick_state_t g_tick; /* the device clock (tick count x 1000 / 3 us) and the encoder */
 
 /* ---- hal.h ---- */
-uint32_t hal_time_us(void) { return g_time_us; }
+uint32_t hal_time_us(void) { return g_tick.time_us; }
 
 /* The core's codes are signed 16-bit, |code| <= HP_LIMIT_CODE; the 12-bit DAC is offset
  * binary around mid-scale (2048 = rest): code / 8 + 2048, clamped to the DAC's range. */
@@ -115,7 +114,7 @@ static void io_init(void) {
     TIM_CCER(TIM3_BASE) = 0; /* both inputs non-inverted */
     TIM_ARR(TIM3_BASE) = 0xFFFFu;
     TIM_CR1(TIM3_BASE) = TIM_CR1_CEN;
-    g_enc_last = (uint16_t)TIM_CNT(TIM3_BASE);
+    g_tick.enc_last = (uint16_t)TIM_CNT(TIM3_BASE);
 
     /* TIM2: free-running 32-bit at 170 MHz; CC1 / CC2 capture both edges of A / B */
     TIM_PSC(TIM2_BASE) = 0;
@@ -137,7 +136,7 @@ static void io_init(void) {
     TIM_DIER(TIM6_BASE) = TIM_DIER_UIE;
 }
 
-_Static_assert(BOARD_SYSCLK_HZ / HP_SAMPLE_RATE_HZ == 56666u && (BOARD_SYSCLK_HZ % HP_SAMPLE_RATE_HZ) * 3u == 2u * HP_SAMPLE_RATE_HZ,
+_Static_assert(BOARD_SYSCLK_HZ / HP_SAMPLE_RATE_HZ == TICK_PERIOD_SHORT && (BOARD_SYSCLK_HZ % HP_SAMPLE_RATE_HZ) * 3u == 2u * HP_SAMPLE_RATE_HZ,
                "the tick's period pattern assumes 170 MHz / 3 kHz = 56666 + 2/3");
 
 /* The watchdog: LSI 32 kHz / 4 = 8 kHz, 80 counts = 10 ms; refreshed by every tick. */
@@ -154,14 +153,8 @@ static void watchdog_init(void) {
 
 void TIM6_DAC_IRQHandler(void) {
     TIM_SR(TIM6_BASE) = ~TIM_SR_UIF;
-    g_phase = (uint8_t)(g_phase == 2 ? 0 : g_phase + 1);
-    TIM_ARR(TIM6_BASE) = (g_phase == 0 ? 56666u : 56667u) - 1u;
-    g_time_us += g_phase == 2 ? 334u : 333u; /* 1000 us every 3 ticks */
-
-    /* the encoder: 16-bit hardware count extended to 32 bits (< 32768 counts per tick) */
-    uint16_t cnt = (uint16_t)TIM_CNT(TIM3_BASE);
-    g_enc.count += (uint32_t)(int32_t)(int16_t)(uint16_t)(cnt - g_enc_last);
-    g_enc_last = cnt;
+    TIM_ARR(TIM6_BASE) = tick_advance(&g_tick);
+    g_enc.count = tick_encoder(&g_tick, (uint16_t)TIM_CNT(TIM3_BASE));
     g_enc.tick_cycles = TIM_CNT(TIM2_BASE);
     g_enc.edge_a_cycles = TIM_CCR1(TIM2_BASE);
     g_enc.edge_b_cycles = TIM_CCR2(TIM2_BASE);
