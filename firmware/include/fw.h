@@ -19,15 +19,17 @@
  * acquire load of `tail` and hands the slots back with a release store of `head`.
  * A clear asked for by the producer (STOP) must not write `head`: the producer publishes the
  * tail to drop up to (`clear_to`, then bumps `clear_req`), and the consumer moves `head` there
- * on its next pop, clear or fill and acknowledges (`clear_ack`). Until then the producer still
- * counts the dropped samples as queued (conservative: never overwrites a slot in use). */
+ * on its next pop or clear and acknowledges (`clear_ack`); fw_ring_fill counts from `clear_to`
+ * meanwhile. Until then the producer still counts the dropped samples as queued (conservative:
+ * it never overwrites a slot in use). The request counter is 16 bits: 65,536 STOPs within one
+ * tick would be needed to lose one. */
 typedef struct {
     int16_t buf[HP_BUFFER_CAPACITY];
     _Atomic uint16_t head;      /* consumer: next to pop */
     _Atomic uint16_t tail;      /* producer: next free slot */
     _Atomic uint16_t clear_to;  /* producer: drop everything before this tail */
-    _Atomic uint8_t clear_req;  /* producer: clears asked for (wraps) */
-    _Atomic uint8_t clear_ack;  /* consumer: clears applied (wraps) */
+    _Atomic uint16_t clear_req; /* producer: clears asked for (wraps) */
+    _Atomic uint16_t clear_ack; /* consumer: clears applied (wraps) */
 } fw_ring_t;
 
 void fw_ring_init(fw_ring_t *r); /* before either side runs */

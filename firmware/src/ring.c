@@ -21,7 +21,7 @@ void fw_ring_init(fw_ring_t *r) {
  * published before the request, so head only moves forward to it. */
 static uint16_t consumer_head(fw_ring_t *r) {
     uint16_t head = atomic_load_explicit(&r->head, memory_order_relaxed);
-    uint8_t req = atomic_load_explicit(&r->clear_req, memory_order_acquire);
+    uint16_t req = atomic_load_explicit(&r->clear_req, memory_order_acquire);
     if (req != atomic_load_explicit(&r->clear_ack, memory_order_relaxed)) {
         uint16_t to = atomic_load_explicit(&r->clear_to, memory_order_relaxed);
         uint16_t tail = atomic_load_explicit(&r->tail, memory_order_acquire);
@@ -55,7 +55,7 @@ void fw_ring_clear(fw_ring_t *r) {
 
 uint16_t fw_ring_fill(const fw_ring_t *r) {
     uint16_t head = atomic_load_explicit(&r->head, memory_order_acquire);
-    uint8_t ack = atomic_load_explicit(&r->clear_ack, memory_order_acquire);
+    uint16_t ack = atomic_load_explicit(&r->clear_ack, memory_order_acquire);
     if (atomic_load_explicit(&r->clear_req, memory_order_acquire) != ack) {
         head = atomic_load_explicit(&r->clear_to, memory_order_relaxed);
     }
