@@ -3,21 +3,44 @@
 #ifndef HOSTD_FW_H
 #define HOSTD_FW_H
 
+#include <stdatomic.h>
 #include <stdbool.h>
 #include <stddef.h>
 #include <stdint.h>
 
 #include "hostd_proto.h"
 
+/* The sample queue between message handling (the producer: the USB interrupt on a chip) and
+ * the 3 kHz tick (the consumer: a higher-priority timer interrupt). A single-producer /
+ * single-consumer ring with no shared counter: `tail` is written only by the producer and
+ * `head` only by the consumer; both run freely modulo 2^16 and index the buffer modulo its
+ * capacity (a power of two dividing 2^16), so the fill is tail - head. The producer publishes
+ * samples with a release store of `tail` after writing them; the consumer reads them after an
+ * acquire load of `tail` and hands the slots back with a release store of `head`.
+ * A clear asked for by the producer (STOP) must not write `head`: the producer publishes the
+ * tail to drop up to (`clear_to`, then bumps `clear_req`), and the consumer moves `head` there
+ * on its next pop or clear and acknowledges (`clear_ack`); fw_ring_fill counts from `clear_to`
+ * meanwhile. Until then the producer still counts the dropped samples as queued (conservative:
+ * it never overwrites a slot in use). The request counter is 16 bits: 65,536 STOPs within one
+ * tick would be needed to lose one. */
 typedef struct {
     int16_t buf[HP_BUFFER_CAPACITY];
-    uint16_t head; /* next to pop */
-    uint16_t count;
+    _Atomic uint16_t head;      /* consumer: next to pop */
+    _Atomic uint16_t tail;      /* producer: next free slot */
+    _Atomic uint16_t clear_to;  /* producer: drop everything before this tail */
+    _Atomic uint16_t clear_req; /* producer: clears asked for (wraps) */
+    _Atomic uint16_t clear_ack; /* consumer: clears applied (wraps) */
 } fw_ring_t;
 
-void fw_ring_clear(fw_ring_t *r);
-bool fw_ring_push(fw_ring_t *r, const int16_t *v, uint16_t n); /* all or nothing */
+void fw_ring_init(fw_ring_t *r); /* before either side runs */
+/* Consumer side (the tick). */
 bool fw_ring_pop(fw_ring_t *r, int16_t *out);
+void fw_ring_clear(fw_ring_t *r); /* drop everything queued */
+/* Samples that will play (a pending clear applied); safe from either side. */
+uint16_t fw_ring_fill(const fw_ring_t *r);
+/* Producer side (message handling). */
+bool fw_ring_push(fw_ring_t *r, const int16_t *v, uint16_t n); /* all or nothing */
+void fw_ring_request_clear(fw_ring_t *r); /* drop what is queued now; applied by the consumer */
 
 typedef struct {
     uint8_t ab;      /* last A/B state, bit1 = A, bit0 = B */
@@ -46,19 +69,25 @@ typedef struct {
     bool overflow;
 } fw_deframer_t;
 
+/* Concurrency on a chip: fw_tick runs in a timer interrupt that pre-empts message handling
+ * (fw_on_message in the USB interrupt), never the reverse. The samples travel through the
+ * SPSC ring; the other fields both sides touch are _Atomic: `faults` is set by both and the
+ * tick clears only the bits it reported; `state`, the limits, the timeout and `last_rx_us` are
+ * written by message handling and read by the tick whole (each limit is safe on its own, so a
+ * tick between the two stores of SET_LIMITS sees one new and one old limit, both in range). */
 struct fw {
     fw_ring_t ring;
     fw_quad_t quad;
     fw_deframer_t rx;
-    uint8_t state;
-    uint16_t faults;     /* sticky bits, cleared when a STATUS is sent */
-    int16_t out;         /* last code written to the DAC */
-    uint16_t limit_code; /* <= HP_LIMIT_CODE */
-    uint16_t max_step_code;
-    uint16_t timeout_ms;
+    _Atomic uint8_t state;
+    _Atomic uint16_t faults;     /* sticky bits, cleared when a STATUS reports them */
+    int16_t out;                 /* last code written to the DAC */
+    _Atomic uint16_t limit_code; /* <= HP_LIMIT_CODE */
+    _Atomic uint16_t max_step_code;
+    _Atomic uint16_t timeout_ms;
     uint32_t ticks;
     uint32_t samples_played;
-    uint32_t last_rx_us;
+    _Atomic uint32_t last_rx_us;
     uint16_t last_seq;
     uint16_t underruns;
     uint16_t malformed;

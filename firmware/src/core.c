@@ -24,6 +24,7 @@ static void wr32(uint8_t *p, uint32_t v) {
 
 void fw_init(fw_t *f, uint8_t encoder_ab) {
     memset(f, 0, sizeof *f);
+    fw_ring_init(&f->ring);
     fw_quad_init(&f->quad, encoder_ab);
     f->state = HP_STATE_IDLE;
     f->limit_code = HP_LIMIT_CODE;
@@ -93,7 +94,7 @@ void fw_on_message(fw_t *f, const uint8_t *m, size_t len) {
         if (f->state == HP_STATE_RUNNING) {
             f->state = HP_STATE_RAMP_DOWN;
         }
-        fw_ring_clear(&f->ring);
+        fw_ring_request_clear(&f->ring); /* producer side: the tick drops them */
         break;
     case HP_ID_SET_LIMITS: {
         uint16_t lim = rd16(m + HP_SET_LIMITS_OFF_LIMIT_CODE);
@@ -223,7 +224,7 @@ void fw_tick(fw_t *f) {
     if (f->ticks % HP_STATUS_PERIOD_TICKS == 0) {
         uint8_t msg[HP_STATUS_SIZE];
         hal_send(msg, fw_build_status(f, msg));
-        f->faults = 0;
+        f->faults &= (uint16_t)~rd16(msg + HP_STATUS_OFF_FAULT_FLAGS); /* atomic: keeps new bits */
     }
 }
 
@@ -235,7 +236,7 @@ size_t fw_build_status(const fw_t *f, uint8_t *o) {
     wr32(o + HP_STATUS_OFF_DEVICE_TIME_US, hal_time_us());
     wr32(o + HP_STATUS_OFF_ENCODER_COUNT, f->quad.count);
     wr32(o + HP_STATUS_OFF_SAMPLES_PLAYED, f->samples_played);
-    wr16(o + HP_STATUS_OFF_BUFFER_FILL, f->ring.count);
+    wr16(o + HP_STATUS_OFF_BUFFER_FILL, fw_ring_fill(&f->ring));
     wr16(o + HP_STATUS_OFF_LAST_SEQ, f->last_seq);
     wr16(o + HP_STATUS_OFF_UNDERRUNS, f->underruns);
     wr16(o + HP_STATUS_OFF_MALFORMED, f->malformed);

@@ -94,7 +94,7 @@ static void check_vector_fields(const uint8_t *msg, size_t len, const char *fiel
         fw_init(&f, 0);
         fw_on_message(&f, msg, len);
         CHECK_EQ(f.malformed, 0);
-        CHECK_EQ(f.ring.count, n);
+        CHECK_EQ(fw_ring_fill(&f.ring), n);
     }
 }
 
@@ -129,7 +129,7 @@ static void test_vectors(const char *path) {
             fw_init(&f, 0);
             fw_on_message(&f, a, na);
             CHECK_EQ(f.malformed, 1);
-            CHECK_EQ(f.ring.count, 0);
+            CHECK_EQ(fw_ring_fill(&f.ring), 0);
             CHECK_EQ(f.state, HP_STATE_IDLE);
             CHECK_EQ(f.limit_code, HP_LIMIT_CODE);
             CHECK_EQ(f.timeout_ms, HP_DEFAULT_TIMEOUT_MS);
@@ -164,8 +164,8 @@ static void test_crc_and_cobs(void) {
 }
 
 static void test_ring(void) {
-    fw_ring_t r;
-    fw_ring_clear(&r);
+    static fw_ring_t r;
+    fw_ring_init(&r);
     int16_t v[HP_BUFFER_CAPACITY];
     for (int i = 0; i < HP_BUFFER_CAPACITY; i++) v[i] = (int16_t)i;
     CHECK(fw_ring_push(&r, v, 200));
@@ -173,9 +173,62 @@ static void test_ring(void) {
     for (int i = 0; i < 150; i++) CHECK(fw_ring_pop(&r, &x) && x == i);
     CHECK(fw_ring_push(&r, v, 200)); /* wraps */
     CHECK(!fw_ring_push(&r, v, 7));  /* 250 + 7 > 256: all or nothing */
-    CHECK_EQ(r.count, 250);
+    CHECK_EQ(fw_ring_fill(&r), 250);
+    CHECK(fw_ring_push(&r, v, 6)); /* exactly full */
+    CHECK_EQ(fw_ring_fill(&r), HP_BUFFER_CAPACITY);
+    CHECK(!fw_ring_push(&r, v, 1));
     for (int i = 150; i < 200; i++) CHECK(fw_ring_pop(&r, &x) && x == i);
     for (int i = 0; i < 200; i++) CHECK(fw_ring_pop(&r, &x) && x == i);
+    for (int i = 0; i < 6; i++) CHECK(fw_ring_pop(&r, &x) && x == i);
+    CHECK(!fw_ring_pop(&r, &x));
+    CHECK_EQ(fw_ring_fill(&r), 0);
+
+    /* the free-running 16-bit indices wrap past 2^16 many times: order and fill hold */
+    fw_ring_init(&r);
+    int16_t next_in = 0, next_out = 0;
+    long bad = 0, pushed = 0;
+    for (int round = 0; round < 12000; round++) {
+        int16_t batch[HP_MAX_SAMPLES];
+        uint16_t n = (uint16_t)(1 + round % HP_MAX_SAMPLES);
+        for (uint16_t i = 0; i < n; i++) batch[i] = (int16_t)(next_in + i);
+        if (fw_ring_push(&r, batch, n)) next_in = (int16_t)(next_in + n), pushed += n;
+        for (int k = 0; k < (round % 7 == 0 ? 60 : 14); k++) {
+            if (!fw_ring_pop(&r, &x)) break;
+            if (x != next_out) bad++;
+            next_out = (int16_t)(next_out + 1);
+        }
+        if (fw_ring_fill(&r) != (uint16_t)(next_in - next_out)) bad++;
+    }
+    CHECK_EQ(bad, 0);
+    CHECK(pushed > 2 * 65536); /* the indices did wrap past 2^16 */
+    CHECK_EQ(atomic_load(&r.tail), (uint16_t)pushed);
+
+    /* a clear asked for by the producer (STOP): drops what was queued then, keeps what the
+     * producer pushed after it; the producer counts the dropped slots until the tick applies it */
+    fw_ring_init(&r);
+    CHECK(fw_ring_push(&r, v, 200));
+    CHECK(fw_ring_pop(&r, &x) && x == 0);
+    fw_ring_request_clear(&r);
+    CHECK_EQ(fw_ring_fill(&r), 0);                /* what the tick will see */
+    CHECK(fw_ring_push(&r, v + 100, 50));         /* 199 + 50 <= 256: room without the clear */
+    CHECK(!fw_ring_push(&r, v, 10));              /* 249 + 10: the dropped slots still count */
+    CHECK_EQ(fw_ring_fill(&r), 50);
+    CHECK(fw_ring_pop(&r, &x) && x == 100);       /* the tick applies the clear */
+    CHECK(fw_ring_push(&r, v, 200));              /* now the room is back */
+    CHECK_EQ(fw_ring_fill(&r), 249);
+    /* a clear_to the consumer already played past (rewritten by a second request) is ignored */
+    fw_ring_init(&r);
+    CHECK(fw_ring_push(&r, v, 10));
+    fw_ring_request_clear(&r);                    /* clear_to = 10 */
+    CHECK(!fw_ring_pop(&r, &x));                  /* applied: empty */
+    CHECK(fw_ring_push(&r, v, 5));
+    CHECK(fw_ring_pop(&r, &x) && x == 0);
+    atomic_fetch_add(&r.clear_req, 1); /* as if a request's counter landed, its clear_to stale (10) */
+    atomic_store(&r.clear_to, 10);
+    CHECK(fw_ring_pop(&r, &x) && x == 1); /* 10 is behind head 11: not a step back */
+    /* the consumer's clear (host timeout) */
+    fw_ring_clear(&r);
+    CHECK_EQ(fw_ring_fill(&r), 0);
     CHECK(!fw_ring_pop(&r, &x));
 }
 
