@@ -41,6 +41,9 @@ uint16_t fw_ring_fill(const fw_ring_t *r);
 /* Producer side (message handling). */
 bool fw_ring_push(fw_ring_t *r, const int16_t *v, uint16_t n); /* all or nothing */
 void fw_ring_request_clear(fw_ring_t *r); /* drop what is queued now; applied by the consumer */
+/* Consumer: apply a pending clear now (every tick, so that a STOP frees the buffer within one
+ * tick even while the device is idle and pops nothing: the host re-primes right after STOP). */
+void fw_ring_service(fw_ring_t *r);
 
 typedef struct {
     uint8_t ab;      /* last A/B state, bit1 = A, bit0 = B */

@@ -171,6 +171,7 @@ static int32_t toward_zero(int32_t v) {
 
 void fw_tick(fw_t *f) {
     f->ticks++;
+    fw_ring_service(&f->ring);
     uint32_t now = hal_time_us();
     if (f->state == HP_STATE_RUNNING && (uint32_t)(now - f->last_rx_us) > (uint32_t)f->timeout_ms * 1000u) {
         f->state = HP_STATE_RAMP_DOWN;

@@ -47,6 +47,8 @@ bool fw_ring_pop(fw_ring_t *r, int16_t *out) {
     return true;
 }
 
+void fw_ring_service(fw_ring_t *r) { (void)consumer_head(r); }
+
 void fw_ring_clear(fw_ring_t *r) {
     (void)consumer_head(r);
     uint16_t tail = atomic_load_explicit(&r->tail, memory_order_acquire);
