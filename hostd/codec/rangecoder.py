@@ -103,16 +103,10 @@ class Encoder:
 
 class Decoder:
     def __init__(self, data: bytes) -> None:
-        self.data = data
-        self.pos = 4
         padded = data[:4] + bytes(max(0, 4 - len(data)))
         self.code = int.from_bytes(padded, "big")
         self.range = MASK32
-
-    def _next(self) -> int:
-        p = self.pos
-        self.pos = p + 1
-        return self.data[p] if p < len(self.data) else 0
+        self._bytes = iter(data[4:])  # next(self._bytes, 0): zeros past the end
 
     def bit(self, probs: list[int], i: int) -> int:
         p = probs[i]
@@ -130,7 +124,7 @@ class Decoder:
             b = 1
         while r < 0x1000000:  # TOP
             r <<= 8
-            code = ((code << 8) | self._next()) & 0xFFFFFFFF
+            code = ((code << 8) | next(self._bytes, 0)) & 0xFFFFFFFF
         self.range = r
         self.code = code
         return b
@@ -145,7 +139,7 @@ class Decoder:
             b = 0
         while r < 0x1000000:
             r <<= 8
-            code = ((code << 8) | self._next()) & 0xFFFFFFFF
+            code = ((code << 8) | next(self._bytes, 0)) & 0xFFFFFFFF
         self.range = r
         self.code = code
         return b
