@@ -38,83 +38,74 @@ EG_MAX_PREFIX = 40                 # Exp-Golomb prefixes longer than this are ma
 MAX_ABS_INDEX = (1 << 40) - 1      # |q| bound (the encoder refuses larger indices)
 
 
-class Encoder:
-    def __init__(self) -> None:
-        self.low = 0
-        self.range = MASK32
-        self.cache = 0
-        self.cache_size = 1
-        self.out = bytearray()
+def _code(decisions: list[tuple[list[int] | None, int, int]]) -> bytes:
+    """The binary range encoder (LZMA's) over a list of decisions (probs, index, bit), probs
+    None for a bypass bit; state in local variables. At the end it picks, inside the final
+    interval [low, low + range), the value with the most trailing zero bits, flushes, drops
+    the always-zero first byte and strips trailing zero bytes (the decoder reads zeros)."""
+    low = 0
+    rng = MASK32
+    cache = 0
+    cache_size = 1
+    out = bytearray()
 
-    def _shift_low(self) -> None:
-        low = self.low
+    def shift_low() -> None:
+        nonlocal low, cache, cache_size
         if low < 0xFF000000 or low > MASK32:
             carry = low >> 32
-            temp = self.cache
+            temp = cache
             while True:
-                self.out.append((temp + carry) & 0xFF)
+                out.append((temp + carry) & 0xFF)
                 temp = 0xFF
-                self.cache_size -= 1
-                if not self.cache_size:
+                cache_size -= 1
+                if not cache_size:
                     break
-            self.cache = (low >> 24) & 0xFF
-        self.cache_size += 1
-        self.low = (low & 0x00FFFFFF) << 8
+            cache = (low >> 24) & 0xFF
+        cache_size += 1
+        low = (low & 0x00FFFFFF) << 8
 
-    def bit(self, probs: list[int], i: int, b: int) -> None:
-        p = probs[i]
-        r = self.range
-        bound = (r >> 11) * p  # PROB_BITS
-        if b:
-            self.low += bound
-            r -= bound
-            probs[i] = p - (p >> 4)  # ADAPT_SHIFT
+    for probs, i, b in decisions:
+        if probs is None:
+            rng >>= 1
+            if b:
+                low += rng
         else:
-            r = bound
-            probs[i] = p + ((2048 - p) >> 4)
-        while r < 0x1000000:  # TOP
-            r <<= 8
-            self._shift_low()
-        self.range = r
-
-    def bypass(self, b: int) -> None:
-        r = self.range >> 1
-        if b:
-            self.low += r
-        while r < 0x1000000:
-            r <<= 8
-            self._shift_low()
-        self.range = r
-
-    def finish(self) -> bytes:
-        # Any value in [low, low + range) decodes the same; take the one with the most
-        # trailing zero bits so that the dropped zero bytes cost nothing.
-        hi = self.low + self.range - 1
-        for shift in (32, 24, 16, 8, 0):
-            v = ((self.low + (1 << shift) - 1) >> shift) << shift
-            if v <= hi:
-                self.low = v
-                break
-        for _ in range(5):
-            self._shift_low()
-        out = bytes(self.out)
-        if out[0] != 0:  # pragma: no cover - the LZMA coder's first byte is always 0
-            raise AssertionError("range coder invariant broken: first byte not 0")
-        return out[1:].rstrip(b"\x00")
+            p = probs[i]
+            bound = (rng >> 11) * p  # PROB_BITS
+            if b:
+                low += bound
+                rng -= bound
+                probs[i] = p - (p >> 4)  # ADAPT_SHIFT
+            else:
+                rng = bound
+                probs[i] = p + ((2048 - p) >> 4)
+        while rng < 0x1000000:  # TOP
+            rng <<= 8
+            shift_low()
+    hi = low + rng - 1
+    for shift in (32, 24, 16, 8, 0):
+        v = ((low + (1 << shift) - 1) >> shift) << shift
+        if v <= hi:
+            low = v
+            break
+    for _ in range(5):
+        shift_low()
+    if out[0] != 0:  # pragma: no cover - the LZMA coder's first byte is always 0
+        raise AssertionError("range coder invariant broken: first byte not 0")
+    return bytes(out[1:]).rstrip(b"\x00")
 
 
-def _eg_encode(enc: Encoder, probs: list[int], v: int) -> None:
+def _eg(ops: list, probs: list[int], v: int) -> None:
     """Exp-Golomb order 0 of v >= 0: n = bit_length(v+1)-1 prefix ones (adaptive, one
     context per position, capped at the last), a zero, then n suffix bits (bypass, MSB first)."""
     v1 = v + 1
     n = v1.bit_length() - 1
     last = len(probs) - 1
-    bit, bypass = enc.bit, enc.bypass
     for i in range(n):
-        bit(probs, i if i < last else last, 1)
-    bit(probs, n if n < last else last, 0)
+        ops.append((probs, i if i < last else last, 1))
+    ops.append((probs, n if n < last else last, 0))
     for i in range(n - 1, -1, -1):
-        bypass((v1 >> i) & 1)
+        ops.append((None, 0, (v1 >> i) & 1))
 
 
 def encode_indices(q: np.ndarray) -> bytes:
@@ -122,7 +113,6 @@ def encode_indices(q: np.ndarray) -> bytes:
     vals = [int(v) for v in np.asarray(q).tolist()]
     if any(abs(v) > MAX_ABS_INDEX for v in vals):
         raise ValueError("index magnitude beyond 2^40")
-    enc = Encoder()
     p_zero = [PROB_INIT] * N_CTX
     p_gt1 = [PROB_INIT] * N_CTX
     p_sig = [PROB_INIT] * 16
@@ -131,23 +121,24 @@ def encode_indices(q: np.ndarray) -> bytes:
     for i, v in enumerate(vals):
         if v:
             n_sig = i + 1
-    _eg_encode(enc, p_sig, n_sig)
+    ops: list = []
+    add = ops.append
+    _eg(ops, p_sig, n_sig)
     a1 = a2 = 0
-    bit, bypass = enc.bit, enc.bypass
     last = n_sig - 1
     for i in range(n_sig):
         v = vals[i]
         a = -v if v < 0 else v
         ctx = (a1 if a1 < 2 else 2) + (a2 if a2 < 2 else 2)
         if i != last:
-            bit(p_zero, ctx, 1 if a else 0)
+            add((p_zero, ctx, 1 if a else 0))
         if a:
-            bypass(1 if v < 0 else 0)
-            bit(p_gt1, ctx, 1 if a > 1 else 0)
+            add((None, 0, 1 if v < 0 else 0))
+            add((p_gt1, ctx, 1 if a > 1 else 0))
             if a > 1:
-                _eg_encode(enc, p_mag, a - 2)
+                _eg(ops, p_mag, a - 2)
         a2, a1 = a1, a
-    return enc.finish()
+    return _code(ops)
 
 
 def decode_indices(data: bytes, n_keep: int) -> np.ndarray:
