@@ -309,7 +309,7 @@ def decode(data: bytes) -> Stream:
         raise StreamError(f"stream truncated: {size} bytes")
     body = data[: size - crc_len]
     if _crc(body) != data[size - crc_len :] or (crc_len == 4) != (len(body) + 2 >= CRC16_LIMIT):
-        raise StreamError("stream CRC mismatch: the file is corrupt; fetch or re-encode it")
+        raise StreamError("stream CRC mismatch: the file is truncated or corrupt; fetch or re-encode it")
     flags = data[1] & 0x0F
     method_id = flags & 0x03
     if method_id not in METHODS:
@@ -372,9 +372,10 @@ def decode(data: bytes) -> Stream:
             raise StreamError("embedded threshold table does not match the header's curve id")
     payload = body[r.pos :]
     q = rangecoder.decode_indices(payload, n_keep)
+    shipped = th.shipped_curves() if curve is None else {}
     if method == "shaped":
         if curve is None:
-            curve = _shipped_by_short_id(short_id)
+            curve = _shipped_by_short_id(short_id, shipped)
         coeffs = shaped_values(q, curve(ig.frequencies_hz()), g_db)
     elif method == "quant":
         if np.any(np.abs(q) >= 1 << 53):
@@ -387,7 +388,7 @@ def decode(data: bytes) -> Stream:
         coeffs = q.astype(np.float64) * step
     if not np.all(np.isfinite(coeffs)):
         raise StreamError("decoded coefficients are not finite")
-    tid = curve.id_bytes if curve is not None else _full_id(short_id)
+    tid = curve.id_bytes if curve is not None else _full_id(short_id, shipped)
     return Stream(
         method=method, coder="range", n=ig.n, n_keep=n_keep, length_mm=ig.length_mm,
         speed_mm_s=ig.speed_mm_s, fmax_hz=ig.fmax_hz, threshold_id=tid, ref_P=ref_P, ref_A=ref_A,
@@ -398,8 +399,8 @@ def decode(data: bytes) -> Stream:
     )
 
 
-def _shipped_by_short_id(short_id: bytes) -> th.ThresholdCurve:
-    found = [c for k, c in th.shipped_curves().items() if k[:SHORT_ID_BYTES] == short_id]
+def _shipped_by_short_id(short_id: bytes, shipped: dict) -> th.ThresholdCurve:
+    found = [c for k, c in shipped.items() if k[:SHORT_ID_BYTES] == short_id]
     if len(found) != 1:
         raise StreamError(
             f"threshold curve {short_id.hex()} is not embedded and "
@@ -409,7 +410,7 @@ def _shipped_by_short_id(short_id: bytes) -> th.ThresholdCurve:
     return found[0]
 
 
-def _full_id(short_id: bytes) -> bytes:
+def _full_id(short_id: bytes, shipped: dict) -> bytes:
     """The 8-byte id of the shipped curve with this short id, or the short id zero-padded."""
-    found = [k for k in th.shipped_curves() if k[:SHORT_ID_BYTES] == short_id]
+    found = [k for k in shipped if k[:SHORT_ID_BYTES] == short_id]
     return found[0] if len(found) == 1 else short_id + bytes(8 - SHORT_ID_BYTES)
