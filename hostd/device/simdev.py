@@ -60,7 +60,7 @@ class SimDevice:
         except pr.ProtocolError:
             self.malformed += 1
             return
-        if name in ("STATUS", "IDENT") or (name == "SAMPLES" and f["flags"] != 0):
+        if pr.IDS[name] >= 0x80 or (name == "SAMPLES" and f["flags"] != 0):  # device->host ids
             self.malformed += 1
             return
         zero_step = name == "SET_LIMITS" and f["max_step_code"] == 0

@@ -1,0 +1,51 @@
+"""Device-side rendering (protocol v2): messages and helpers, the firmware renderer's Python
+model against the C firmware on shared vectors, refused uploads, and the safety stage."""
+
+from __future__ import annotations
+
+import pytest
+
+from hostd.device import protocol as pr
+from hostd.errors import DeviceVersion
+
+IDENT_V1 = dict(protocol_version=1, sample_rate_hz=3000, dac_bits=16, max_samples=29)
+IDENT_V2 = dict(IDENT_V1, protocol_version=2)
+CAPS = dict(render=1, max_components=512, max_sections=4, chunk_coeffs=14, edge_clock_hz=12_000_000,
+            xfade_ticks=150)
+
+
+def test_a_version_1_device_streams_but_device_mode_says_what_to_do():
+    assert pr.check_version(IDENT_V1) == 1 and pr.check_version(IDENT_V2) == 2
+    with pytest.raises(DeviceVersion, match="update the firmware"):
+        pr.check_version(dict(IDENT_V1, protocol_version=3))
+    assert not pr.render_capable(IDENT_V1, None)
+    with pytest.raises(DeviceVersion, match=r'protocol v1 firmware.*where = "host"'):
+        pr.require_render(IDENT_V1, None)
+    with pytest.raises(DeviceVersion, match="did not report render capability"):
+        pr.require_render(IDENT_V2, dict(CAPS, render=0))
+    with pytest.raises(DeviceVersion, match="at most 512 components"):
+        pr.require_render(IDENT_V2, CAPS, n_coeffs=513)
+    with pytest.raises(DeviceVersion, match="at most 4 equalizer sections"):
+        pr.require_render(IDENT_V2, CAPS, n_sections=5)
+    pr.require_render(IDENT_V2, CAPS, n_coeffs=512, n_sections=4)
+
+
+def test_texture_upload_messages_fit_a_report_and_carry_the_crc():
+    coeffs = [0.001 * (i % 17) - 0.005 for i in range(300)]
+    msgs = pr.texture_messages(2, coeffs, 2048, 12.5, scale=1.0)
+    assert all(len(m) <= pr.REPORT_SIZE for m in msgs)
+    name, head = pr.decode(msgs[0])
+    assert name == "LOAD_TEXTURE" and head["n_coeffs"] == 300 and head["length_nm"] == 12_500_000
+    got = []
+    for m in msgs[1:-1]:
+        name, f = pr.decode(m)
+        assert name == "LOAD_CHUNK" and f["first"] == len(got)
+        got += f["coeffs"]
+    assert got == pr.f32(coeffs) and pr.texture_crc32(got) == head["crc32"]
+    assert pr.decode(msgs[-1]) == ("LOAD_END", {"id": pr.IDS["LOAD_END"], "slot": 2})
+    with pytest.raises(pr.ProtocolError, match=r"1\.\.512 components"):
+        pr.texture_messages(0, [0.0] * 513, 2048, 12.5)
+    with pytest.raises(pr.ProtocolError, match="finite"):
+        pr.texture_messages(0, [float("nan")], 2048, 12.5)
+    with pytest.raises(pr.ProtocolError, match="LOAD_CHUNK holds at most 14"):
+        pr.encode("LOAD_CHUNK", coeffs=[0.0] * 15)
