@@ -8,6 +8,7 @@
 #include <stdint.h>
 
 #include "hostd_proto.h"
+#include "fw_render.h"
 
 typedef struct {
     int16_t buf[HP_BUFFER_CAPACITY];
@@ -64,6 +65,7 @@ struct fw {
     uint16_t malformed;
     bool in_underrun;
     bool played; /* the last tick's code came from the buffer (for logs and tests) */
+    fw_render_t render; /* protocol v2: device-side rendering (render.c) */
 };
 
 void fw_init(fw_t *f, uint8_t encoder_ab);
