@@ -3,6 +3,7 @@ model against the C firmware on shared vectors, refused uploads, and the safety 
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from hostd.device import protocol as pr
@@ -49,3 +50,37 @@ def test_texture_upload_messages_fit_a_report_and_carry_the_crc():
         pr.texture_messages(0, [float("nan")], 2048, 12.5)
     with pytest.raises(pr.ProtocolError, match="LOAD_CHUNK holds at most 14"):
         pr.encode("LOAD_CHUNK", coeffs=[0.0] * 15)
+
+
+# ------------------------------------------------------------------ the model against the C firmware
+def _setup(name: str, slot: int = 1):
+    from hostd.bench.accuracy import texture_coeffs
+    from hostd.device import devrender
+    from hostd.texture import synth
+
+    c, n, length = texture_coeffs(synth.make(name, seed=1))
+    return devrender.setup_messages(c, n, length, slot=slot), (c, n, length)
+
+
+def test_python_model_matches_the_c_firmware_within_one_code():
+    """Shared scenario: setup and START_RENDER, metronome strokes with edges at the true times,
+    a corrupt upload (refused, output unchanged), a swap to another texture (crossfade), and
+    STOP_RENDER. C (fw-replay) and the model (SimDevice) agree within 1 DAC code on every tick."""
+    from hostd.device import devrender
+    from hostd.sim.hand import Metronome
+
+    setup, _ = _setup("wood")
+    swap, (c2, n2, len2) = _setup("sandpaper", slot=2)
+    corrupt = pr.texture_messages(7, c2, n2, len2)
+    corrupt[3] = corrupt[3][:5] + bytes([0x00, 0x00, 0xC0, 0x7F]) + corrupt[3][9:]  # a NaN
+    at = {0: [*setup, pr.encode("START_RENDER", host_lost_ms=5000)],
+          1200: corrupt, 2400: [m for m in swap if 0x20 <= m[0] <= 0x22], 4000: [pr.encode("STOP_RENDER")]}
+    ev = devrender.scenario(Metronome(), 1.5, at)
+    c_codes, _ = devrender.run_c(ev)
+    py_codes, dev = devrender.run_model(ev)
+    assert c_codes.size == py_codes.size == 4500
+    diff = np.abs(c_codes - py_codes)
+    assert diff.max() <= 1, (int(diff.max()), int(np.argmax(diff)))
+    assert np.abs(c_codes[300:2400]).max() > 1000  # a real texture was rendered
+    assert dev.render.refused >= 2 and dev.render.loads == 2  # corrupt refused, swap loaded
+    assert c_codes[-1] == 0 and dev.state == pr.STATES["IDLE"]  # faded out after STOP_RENDER

@@ -400,7 +400,7 @@ static void load_end(fw_t *f, const uint8_t *m) {
     }
     for (unsigned i = 0; i < t->n; i++) t->c[i] *= r->load_scale;
     t->dphase_half = phase_step(t->length_nm);
-    t->turns_per_half = (float)t->dphase_half * 5.42101086242752217e-20f; /* x 2^-64 */
+    t->turns_per_half = (float)((double)t->dphase_half * 5.42101086242752217e-20); /* x 2^-64 (load time only) */
     t->offset_turns = 0.25f / (float)t->n_samples;
     t->hz_per_mm_s = 1e6f / (2.0f * (float)t->length_nm);
     t->valid = true;
