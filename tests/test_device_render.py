@@ -84,3 +84,62 @@ def test_python_model_matches_the_c_firmware_within_one_code():
     assert np.abs(c_codes[300:2400]).max() > 1000  # a real texture was rendered
     assert dev.render.refused >= 2 and dev.render.loads == 2  # corrupt refused, swap loaded
     assert c_codes[-1] == 0 and dev.state == pr.STATES["IDLE"]  # faded out after STOP_RENDER
+
+
+# ------------------------------------------------------------------ the simulated display in device mode
+def _render_on_sim(protocol_version: int = pr.VERSION):
+    from hostd.device.link import DeviceLink
+    from hostd.device.simdev import SimTransport
+    from hostd.sim.hand import Metronome
+
+    t = SimTransport(realtime=False, hand=Metronome())
+    t.device.protocol_version = protocol_version
+    link = DeviceLink(t)
+    t.advance(3)
+    ident = link.handshake(timeout_s=0.1)
+    caps = None
+    while (m := t.recv(0.0)) is not None:
+        name, f = pr.decode(m)
+        caps = f if name == "CAPS" else caps
+    return t, link, ident, caps
+
+
+def test_device_mode_on_the_simulated_display_survives_a_silent_host():
+    """Upload + START_RENDER, then 2 s in which the host sends nothing: the display keeps
+    rendering, code for code as a twin whose host kept talking; no fade, no refusal."""
+    t, _link, ident, caps = _render_on_sim()
+    twin, _l2, _i2, _c2 = _render_on_sim()
+    pr.require_render(ident, caps, n_coeffs=160, n_sections=1)
+    setup, _ = _setup("wood")
+    acks = []
+    for tr in (t, twin):
+        for m in [*setup, pr.encode("START_RENDER", host_lost_ms=1000)]:
+            tr.send(m)
+        while (m := tr.recv(0.0)) is not None:
+            name, f = pr.decode(m)
+            if name == "ACK" and tr is t:
+                acks.append(f)
+    assert acks and all(a["result"] == 0 for a in acks)
+    assert acks[-1]["for_id"] == pr.IDS["START_RENDER"]
+    silent, talking = [], []
+    for _ in range(3 * 2000):  # 2 s; the twin's host sends IDENTIFY every 1 ms
+        t.advance(1)
+        twin.advance(1)
+        if twin.device.ticks % 3 == 0:
+            twin.send(pr.encode("IDENTIFY"))
+        silent.append(t.device.out)
+        talking.append(twin.device.out)
+    dev = t.device
+    assert dev.state == pr.STATES["RENDERING"] and dev.render.env_target == 1
+    assert dev.render.host_lost  # past host_lost_ms, flagged, yet still rendering: the hand moves
+    assert silent == talking and np.abs(np.array(silent)).max() > 1000
+    assert dev.underruns == 0 and dev.render.refused == 0
+
+
+def test_a_version_1_simulated_display_refuses_device_mode_clearly():
+    t, _link, ident, caps = _render_on_sim(protocol_version=1)
+    assert ident["protocol_version"] == 1 and caps is None
+    with pytest.raises(DeviceVersion, match="cannot render on the device"):
+        pr.require_render(ident, caps)
+    t.send(pr.encode("START_RENDER"))  # an unknown message to v1 firmware
+    assert t.device.malformed == 1 and t.device.state == pr.STATES["IDLE"]

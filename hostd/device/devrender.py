@@ -123,3 +123,46 @@ def run_model(events: list[tuple]) -> tuple[np.ndarray, object]:
                 dev.tick()
                 codes.append(dev.out)
     return np.array(codes, dtype=np.int64), dev
+
+
+def worst_case_events(duration_s: float = 3.0, seed: int = 1) -> list[tuple]:
+    """The firmware's most expensive tick, sustained: N' = max_components, max_sections
+    equalizer sections, the hand at the speed where every component is computed and the top
+    fifth is in the band limit's fade, and a texture swap (two series per tick) all the time."""
+    from hostd.sim.hand import Constant
+
+    rng = np.random.default_rng(seed)
+    nmax, length_mm = pr.R["max_components"], 10.0
+    cfg = RenderConfig()
+    p = device_params(cfg)
+    speed = 0.99 * p["f_stop_hz"] * 2 * length_mm / nmax  # f_N' just below f_stop
+    sos = [[0.5, 0.1, 0.05, 1.0, -0.3, 0.1]] * pr.R["max_sections"]
+    msgs = [*pr.eq_messages(sos), pr.encode("SET_BAND", f_stop_hz=p["f_stop_hz"], fade_start=p["fade_start"]),
+            pr.encode("SET_SCALE", codes_per_um=p["codes_per_um"])]
+    tex = [rng.normal(0, 0.01, nmax) for _ in range(2)]
+    at = {0: [*msgs, *pr.texture_messages(1, tex[0], 2 * nmax, length_mm), pr.encode("START_RENDER")]}
+    every = pr.R["xfade_ticks"] + 1
+    for i, k in enumerate(range(1, round(duration_s * pr.SAMPLE_RATE_HZ), every)):
+        at[k] = pr.texture_messages(2 + i % 2, tex[(i + 1) % 2], 2 * nmax, length_mm)
+    return scenario(Constant(speed_mm_s=speed), duration_s, at)
+
+
+def tick_cost(events: list[tuple], skip_ticks: int = 300) -> dict:
+    """Time of one fw_tick on this machine (fw-replay, -O2), after a warm-up: percentiles in µs
+    and the share of a 3 kHz period the p99 and the maximum use."""
+    _codes, ns = run_c(events, timed=True)
+    us = ns[skip_ticks:] / 1e3
+    period_us = 1e6 / pr.SAMPLE_RATE_HZ
+    return {"ticks": int(us.size), "p50_us": float(np.percentile(us, 50)),
+            "p99_us": float(np.percentile(us, 99)), "p999_us": float(np.percentile(us, 99.9)),
+            "max_us": float(us.max()),
+            "p99_share_pct": float(100 * np.percentile(us, 99) / period_us),
+            "max_share_pct": float(100 * us.max() / period_us)}
+
+
+if __name__ == "__main__":  # python -m hostd.device.devrender: the worst-case tick on this machine
+    r = tick_cost(worst_case_events())
+    print(f"fw_tick, worst case (N'={pr.R['max_components']}, {pr.R['max_sections']} sections, crossfade, "
+          f"fade): {r['ticks']} ticks, p50 {r['p50_us']:.2f} µs, p99 {r['p99_us']:.2f} µs, "
+          f"p99.9 {r['p999_us']:.2f} µs, max {r['max_us']:.1f} µs; p99 = {r['p99_share_pct']:.2f} % and "
+          f"max = {r['max_share_pct']:.1f} % of the 333 µs period")
