@@ -143,3 +143,58 @@ def test_a_version_1_simulated_display_refuses_device_mode_clearly():
         pr.require_render(ident, caps)
     t.send(pr.encode("START_RENDER"))  # an unknown message to v1 firmware
     assert t.device.malformed == 1 and t.device.state == pr.STATES["IDLE"]
+
+
+# ------------------------------------------------------------------ the real firmware on a pty
+def test_device_mode_through_the_firmware_host_port_survives_a_silent_host(tmp_path):
+    """The C firmware on the host port renders from its own (simulated) encoder: setup and
+    START_RENDER over the serial link, then the host says nothing for 2 s (as if stopped): the
+    texture is not interrupted (no zero stretch, no fade); every render message was accepted."""
+    import subprocess
+    import time
+
+    from hostd.device import hostport
+    from hostd.device.link import DeviceLink
+    from hostd.device.seriallink import SerialTransport
+
+    exe = hostport.build()
+    setup, _ = _setup("wood")  # before the pty opens: a slow import after it can hang it up here
+    log = tmp_path / "dac.bin"
+    proc = subprocess.Popen([str(exe), "--motion", "metronome", "--log", str(log), "--duration", "4.5"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline().split()
+        assert line[0] == "PTY", line
+        t = SerialTransport(line[1])
+        link = DeviceLink(t)
+        ident = link.handshake(timeout_s=2.0)
+        for m in [*setup, pr.encode("START_RENDER", host_lost_ms=1000)]:
+            t.send(m)
+        acks, caps, deadline = [], None, time.monotonic() + 1.0
+        while time.monotonic() < deadline and not (acks and acks[-1]["for_id"] == pr.IDS["START_RENDER"]):
+            m = t.recv(0.01)
+            if m is None:
+                continue
+            name, f = pr.decode(m)
+            acks += [f] if name == "ACK" else []
+            caps = f if name == "CAPS" else caps
+        pr.require_render(ident, caps, n_coeffs=160, n_sections=1)
+        assert acks and all(a["result"] == 0 for a in acks), acks
+        t_start = time.monotonic()
+        time.sleep(2.0)  # a silent host
+        link.poll(0.05)
+        status = link.stats.last_status
+        t.close()
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=10)
+    assert status["state"] == pr.STATES["RENDERING"]
+    rec = hostport.read_log(log)
+    codes = rec["code"].astype(np.int64)
+    start = int(np.argmax(codes != 0))  # rendering began (after the fade-in starts)
+    silent = codes[start + 600 : start + 600 + int((time.monotonic() - t_start - 0.3) * 3000)]
+    assert silent.size > 4500
+    assert np.abs(silent).max() > 1000
+    d = np.diff(np.r_[0, (silent == 0).astype(int), 0])
+    zero_runs = np.flatnonzero(d == -1) - np.flatnonzero(d == 1)
+    assert zero_runs.size == 0 or zero_runs.max() < 30, zero_runs.max()  # never silent for 10 ms

@@ -85,11 +85,24 @@ static double hand_mm(double t) {
 static const uint8_t GRAY[4] = {0, 1, 3, 2};
 static int64_t g_enc_pos; /* true count of the simulated encoder */
 
-static void step_encoder(fw_t *f, int64_t target) {
+static double g_prev_t, g_prev_mm; /* the hand at the previous tick (real time, mm) */
+
+/* Encoder edges up to the hand at real time t: each at the instant the hand crossed its count
+ * boundary (linear between ticks), stamped on the device clock's edge timer (render.c). */
+static void step_encoder(fw_t *f, double t, double x_mm) {
+    const int64_t target = llround(x_mm * 1e6 / HP_UM_PER_COUNT_NM);
+    const double rate = 1e9 / HP_SAMPLE_RATE_HZ / g_device_period_ns; /* device s per real s */
     while (g_enc_pos != target) {
-        g_enc_pos += (target > g_enc_pos) ? 1 : -1;
-        fw_encoder_pins(f, GRAY[(uint64_t)g_enc_pos & 3u]);
+        const int d = target > g_enc_pos ? 1 : -1;
+        const double xb = ((double)g_enc_pos + 0.5 * d) * HP_UM_PER_COUNT_NM * 1e-6;
+        double a = x_mm != g_prev_mm ? (xb - g_prev_mm) / (x_mm - g_prev_mm) : 1.0;
+        a = a < 0.0 ? 0.0 : (a > 1.0 ? 1.0 : a);
+        const double te = g_prev_t + a * (t - g_prev_t);
+        const double dev_s = (double)g_ticks / HP_SAMPLE_RATE_HZ - (t - te) * rate; /* this tick's instant - */
+        g_enc_pos += d;
+        fw_encoder_edge(f, GRAY[(uint64_t)g_enc_pos & 3u], (uint32_t)(uint64_t)llround(dev_s * HP_RENDER_EDGE_CLOCK_HZ));
     }
+    g_prev_t = t, g_prev_mm = x_mm;
 }
 
 /* log record, 12 bytes LE: u32 tick, i16 dac code, u32 encoder count (as decoded),
@@ -212,7 +225,7 @@ int main(int argc, char **argv) {
             fw_deframer_feed(&f, rx, (size_t)n);
         }
         double tt = now_s(&t0);
-        step_encoder(&f, llround(hand_mm(tt) * 1e6 / HP_UM_PER_COUNT_NM));
+        step_encoder(&f, tt, hand_mm(tt));
         if (glitch_at >= 0 && !glitched && tt >= glitch_at) { /* one illegal transition */
             fw_encoder_pins(&f, (uint8_t)(GRAY[(uint64_t)g_enc_pos & 3u] ^ 3u));
             fw_encoder_pins(&f, GRAY[(uint64_t)g_enc_pos & 3u]);
