@@ -7,7 +7,7 @@
  *   e AB T       an encoder pin state AB (0..3) at edge-clock time T (fw_encoder_edge)
  *   t N          N ticks; tick k (counting from 1) is at (k - 1) / 3000 s on the device clock,
  *                and messages after it arrive at k / 3000 s
- * Output: one line per tick, "CODE NS". */
+ * Output: one line per tick, "CODE NS" (NS: wall time of that fw_tick, CLOCK_MONOTONIC). */
 #define _GNU_SOURCE
 #include <stdio.h>
 #include <stdlib.h>
