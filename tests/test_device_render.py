@@ -147,9 +147,11 @@ def test_a_version_1_simulated_display_refuses_device_mode_clearly():
 
 # ------------------------------------------------------------------ the real firmware on a pty
 def test_device_mode_through_the_firmware_host_port_survives_a_silent_host(tmp_path):
-    """The C firmware on the host port renders from its own (simulated) encoder: setup and
-    START_RENDER over the serial link, then the host says nothing for 2 s (as if stopped): the
-    texture is not interrupted (no zero stretch, no fade); every render message was accepted."""
+    """The C firmware on the host port renders from its own (simulated) encoder, edges at the
+    hand's true times: setup and START_RENDER over the serial link, then the host says nothing
+    for 2 s (as if stopped): the texture is not interrupted (no zero stretch, no fade); every
+    render message was accepted; and the DAC log equals the Python model fed what the port
+    fed the core (its --scenario: bytes, timed edges, ticks) within 1 code."""
     import subprocess
     import time
 
@@ -160,7 +162,9 @@ def test_device_mode_through_the_firmware_host_port_survives_a_silent_host(tmp_p
     exe = hostport.build()
     setup, _ = _setup("wood")  # before the pty opens: a slow import after it can hang it up here
     log = tmp_path / "dac.bin"
-    proc = subprocess.Popen([str(exe), "--motion", "metronome", "--log", str(log), "--duration", "4.5"],
+    scen = tmp_path / "scenario.txt"
+    proc = subprocess.Popen([str(exe), "--motion", "metronome", "--log", str(log), "--duration", "4.5",
+                             "--scenario", str(scen)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline().split()
@@ -198,3 +202,12 @@ def test_device_mode_through_the_firmware_host_port_survives_a_silent_host(tmp_p
     d = np.diff(np.r_[0, (silent == 0).astype(int), 0])
     zero_runs = np.flatnonzero(d == -1) - np.flatnonzero(d == 1)
     assert zero_runs.size == 0 or zero_runs.max() < 30, zero_runs.max()  # never silent for 10 ms
+    from hostd.device import devrender
+
+    ev = devrender.read_scenario(scen)
+    model, _dev = devrender.run_model(ev)
+    n = min(model.size, codes.size)
+    assert n >= codes.size - 1 and n > 4500  # the log may hold one tick more than the file
+    assert np.abs(model[:n] - codes[:n]).max() <= 1
+    replayed, _ = devrender.run_c(ev)
+    assert np.array_equal(replayed[:n], codes[:n])  # the scenario is complete: C replays it exactly

@@ -4,6 +4,7 @@
  *
  * Scenario lines (stdin):
  *   m HEX        a message from the host (fw_on_message)
+ *   r HEX        raw serial bytes from the host (fw_deframer_feed; the host port's --scenario)
  *   e AB T       an encoder pin state AB (0..3) at edge-clock time T (fw_encoder_edge)
  *   t N          N ticks; tick k (counting from 1) is at (k - 1) / 3000 s on the device clock,
  *                and messages after it arrive at k / 3000 s
@@ -36,7 +37,7 @@ int main(int argc, char **argv) {
         return 2;
     }
     static fw_t f;
-    static char line[1024];
+    static char line[16384];
     fw_init(&f, 0);
     while (fgets(line, sizeof line, stdin)) {
         if (line[0] == 'm') {
@@ -49,6 +50,16 @@ int main(int argc, char **argv) {
                 h += 2;
             }
             fw_on_message(&f, m, n);
+        } else if (line[0] == 'r') {
+            static uint8_t raw[sizeof line / 2];
+            size_t n = 0;
+            const char *h = line + 2;
+            unsigned v;
+            while (n < sizeof raw && sscanf(h, "%2x", &v) == 1) {
+                raw[n++] = (uint8_t)v;
+                h += 2;
+            }
+            fw_deframer_feed(&f, raw, n);
         } else if (line[0] == 'e') {
             unsigned ab;
             unsigned long t;

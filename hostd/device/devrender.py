@@ -95,8 +95,8 @@ def run_c(events: list[tuple], timed: bool = False) -> tuple[np.ndarray, np.ndar
     exe = hostport.build_replay()
     lines = []
     for e in events:
-        if e[0] == "m":
-            lines.append("m " + e[1].hex())
+        if e[0] in ("m", "r"):
+            lines.append(f"{e[0]} " + e[1].hex())
         elif e[0] == "e":
             lines.append(f"e {GRAY[e[1] & 3]} {e[2]}")
         else:
@@ -107,15 +107,49 @@ def run_c(events: list[tuple], timed: bool = False) -> tuple[np.ndarray, np.ndar
     return out[:, 0], out[:, 1]
 
 
+def read_scenario(path) -> list[tuple]:
+    """A scenario file (the host port's --scenario, fw-replay's input) as events; the edges'
+    A/B pin states become counts (4x quadrature from 0, as the firmware decodes them)."""
+    from pathlib import Path
+
+    def step_of(a: int, b: int) -> int:
+        i = GRAY.index(a)
+        return 1 if GRAY[(i + 1) % 4] == b else -1 if GRAY[(i - 1) % 4] == b else 0
+
+    step = {(a, b): step_of(a, b) for a in GRAY for b in GRAY}
+    ev: list[tuple] = []
+    ab, count = 0, 0
+    for line in Path(path).read_text().splitlines():
+        kind, _, rest = line.partition(" ")
+        if kind in ("m", "r"):
+            ev.append((kind, bytes.fromhex(rest)))
+        elif kind == "e":
+            pins, t = (int(v) for v in rest.split())
+            count += step[(ab, pins)]
+            ab = pins
+            ev.append(("e", count, t))
+        elif kind == "t":
+            n = int(rest)
+            if ev and ev[-1][0] == "t":
+                ev[-1] = ("t", ev[-1][1] + n)
+            else:
+                ev.append(("t", n))
+    return ev
+
+
 def run_model(events: list[tuple]) -> tuple[np.ndarray, object]:
     """The Python model (a SimDevice without a hand) on a scenario: (DAC code per tick, device)."""
     from hostd.device.simdev import SimDevice
 
     dev = SimDevice()
+    deframer = pr.Deframer()
     codes = []
     for e in events:
         if e[0] == "m":
             dev.on_message(e[1])
+        elif e[0] == "r":
+            for m in deframer.feed(e[1]):
+                dev.on_message(m)
         elif e[0] == "e":
             dev.render.edge(e[1], e[2])
         else:

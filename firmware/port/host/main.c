@@ -7,6 +7,8 @@
  * usage: hostd-fw-host [--ppm N] [--ppm-after SECONDS:N]
  *                      [--motion none|constant:MM_S|metronome|steps:PERIOD_S:MM]
  *                      [--log FILE] [--duration SECONDS] [--glitch-at SECONDS]
+ *                      [--scenario FILE]   (everything the core was given, as a fw-replay scenario:
+ *                                           received bytes "r HEX", timed edges, ticks)
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -27,6 +29,7 @@ static int g_master = -1;
 static uint64_t g_ticks;           /* device ticks since start */
 static double g_device_period_ns;  /* nominal 333,333.3 ns, scaled by the clock error */
 static FILE *g_log;
+static FILE *g_scen; /* --scenario: the core's inputs, replayable by fw-replay and the model */
 static int16_t g_last_dac;
 static volatile sig_atomic_t g_stop;
 static unsigned long g_send_dropped;
@@ -100,7 +103,9 @@ static void step_encoder(fw_t *f, double t, double x_mm) {
         const double te = g_prev_t + a * (t - g_prev_t);
         const double dev_s = (double)g_ticks / HP_SAMPLE_RATE_HZ - (t - te) * rate; /* this tick's instant - */
         g_enc_pos += d;
-        fw_encoder_edge(f, GRAY[(uint64_t)g_enc_pos & 3u], (uint32_t)(uint64_t)llround(dev_s * HP_RENDER_EDGE_CLOCK_HZ));
+        const uint32_t t_edge = (uint32_t)(uint64_t)llround(dev_s * HP_RENDER_EDGE_CLOCK_HZ);
+        fw_encoder_edge(f, GRAY[(uint64_t)g_enc_pos & 3u], t_edge);
+        if (g_scen) fprintf(g_scen, "e %u %u\n", GRAY[(uint64_t)g_enc_pos & 3u], t_edge);
     }
     g_prev_t = t, g_prev_mm = x_mm;
 }
@@ -166,6 +171,12 @@ int main(int argc, char **argv) {
                 return 2;
             }
             i++;
+        } else if (!strcmp(a, "--scenario") && v) {
+            if (!(g_scen = fopen(v, "w"))) {
+                fprintf(stderr, "hostd-fw-host: cannot write %s: %s\n", v, strerror(errno));
+                return 1;
+            }
+            i++;
         } else if (!strcmp(a, "--log") && v) {
             log_path = v, i++;
         } else if (!strcmp(a, "--duration") && v) {
@@ -223,6 +234,11 @@ int main(int argc, char **argv) {
             ssize_t n = read(g_master, rx, sizeof rx);
             if (n <= 0) break;
             fw_deframer_feed(&f, rx, (size_t)n);
+            if (g_scen) {
+                fputs("r ", g_scen);
+                for (ssize_t b = 0; b < n; b++) fprintf(g_scen, "%02x", rx[b]);
+                fputc('\n', g_scen);
+            }
         }
         double tt = now_s(&t0);
         step_encoder(&f, tt, hand_mm(tt));
@@ -233,10 +249,12 @@ int main(int argc, char **argv) {
         }
         fw_tick(&f);
         g_ticks++;
+        if (g_scen) fputs("t 1\n", g_scen);
         log_tick((uint32_t)g_ticks, g_last_dac, f.quad.count,
                  (uint16_t)((f.played ? 1u : 0u) | (f.in_underrun ? 2u : 0u)));
     }
     if (g_log) fclose(g_log);
+    if (g_scen) fclose(g_scen);
     fprintf(stderr, "hostd-fw-host: %llu ticks, %u underruns, %u malformed, %lu sends dropped\n",
             (unsigned long long)g_ticks, f.underruns, f.malformed, g_send_dropped);
     close(slave);
