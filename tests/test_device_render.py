@@ -211,3 +211,32 @@ def test_device_mode_through_the_firmware_host_port_survives_a_silent_host(tmp_p
     assert np.abs(model[:n] - codes[:n]).max() <= 1
     replayed, _ = devrender.run_c(ev)
     assert np.array_equal(replayed[:n], codes[:n])  # the scenario is complete: C replays it exactly
+
+
+def test_send_and_confirm_uploads_swaps_and_names_a_refusal():
+    """The host helper on the simulated display: setup and START_RENDER confirmed, a
+    swap during a crossfade waits (BUSY, resent), a corrupt upload raises saying what happened."""
+    from hostd.device import devrender
+    from hostd.device.simdev import SimTransport
+    from hostd.errors import DeviceError
+
+    class Polled(SimTransport):  # the display's clock advances 1 ms per poll: fast and exact
+        def recv(self, timeout_s=0.0):
+            self.advance(3)
+            return super().recv(0.0)
+
+    t = Polled(realtime=False)
+    setup, _ = _setup("wood")
+    acks = devrender.send_and_confirm(t, [*setup, pr.encode("START_RENDER")])
+    assert [a["for_id"] for a in acks][-2:] == [pr.IDS["LOAD_END"], pr.IDS["START_RENDER"]]
+    swap2, (c2, n2, len2) = _setup("sandpaper", slot=2)
+    devrender.send_and_confirm(t, [m for m in swap2 if 0x20 <= m[0] <= 0x22])
+    devrender.send_and_confirm(t, pr.texture_messages(3, c2[:50], n2, len2))  # BUSY, then accepted
+    dev = t.device
+    assert dev.render.loads == 3 and dev.render.refused >= 1  # the BUSY answer counts as refused
+    bad = pr.texture_messages(4, c2, n2, len2)
+    bad[2] = bad[2][:5] + bytes([0, 0, 0x80, 0x7F]) + bad[2][9:]  # +Inf
+    with pytest.raises(DeviceError, match=r"refused LOAD_CHUNK \(NONFINITE"):
+        devrender.send_and_confirm(t, bad)
+    assert dev.state == pr.STATES["RENDERING"]
+    t.close()

@@ -3,8 +3,8 @@ a texture from its own encoder, from the same RenderConfig the host renderer use
 that run the firmware (C, firmware/build/fw-replay) and its model (hostd.device.fwmodel) on the
 same inputs (tests and `hostd bench accuracy`).
 
-    msgs = setup_messages(coeffs, n, length_mm, RenderConfig(), slot=1)  # send each, check ACKs
-    link.t.send(pr.encode("START_RENDER", host_lost_ms=1000))
+    msgs = setup_messages(coeffs, n, length_mm, RenderConfig(), slot=1)
+    send_and_confirm(link.t, [*msgs, pr.encode("START_RENDER", host_lost_ms=1000)], on_other=link._take)
 """
 
 from __future__ import annotations
@@ -55,6 +55,63 @@ def setup_messages(coeffs, n: int, length_mm: float, cfg: RenderConfig | None = 
     msgs.append(pr.encode("SET_DELAY", delay_us=p["delay_us"]))
     msgs += pr.texture_messages(slot, coeffs, n, length_mm)
     return msgs
+
+
+def expects_ack(msg: bytes) -> bool:
+    """Whether the device answers this message with an ACK when it accepts it (LOAD_CHUNK and a
+    SET_EQ that is not the last section are answered only when refused)."""
+    if msg[0] == pr.IDS["LOAD_CHUNK"] or msg[0] == pr.IDS["LOAD_TEXTURE"]:
+        return False
+    if msg[0] == pr.IDS["SET_EQ"]:
+        return msg[1] + 1 >= msg[2]  # index + 1 >= n_sections: the last (or n_sections = 0)
+    return 0x20 <= msg[0] < 0x30
+
+
+def send_and_confirm(transport, msgs: list[bytes], timeout_s: float = 1.0, on_other=None,
+                     busy_retries: int = 20) -> list[dict]:
+    """Send render messages and wait for their ACKs; a LOAD_END answered BUSY (a crossfade in
+    progress) is resent after 60 ms. Messages other than ACK go to on_other(bytes) (the link's
+    STATUS handling). Raises DeviceError naming the refused message and the reason."""
+    import time
+
+    from hostd.errors import DeviceError
+
+    acks = []
+    for m in msgs:
+        transport.send(m)
+        if not expects_ack(m):
+            continue
+        deadline = time.monotonic() + timeout_s
+        retries = busy_retries
+        while True:
+            r = transport.recv(0.005)
+            if r is None:
+                if time.monotonic() > deadline:
+                    raise DeviceError(f"{transport.describe()}: no ACK for {pr.NAMES[m[0]]} within "
+                                      f"{timeout_s:g} s: is the firmware protocol v2?")
+                continue
+            try:
+                name, f = pr.decode(r)
+            except pr.ProtocolError:
+                continue
+            if name != "ACK":
+                if on_other is not None:
+                    on_other(r)
+                continue
+            if f["result"] == pr.RESULTS["BUSY"] and m[0] == pr.IDS["LOAD_END"] and retries > 0:
+                retries -= 1
+                time.sleep(0.06)
+                transport.send(m)
+                deadline = time.monotonic() + timeout_s
+                continue
+            if f["result"] != pr.RESULTS["OK"]:
+                raise DeviceError(f"{transport.describe()} refused {pr.NAMES.get(f['for_id'], f['for_id'])} "
+                                  f"({pr.RESULT_NAMES.get(f['result'], f['result'])}, detail {f['detail']}): "
+                                  "the upload was not applied, the display plays as before")
+            if f["for_id"] == m[0]:
+                acks.append(f)
+                break
+    return acks
 
 
 # ---------------------------------------------------------------- scenarios (tests, bench)

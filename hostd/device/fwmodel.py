@@ -94,8 +94,8 @@ class RenderModel:
         self.xfade = 0
         self.host_lost = False
         self.pos = count
-        self.eb = [0] * RING
-        self.et = [0] * RING
+        self.eb = np.zeros(RING, dtype=np.int64)  # boundary positions of the edges, half counts
+        self.et = np.zeros(RING, dtype=np.int64)  # their edge-clock times (32-bit values)
         self.e_head = 0
         self.e_n = 0
         self.still_anchor = 0
@@ -117,26 +117,45 @@ class RenderModel:
         self.et[self.e_head] = t_edge & M32
         self.e_n = min(self.e_n + 1, RING)
 
+    def edges(self, counts: np.ndarray, times: np.ndarray) -> None:
+        """Many edges at once (counts after each, edge-clock times), as edge() one by one."""
+        counts = np.asarray(counts, dtype=np.int64)
+        if counts.size == 0:
+            return
+        d = np.diff(counts, prepend=self.pos)
+        keep = d != 0
+        counts, d, times = counts[keep], d[keep], np.asarray(times, dtype=np.int64)[keep]
+        if counts.size == 0:
+            return
+        counts, d, times = counts[-RING:], d[-RING:], times[-RING:]
+        slots = (self.e_head + 1 + np.arange(counts.size)) % RING
+        self.eb[slots] = 2 * counts - np.sign(d)
+        self.et[slots] = times & M32
+        self.e_head = int(slots[-1])
+        self.e_n = min(self.e_n + int(keep.sum()), RING)
+        self.pos = int(counts[-1])
+
     def _estimate(self, now: int) -> tuple[int, np.float32, np.float32]:
         v = F32(0)
         if self.e_n == 0:
             return 2 * self.pos, F32(0), v
         h = self.e_head
-        b0 = self.eb[h]
+        b0 = int(self.eb[h])
         direction = F32(1) if 2 * self.pos > b0 else F32(-1)
-        since = (now - self.et[h]) & M32
+        t0 = int(self.et[h])
+        since = (now - t0) & M32
         if STALE < since < 0x80000000:
             self.e_n = 1
             return b0, direction, v
         if self.e_n >= 2:
-            t0 = self.et[h]
-            k = 1
-            while k + 1 < self.e_n and ((t0 - self.et[(h - (k + 1)) % RING]) & M32) <= WINDOW:
-                k += 1
+            # render.c: k = 1, then k + 1 while the edge k + 1 back is within the window
+            back = (h - np.arange(2, self.e_n)) % RING
+            within = ((t0 - self.et[back]) & M32) <= WINDOW
+            k = 1 + (int(np.argmin(within)) if not within.all() else within.size)
             i = (h - k) % RING
-            dt = (t0 - self.et[i]) & M32
+            dt = (t0 - int(self.et[i])) & M32
             if 0 < dt < 0x80000000:
-                v = F32(b0 - self.eb[i]) / F32(dt)
+                v = F32(b0 - int(self.eb[i])) / F32(dt)
         s = F32(since) if since < 0x80000000 else F32(0)
         if abs(v) * s > F32(2):
             v = (F32(2) if v > 0 else F32(-2)) / s

@@ -26,6 +26,7 @@ F = pr.FAULTS
 RAMP_STEP = max(1, pr.LIMIT_CODE // pr.P["ramp_ticks"])
 RENDER_IDS = {k for k, v in pr.IDS.items() if 0x20 <= v < 0x30}
 EDGE_SUBSTEPS = 8  # hand samples per tick for the edge times (linear in between)
+EDGE_BLOCK_TICKS = 30  # the hand's edges are computed 10 ms at a time
 
 
 class SimDevice:
@@ -53,7 +54,9 @@ class SimDevice:
         self.played_log: list[int] | None = None
         self.protocol_version = protocol_version
         self.render = RenderModel(self._count_at(0.0))
-        self._edge_s = 0.0  # device time up to which the hand's edges went to the renderer
+        self._edge_s = 0.0  # device time up to which the hand's edges are computed
+        self._edge_t = np.zeros(0)  # computed, not yet given to the renderer: times (s), counts
+        self._edge_c = np.zeros(0, dtype=np.int64)
 
     def time_us(self) -> int:
         return (self.ticks * 1_000_000 // pr.SAMPLE_RATE_HZ) & 0xFFFFFFFF
@@ -70,14 +73,21 @@ class SimDevice:
 
     def _feed_edges(self, t_device_s: float) -> None:
         """The hand's encoder edges up to t_device_s, at their true times, to the renderer."""
-        if self.hand is None or t_device_s <= self._edge_s:
+        if self.hand is None:
             return
-        t = np.linspace(self._edge_s, t_device_s, EDGE_SUBSTEPS + 1)
-        x = self.hand.position_mm(t * (1 + self.clock_ppm * 1e-6))
-        times, counts = hand_edges(t, x, pr.P["um_per_count_nm"] * 1e-3)
-        for te, c in zip(times.tolist(), counts.tolist(), strict=True):
-            self.render.edge(c, round(te * EDGE_HZ))
-        self._edge_s = t_device_s
+        if t_device_s > self._edge_s:  # the next block of the hand's edges
+            end = max(t_device_s, self._edge_s + EDGE_BLOCK_TICKS / pr.SAMPLE_RATE_HZ)
+            n = max(2, round((end - self._edge_s) * pr.SAMPLE_RATE_HZ * EDGE_SUBSTEPS) + 1)
+            t = np.linspace(self._edge_s, end, n)
+            x = self.hand.position_mm(t * (1 + self.clock_ppm * 1e-6))
+            times, counts = hand_edges(t, x, pr.P["um_per_count_nm"] * 1e-3)
+            self._edge_t = np.concatenate((self._edge_t, times))
+            self._edge_c = np.concatenate((self._edge_c, counts))
+            self._edge_s = end
+        k = int(np.searchsorted(self._edge_t, t_device_s, side="right"))
+        if k:
+            self.render.edges(self._edge_c[:k], np.rint(self._edge_t[:k] * EDGE_HZ).astype(np.int64))
+            self._edge_t, self._edge_c = self._edge_t[k:], self._edge_c[k:]
 
     def on_message(self, m: bytes) -> None:
         try:
@@ -94,9 +104,8 @@ class SimDevice:
                 return
             if name == "START_RENDER" and not self.render.on and self.hand is not None:  # track from here
                 now_s = self.ticks / pr.SAMPLE_RATE_HZ
-                self._feed_edges(now_s)
                 self.render.edge(self._count_at(now_s), round(now_s * EDGE_HZ))
-                self._edge_s = now_s
+                self._edge_s, self._edge_t, self._edge_c = now_s, np.zeros(0), np.zeros(0, dtype=np.int64)
             self.render.on_message(self, name, f)
             self.last_rx_us = self.time_us()
             return
