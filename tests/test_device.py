@@ -43,7 +43,8 @@ def test_message_vectors_decode_and_encode_both_ways():
         want = {}
         for f in fields:
             k, v = f.split("=")
-            want[k] = [int(x) for x in v.split(",")] if k == "codes" else int(v)
+            num = [float(x) if any(c in x for c in ".en") else int(x) for x in v.split(",")]
+            want[k] = num if k in ("codes", "coeffs") else num[0]
         assert dec == want, name
         assert pr.encode(kind, **{k: v for k, v in dec.items() if k not in ("id", "count")}) == msg
         assert pr.decode(pr.pad_report(msg)) == (kind, dec)  # as a zero-padded HID report

@@ -9,6 +9,7 @@
 #include <stdint.h>
 
 #include "hostd_proto.h"
+#include "fw_render.h"
 
 /* The sample queue between message handling (the producer: the USB interrupt on a chip) and
  * the 3 kHz tick (the consumer: a higher-priority timer interrupt). A single-producer /
@@ -96,6 +97,7 @@ struct fw {
     uint16_t malformed;
     bool in_underrun;
     bool played; /* the last tick's code came from the buffer (for logs and tests) */
+    fw_render_t render; /* protocol v2: device-side rendering (render.c) */
 };
 
 void fw_init(fw_t *f, uint8_t encoder_ab);

@@ -31,6 +31,7 @@ void fw_init(fw_t *f, uint8_t encoder_ab) {
     f->max_step_code = HP_MAX_STEP_CODE;
     f->timeout_ms = HP_DEFAULT_TIMEOUT_MS;
     f->last_rx_us = hal_time_us();
+    fw_render_init(f);
 }
 
 static bool zero_tail(const uint8_t *m, size_t from, size_t len) {
@@ -62,7 +63,9 @@ void fw_on_message(fw_t *f, const uint8_t *m, size_t len) {
     case HP_ID_SET_TIMEOUT: need = HP_SET_TIMEOUT_SIZE; break;
     case HP_ID_IDENTIFY: need = HP_IDENTIFY_SIZE; break;
     default:
-        f->malformed++;
+        if (fw_render_on_message(f, m, len)) { /* v2 render messages; counts its own malformed */
+            f->last_rx_us = hal_time_us();
+        }
         return;
     }
     if (len < need || !zero_tail(m, need, len)) {
@@ -87,13 +90,15 @@ void fw_on_message(fw_t *f, const uint8_t *m, size_t len) {
         break;
     }
     case HP_ID_START:
+        fw_render_halt(f);
         f->state = HP_STATE_RUNNING;
         f->in_underrun = false;
         break;
     case HP_ID_STOP:
-        if (f->state == HP_STATE_RUNNING) {
+        if (f->state == HP_STATE_RUNNING || f->state == HP_STATE_RENDERING) {
             f->state = HP_STATE_RAMP_DOWN;
         }
+        fw_render_halt(f);
         fw_ring_request_clear(&f->ring); /* producer side: the tick drops them */
         break;
     case HP_ID_SET_LIMITS: {
@@ -120,6 +125,7 @@ void fw_on_message(fw_t *f, const uint8_t *m, size_t len) {
     case HP_ID_IDENTIFY: {
         uint8_t out[HP_IDENT_SIZE];
         hal_send(out, fw_build_ident(f, out));
+        fw_render_send_caps(f);
         break;
     }
     default:
@@ -195,6 +201,8 @@ void fw_tick(fw_t *f) {
             f->faults |= HP_FAULT_UNDERRUN;
             target = toward_zero(f->out);
         }
+    } else if (f->state == HP_STATE_RENDERING) {
+        target = fw_render_tick(f);
     } else if (f->state == HP_STATE_RAMP_DOWN) {
         target = toward_zero(f->out);
         if (target == 0) {

@@ -54,15 +54,39 @@ static long long field_value(const char *fields, const char *name, int *found) {
     return p ? atoll(p + strlen(key)) : 0;
 }
 
-/* Check a message's bytes against its field list through the generated layout tables. */
-#define CHECK_FIELD(name, off, size, is_signed)                                                \
+static float f32_of_bits(uint32_t raw) {
+    float v;
+    memcpy(&v, &raw, sizeof v);
+    return v;
+}
+static uint32_t bits_of_f32(float v) {
+    uint32_t raw;
+    memcpy(&raw, &v, sizeof raw);
+    return raw;
+}
+static double field_double(const char *fields, const char *name) {
+    char key[64];
+    snprintf(key, sizeof key, " %s=", name);
+    const char *p = strstr(fields, key);
+    return p ? strtod(p + strlen(key), NULL) : 0.0;
+}
+
+/* Check a message's bytes against its field list through the generated layout tables
+ * (kind 0 unsigned, 1 signed, 2 float32: compared bit for bit). */
+#define CHECK_FIELD(name, off, size, kind)                                                     \
     {                                                                                          \
         int found;                                                                             \
         long long want = field_value(fields, #name, &found);                                   \
         CHECK(found);                                                                          \
         uint32_t raw = rd(msg + (off), (size));                                                \
-        long long got = (is_signed) ? (long long)(int16_t)raw : (long long)raw;                \
-        CHECK_EQ(got, want);                                                                   \
+        if ((kind) == 2) {                                                                     \
+            CHECK_EQ(raw, bits_of_f32((float)field_double(fields, #name)));                    \
+            (void)f32_of_bits;                                                                 \
+        } else {                                                                               \
+            long long got = (kind) ? ((size) == 2 ? (long long)(int16_t)raw : (long long)(int32_t)raw) \
+                                   : (long long)raw;                                           \
+            CHECK_EQ(got, want);                                                               \
+        }                                                                                      \
     }
 
 static void check_vector_fields(const uint8_t *msg, size_t len, const char *fields) {
@@ -75,7 +99,32 @@ static void check_vector_fields(const uint8_t *msg, size_t len, const char *fiel
     case HP_ID_IDENTIFY: HP_IDENTIFY_FIELDS(CHECK_FIELD) break;
     case HP_ID_STATUS: HP_STATUS_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_STATUS_SIZE); break;
     case HP_ID_IDENT: HP_IDENT_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_IDENT_SIZE); break;
+    case HP_ID_LOAD_TEXTURE: HP_LOAD_TEXTURE_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_LOAD_TEXTURE_SIZE); break;
+    case HP_ID_LOAD_CHUNK: HP_LOAD_CHUNK_FIELDS(CHECK_FIELD) break;
+    case HP_ID_LOAD_END: HP_LOAD_END_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_LOAD_END_SIZE); break;
+    case HP_ID_SET_EQ: HP_SET_EQ_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_SET_EQ_SIZE); break;
+    case HP_ID_SET_BAND: HP_SET_BAND_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_SET_BAND_SIZE); break;
+    case HP_ID_SET_SCALE: HP_SET_SCALE_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_SET_SCALE_SIZE); break;
+    case HP_ID_SET_DELAY: HP_SET_DELAY_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_SET_DELAY_SIZE); break;
+    case HP_ID_START_RENDER: HP_START_RENDER_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_START_RENDER_SIZE); break;
+    case HP_ID_STOP_RENDER: HP_STOP_RENDER_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_STOP_RENDER_SIZE); break;
+    case HP_ID_ACK: HP_ACK_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_ACK_SIZE); break;
+    case HP_ID_CAPS: HP_CAPS_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_CAPS_SIZE); break;
+    case HP_ID_RENDER_STATUS: HP_RENDER_STATUS_FIELDS(CHECK_FIELD) CHECK_EQ(len, HP_RENDER_STATUS_SIZE); break;
     default: CHECK(0 && "unknown id in vectors");
+    }
+    if (msg[0] == HP_ID_LOAD_CHUNK) { /* the float32 coefficients follow the fixed part */
+        const char *c = strstr(fields, " coeffs=");
+        CHECK(c != NULL);
+        size_t n = msg[HP_LOAD_CHUNK_OFF_COUNT];
+        CHECK(n <= HP_LOAD_CHUNK_MAX_COEFFS);
+        CHECK_EQ(len, HP_LOAD_CHUNK_SIZE + 4 * n);
+        c = c ? c + 8 : "";
+        for (size_t i = 0; i < n; i++) {
+            double v = strtod(c, (char **)&c);
+            CHECK_EQ(rd(msg + HP_LOAD_CHUNK_SIZE + 4 * i, 4), bits_of_f32((float)v));
+            if (*c == ',') c++;
+        }
     }
     if (msg[0] == HP_ID_SAMPLES) { /* the codes array follows the fixed part */
         const char *c = strstr(fields, " codes=");

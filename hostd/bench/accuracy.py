@@ -9,6 +9,12 @@ minus the ideal display's (the exact series at the true position, true speed and
 instant), RMS over the run after a settling time; `rms_error_pct` is relative to the RMS of
 the ideal displacement. A setting's row reports the worst texture. CPU is the renderer's
 thread CPU time per second of 3 kHz output (median over textures).
+
+The knob render_at = device renders on the display instead (protocol v2): the firmware core
+itself (firmware/build/fw-replay, the C code) runs on the same hand, with encoder edges at the
+hand's true times, set up by the same RenderConfig (hostd.device.devrender). Its host CPU is 0
+(the host only uploads and supervises); the firmware's time per tick on this machine is the
+extra column.
 """
 
 from __future__ import annotations
@@ -34,6 +40,7 @@ class Setting:
     setting: str
     apply: Callable[[RenderConfig], RenderConfig]
     default: bool = False
+    where: str = "host"  # render_at: the host pipeline, or the display's firmware
 
 
 def _same(c: RenderConfig) -> RenderConfig:
@@ -67,6 +74,8 @@ def settings() -> list[Setting]:
     for b in (3, 6, 15, 30):
         s.append(Setting("samples_per_batch", f"{b} ({b / 3:g} ms)",
                          lambda c, b=b: replace(c, samples_per_batch=b), b == d.samples_per_batch))
+    s.append(Setting("render_at", "host", _same, True))
+    s.append(Setting("render_at", "device", _same, where="device"))
     return s
 
 
@@ -102,6 +111,34 @@ def measure(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, hand: Me
             "ideal_rms_um": rms_ideal}
 
 
+def measure_device(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, hand: Metronome,
+                   ref_cache: dict) -> dict:
+    """The firmware renders (C, fw-replay) from edges at the hand's true times; tick k plays at
+    (k - 1) / fs on the device clock, held by the DAC, then the same actuator and reference."""
+    from hostd.device import devrender
+    from hostd.device import protocol as pr
+
+    r = Renderer(coeffs, n, length_mm, cfg)  # for the band and the models only
+    msgs = [*devrender.setup_messages(coeffs, n, length_mm, cfg), pr.encode("START_RENDER")]
+    codes, ns = devrender.run_c(devrender.scenario(hand, duration_s, {0: msgs}), timed=True)
+    fs = cfg.sample_rate_hz
+    t_play = np.arange(codes.size) / fs
+    delivered = chain.actuate(codes * r.out.cfg.um_per_code, r.eq.model, fs)
+    key = (id(coeffs), t_play.size, t_play[0])
+    if key not in ref_cache:
+        ref_cache[key] = chain.reference(coeffs, n, length_mm, hand, t_play + r.eq.model.delay_s, r)
+    ideal = ref_cache[key]
+    keep = t_play >= SETTLE_S
+    err = delivered[keep] - ideal[keep]
+    rms_ideal = float(np.sqrt(np.mean(ideal[keep] ** 2)))
+    rms_err = float(np.sqrt(np.mean(err**2)))
+    us = ns[round(SETTLE_S * fs):] / 1e3
+    pct = 100.0 * rms_err / rms_ideal if rms_ideal > 0 else math.inf
+    return {"rms_error_um": rms_err, "rms_error_pct": pct, "cpu_ms_per_s": 0.0, "batch_p99_us": 0.0,
+            "ideal_rms_um": rms_ideal,
+            "fw_tick_p99_us": float(np.percentile(us, 99)), "fw_tick_max_us": float(us.max())}
+
+
 def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = True) -> list[dict]:
     from tqdm import tqdm
 
@@ -116,11 +153,12 @@ def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = 
                leave=False)
     for st in todo:
         cfg = st.apply(base)
-        key = repr(cfg)
+        key = repr(cfg) + st.where
         if key not in done:
             per = {}
             for name, (c, n, length) in coeffs.items():
-                per[name] = measure(c, n, length, cfg, duration_s, hand, ref_cache)
+                fn = measure_device if st.where == "device" else measure
+                per[name] = fn(c, n, length, cfg, duration_s, hand, ref_cache)
                 bar.update(1)
             done[key] = per
         else:
@@ -132,6 +170,8 @@ def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = 
                      "rms_error_pct": per[worst]["rms_error_pct"], "worst_texture": worst,
                      "cpu_ms_per_s": float(np.median([v["cpu_ms_per_s"] for v in per.values()])),
                      "batch_p99_us": float(np.median([v["batch_p99_us"] for v in per.values()])),
+                     "fw_tick_p99_us": (max(v["fw_tick_p99_us"] for v in per.values())
+                                        if st.where == "device" else None),
                      "per_texture": per})
     bar.close()
     return rows
@@ -176,9 +216,11 @@ def plot(rows: list[dict], path: str) -> None:
 
 def table(rows: list[dict]) -> str:
     lines = [f"{'knob':<18} {'setting':<26} {'default':<7} {'rms µm':>9} {'rms %':>8} "
-             f"{'CPU ms/s':>9} {'p99 µs':>8}  worst"]
+             f"{'CPU ms/s':>9} {'p99 µs':>8} {'fw tick p99 µs':>14}  worst"]
     for r in rows:
+        fw = r.get("fw_tick_p99_us")
+        fw_s = "" if fw is None else f"{fw:.2f}"
         lines.append(f"{r['knob']:<18} {r['setting']:<26} {'yes' if r['default'] else '':<7} "
                      f"{r['rms_error_um']:>9.4f} {r['rms_error_pct']:>8.3f} {r['cpu_ms_per_s']:>9.2f} "
-                     f"{r['batch_p99_us']:>8.1f}  {r['worst_texture']}")
+                     f"{r['batch_p99_us']:>8.1f} {fw_s:>14}  {r['worst_texture']}")
     return "\n".join(lines)

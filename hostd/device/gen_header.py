@@ -9,7 +9,8 @@ from hostd.device import protocol as pr
 
 _ROOT = Path(__file__).resolve().parents[2]
 HEADER = _ROOT / "firmware" / "include" / "hostd_proto.h"
-_SIZES = {"B": 1, "H": 2, "I": 4, "h": 2}
+_SIZES = {"B": 1, "H": 2, "I": 4, "h": 2, "i": 4, "f": 4}
+_KIND = {"h": 1, "i": 1, "f": 2}  # X macro's 4th argument: 0 unsigned, 1 signed, 2 float32
 
 
 def render() -> str:
@@ -24,7 +25,11 @@ def render() -> str:
             val = f"{v:#x}" if k.startswith("usb") else str(v)
             lines.append(f"#define HP_{k.upper()} {val}")
     lines.append("")
-    for group, prefix in (("ids", "HP_ID_"), ("states", "HP_STATE_"), ("faults", "HP_FAULT_")):
+    for k, v in pr.R.items():
+        lines.append(f"#define HP_RENDER_{k.upper()} {v}")
+    lines.append("")
+    for group, prefix in (("ids", "HP_ID_"), ("states", "HP_STATE_"), ("faults", "HP_FAULT_"),
+                          ("render_states", "HP_RSTATE_"), ("results", "HP_RESULT_")):
         for k, v in pr.SPEC[group].items():
             lines.append(f"#define {prefix}{k} 0x{v:02x}")
         lines.append("")
@@ -34,12 +39,14 @@ def render() -> str:
             lines.append(f"#define HP_{name}_OFF_{fname.upper()} {off}")
             off += _SIZES[code]
         lines.append(f"#define HP_{name}_SIZE {off}")
+        if lay.variable:
+            lines.append(f"#define HP_{name}_MAX_{lay.var_name.upper()} {lay.var_max}")
         xs = []
         off = 0
         for fname, code in lay.fields:
-            xs.append(f"X({fname}, {off}, {_SIZES[code]}, {int(code == 'h')})")
+            xs.append(f"X({fname}, {off}, {_SIZES[code]}, {_KIND.get(code, 0)})")
             off += _SIZES[code]
-        lines.append("/* X(name, offset, size, is_signed) for each fixed field */")
+        lines.append("/* X(name, offset, size, kind) per fixed field; kind 0 unsigned, 1 signed, 2 f32 */")
         lines.append(f"#define HP_{name}_FIELDS(X) " + " ".join(xs))
         lines.append("")
     lines.append("#endif")

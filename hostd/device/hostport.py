@@ -18,15 +18,24 @@ CLOCK_DTYPE = np.dtype([("tick", "<u4"), ("t", "<f8")])  # --clock: when each ti
 LOG_DTYPE = np.dtype([("tick", "<u4"), ("code", "<i2"), ("enc", "<u4"), ("flags", "<u2")])
 
 
-def build() -> Path:
-    """`make -C firmware host`; raises RuntimeError with the reason when it cannot be built."""
+REPLAY = FIRMWARE / "build" / "fw-replay"
+
+
+def build(target: str = "host", exe: Path = EXE) -> Path:
+    """`make -C firmware host` (or another target); raises RuntimeError with the reason when it
+    cannot be built."""
     if not (FIRMWARE / "Makefile").exists() or shutil.which("make") is None:
         raise RuntimeError("the firmware sources or make are missing")
-    r = subprocess.run(["make", "-s", "-C", str(FIRMWARE), "host"], capture_output=True, text=True)
-    if r.returncode != 0 or not EXE.exists():
-        raise RuntimeError(f"cannot build the firmware host port (needs make and a C compiler): "
+    r = subprocess.run(["make", "-s", "-C", str(FIRMWARE), target], capture_output=True, text=True)
+    if r.returncode != 0 or not exe.exists():
+        raise RuntimeError(f"cannot build the firmware's {target} (needs make and a C compiler): "
                            f"{r.stderr.strip()[:300]}")
-    return EXE
+    return exe
+
+
+def build_replay() -> Path:
+    """build/fw-replay: the firmware core run on a scenario (see firmware/tests/replay.c)."""
+    return build("replay", REPLAY)
 
 
 class HostPort:

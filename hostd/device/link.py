@@ -73,9 +73,7 @@ class DeviceLink:
             raise DeviceError(f"{self.t.describe()}: no answer to IDENTIFY within {timeout_s:g} s; "
                               "is it a hostd display running its firmware?")
         f = self.ident
-        if f["protocol_version"] != pr.VERSION:
-            raise DeviceVersion(f"{self.t.describe()} speaks protocol v{f['protocol_version']}, hostd "
-                                f"speaks v{pr.VERSION}: update the firmware (or hostd) so they match")
+        pr.check_version(f, self.t.describe())  # v1 and v2 devices stream alike
         for key, want in (("sample_rate_hz", pr.SAMPLE_RATE_HZ), ("dac_bits", pr.P["dac_bits"]),
                           ("max_samples", pr.MAX_SAMPLES)):
             if f[key] != want:

@@ -7,7 +7,7 @@
  * usage: hostd-fw-host [--ppm N] [--ppm-after SECONDS:N]
  *                      [--motion none|constant:MM_S|metronome|steps:PERIOD_S:MM]
  *                      [--log FILE] [--duration SECONDS] [--glitch-at SECONDS]
- *                      [--jump-at SECONDS:MM] [--clock FILE]
+ *                      [--jump-at SECONDS:MM] [--clock FILE] [--scenario FILE]
  *
  * --clock writes, for every tick, when it actually ran: 12-byte records LE u32 tick, f64
  * CLOCK_MONOTONIC seconds (so tests can place host events, e.g. a SIGCONT, on the device's
@@ -15,6 +15,8 @@
  * --jump-at moves the simulated hand by MM at once at SECONDS (and keeps it there): a real
  * jump (the hand lifted and set down elsewhere), which the host's motion estimate must re-lock
  * to. The encoder still steps through every count in between, within one tick.
+ * --scenario FILE writes everything the core was given, as a fw-replay scenario (received
+ * bytes "r HEX", timed edges, ticks).
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -36,6 +38,7 @@ static uint64_t g_ticks;           /* device ticks since start */
 static double g_device_period_ns;  /* nominal 333,333.3 ns, scaled by the clock error */
 static FILE *g_log;
 static FILE *g_clock;
+static FILE *g_scen; /* --scenario: the core's inputs, replayable by fw-replay and the model */
 static int16_t g_last_dac;
 static volatile sig_atomic_t g_stop;
 static unsigned long g_send_dropped;
@@ -98,11 +101,26 @@ static double motion_mm(double t) {
 static const uint8_t GRAY[4] = {0, 1, 3, 2};
 static int64_t g_enc_pos; /* true count of the simulated encoder */
 
-static void step_encoder(fw_t *f, int64_t target) {
+static double g_prev_t, g_prev_mm; /* the hand at the previous tick (real time, mm) */
+
+/* Encoder edges up to the hand at real time t: each at the instant the hand crossed its count
+ * boundary (linear between ticks), stamped on the device clock's edge timer (render.c). */
+static void step_encoder(fw_t *f, double t, double x_mm) {
+    const int64_t target = llround(x_mm * 1e6 / HP_UM_PER_COUNT_NM);
+    const double rate = 1e9 / HP_SAMPLE_RATE_HZ / g_device_period_ns; /* device s per real s */
     while (g_enc_pos != target) {
-        g_enc_pos += (target > g_enc_pos) ? 1 : -1;
-        fw_encoder_pins(f, GRAY[(uint64_t)g_enc_pos & 3u]);
+        const int d = target > g_enc_pos ? 1 : -1;
+        const double xb = ((double)g_enc_pos + 0.5 * d) * HP_UM_PER_COUNT_NM * 1e-6;
+        double a = x_mm != g_prev_mm ? (xb - g_prev_mm) / (x_mm - g_prev_mm) : 1.0;
+        a = a < 0.0 ? 0.0 : (a > 1.0 ? 1.0 : a);
+        const double te = g_prev_t + a * (t - g_prev_t);
+        const double dev_s = (double)g_ticks / HP_SAMPLE_RATE_HZ - (t - te) * rate; /* this tick's instant - */
+        g_enc_pos += d;
+        const uint32_t t_edge = (uint32_t)(uint64_t)llround(dev_s * HP_RENDER_EDGE_CLOCK_HZ);
+        fw_encoder_edge(f, GRAY[(uint64_t)g_enc_pos & 3u], t_edge);
+        if (g_scen) fprintf(g_scen, "e %u %u\n", GRAY[(uint64_t)g_enc_pos & 3u], t_edge);
     }
+    g_prev_t = t, g_prev_mm = x_mm;
 }
 
 /* log record, 12 bytes LE: u32 tick, i16 dac code, u32 encoder count (as decoded),
@@ -166,6 +184,12 @@ int main(int argc, char **argv) {
             else {
                 fprintf(stderr, "hostd-fw-host: --motion none|constant:MM_S|metronome|steps:PERIOD_S:MM\n");
                 return 2;
+            }
+            i++;
+        } else if (!strcmp(a, "--scenario") && v) {
+            if (!(g_scen = fopen(v, "w"))) {
+                fprintf(stderr, "hostd-fw-host: cannot write %s: %s\n", v, strerror(errno));
+                return 1;
             }
             i++;
         } else if (!strcmp(a, "--log") && v) {
@@ -239,6 +263,11 @@ int main(int argc, char **argv) {
             ssize_t n = read(g_master, rx, sizeof rx);
             if (n <= 0) break;
             fw_deframer_feed(&f, rx, (size_t)n);
+            if (g_scen) {
+                fputs("r ", g_scen);
+                for (ssize_t b = 0; b < n; b++) fprintf(g_scen, "%02x", rx[b]);
+                fputc('\n', g_scen);
+            }
         }
         /* the hand's time is the tick's due time: when the OS holds the host port up, the
          * simulated hand waits with the device (a real device is never late; a late host port
@@ -252,7 +281,7 @@ int main(int argc, char **argv) {
             fwrite(&k, sizeof k, 1, g_clock);
             fwrite(&hs, sizeof hs, 1, g_clock);
         }
-        step_encoder(&f, llround(hand_mm(tt) * 1e6 / HP_UM_PER_COUNT_NM));
+        step_encoder(&f, tt, hand_mm(tt));
         if (glitch_at >= 0 && !glitched && tt >= glitch_at) { /* one illegal transition */
             fw_encoder_pins(&f, (uint8_t)(GRAY[(uint64_t)g_enc_pos & 3u] ^ 3u));
             fw_encoder_pins(&f, GRAY[(uint64_t)g_enc_pos & 3u]);
@@ -260,12 +289,14 @@ int main(int argc, char **argv) {
         }
         fw_tick(&f);
         g_ticks++;
+        if (g_scen) fputs("t 1\n", g_scen);
         log_tick((uint32_t)g_ticks, g_last_dac, f.quad.count,
                  (uint16_t)((f.played ? 1u : 0u) | (f.in_underrun ? 2u : 0u) | (late ? 4u : 0u) |
                             (f.state == HP_STATE_RUNNING ? 8u : 0u)));
     }
     if (g_log) fclose(g_log);
     if (g_clock) fclose(g_clock);
+    if (g_scen) fclose(g_scen);
     fprintf(stderr, "hostd-fw-host: %llu ticks, %u underruns, %u malformed, %lu sends dropped\n",
             (unsigned long long)g_ticks, f.underruns, f.malformed, g_send_dropped);
     close(slave);

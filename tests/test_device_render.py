@@ -1,0 +1,242 @@
+"""Device-side rendering (protocol v2): messages and helpers, the firmware renderer's Python
+model against the C firmware on shared vectors, refused uploads, and the safety stage."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hostd.device import protocol as pr
+from hostd.errors import DeviceVersion
+
+IDENT_V1 = dict(protocol_version=1, sample_rate_hz=3000, dac_bits=16, max_samples=29)
+IDENT_V2 = dict(IDENT_V1, protocol_version=2)
+CAPS = dict(render=1, max_components=512, max_sections=4, chunk_coeffs=14, edge_clock_hz=12_000_000,
+            xfade_ticks=150)
+
+
+def test_a_version_1_device_streams_but_device_mode_says_what_to_do():
+    assert pr.check_version(IDENT_V1) == 1 and pr.check_version(IDENT_V2) == 2
+    with pytest.raises(DeviceVersion, match="update the firmware"):
+        pr.check_version(dict(IDENT_V1, protocol_version=3))
+    assert not pr.render_capable(IDENT_V1, None)
+    with pytest.raises(DeviceVersion, match=r'protocol v1 firmware.*where = "host"'):
+        pr.require_render(IDENT_V1, None)
+    with pytest.raises(DeviceVersion, match="did not report render capability"):
+        pr.require_render(IDENT_V2, dict(CAPS, render=0))
+    with pytest.raises(DeviceVersion, match="at most 512 components"):
+        pr.require_render(IDENT_V2, CAPS, n_coeffs=513)
+    with pytest.raises(DeviceVersion, match="at most 4 equalizer sections"):
+        pr.require_render(IDENT_V2, CAPS, n_sections=5)
+    pr.require_render(IDENT_V2, CAPS, n_coeffs=512, n_sections=4)
+
+
+def test_texture_upload_messages_fit_a_report_and_carry_the_crc():
+    coeffs = [0.001 * (i % 17) - 0.005 for i in range(300)]
+    msgs = pr.texture_messages(2, coeffs, 2048, 12.5, scale=1.0)
+    assert all(len(m) <= pr.REPORT_SIZE for m in msgs)
+    name, head = pr.decode(msgs[0])
+    assert name == "LOAD_TEXTURE" and head["n_coeffs"] == 300 and head["length_nm"] == 12_500_000
+    got = []
+    for m in msgs[1:-1]:
+        name, f = pr.decode(m)
+        assert name == "LOAD_CHUNK" and f["first"] == len(got)
+        got += f["coeffs"]
+    assert got == pr.f32(coeffs) and pr.texture_crc32(got) == head["crc32"]
+    assert pr.decode(msgs[-1]) == ("LOAD_END", {"id": pr.IDS["LOAD_END"], "slot": 2})
+    with pytest.raises(pr.ProtocolError, match=r"1\.\.512 components"):
+        pr.texture_messages(0, [0.0] * 513, 2048, 12.5)
+    with pytest.raises(pr.ProtocolError, match="finite"):
+        pr.texture_messages(0, [float("nan")], 2048, 12.5)
+    with pytest.raises(pr.ProtocolError, match="LOAD_CHUNK holds at most 14"):
+        pr.encode("LOAD_CHUNK", coeffs=[0.0] * 15)
+
+
+# ------------------------------------------------------------------ the model against the C firmware
+def _setup(name: str, slot: int = 1):
+    from hostd.bench.accuracy import texture_coeffs
+    from hostd.device import devrender
+    from hostd.texture import synth
+
+    c, n, length = texture_coeffs(synth.make(name, seed=1))
+    return devrender.setup_messages(c, n, length, slot=slot), (c, n, length)
+
+
+def test_python_model_matches_the_c_firmware_within_one_code():
+    """Shared scenario: setup and START_RENDER, metronome strokes with edges at the true times,
+    a corrupt upload (refused, output unchanged), a swap to another texture (crossfade), and
+    STOP_RENDER. C (fw-replay) and the model (SimDevice) agree within 1 DAC code on every tick."""
+    from hostd.device import devrender
+    from hostd.sim.hand import Metronome
+
+    setup, _ = _setup("wood")
+    swap, (c2, n2, len2) = _setup("sandpaper", slot=2)
+    corrupt = pr.texture_messages(7, c2, n2, len2)
+    corrupt[3] = corrupt[3][:5] + bytes([0x00, 0x00, 0xC0, 0x7F]) + corrupt[3][9:]  # a NaN
+    at = {0: [*setup, pr.encode("START_RENDER", host_lost_ms=5000)],
+          1200: corrupt, 2400: [m for m in swap if 0x20 <= m[0] <= 0x22], 4000: [pr.encode("STOP_RENDER")]}
+    ev = devrender.scenario(Metronome(), 1.5, at)
+    c_codes, _ = devrender.run_c(ev)
+    py_codes, dev = devrender.run_model(ev)
+    assert c_codes.size == py_codes.size == 4500
+    diff = np.abs(c_codes - py_codes)
+    assert diff.max() <= 1, (int(diff.max()), int(np.argmax(diff)))
+    assert np.abs(c_codes[300:2400]).max() > 1000  # a real texture was rendered
+    assert dev.render.refused >= 2 and dev.render.loads == 2  # corrupt refused, swap loaded
+    assert c_codes[-1] == 0 and dev.state == pr.STATES["IDLE"]  # faded out after STOP_RENDER
+
+
+# ------------------------------------------------------------------ the simulated display in device mode
+def _render_on_sim(protocol_version: int = pr.VERSION):
+    from hostd.device.link import DeviceLink
+    from hostd.device.simdev import SimTransport
+    from hostd.sim.hand import Metronome
+
+    t = SimTransport(realtime=False, hand=Metronome())
+    t.device.protocol_version = protocol_version
+    link = DeviceLink(t)
+    t.advance(3)
+    ident = link.handshake(timeout_s=0.1)
+    caps = None
+    while (m := t.recv(0.0)) is not None:
+        name, f = pr.decode(m)
+        caps = f if name == "CAPS" else caps
+    return t, link, ident, caps
+
+
+def test_device_mode_on_the_simulated_display_survives_a_silent_host():
+    """Upload + START_RENDER, then 2 s in which the host sends nothing: the display keeps
+    rendering, code for code as a twin whose host kept talking; no fade, no refusal."""
+    t, _link, ident, caps = _render_on_sim()
+    twin, _l2, _i2, _c2 = _render_on_sim()
+    pr.require_render(ident, caps, n_coeffs=160, n_sections=1)
+    setup, _ = _setup("wood")
+    acks = []
+    for tr in (t, twin):
+        for m in [*setup, pr.encode("START_RENDER", host_lost_ms=1000)]:
+            tr.send(m)
+        while (m := tr.recv(0.0)) is not None:
+            name, f = pr.decode(m)
+            if name == "ACK" and tr is t:
+                acks.append(f)
+    assert acks and all(a["result"] == 0 for a in acks)
+    assert acks[-1]["for_id"] == pr.IDS["START_RENDER"]
+    silent, talking = [], []
+    for _ in range(3 * 2000):  # 2 s; the twin's host sends IDENTIFY every 1 ms
+        t.advance(1)
+        twin.advance(1)
+        if twin.device.ticks % 3 == 0:
+            twin.send(pr.encode("IDENTIFY"))
+        silent.append(t.device.out)
+        talking.append(twin.device.out)
+    dev = t.device
+    assert dev.state == pr.STATES["RENDERING"] and dev.render.env_target == 1
+    assert dev.render.host_lost  # past host_lost_ms, flagged, yet still rendering: the hand moves
+    assert silent == talking and np.abs(np.array(silent)).max() > 1000
+    assert dev.underruns == 0 and dev.render.refused == 0
+
+
+def test_a_version_1_simulated_display_refuses_device_mode_clearly():
+    t, _link, ident, caps = _render_on_sim(protocol_version=1)
+    assert ident["protocol_version"] == 1 and caps is None
+    with pytest.raises(DeviceVersion, match="cannot render on the device"):
+        pr.require_render(ident, caps)
+    t.send(pr.encode("START_RENDER"))  # an unknown message to v1 firmware
+    assert t.device.malformed == 1 and t.device.state == pr.STATES["IDLE"]
+
+
+# ------------------------------------------------------------------ the real firmware on a pty
+def test_device_mode_through_the_firmware_host_port_survives_a_silent_host(tmp_path):
+    """The C firmware on the host port renders from its own (simulated) encoder, edges at the
+    hand's true times: setup and START_RENDER over the serial link, then the host says nothing
+    for 2 s (as if stopped): the texture is not interrupted (no zero stretch, no fade); every
+    render message was accepted; and the DAC log equals the Python model fed what the port
+    fed the core (its --scenario: bytes, timed edges, ticks) within 1 code."""
+    import subprocess
+    import time
+
+    from hostd.device import hostport
+    from hostd.device.link import DeviceLink
+    from hostd.device.seriallink import SerialTransport
+
+    exe = hostport.build()
+    setup, _ = _setup("wood")  # before the pty opens: a slow import after it can hang it up here
+    log = tmp_path / "dac.bin"
+    scen = tmp_path / "scenario.txt"
+    proc = subprocess.Popen([str(exe), "--motion", "metronome", "--log", str(log), "--duration", "4.5",
+                             "--scenario", str(scen)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline().split()
+        assert line[0] == "PTY", line
+        t = SerialTransport(line[1])
+        link = DeviceLink(t)
+        ident = link.handshake(timeout_s=2.0)
+        for m in [*setup, pr.encode("START_RENDER", host_lost_ms=1000)]:
+            t.send(m)
+        acks, caps, deadline = [], None, time.monotonic() + 1.0
+        while time.monotonic() < deadline and not (acks and acks[-1]["for_id"] == pr.IDS["START_RENDER"]):
+            m = t.recv(0.01)
+            if m is None:
+                continue
+            name, f = pr.decode(m)
+            acks += [f] if name == "ACK" else []
+            caps = f if name == "CAPS" else caps
+        pr.require_render(ident, caps, n_coeffs=160, n_sections=1)
+        assert acks and all(a["result"] == 0 for a in acks), acks
+        t_start = time.monotonic()
+        time.sleep(2.0)  # a silent host
+        link.poll(0.05)
+        status = link.stats.last_status
+        t.close()
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=10)
+    assert status["state"] == pr.STATES["RENDERING"]
+    rec = hostport.read_log(log)
+    codes = rec["code"].astype(np.int64)
+    start = int(np.argmax(codes != 0))  # rendering began (after the fade-in starts)
+    silent = codes[start + 600 : start + 600 + int((time.monotonic() - t_start - 0.3) * 3000)]
+    assert silent.size > 4500
+    assert np.abs(silent).max() > 1000
+    d = np.diff(np.r_[0, (silent == 0).astype(int), 0])
+    zero_runs = np.flatnonzero(d == -1) - np.flatnonzero(d == 1)
+    assert zero_runs.size == 0 or zero_runs.max() < 30, zero_runs.max()  # never silent for 10 ms
+    from hostd.device import devrender
+
+    ev = devrender.read_scenario(scen)
+    model, _dev = devrender.run_model(ev)
+    n = min(model.size, codes.size)
+    assert n >= codes.size - 1 and n > 4500  # the log may hold one tick more than the file
+    assert np.abs(model[:n] - codes[:n]).max() <= 1
+    replayed, _ = devrender.run_c(ev)
+    assert np.array_equal(replayed[:n], codes[:n])  # the scenario is complete: C replays it exactly
+
+
+def test_send_and_confirm_uploads_swaps_and_names_a_refusal():
+    """The host helper on the simulated display: setup and START_RENDER confirmed, a
+    swap during a crossfade waits (BUSY, resent), a corrupt upload raises saying what happened."""
+    from hostd.device import devrender
+    from hostd.device.simdev import SimTransport
+    from hostd.errors import DeviceError
+
+    class Polled(SimTransport):  # the display's clock advances 1 ms per poll: fast and exact
+        def recv(self, timeout_s=0.0):
+            self.advance(3)
+            return super().recv(0.0)
+
+    t = Polled(realtime=False)
+    setup, _ = _setup("wood")
+    acks = devrender.send_and_confirm(t, [*setup, pr.encode("START_RENDER")])
+    assert [a["for_id"] for a in acks][-2:] == [pr.IDS["LOAD_END"], pr.IDS["START_RENDER"]]
+    swap2, (c2, n2, len2) = _setup("sandpaper", slot=2)
+    devrender.send_and_confirm(t, [m for m in swap2 if 0x20 <= m[0] <= 0x22])
+    devrender.send_and_confirm(t, pr.texture_messages(3, c2[:50], n2, len2))  # BUSY, then accepted
+    dev = t.device
+    assert dev.render.loads == 3 and dev.render.refused >= 1  # the BUSY answer counts as refused
+    bad = pr.texture_messages(4, c2, n2, len2)
+    bad[2] = bad[2][:5] + bytes([0, 0, 0x80, 0x7F]) + bad[2][9:]  # +Inf
+    with pytest.raises(DeviceError, match=r"refused LOAD_CHUNK \(NONFINITE"):
+        devrender.send_and_confirm(t, bad)
+    assert dev.state == pr.STATES["RENDERING"]
+    t.close()
