@@ -25,8 +25,13 @@
 static usbd_t g_usbd;
 static fw_t *g_fw;
 static volatile bool g_configured;
-static uint8_t g_pending[HP_REPORT_SIZE]; /* a reply (IDENT) waiting for the IN endpoint */
-static volatile uint8_t g_pending_len;
+/* replies (IDENT, CAPS, render ACKs) waiting for the IN endpoint, oldest first: a v2 IDENTIFY
+ * is answered with two messages at once, and an upload's ACKs may follow each other */
+#define PENDING_MAX 4u
+static uint8_t g_pending[PENDING_MAX][HP_REPORT_SIZE];
+static uint8_t g_pending_len[PENDING_MAX];
+static volatile uint8_t g_pending_head, g_pending_count;
+static volatile uint32_t g_reply_dropped; /* replies dropped with the queue full */
 static volatile uint32_t g_in_dropped; /* STATUS reports dropped while the host had not polled */
 
 #ifdef USB_FS_SIM
@@ -102,7 +107,7 @@ static void hw_configure(void *ctx, uint8_t config) {
         ep_open(1, USB_EP_TYPE_INTERRUPT, USB_EP_STAT_DISABLED, USB_EP_STAT_DISABLED);
     }
     g_configured = config != 0;
-    g_pending_len = 0;
+    g_pending_head = g_pending_count = 0;
     irq_restore(m);
 }
 static void hw_ep_halt(void *ctx, uint8_t ep, bool halt) {
@@ -148,8 +153,14 @@ void usb_fs_send(const uint8_t *msg, size_t len) {
     } else if (!ep1_in_busy()) {
         ep1_in_load(msg, len);
     } else if (msg[0] != HP_ID_STATUS) {
-        memcpy(g_pending, msg, len);
-        g_pending_len = (uint8_t)len;
+        if (g_pending_count < PENDING_MAX) {
+            uint8_t i = (uint8_t)((g_pending_head + g_pending_count) % PENDING_MAX);
+            memcpy(g_pending[i], msg, len);
+            g_pending_len[i] = (uint8_t)len;
+            g_pending_count++;
+        } else {
+            g_reply_dropped++;
+        }
     } else {
         g_in_dropped++;
     }
@@ -211,9 +222,10 @@ void USB_LP_IRQHandler(void) {
             if (r & USB_EP_CTR_TX) {
                 uint32_t m = irq_save();
                 ep_write(1, 0, 0, USB_EP_CTR_TX);
-                if (g_pending_len) {
-                    ep1_in_load(g_pending, g_pending_len);
-                    g_pending_len = 0;
+                if (g_pending_count) {
+                    ep1_in_load(g_pending[g_pending_head], g_pending_len[g_pending_head]);
+                    g_pending_head = (uint8_t)((g_pending_head + 1u) % PENDING_MAX);
+                    g_pending_count--;
                 }
                 irq_restore(m);
             }

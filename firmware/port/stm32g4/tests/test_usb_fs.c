@@ -171,6 +171,8 @@ static void test_driver(void) {
     CHECK_EQ(sie_in(1, b), HP_REPORT_SIZE);
     CHECK_EQ(b[0], HP_ID_IDENT);
     CHECK_EQ(b[HP_IDENT_OFF_MAX_SAMPLES], HP_MAX_SAMPLES);
+    CHECK_EQ(sie_in(1, b), HP_REPORT_SIZE); /* protocol v2: the render capabilities follow */
+    CHECK_EQ(b[0], HP_ID_CAPS);
     CHECK_EQ(sie_in(1, b), -1); /* nothing more: NAK */
     /* START and samples, then the ticks' STATUS reports */
     m[0] = HP_ID_START;
@@ -196,6 +198,8 @@ static void test_driver(void) {
     CHECK_EQ(b[0], HP_ID_STATUS);
     CHECK_EQ(sie_in(1, b), HP_REPORT_SIZE);
     CHECK_EQ(b[0], HP_ID_IDENT);
+    CHECK_EQ(sie_in(1, b), HP_REPORT_SIZE);
+    CHECK_EQ(b[0], HP_ID_CAPS);
     CHECK_EQ(sie_in(1, b), -1);
     /* a SET_REPORT on endpoint 0 reaches the core as well */
     uint8_t p[8] = {0x21, 0x09, 0x00, 0x02, 0, 0, 64, 0};
