@@ -28,6 +28,7 @@ class LibraryCfg:
     max_stream_bytes: int = 1 << 20
     max_n: int = 1 << 20
     max_n_keep: int = 16384
+    spool_settle_s: float = 1.0
 
 
 @dataclass
@@ -124,7 +125,8 @@ RANGES = {
     ("output", "dac_bits"): (8, 24), ("output", "ramp_s"): (0.001, 10),
     ("realtime", "sched_fifo_priority"): (0, 99), ("realtime", "cpu"): (-1, 4095),
     ("quality", "a"): (-1e6, 1e6), ("quality", "b"): (-1e6, 1e6),
-    ("library", "max_n"): (2, 1 << 22), ("library", "max_n_keep"): (1, 1 << 22),
+    ("library", "spool_settle_s"): (0.05, 600), ("library", "max_n"): (2, 1 << 22),
+    ("library", "max_n_keep"): (1, 1 << 22),
     ("control", "max_clients"): (1, 256),
 }
 TRANSPORT_KINDS = ("auto", "hid", "usb", "serial", "sim")
