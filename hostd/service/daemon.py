@@ -16,16 +16,17 @@ import os
 import queue
 import signal
 import socket
+import sqlite3
 import stat
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-from hostd.errors import HostdError
+from hostd.errors import ConfigError, HostdError
 from hostd.fileio import write_output
 from hostd.service import qualitylog
-from hostd.service.config import Config
+from hostd.service.config import Config, check_paths
 from hostd.service.control import ControlServer
 from hostd.service.library import Library, check_name
 from hostd.service.pumpproc import STAT_FIELDS, STATE_NAMES, pump_main
@@ -95,13 +96,17 @@ class Notifier:
 class Daemon:
     def __init__(self, cfg: Config) -> None:
         self.cfg = cfg
-        self.library = Library(cfg.library.dir, cfg.library.max_stream_bytes, cfg.library.max_n,
-                               cfg.library.max_n_keep)
+        check_paths(cfg)
         self.spool = Path(cfg.library.spool)
-        self.spool.mkdir(parents=True, exist_ok=True)
-        (self.spool / "rejected").mkdir(exist_ok=True)
         self.db_path = cfg.quality.db
-        qualitylog.connect(self.db_path).close()
+        try:
+            self.library = Library(cfg.library.dir, cfg.library.max_stream_bytes, cfg.library.max_n,
+                                   cfg.library.max_n_keep)
+            self.spool.mkdir(parents=True, exist_ok=True)
+            (self.spool / "rejected").mkdir(exist_ok=True)
+            qualitylog.connect(self.db_path).close()
+        except (OSError, sqlite3.Error) as e:
+            raise ConfigError(f"{cfg.path}: cannot set up the library, spool or quality log: {e}") from None
         self.curve = None
         if cfg.quality.thresholds:
             from hostd.perception.thresholds import load_csv
