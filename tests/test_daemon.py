@@ -75,7 +75,7 @@ def daemon(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)],
                             stderr=open(tmp_path / "log.txt", "w"), cwd=tmp_path)
     sock = str(tmp_path / "hostd.sock")
-    for _ in range(100):
+    for _ in range(600):  # start-up (imports, pump spawn) is slow on a loaded machine
         try:
             if request(sock, {"cmd": "status"}, timeout_s=2)["connected"]:
                 break
@@ -164,7 +164,7 @@ def test_quality_log_survives_kill_9_and_nothing_acknowledged_is_lost(tmp_path):
         proc = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)],
                                 stderr=subprocess.DEVNULL, cwd=tmp_path)
         sock = str(tmp_path / "hostd.sock")
-        for _ in range(100):
+        for _ in range(600):  # start-up is slow on a loaded machine
             try:
                 request(sock, {"cmd": "status"}, timeout_s=2)
                 break
