@@ -149,12 +149,20 @@ def test_many_clients_all_answered_and_a_full_server_says_so(daemon):
     # nothing lost to a short backlog: every failure is the daemon's own "busy" answer
     assert all(a == "ok" or "busy" in a for a in answered), {a for a in answered if a != "ok"}
     # hold every handler (max_clients = 4) with a silent client: the next one is told why
-    held = []
-    for _ in range(4):
-        s = socket.socket(socket.AF_UNIX)
-        s.connect(sock)
-        held.append(s)
-    time.sleep(0.3)
+    import select
+
+    for _attempt in range(5):
+        time.sleep(1.0)  # let the handlers of the load above finish
+        held = []
+        for _ in range(4):
+            s = socket.socket(socket.AF_UNIX)
+            s.connect(sock)
+            held.append(s)
+        time.sleep(0.5)
+        if not select.select(held, [], [], 0)[0]:  # all four are being served (none refused)
+            break
+        for s in held:
+            s.close()
     try:
         with pytest.raises(ClientError, match=r"busy.*control\.max_clients"):
             request(sock, {"cmd": "status"})
