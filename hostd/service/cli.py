@@ -6,7 +6,6 @@ import argparse
 import csv
 import datetime as dt
 import json
-import logging
 import sys
 
 from hostd.errors import HostdError
@@ -29,11 +28,10 @@ def _sock(args) -> str:
 def cmd_run(args) -> int:
     from hostd.service.config import load
     from hostd.service.daemon import Daemon
+    from hostd.service.logsetup import setup
 
     cfg = load(args.config)
-    logging.basicConfig(level=getattr(logging, args.log_level.upper()), stream=sys.stderr,
-                        format="%(asctime)s hostd %(levelname)s %(message)s" if sys.stderr.isatty()
-                        else "hostd %(levelname)s %(message)s")
+    setup(args.log_level)
     return Daemon(cfg).run()
 
 
@@ -137,11 +135,12 @@ def cmd_quality(args) -> int:
         w.writeheader()
         w.writerows(rows)
     else:
-        print(f"{'received':<20} {'name':<22} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8}")
+        print(f"{'received':<20} {'name':<22} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8} "
+              f"{'a':>6} {'b':>6}")
         for r in rows:
             when = dt.datetime.fromtimestamp(r["received_at"]).strftime("%Y-%m-%d %H:%M:%S")
             print(f"{when:<20} {r['name']:<22} {r['bytes']:>6} {r['method']:<6} {r['ip']:>8.4f} "
-                  f"{r['ia']:>8.4f} {r['iobj']:>8.4f}")
+                  f"{r['ia']:>8.4f} {r['iobj']:>8.4f} {r['a']:>6.3f} {r['b']:>6.3f}")
     return 0
 
 

@@ -42,17 +42,20 @@ def request(path: str, req: dict, payload: bytes = b"", timeout_s: float = 30.0)
             raise ClientError(f"permission denied on {path}") from None
         raise ClientError(f"cannot reach hostd at {path}: {e}") from None
     try:
-        with s, s.makefile("rwb") as f:
-            f.write((json.dumps(req) + "\n").encode())
-            if payload:
-                f.write(payload)
-            f.flush()
+        with s, s.makefile("rb") as f:
+            try:
+                s.sendall((json.dumps(req) + "\n").encode() + payload)
+            except (BrokenPipeError, ConnectionResetError):
+                pass  # hostd answered early (a refusal) and closed: its reply is still readable
             line = f.readline()
     except OSError as e:
         raise ClientError(f"hostd at {path} closed the connection ({e})") from None
     if not line:
         raise ClientError(f"hostd at {path} gave no answer")
-    reply = json.loads(line)
+    try:
+        reply = json.loads(line)
+    except ValueError:
+        raise ClientError(f"hostd at {path} gave a malformed answer") from None
     if not reply.get("ok"):
         raise ClientError(reply.get("error", "refused"))
     return reply

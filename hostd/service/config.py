@@ -6,11 +6,13 @@ A wrong key, type or value gives one line naming the key and the file (ConfigErr
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from hostd import tomlfile
 from hostd.errors import ConfigError
+from hostd.perception.indices import DEFAULT_AB
 
 
 @dataclass
@@ -29,6 +31,7 @@ class LibraryCfg:
     max_stream_bytes: int = 1 << 20
     max_n: int = 1 << 20
     max_n_keep: int = 16384
+    spool_settle_s: float = 1.0
 
 
 @dataclass
@@ -38,11 +41,15 @@ class ControlCfg:
     max_clients: int = 16
 
 
+# the paper's fit over both materials: the one default (a, b) of the CLI, the daemon and the log
+_A, _B = DEFAULT_AB
+
+
 @dataclass
 class QualityCfg:
     db: str = "/var/lib/hostd/quality.sqlite"
-    a: float = 0.5
-    b: float = 0.5
+    a: float = _A
+    b: float = _B
     thresholds: str = ""
 
 
@@ -126,7 +133,8 @@ RANGES = {
     ("output", "dac_bits"): (8, 24), ("output", "ramp_s"): (0.001, 10),
     ("realtime", "sched_fifo_priority"): (0, 99), ("realtime", "cpu"): (-1, 4095),
     ("quality", "a"): (-1e6, 1e6), ("quality", "b"): (-1e6, 1e6),
-    ("library", "max_n"): (2, 1 << 22), ("library", "max_n_keep"): (1, 1 << 22),
+    ("library", "spool_settle_s"): (0.05, 600), ("library", "max_n"): (2, 1 << 22),
+    ("library", "max_n_keep"): (1, 1 << 22),
     ("control", "max_clients"): (1, 256),
 }
 TRANSPORT_KINDS = ("auto", "hid", "usb", "serial", "sim")
@@ -198,3 +206,35 @@ def load(path: str | Path | None) -> Config:
         except Exception as e:
             raise ConfigError(f"{p}: quality.thresholds: {e}") from None
     return cfg
+
+
+def path_problem(path: str | Path, is_dir: bool) -> str | None:
+    """Why the daemon could not create or write `path` (a directory, or a file), or None."""
+    target = Path(path)
+    d = target if is_dir else target.parent
+    p = d
+    while not p.exists() and not p.is_symlink() and p.parent != p:
+        p = p.parent
+    if not p.is_dir():
+        return f"{p} is not a directory"
+    if not os.access(p, os.W_OK | os.X_OK):
+        return (f"{p} is not writable by this user" if p == d
+                else f"{d} does not exist and {p} is not writable by this user, so it cannot be created")
+    if not is_dir and target.exists() and not os.access(target, os.R_OK | os.W_OK):
+        return f"{target} is not writable by this user"
+    return None
+
+
+WRITABLE = (("library", "dir", True), ("library", "spool", True), ("quality", "db", False),
+            ("control", "socket", False))
+
+
+def check_paths(cfg: Config) -> None:
+    """Every path the daemon writes can be created and written: one ConfigError naming the key."""
+    for section, key, is_dir in WRITABLE:
+        value = getattr(getattr(cfg, section), key)
+        why = path_problem(value, is_dir)
+        if why:
+            raise ConfigError(f"{cfg.path}: {section}.{key} = {value!r}: {why} (give the daemon's user a "
+                              "writable path; sudo hostd install-service sets up /var/lib/hostd, "
+                              "/var/spool/hostd and /run/hostd)")

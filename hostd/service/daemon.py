@@ -7,31 +7,73 @@ pump log lines, signals). The real-time pump is a separate process (pumpproc).
 
 from __future__ import annotations
 
-import grp
 import hashlib
 import json
 import logging
+import math
 import multiprocessing as mp
 import os
 import queue
 import signal
 import socket
-import socketserver
+import sqlite3
+import stat
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from hostd.device.health import STATE_NAMES as DEVICE_STATES
 from hostd.device.health import fault_names
 from hostd.device.protocol import SAMPLE_RATE_HZ
 from hostd.errors import ConfigError, HostdError
+from hostd.fileio import write_output
 from hostd.service import qualitylog
-from hostd.service.config import Config
+from hostd.service.config import Config, check_paths
+from hostd.service.control import ControlServer
 from hostd.service.library import Library, check_name
 from hostd.service.pumpproc import FLOAT_FIELDS, STAT_FIELDS, STATE_NAMES, pump_main
 
 log = logging.getLogger("hostd")
 MAX_HEADER = 4096
+RESTARTS_PER_MINUTE = 3  # a worker that dies more often stays dead and the watchdog starves
+
+
+class BadRequest(HostdError):
+    """A control-socket request that is not well formed."""
+
+
+def _read_spool_file(path: Path, max_bytes: int, expect: tuple[int, int]) -> bytes:
+    """A spool file's bytes: a regular file only (no symlink, FIFO, device, directory), at most
+    max_bytes, and unchanged since it was seen to hold still (size, mtime_ns)."""
+    try:  # O_NONBLOCK: a FIFO must not block the spool thread waiting for a writer
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_NOCTTY)
+    except OSError as e:
+        if e.errno == 40:  # ELOOP: a symbolic link
+            raise HostdError("a symbolic link: the spool takes regular files only") from None
+        raise
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise HostdError("not a regular file: the spool takes regular files only")
+        if st.st_size > max_bytes:
+            raise HostdError(f"stream of {st.st_size} bytes exceeds the limit of {max_bytes} "
+                             "(library.max_stream_bytes)")
+        if (st.st_size, st.st_mtime_ns) != expect:
+            raise BlockingIOError("still being written")
+        chunks, left = [], max_bytes + 1
+        while left > 0:
+            b = os.read(fd, min(left, 1 << 16))
+            if not b:
+                break
+            chunks.append(b)
+            left -= len(b)
+        data = b"".join(chunks)
+        if len(data) > max_bytes:
+            raise HostdError(f"stream exceeds the limit of {max_bytes} bytes (library.max_stream_bytes)")
+        return data
+    finally:
+        os.close(fd)
 
 
 class Notifier:
@@ -57,13 +99,17 @@ class Notifier:
 class Daemon:
     def __init__(self, cfg: Config) -> None:
         self.cfg = cfg
-        self.library = Library(cfg.library.dir, cfg.library.max_stream_bytes, cfg.library.max_n,
-                               cfg.library.max_n_keep)
+        check_paths(cfg)
         self.spool = Path(cfg.library.spool)
-        self.spool.mkdir(parents=True, exist_ok=True)
-        (self.spool / "rejected").mkdir(exist_ok=True)
         self.db_path = cfg.quality.db
-        qualitylog.connect(self.db_path).close()
+        try:
+            self.library = Library(cfg.library.dir, cfg.library.max_stream_bytes, cfg.library.max_n,
+                                   cfg.library.max_n_keep)
+            self.spool.mkdir(parents=True, exist_ok=True)
+            (self.spool / "rejected").mkdir(exist_ok=True)
+            qualitylog.connect(self.db_path).close()
+        except (OSError, sqlite3.Error) as e:
+            raise ConfigError(f"{cfg.path}: cannot set up the library, spool or quality log: {e}") from None
         self.curve = None
         if cfg.quality.thresholds:
             from hostd.perception.thresholds import load_csv
@@ -81,7 +127,9 @@ class Daemon:
         self.refused = 0
         self.lock = threading.Lock()
         self.notifier = Notifier()
-        self.server: socketserver.ThreadingUnixStreamServer | None = None
+        self.control: ControlServer | None = None
+        self.workers: dict[str, tuple[Callable[[], None], threading.Thread | None, list[float]]] = {}
+        self.dead_workers: set[str] = set()
 
     # ------------------------------------------------------------ intake
     def accept(self, name: str, data: bytes, source: str) -> dict:
@@ -166,131 +214,194 @@ class Daemon:
                 self.quality_q.put((name, data, sha, self.library.path(name).stat().st_mtime))
 
     def spool_watcher(self) -> None:
-        seen: dict[Path, tuple[int, float]] = {}
-        while not self.stop_event.wait(0.3):
-            for p in sorted(self.spool.glob("*.vtx")):
-                if p.name.startswith("."):
+        """Take in .vtx files dropped into the spool once their writer is done: size and mtime
+        unchanged for library.spool_settle_s and the mtime at least that old. Anything else
+        named *.vtx (symlink, FIFO, device, directory, too big) is moved to rejected/ with a note."""
+        settle = self.cfg.library.spool_settle_s
+        seen: dict[str, tuple[tuple[int, int], float]] = {}  # name -> (size, mtime_ns), since
+        while not self.stop_event.wait(min(0.3, settle / 2)):
+            try:
+                entries = list(os.scandir(self.spool))
+            except OSError as e:
+                log.error("spool: cannot list %s: %s", self.spool, e.strerror)
+                continue
+            now = time.time()
+            for ent in entries:
+                if not ent.name.endswith(".vtx") or ent.name.startswith("."):
                     continue
+                p = Path(ent.path)
                 try:
-                    st = p.stat()
+                    st = ent.stat(follow_symlinks=False)
                 except FileNotFoundError:
                     continue
-                sig = (st.st_size, st.st_mtime)
-                if seen.get(p) != sig:  # still being written? take it when it holds still
-                    seen[p] = sig
+                if not stat.S_ISREG(st.st_mode):
+                    self._reject_spool(p, "not a regular file (symlink, FIFO, device or directory): the "
+                                          "spool takes regular files only")
                     continue
-                seen.pop(p, None)
+                if st.st_size > self.cfg.library.max_stream_bytes:
+                    self._reject_spool(p, f"stream of {st.st_size} bytes exceeds the limit of "
+                                          f"{self.cfg.library.max_stream_bytes} (library.max_stream_bytes)")
+                    continue
+                sig = (st.st_size, st.st_mtime_ns)
+                prev = seen.get(ent.name)
+                if prev is None or prev[0] != sig:
+                    seen[ent.name] = (sig, now)  # (still) being written: wait until it holds still
+                    continue
+                if now - prev[1] < settle or now - st.st_mtime_ns / 1e9 < settle:
+                    continue
                 try:
-                    data = p.read_bytes()
+                    data = _read_spool_file(p, self.cfg.library.max_stream_bytes, sig)
+                except BlockingIOError:
+                    seen.pop(ent.name, None)
+                    continue
+                except HostdError as e:
+                    seen.pop(ent.name, None)
+                    self._reject_spool(p, str(e))
+                    continue
+                except OSError as e:
+                    log.error("spool: cannot take in %s: %s", p, e.strerror or e)
+                    continue
+                seen.pop(ent.name, None)
+                try:
                     self.accept(p.stem, data, f"spool {p}")
                     p.unlink()
                 except HostdError as e:
-                    dest = self.spool / "rejected" / p.name
-                    dest.with_suffix(".vtx.error").write_text(str(e) + "\n")  # the reason first
-                    os.replace(p, dest)
-                except OSError as e:
-                    log.error("spool: cannot take in %s: %s", p, e)
+                    self._reject_spool(p, str(e))
+            for name in set(seen) - {e.name for e in entries}:
+                seen.pop(name, None)
+
+    def _reject_spool(self, p: Path, why: str) -> None:
+        dest = self.spool / "rejected" / p.name
+        try:  # the reason first, so that whoever sees the rejected file finds why
+            write_output(dest.with_name(dest.name + ".error"), (why + "\n").encode(), mode=0o640)
+            os.replace(p, dest)
+            log.warning("spool: rejected %s: %s", p.name, why)
+        except (OSError, HostdError) as e:
+            log.error("spool: cannot move %s to %s (%s); it stays: %s", p, dest.parent, e, why)
 
     # ------------------------------------------------------------ control socket
-    def handle(self, rfile, wfile) -> None:
-        def reply(obj: dict) -> None:
-            wfile.write((json.dumps(obj) + "\n").encode())
+    def handle_conn(self, conn: socket.socket) -> None:
+        """One client: one request line (and an upload's bytes), one reply line, always."""
+        rfile = conn.makefile("rb")
+        try:
+            reply = {"ok": True, **self.respond(rfile)}
+        except HostdError as e:
+            reply = {"ok": False, "error": str(e)}
+        except TimeoutError:
+            reply = {"ok": False, "error": "timed out waiting for the request"}
+            log.warning("control socket: a client timed out")
+        except Exception as e:  # a bug must still give the client an answer and the log one line
+            log.error("control socket: request failed: %s: %s", type(e).__name__, e)
+            reply = {"ok": False, "error": f"internal error ({type(e).__name__}): see hostd's log"}
+        finally:
+            rfile.close()
+        try:
+            conn.sendall((json.dumps(reply) + "\n").encode())
+        except OSError:
+            pass
 
-        line = rfile.readline(MAX_HEADER)
+    def refuse(self, msg: str) -> None:
+        with self.lock:
+            self.refused += 1
+        raise HostdError(msg)
+
+    def respond(self, rfile) -> dict:
+        line = rfile.readline(MAX_HEADER + 1)
+        if len(line) > MAX_HEADER or not line.endswith(b"\n"):
+            raise BadRequest(f"bad request: one JSON object of at most {MAX_HEADER} bytes on one line "
+                             "expected")
         try:
             req = json.loads(line)
-            if not isinstance(req, dict):
-                raise ValueError("not an object")
-        except (ValueError, UnicodeDecodeError):
-            reply({"ok": False, "error": "bad request: one JSON object per line expected"})
-            return
+        except (ValueError, UnicodeDecodeError, RecursionError):
+            raise BadRequest("bad request: one JSON object per line expected") from None
+        if not isinstance(req, dict):
+            raise BadRequest("bad request: one JSON object per line expected")
         cmd = req.get("cmd")
-        try:
-            if cmd == "send":
-                size = int(req.get("size", -1))
-                if not 0 < size <= self.cfg.library.max_stream_bytes:
-                    with self.lock:
-                        self.refused += 1
-                    log.warning("refused an upload of %d bytes (limit %d)", size,
-                                self.cfg.library.max_stream_bytes)
-                    raise HostdError(f"stream of {size} bytes refused: the limit is "
-                                     f"{self.cfg.library.max_stream_bytes} (library.max_stream_bytes)")
-                data = rfile.read(size)
-                if len(data) != size:
-                    with self.lock:
-                        self.refused += 1
-                    raise HostdError(f"upload truncated: got {len(data)} of {size} bytes")
-                out = self.accept(str(req.get("name", "")), data, "socket")
-            elif cmd == "list":
-                out = {"textures": self.library.names(), "playing": self.selected}
-            elif cmd == "select":
-                out = self.select(str(req.get("name", "")))
-            elif cmd == "stop":
-                out = self.stop_playing()
-            elif cmd == "status":
-                out = self.status()
-            elif cmd == "quality":
-                con = qualitylog.connect(self.db_path)
-                out = {"rows": qualitylog.query(con, req.get("since"))}
+        if cmd == "send":
+            size = req.get("size")
+            if not isinstance(size, int) or isinstance(size, bool):
+                self.refuse(f"bad request: size must be an integer number of bytes, not {size!r:.40}")
+            limit = self.cfg.library.max_stream_bytes
+            if not 0 < size <= limit:
+                log.warning("refused an upload of %d bytes (limit %d)", size, limit)
+                self.refuse(f"stream of {size} bytes refused: the limit is {limit} "
+                            "(library.max_stream_bytes)")
+            name = req.get("name", "")
+            if not isinstance(name, str):
+                self.refuse("bad request: name must be a string")
+            data = rfile.read(size)
+            if len(data) != size:
+                self.refuse(f"upload truncated: got {len(data)} of {size} bytes")
+            return self.accept(name, data, "socket")
+        if cmd == "list":
+            return {"textures": self.library.names(), "playing": self.selected}
+        if cmd == "select":
+            name = req.get("name")
+            if not isinstance(name, str):
+                raise BadRequest("bad request: name must be a string")
+            return self.select(check_name(name))
+        if cmd == "stop":
+            return self.stop_playing()
+        if cmd == "status":
+            return self.status()
+        if cmd == "quality":
+            since = req.get("since")
+            if since is not None and (not isinstance(since, int | float) or isinstance(since, bool)
+                                      or not math.isfinite(since)):
+                raise BadRequest(f"bad request: since must be unix seconds (a number), not {since!r:.40}")
+            con = qualitylog.connect(self.db_path)
+            try:
+                return {"rows": qualitylog.query(con, since)}
+            finally:
                 con.close()
-            elif cmd == "shutdown":
-                out = {"shutting_down": True}
-                self.stop_event.set()
-            else:
-                raise HostdError(f"unknown command {cmd!r}")
-        except HostdError as e:
-            reply({"ok": False, "error": str(e)})
-            return
-        reply({"ok": True, **out})
+        if cmd == "shutdown":
+            self.stop_event.set()
+            return {"shutting_down": True}
+        raise BadRequest(f"unknown command {cmd!r:.40}")
 
     def serve_socket(self) -> None:
-        path = Path(self.cfg.control.socket)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if path.exists():
-            probe = socket.socket(socket.AF_UNIX)
-            try:
-                probe.connect(str(path))
-                raise ConfigError(f"{path}: another hostd is already running on this socket")
-            except (ConnectionRefusedError, FileNotFoundError):
-                path.unlink()  # stale, from a crash
-            finally:
-                probe.close()
-        daemon = self
+        c = self.cfg.control
+        self.control = ControlServer(c.socket, c.group, c.max_clients, self.handle_conn)
+        self.control.start_pool()
 
-        class Handler(socketserver.StreamRequestHandler):
-            def handle(self) -> None:
-                try:
-                    daemon.handle(self.rfile, self.wfile)
-                except (BrokenPipeError, ConnectionResetError):
-                    pass
-
-        old = os.umask(0o117)  # the socket is created 0660: never world-accessible
-        try:
-            self.server = socketserver.ThreadingUnixStreamServer(str(path), Handler)
-        finally:
-            os.umask(old)
-        self.server.daemon_threads = True
-        os.chmod(path, 0o660)
-        if self.cfg.control.group:
+    # ------------------------------------------------------------ supervision
+    def start_worker(self, name: str, target: Callable[[], None]) -> None:
+        def body() -> None:
             try:
-                os.chown(path, -1, grp.getgrnam(self.cfg.control.group).gr_gid)
-            except KeyError:
-                log.warning("control.group %r does not exist; the socket keeps the daemon's group",
-                            self.cfg.control.group)
-            except PermissionError:
-                log.warning("cannot give the socket to group %r (not a member); it keeps the daemon's "
-                            "group", self.cfg.control.group)
-        threading.Thread(target=self.server.serve_forever, name="control", daemon=True).start()
+                target()
+            except Exception as e:
+                log.error("worker %s failed: %s: %s", name, type(e).__name__, e)
+
+        t = threading.Thread(target=body, name=name, daemon=True)
+        prev = self.workers.get(name)
+        self.workers[name] = (target, t, prev[2] if prev else [])
+        t.start()
+
+    def supervise(self) -> bool:
+        """Restart a worker thread that died (with a log line); False when one stays dead."""
+        now = time.monotonic()
+        for name, (target, t, restarts) in list(self.workers.items()):
+            if t is None or t.is_alive() or self.stop_event.is_set() or name in self.dead_workers:
+                continue
+            restarts[:] = [r for r in restarts if now - r < 60.0]
+            if len(restarts) >= RESTARTS_PER_MINUTE:
+                self.dead_workers.add(name)
+                log.error("worker %s stopped %d times within a minute: left stopped; the watchdog is no "
+                          "longer fed, so systemd restarts hostd", name, len(restarts) + 1)
+                continue
+            restarts.append(now)
+            log.error("worker %s stopped; restarted", name)
+            self.start_worker(name, target)
+        return not self.dead_workers
 
     # ------------------------------------------------------------ main
     def run(self) -> int:
         self.proc.start()
         self.serve_socket()
         log.info("listening on %s", self.cfg.control.socket)
-        workers = [threading.Thread(target=self.quality_worker, name="quality"),
-                   threading.Thread(target=self.spool_watcher, name="spool", daemon=True)]
-        for w in workers:
-            w.start()
+        self.start_worker("control", self.control.accept_loop)
+        self.start_worker("quality", self.quality_worker)
+        self.start_worker("spool", self.spool_watcher)
         self.rescore_missing()
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: self.stop_event.set())
@@ -307,15 +418,17 @@ class Daemon:
                 if not self.proc.is_alive():
                     log.error("the real-time pump exited (code %s); stopping", self.proc.exitcode)
                     return 1
+                healthy = self.supervise()
                 st = self.counters()
                 state = st["state"]
                 if not ready and state in ("waiting", "idle", "playing"):
                     self.notifier.notify("READY=1")
                     ready = True
                 # the watchdog is fed only when the real-time loop made progress (cycles, or
-                # reconnection attempts while it waits for a device), never by a timer alone
+                # reconnection attempts while it waits for a device) and every worker thread is
+                # alive, never by a timer alone
                 progress = st["cycles"] + st["reconnects"]
-                if progress != last_cycles:
+                if progress != last_cycles and healthy:
                     self.notifier.notify("WATCHDOG=1")
                 last_cycles = progress
                 self.notifier.notify(f"STATUS={state} {self.selected or '-'} device={st['device_state']} "
@@ -331,10 +444,11 @@ class Daemon:
             if self.proc.is_alive():
                 self.proc.terminate()
             self.stop_event.set()
-            if self.server is not None:
-                self.server.shutdown()
-                self.server.server_close()
-            Path(self.cfg.control.socket).unlink(missing_ok=True)
-            workers[0].join(30.0)
+            if self.control is not None:
+                self.control.close()
+                Path(self.cfg.control.socket).unlink(missing_ok=True)
+            quality = self.workers.get("quality")
+            if quality is not None and quality[1] is not None:
+                quality[1].join(30.0)  # rows for everything accepted are written before exit
             log.info("stopped")
         return 0

@@ -51,16 +51,30 @@ def doctor(config: str | None, json_out: bool = False) -> int:
         bad(str(e), "correct the key named above (config/hostd.toml documents every key)")
         cfg = load(None)
     head("device")
-    from hostd.device.transport import find_devices
-
-    found = find_devices()
-    if found:
-        ok(f"found {', '.join(found)}")
-    elif cfg.device.transport == "sim":
+    transport = cfg.device.transport
+    kind, _, node = transport.partition(":")
+    if kind == "sim":
         ok("transport = sim (simulated display)")
+    elif node:  # hid:/dev/hidrawN or serial:PORT: check exactly that node
+        if not os.path.exists(node):
+            bad(f"device.transport = {transport!r}: {node} does not exist",
+                "plug the display in, or correct device.transport (hostd doctor lists what it finds)")
+        elif not os.access(node, os.R_OK | os.W_OK):
+            bad(f"device.transport = {transport!r}: {node} is not readable and writable by this user",
+                "sudo hostd install-service (installs the udev rule), then replug the display")
+        else:
+            ok(f"device.transport = {transport!r}: {node} is accessible")
     else:
-        bad(f"no display {pr.USB_VID:04x}:{pr.USB_PID:04x} on HID, USB or serial",
-            "plug it in; or set device.transport = \"sim\" to run without one")
+        from hostd.device.transport import find_devices
+
+        found = find_devices()
+        wanted = [f for f in found if kind == "auto" or f.startswith(kind)]
+        if wanted:
+            ok(f"device.transport = {transport!r}: found {', '.join(wanted)}")
+        else:
+            bad(f"device.transport = {transport!r}: no display {pr.USB_VID:04x}:{pr.USB_PID:04x} found"
+                + (f" (found only {', '.join(found)})" if found else ""),
+                "plug it in; or set device.transport = \"sim\" to run without one")
     for node in sorted(glob.glob("/dev/hidraw*")):
         if not os.access(node, os.R_OK | os.W_OK):
             note(f"{node} is not accessible to this user (only a problem if it is the display)")
@@ -80,16 +94,19 @@ def doctor(config: str | None, json_out: bool = False) -> int:
     ml_soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
     note(f"RLIMIT_MEMLOCK {ml_soft if ml_soft >= 0 else 'unlimited'} bytes (mlockall needs it large)")
     head("storage")
-    for what, d in (("library", cfg.library.dir), ("spool", cfg.library.spool)):
-        p = Path(d)
-        if p.is_dir() and os.access(p, os.W_OK):
-            ok(f"{what} {p} is writable")
-        elif not p.exists() and os.access(p.parent if p.parent.exists() else Path("/"), os.W_OK):
-            ok(f"{what} {p} will be created")
+    from hostd.service.config import WRITABLE, path_problem
+
+    for section, key, is_dir in WRITABLE:
+        value = getattr(getattr(cfg, section), key)
+        why = path_problem(value, is_dir)
+        if why:
+            bad(f"{section}.{key} {value}: {why}",
+                "sudo hostd install-service (systemd-tmpfiles creates /var/lib/hostd, /var/spool/hostd), "
+                f"or point {section}.{key} at a writable path")
+        elif Path(value).exists():
+            ok(f"{section}.{key} {value} is writable")
         else:
-            bad(f"{what} {p} is not writable by this user",
-                f"sudo install -d -o hostd -g hostd {p} "
-                "(sudo hostd install-service sets up systemd-tmpfiles for it)")
+            ok(f"{section}.{key} {value} will be created")
     db = Path(cfg.quality.db)
     if db.exists():
         try:
@@ -101,8 +118,6 @@ def doctor(config: str | None, json_out: bool = False) -> int:
                                                                                f"integrity {res}, {n} rows")
         except sqlite3.Error as e:
             bad(f"quality log {db}: {e}", f"move {db} away; hostd creates a new one")
-    else:
-        ok(f"quality log {db} will be created")
     sock = Path(cfg.control.socket)
     head("daemon")
     if sock.exists():
