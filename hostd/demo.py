@@ -5,6 +5,8 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from hostd.codec import stream as vtx
 from hostd.codec import transform
 from hostd.perception import thresholds
@@ -63,7 +65,7 @@ def _firmware_host_port() -> Path | None:
 
 
 def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
-                force_sim: bool = False) -> int:
+                force_sim: bool = False, render_at: str = "host") -> int:
     """The README's main job: the daemon on the embedded default device, end to end."""
     import subprocess
     import sys
@@ -87,7 +89,7 @@ def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
         what = "the simulated display (the firmware's host port could not be built here)"
     sock = out / "hostd.sock"
     (out / "hostd.toml").write_text(
-        f'[device]\ntransport = "{transport}"\ntarget_fill = 24\n'
+        f'[device]\ntransport = "{transport}"\ntarget_fill = 24\n[render]\nwhere = "{render_at}"\n'
         f'[library]\ndir = "library"\nspool = "spool"\n'
         f'[control]\nsocket = "hostd.sock"\ngroup = ""\n[quality]\ndb = "quality.sqlite"\n')
     print(f"hostd demo: daemon on {what}\n  files in {out}")
@@ -162,11 +164,18 @@ def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
     if fw is not None and (out / "dac.bin").exists():
         from hostd.device import hostport
 
-        fig = hostport.playback_figures(hostport.read_log(out / "dac.bin"), to_last_played=True)
-        print(f"  firmware DAC log: played from the buffer {fig['played_fraction']:.2%} of the ticks "
-              f"from the first sample to the last (texture switches included), "
-              f"{fig['underrun_episodes']} underrun episode(s), "
-              f"longest silence {fig['longest_silence_ms']:.0f} ms")
+        rec = hostport.read_log(out / "dac.bin")
+        rend = np.flatnonzero(rec["flags"] & hostport.RENDERING)
+        if render_at == "device" and rend.size:
+            span = rec["flags"][rend[0] : rend[-1] + 1] & hostport.RENDERING
+            print(f"  firmware DAC log: the display rendered the texture itself on {np.mean(span != 0):.2%} "
+                  f"of the ticks from the first rendered one to the last (device mode: nothing streamed)")
+        else:
+            fig = hostport.playback_figures(rec, to_last_played=True)
+            print(f"  firmware DAC log: played from the buffer {fig['played_fraction']:.2%} of the ticks "
+                  f"from the first sample to the last (texture switches included), "
+                  f"{fig['underrun_episodes']} underrun episode(s), "
+                  f"longest silence {fig['longest_silence_ms']:.0f} ms")
     print(f"  quality log ({out / 'quality.sqlite'}): {len(rows)} rows")
     print(f"  {'name':<16} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8}")
     for r in rows:

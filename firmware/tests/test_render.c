@@ -9,6 +9,7 @@
 #include "check.h"
 #include "fw.h"
 #include "hal.h"
+#include "render_msgs.h"
 
 int g_checks, g_failures;
 
@@ -65,21 +66,7 @@ static int16_t rig_tick(rig_t *g) {
     return last_dac;
 }
 
-/* ---- message builders ---- */
-static void put16(uint8_t *p, uint16_t v) { p[0] = (uint8_t)v, p[1] = (uint8_t)(v >> 8); }
-static void put32(uint8_t *p, uint32_t v) {
-    for (int i = 0; i < 4; i++) p[i] = (uint8_t)(v >> (8 * i));
-}
-static void putf(uint8_t *p, float v) {
-    uint32_t u;
-    memcpy(&u, &v, 4);
-    put32(p, u);
-}
-static void msg(fw_t *f, const uint8_t *m, size_t n) {
-    uint8_t r[HP_REPORT_SIZE] = {0};
-    memcpy(r, m, n);
-    fw_on_message(f, r, HP_REPORT_SIZE); /* zero-padded like a HID report */
-}
+/* ---- message builders (tests/render_msgs.h), each returning the ACK's result ---- */
 static const uint8_t *last_ack(void) {
     for (size_t i = sent_n; i-- > 0 && i + 256 > sent_n;) {
         if (sent[i & 255][0] == HP_ID_ACK) return sent[i & 255];
@@ -90,69 +77,17 @@ static int last_result(void) {
     const uint8_t *a = last_ack();
     return a ? a[HP_ACK_OFF_RESULT] : -1;
 }
-
-enum { CORRUPT_NONE, CORRUPT_CRC, CORRUPT_NAN, CORRUPT_INF, CORRUPT_TRUNCATE, CORRUPT_SKIP };
-
-/* Upload coefficients c[0..n) as slot `slot`; returns the last ACK's result. */
 static int upload(fw_t *f, uint8_t slot, const float *c, uint16_t n, uint16_t ns, uint32_t len_nm, int corrupt) {
-    uint8_t m[HP_REPORT_SIZE] = {HP_ID_LOAD_TEXTURE, slot};
-    uint32_t crc = fw_crc32(0, (const uint8_t *)c, 4u * n); /* little-endian host */
-    put16(m + HP_LOAD_TEXTURE_OFF_N_SAMPLES, ns);
-    put16(m + HP_LOAD_TEXTURE_OFF_N_COEFFS, n);
-    put32(m + HP_LOAD_TEXTURE_OFF_LENGTH_NM, len_nm);
-    putf(m + HP_LOAD_TEXTURE_OFF_SCALE, 1.0f);
-    put32(m + HP_LOAD_TEXTURE_OFF_CRC32, corrupt == CORRUPT_CRC ? crc ^ 1u : crc);
-    msg(f, m, HP_LOAD_TEXTURE_SIZE);
-    const unsigned per = HP_LOAD_CHUNK_MAX_COEFFS;
-    for (unsigned first = 0, j = 0; first < n; first += per, j++) {
-        unsigned k = n - first < per ? n - first : per;
-        if (corrupt == CORRUPT_TRUNCATE && first + k >= n) break;
-        if (corrupt == CORRUPT_SKIP && j == 1) continue;
-        uint8_t ch[HP_REPORT_SIZE] = {HP_ID_LOAD_CHUNK, slot};
-        put16(ch + HP_LOAD_CHUNK_OFF_FIRST, (uint16_t)first);
-        ch[HP_LOAD_CHUNK_OFF_COUNT] = (uint8_t)k;
-        for (unsigned i = 0; i < k; i++) putf(ch + HP_LOAD_CHUNK_SIZE + 4 * i, c[first + i]);
-        if (corrupt == CORRUPT_NAN && j == 2) putf(ch + HP_LOAD_CHUNK_SIZE, NAN);
-        if (corrupt == CORRUPT_INF && j == 2) putf(ch + HP_LOAD_CHUNK_SIZE + 4, -INFINITY);
-        msg(f, ch, HP_LOAD_CHUNK_SIZE + 4 * k);
-    }
-    uint8_t e[2] = {HP_ID_LOAD_END, slot};
-    msg(f, e, 2);
+    rm_upload(f, slot, c, n, ns, len_nm, corrupt);
     return last_result();
 }
-
-static int set_scale(fw_t *f, float s) {
-    uint8_t m[5] = {HP_ID_SET_SCALE};
-    putf(m + 1, s);
-    msg(f, m, 5);
-    return last_result();
-}
-static int set_delay(fw_t *f, int16_t us) {
-    uint8_t m[3] = {HP_ID_SET_DELAY};
-    put16(m + 1, (uint16_t)us);
-    msg(f, m, 3);
-    return last_result();
-}
-static int set_band(fw_t *f, float fstop, float fade) {
-    uint8_t m[9] = {HP_ID_SET_BAND};
-    putf(m + 1, fstop);
-    putf(m + 5, fade);
-    msg(f, m, 9);
-    return last_result();
-}
+static int set_scale(fw_t *f, float s) { return rm_set_scale(f, s), last_result(); }
+static int set_delay(fw_t *f, int16_t us) { return rm_set_delay(f, us), last_result(); }
+static int set_band(fw_t *f, float fstop, float fade) { return rm_set_band(f, fstop, fade), last_result(); }
 static int set_eq(fw_t *f, uint8_t idx, uint8_t n, float b0, float b1, float b2, float a1, float a2) {
-    uint8_t m[HP_SET_EQ_SIZE] = {HP_ID_SET_EQ, idx, n};
-    putf(m + HP_SET_EQ_OFF_B0, b0), putf(m + HP_SET_EQ_OFF_B1, b1), putf(m + HP_SET_EQ_OFF_B2, b2);
-    putf(m + HP_SET_EQ_OFF_A1, a1), putf(m + HP_SET_EQ_OFF_A2, a2);
-    msg(f, m, sizeof m);
-    return last_result();
+    return rm_set_eq(f, idx, n, b0, b1, b2, a1, a2), last_result();
 }
-static int start_render(fw_t *f, uint16_t lost_ms) {
-    uint8_t m[3] = {HP_ID_START_RENDER};
-    put16(m + 1, lost_ms);
-    msg(f, m, 3);
-    return last_result();
-}
+static int start_render(fw_t *f, uint16_t lost_ms) { return rm_start_render(f, lost_ms), last_result(); }
 
 /* a texture of one component k (amplitude a_um) among n */
 static float tex1[HP_RENDER_MAX_COMPONENTS], tex2[HP_RENDER_MAX_COMPONENTS];
@@ -189,7 +124,7 @@ static void test_accuracy_sub_count_and_delay(void) {
             }
             if (i % 7 == 0) { /* the host keeps talking */
                 uint8_t id = HP_ID_IDENTIFY;
-                msg(&g.f, &id, 1);
+                rm_msg(&g.f, &id, 1);
             }
         }
         CHECK(worst <= 1); /* float32 and the edge clock: within 1 code (cell centre alone: 10) */
@@ -241,11 +176,11 @@ static void test_corrupt_uploads_are_refused_and_change_nothing(void) {
             put16(m + HP_LOAD_TEXTURE_OFF_N_SAMPLES, NS);
             put16(m + HP_LOAD_TEXTURE_OFF_N_COEFFS, HP_RENDER_MAX_COMPONENTS + 1);
             put32(m + HP_LOAD_TEXTURE_OFF_LENGTH_NM, LEN_NM);
-            msg(&b.f, m, sizeof m);
+            rm_msg(&b.f, m, sizeof m);
             CHECK_EQ(last_result(), HP_RESULT_TOO_LARGE);
             put16(m + HP_LOAD_TEXTURE_OFF_N_COEFFS, 10);
             putf(m + HP_LOAD_TEXTURE_OFF_SCALE, INFINITY);
-            msg(&b.f, m, sizeof m);
+            rm_msg(&b.f, m, sizeof m);
             CHECK_EQ(last_result(), HP_RESULT_NONFINITE);
             CHECK_EQ(set_scale(&b.f, NAN), HP_RESULT_NONFINITE);
             CHECK_EQ(set_scale(&b.f, -1.0f), HP_RESULT_BAD_PARAM);
@@ -280,8 +215,8 @@ static void test_texture_swap_without_a_click(void) {
     CHECK_EQ(start_render(&b.f, 0), HP_RESULT_OK);
     uint8_t lim[5] = {HP_ID_SET_LIMITS, 0xFF, 0x3F, 0, 0};
     put16(lim + 3, 400); /* 1 µm per tick: steady rendering needs ~260 */
-    msg(&a.f, lim, 5);
-    msg(&b.f, lim, 5);
+    rm_msg(&a.f, lim, 5);
+    rm_msg(&b.f, lim, 5);
     int slewed = 0, max_step = 0, same_after = 0;
     int16_t prev = 0;
     for (int i = 0; i < 1500; i++) {
@@ -289,7 +224,7 @@ static void test_texture_swap_without_a_click(void) {
         if (i == 650) CHECK_EQ(upload(&a.f, 3, tex1, 200, NS, LEN_NM, CORRUPT_NONE), HP_RESULT_BUSY);
         if (i % 10 == 0) { /* the host is alive */
             uint8_t id = HP_ID_IDENTIFY;
-            msg(&a.f, &id, 1), msg(&b.f, &id, 1);
+            rm_msg(&a.f, &id, 1), rm_msg(&b.f, &id, 1);
         }
         int16_t ca = rig_tick(&a), cb = rig_tick(&b);
         if (a.f.faults & HP_FAULT_SLEWED) slewed++;
@@ -356,14 +291,14 @@ static void test_equalizer_sections_and_v1_stop(void) {
     }
     CHECK_EQ(bad, 0);
     uint8_t stop = HP_ID_STOP; /* v1 STOP while rendering: the 50 ms ramp to zero */
-    msg(&a.f, &stop, 1);
+    rm_msg(&a.f, &stop, 1);
     CHECK_EQ(a.f.state, HP_STATE_RAMP_DOWN);
     int t = 0;
     while (a.f.state != HP_STATE_IDLE && t < 1000) rig_tick(&a), t++;
     CHECK(t <= HP_RAMP_TICKS + 1);
     CHECK_EQ(last_dac, 0);
     uint8_t sr = HP_ID_STOP_RENDER; /* STOP_RENDER: a fade of the texture, then idle */
-    msg(&b.f, &sr, 1);
+    rm_msg(&b.f, &sr, 1);
     t = 0;
     while (b.f.state != HP_STATE_IDLE && t < 1000) rig_tick(&b), t++;
     CHECK(t >= HP_RAMP_TICKS - 1 && t <= HP_RAMP_TICKS + 2);

@@ -21,6 +21,7 @@ from hostd.device import protocol as pr
 STATE_NAMES = {v: k.lower() for k, v in pr.STATES.items()}  # 0 idle, 1 running, 2 ramp_down
 FAULT_NAMES = tuple((name.lower(), bit) for name, bit in pr.FAULTS.items())
 RUNNING = pr.STATES["RUNNING"]
+RENDERING = pr.STATES.get("RENDERING", -1)  # protocol v2: the device renders itself
 UNDERRUN_BIT = pr.FAULTS["UNDERRUN"]
 HOST_TIMEOUT_BIT = pr.FAULTS["HOST_TIMEOUT"]
 # a gap in device time between two STATUS messages longer than this is not a gap: the
@@ -50,6 +51,7 @@ class DeviceHealth:
         self.underruns = 0  # episodes since the daemon started (all devices, wrap-aware)
         self.samples_played = 0  # from the buffer, since the daemon started
         self.resets = 0  # counters or clock went back: a device reset or another device
+        self.rendered = 0  # ticks the device reported rendering itself (device mode)
         self.state = -1
         self.flags = 0  # the latest STATUS's fault flags
         self._recent_flags: dict[int, float] = {}  # fault bit -> device time (s) last seen
@@ -92,9 +94,14 @@ class DeviceHealth:
         self.underruns += d_under
         for bit in (b for _, b in FAULT_NAMES if self.flags & b):
             self._recent_flags[bit] = self._time_s
+        if f["state"] == RENDERING and last["state"] == RENDERING:
+            # device mode: nothing is played from the buffer; every tick between two STATUS
+            # messages that both say "rendering" was rendered
+            d_played = dt_us * pr.SAMPLE_RATE_HZ // 1_000_000
+            self.rendered += d_played
         if self._sel_active:
-            if not self._sel_started and f["state"] == RUNNING:
-                self._sel_started = True  # count from the first STATUS that shows it running
+            if not self._sel_started and f["state"] in (RUNNING, RENDERING):
+                self._sel_started = True  # count from the first STATUS that shows it playing
             if self._sel_started:
                 self._sel_due += dt_us * 1e-6 * pr.SAMPLE_RATE_HZ
                 self._sel_played += d_played

@@ -43,6 +43,8 @@ class DeviceLink:
         self.t = transport
         self.target_fill = target_fill
         self.ident: dict | None = None
+        self.caps: dict | None = None
+        self.render_status: dict | None = None
         self.stats = LinkStats()
         self._seq = 0
         self._unacked: deque[tuple[int, int]] = deque()  # (seq, count) not yet seen by the device
@@ -63,6 +65,7 @@ class DeviceLink:
     def handshake(self, timeout_s: float = 1.0) -> dict:
         """IDENTIFY, then check that the device speaks our protocol with our parameters."""
         self.ident = None
+        self.caps = None
         self.t.send(pr.encode("IDENTIFY"))
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
@@ -165,6 +168,10 @@ class DeviceLink:
             self._status(f, fresh)
         elif name == "IDENT":
             self.ident = f
+        elif name == "CAPS":
+            self.caps = f  # protocol v2: what the display can render (after IDENT)
+        elif name == "RENDER_STATUS":
+            self.render_status = f
         return name
 
     FRESH = 32  # statuses of one poll whose encoder readings are used (the motion window's 16, +)

@@ -55,6 +55,8 @@ class QualityCfg:
 
 @dataclass
 class RenderCfg:
+    where: str = "host"  # host: the daemon renders and streams samples; device: the display renders
+    host_lost_ms: int = 1000  # device mode: host silence after which the display counts it lost
     height_method: str = "series"
     dtype: str = "float64"
     samples_per_batch: int = 3
@@ -120,6 +122,7 @@ class Config:
 
 
 CHOICES = {
+    ("render", "where"): ("host", "device"),
     ("render", "height_method"): ("series", "table-cubic", "table-linear", "nearest"),
     ("render", "dtype"): ("float32", "float64"),
 }
@@ -127,7 +130,8 @@ RANGES = {
     ("device", "target_fill"): (1, 227), ("device", "max_fill"): (1, 227),
     ("device", "host_timeout_ms"): (5, 60000),
     ("device", "reconnect_s"): (0.05, 3600), ("library", "max_stream_bytes"): (100, 1 << 30),
-    ("render", "samples_per_batch"): (1, 29), ("render", "predict_order"): (0, 2),
+    ("render", "samples_per_batch"): (1, 29), ("render", "host_lost_ms"): (100, 60000),
+    ("render", "predict_order"): (0, 2),
     ("render", "predict_window"): (2, 256), ("render", "equalizer_reg_hz"): (300, 1499),
     ("output", "travel_um"): (0.1, 1000), ("output", "slew_um_s"): (1, 1e7),
     ("output", "dac_bits"): (8, 24), ("output", "ramp_s"): (0.001, 10),

@@ -175,6 +175,7 @@ class Daemon:
         st["device_state"] = DEVICE_STATES.get(code, "unknown") if st["connected"] else "unknown"
         st["device_faults"] = fault_names(st.pop("device_fault_bits"))
         st["underruns"] = st["device_underruns"]  # the name older clients read
+        st["render_at"] = "device" if st["render_at"] else "host"  # who renders the texture now
         st["target_fill_ms"] = round(st["target_fill"] / SAMPLE_RATE_HZ * 1e3, 2)
         return st
 

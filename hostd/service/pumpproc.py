@@ -22,7 +22,7 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "device_samples_played", "played_fraction", "device_resets", "stalls",
                "longest_stall_ms", "recoveries", "target_fill", "implausible_speed", "relocks",
                "io_retries", "io_dropped", "batch_p50_us", "batch_p99_us", "batch_p999_us",
-               "device_time_s")
+               "device_time_s", "render_at", "device_uploads")
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
                 "batch_p50_us", "batch_p99_us", "batch_p999_us"}
 STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 4, "recovering": 5}
@@ -64,7 +64,7 @@ def pump_main(cfg, conn, stats) -> None:
     from hostd.device.link import DeviceLink
     from hostd.device.pump import JitterConfig, Pump
     from hostd.device.transport import open_transport
-    from hostd.errors import DeviceError
+    from hostd.errors import DeviceError, DeviceVersion
     from hostd.render import Renderer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
@@ -101,12 +101,28 @@ def pump_main(cfg, conn, stats) -> None:
     jitter = JitterConfig(base_fill=cfg.device.target_fill,
                           max_fill=max(cfg.device.target_fill, cfg.device.max_fill))
 
+    want_device = cfg.render.where == "device"
+    dev = None  # DeviceMode while the display renders itself
+
     def begin() -> None:
         nonlocal playing
         _, coeffs, n, length = texture
+        link.poll(0.01)
+        if dev is not None:
+            try:
+                dev.begin(texture)  # upload; the display renders (crossfades on a swap)
+                pump.health.select(True)
+                put("render_at", 1)
+                playing = True
+                put("state", STATE_CODES["playing"])
+                put("texture_serial", stats[STAT_FIELDS.index("texture_serial")] + 1)
+                return
+            except DeviceVersion as e:  # this texture cannot render there: stream it instead
+                log(f"device mode: {e}; rendering {texture[0]} on the host instead")
+                dev.end()
         r = Renderer(np.asarray(coeffs), n, length, rcfg)
         r.start()
-        link.poll(0.01)
+        put("render_at", 0)
         pump.begin(r)  # pre-fill, then start the device (soft start)
         playing = True
         put("state", STATE_CODES["playing"])
@@ -124,6 +140,9 @@ def pump_main(cfg, conn, stats) -> None:
         elif cmd[0] == "stop":
             texture = None
             if connected:
+                if dev is not None:
+                    dev.end()
+                    pump.health.select(False)
                 pump.end()
                 playing = False
                 put("state", STATE_CODES["idle"])
@@ -148,9 +167,9 @@ def pump_main(cfg, conn, stats) -> None:
             put("state", STATE_CODES["recovering" if pump.recovering else "playing"])
         st = pump.stats
         for name in ("cycles", "samples", "late_batches", "deadline_misses", "max_late_us", "stalls",
-                     "longest_stall_ms", "recoveries", "implausible_speed", "relocks", "io_retries",
-                     "io_dropped"):
+                     "longest_stall_ms", "implausible_speed", "relocks", "io_retries", "io_dropped"):
             put(name, getattr(st, name))
+        put("recoveries", st.recoveries + (dev.recoveries if dev is not None else 0))
         put("target_fill", pump.target_fill)
         now = time.monotonic()
         if now - last_pct[0] >= 1.0:  # percentiles once a second, off the per-cycle budget
@@ -163,6 +182,10 @@ def pump_main(cfg, conn, stats) -> None:
     def each_cycle() -> None:
         while conn.poll():
             command(conn.recv())
+        if dev is not None:
+            dev.tick()
+            put("recoveries", pump.stats.recoveries + dev.recoveries)
+            put("device_uploads", dev.uploads)
         publish()
 
     while not quit_:
@@ -193,6 +216,19 @@ def pump_main(cfg, conn, stats) -> None:
         else:
             pump.attach(link)
         playing = False
+        dev = None
+        if want_device:
+            from hostd.device.devmode import DeviceMode
+
+            link.poll(0.05)  # a v2 display sends CAPS right after IDENT
+            dev = DeviceMode(link, rcfg, log, host_lost_ms=cfg.render.host_lost_ms,
+                             timeout_ms=cfg.device.host_timeout_ms)
+            try:
+                pr.require_render(link.ident, link.caps, 1, 0, who=transport.describe())
+                log(f"device mode: {transport.describe()} renders the texture from its own encoder")
+            except DeviceVersion as e:
+                log(f"device mode: {e}; rendering on the host")
+                dev = None
         try:
             if texture is not None:
                 begin()
@@ -208,6 +244,8 @@ def pump_main(cfg, conn, stats) -> None:
             pump.renderer = None
             try:
                 if quit_ and playing:
+                    if dev is not None:
+                        dev.end()
                     link.stop()
                 transport.close()
             except Exception:

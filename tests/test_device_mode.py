@@ -1,0 +1,104 @@
+"""Device mode through the real daemon: `[render] where = "device"` on the firmware's host port.
+
+The daemon uploads the texture and the render parameters, starts device rendering and then
+only supervises. A 2 s SIGSTOP of the whole daemon (and its pump process) must not interrupt
+the texture: from the DAC log, the display renders on every tick of the pause and the output
+keeps following the hand; the DAC log equals the Python model of the firmware fed what the
+port fed the core, within 1 code; a texture swap stays within the slew limit.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from hostd.cli import main
+from hostd.device import hostport
+from hostd.device import protocol as pr
+from hostd.service.client import ClientError, request, send_file
+
+
+def _wait(pred, timeout_s: float, what: str):
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        try:
+            v = pred()
+            if v:
+                return v
+        except ClientError:
+            pass
+        time.sleep(0.05)
+    pytest.fail(f"timed out waiting for {what}")
+
+
+def test_device_mode_daemon_survives_a_2s_sigstop_and_swaps_without_a_jump(tmp_path):
+    try:
+        hostport.build()
+    except RuntimeError as e:
+        pytest.fail(str(e))
+    for name, seed, levels in (("wood", 1, "14"), ("wood8", 2, "8")):
+        assert main(["encode", f"synthetic:wood:{seed}", "-o", str(tmp_path / f"{name}.vtx"),
+                     "--method", "quant", "--levels", levels]) == 0
+    log, scen = tmp_path / "dac.bin", tmp_path / "scenario.txt"
+    hp = hostport.HostPort(["--motion", "metronome", "--duration", "120", "--scenario", str(scen)], log=log,
+                           clock=tmp_path / "clock.bin")
+    cfg = tmp_path / "hostd.toml"
+    cfg.write_text(f'[device]\ntransport = "serial:{hp.pty}"\n[render]\nwhere = "device"\n'
+                   '[library]\ndir = "lib"\nspool = "spool"\n'
+                   '[control]\nsocket = "hostd.sock"\ngroup = ""\n[quality]\ndb = "q.sqlite"\n')
+    sock = str(tmp_path / "hostd.sock")
+    daemon = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)], cwd=tmp_path,
+                              stderr=open(tmp_path / "hostd.log", "w"), start_new_session=True)
+    try:
+        _wait(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 90, "the device")
+        for name in ("wood", "wood8"):
+            send_file(sock, str(tmp_path / f"{name}.vtx"), name)
+        request(sock, {"cmd": "select", "name": "wood"})
+        _wait(lambda: request(sock, {"cmd": "status"})["device_state"] == "rendering", 30, "rendering")
+        time.sleep(1.0)
+        os.killpg(daemon.pid, signal.SIGSTOP)
+        t_stop = time.monotonic()
+        time.sleep(2.0)
+        t_cont = time.monotonic()
+        os.killpg(daemon.pid, signal.SIGCONT)
+        time.sleep(0.5)
+        t_swap = time.monotonic()
+        request(sock, {"cmd": "select", "name": "wood8"})  # a swap: the display crossfades
+        time.sleep(1.0)
+        st = request(sock, {"cmd": "status"})
+    finally:
+        hp.close()
+        if daemon.poll() is None:
+            os.killpg(daemon.pid, signal.SIGCONT)
+            daemon.send_signal(signal.SIGTERM)
+            daemon.wait(20)
+    journal = (tmp_path / "hostd.log").read_text()
+    assert st["render_at"] == "device" and st["device_state"] == "rendering", (st, journal[-1500:])
+    assert st["device_underruns"] == 0 and st["samples"] == 0  # nothing was streamed
+    rec = hostport.read_log(log)
+    codes = rec["code"].astype(np.int64)
+    rendering = (rec["flags"] & hostport.RENDERING) != 0
+    tick0 = int(rec["tick"][0])
+    a, b = hp.tick_at(t_stop) - tick0, hp.tick_at(t_cont) - tick0
+    assert b - a > 5000
+    assert rendering[a:b].all(), "the display stopped rendering while the daemon was stopped"
+    pause = codes[a:b]
+    assert np.abs(pause).max() > 1000  # the texture went on under the moving hand
+    zero = np.diff(np.r_[0, (pause == 0).astype(int), 0])
+    runs = np.flatnonzero(zero == -1) - np.flatnonzero(zero == 1)
+    assert runs.size == 0 or runs.max() < 30  # never silent for 10 ms
+    # the swap: within the slew limit, and well below a hard cut's step
+    s = hp.tick_at(t_swap) - tick0
+    assert np.abs(np.diff(codes[s - 30 : s + 600])).max() <= pr.MAX_STEP_CODE
+    # the DAC log equals the model of the firmware fed the same inputs, within 1 code
+    from hostd.device import devrender
+
+    model, _dev = devrender.run_model(devrender.read_scenario(scen))
+    n = min(model.size, codes.size)
+    assert n >= codes.size - 2 and np.abs(model[:n] - codes[:n]).max() <= 1
