@@ -412,8 +412,10 @@ class Daemon:
             while not self.stop_event.wait(0.2):
                 try:
                     while self.conn.poll():
-                        _kind, msg = self.conn.recv()
-                        log.info("%s", msg)
+                        kind, msg = self.conn.recv()
+                        # the pump's lines carry their level: device loss and recoveries are
+                        # warnings (journald priority 4), the rest information
+                        log.log(logging.WARNING if kind == "warn" else logging.INFO, "%s", msg)
                 except (EOFError, OSError):
                     pass  # the pump is gone: said just below
                 if not self.proc.is_alive():

@@ -54,6 +54,20 @@ def _realtime(rt, log) -> None:
             log("pump memory locked (mlockall)")
 
 
+def _die_with_parent() -> None:
+    """Linux: the pump gets SIGTERM (it ramps to zero and exits) when the daemon dies, even by
+    SIGKILL outside systemd, so no orphaned pump keeps driving the display."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, 15)  # PR_SET_PDEATHSIG, SIGTERM
+        if os.getppid() == 1:  # the parent died before prctl took effect
+            os.kill(os.getpid(), 15)
+    except (OSError, AttributeError):
+        pass
+
+
 def pump_main(cfg, conn, stats) -> None:
     """Entry point of the pump process. cfg: hostd.service.config.Config."""
     import signal
@@ -68,10 +82,14 @@ def pump_main(cfg, conn, stats) -> None:
     from hostd.render import Renderer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
+    _die_with_parent()
 
     def log(msg: str) -> None:
+        # device loss, refusals and recoveries are warnings; set-up lines are information
+        warn = msg.startswith(("device lost", "device:", "playback recovered", "device mode: the display",
+                               "pump: ")) and ", protocol v" not in msg
         try:
-            conn.send(("log", msg))
+            conn.send(("warn" if warn else "log", msg))
         except (OSError, EOFError):
             pass
 
