@@ -58,6 +58,7 @@ class RenderCfg:
     where: str = "host"  # host: the daemon renders and streams samples; device: the display renders
     host_lost_ms: int = 1000  # device mode: host silence after which the display counts it lost
     height_method: str = "series"
+    band_end_hz: float = 1200.0  # the speed-aware fade runs from 400 Hz (f_max at v_ref) to here
     dtype: str = "float64"
     samples_per_batch: int = 3
     predict_order: int = 2
@@ -100,6 +101,7 @@ class Config:
         """The RenderConfig this file describes."""
         from hostd.render import RenderConfig
         from hostd.render.equalizer import EqualizerConfig, load_actuator
+        from hostd.render.height import BandLimitConfig
         from hostd.render.motion import MotionConfig
         from hostd.render.output import OutputConfig
 
@@ -112,6 +114,7 @@ class Config:
         return RenderConfig(
             height_method=r.height_method, dtype=r.dtype, samples_per_batch=r.samples_per_batch,
             predict=r.predict_order > 0,
+            band=BandLimitConfig(stop_band_hz=r.band_end_hz),
             motion=replace(MotionConfig(), order=max(r.predict_order, 0),
                            window=max(r.predict_window, r.predict_order + 2)),
             equalizer=EqualizerConfig(enabled=r.equalizer, reg_hz=r.equalizer_reg_hz),
@@ -131,6 +134,7 @@ RANGES = {
     ("device", "host_timeout_ms"): (5, 60000),
     ("device", "reconnect_s"): (0.05, 3600), ("library", "max_stream_bytes"): (100, 1 << 30),
     ("render", "samples_per_batch"): (1, 29), ("render", "host_lost_ms"): (100, 60000),
+    ("render", "band_end_hz"): (401.0, 1200.0),
     ("render", "predict_order"): (0, 2),
     ("render", "predict_window"): (2, 256), ("render", "equalizer_reg_hz"): (300, 1499),
     ("output", "travel_um"): (0.1, 1000), ("output", "slew_um_s"): (1, 1e7),
