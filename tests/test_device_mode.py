@@ -21,20 +21,8 @@ import pytest
 from hostd.cli import main
 from hostd.device import hostport
 from hostd.device import protocol as pr
-from hostd.service.client import ClientError, request, send_file
-
-
-def _wait(pred, timeout_s: float, what: str):
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        try:
-            v = pred()
-            if v:
-                return v
-        except ClientError:
-            pass
-        time.sleep(0.05)
-    pytest.fail(f"timed out waiting for {what}")
+from hostd.service.client import request, send_file
+from tests.daemon_helpers import wait_for
 
 
 def test_device_mode_daemon_survives_a_2s_sigstop_and_swaps_without_a_jump(tmp_path):
@@ -56,11 +44,11 @@ def test_device_mode_daemon_survives_a_2s_sigstop_and_swaps_without_a_jump(tmp_p
     daemon = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)], cwd=tmp_path,
                               stderr=open(tmp_path / "hostd.log", "w"), start_new_session=True)
     try:
-        _wait(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 90, "the device")
+        wait_for(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 90, "the device")
         for name in ("wood", "wood8"):
             send_file(sock, str(tmp_path / f"{name}.vtx"), name)
         request(sock, {"cmd": "select", "name": "wood"})
-        _wait(lambda: request(sock, {"cmd": "status"})["device_state"] == "rendering", 30, "rendering")
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_state"] == "rendering", 30, "rendering")
         time.sleep(1.0)
         os.killpg(daemon.pid, signal.SIGSTOP)
         t_stop = time.monotonic()

@@ -22,7 +22,8 @@ import pytest
 from hostd.cli import main
 from hostd.device import hostport
 from hostd.device import protocol as pr
-from hostd.service.client import ClientError, request, send_file
+from hostd.service.client import request, send_file
+from tests.daemon_helpers import wait_for
 
 RATE = pr.SAMPLE_RATE_HZ
 
@@ -34,19 +35,6 @@ def port_factory():
     except RuntimeError as e:
         pytest.fail(str(e))
     return hostport.HostPort
-
-
-def _wait(pred, timeout_s: float, what: str):
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        try:
-            v = pred()
-            if v:
-                return v
-        except ClientError:
-            pass
-        time.sleep(0.05)
-    pytest.fail(f"timed out waiting for {what}")
 
 
 def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_path):
@@ -62,13 +50,13 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     stalls = (0.1, 0.3, 2.0)
     events = []
     try:
-        _wait(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 30, "the device")
+        wait_for(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 30, "the device")
         vtx = tmp_path / "wood.vtx"
         assert main(["encode", "synthetic:wood:1", "-o", str(vtx), "--method", "quant",
                      "--levels", "14"]) == 0
         send_file(sock, str(vtx), "wood")
         request(sock, {"cmd": "select", "name": "wood"})
-        _wait(lambda: request(sock, {"cmd": "status"})["device_samples_played"] > 3000, 20, "playback")
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_samples_played"] > 3000, 20, "playback")
         for stall_s in stalls:
             time.sleep(1.0)
             os.killpg(daemon.pid, signal.SIGSTOP)  # the daemon and its pump process
