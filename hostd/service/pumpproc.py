@@ -23,6 +23,7 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "longest_stall_ms", "recoveries", "target_fill", "implausible_speed", "relocks",
                "io_retries", "io_dropped", "batch_p50_us", "batch_p99_us", "batch_p999_us",
                "device_time_s", "render_at", "device_uploads")
+STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
                 "batch_p50_us", "batch_p99_us", "batch_p999_us"}
 STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 4, "recovering": 5}
@@ -94,7 +95,7 @@ def pump_main(cfg, conn, stats) -> None:
             pass
 
     def put(name: str, value: float) -> None:
-        stats[STAT_FIELDS.index(name)] = value
+        stats[STAT_INDEX[name]] = value
 
     _realtime(cfg.realtime, log)
     rcfg = cfg.render_config()
@@ -133,7 +134,7 @@ def pump_main(cfg, conn, stats) -> None:
                 put("render_at", 1)
                 playing = True
                 put("state", STATE_CODES["playing"])
-                put("texture_serial", stats[STAT_FIELDS.index("texture_serial")] + 1)
+                put("texture_serial", stats[STAT_INDEX["texture_serial"]] + 1)
                 return
             except DeviceVersion as e:  # this texture cannot render there: stream it instead
                 log(f"device mode: {e}; rendering {texture[0]} on the host instead")
@@ -144,7 +145,7 @@ def pump_main(cfg, conn, stats) -> None:
         pump.begin(r)  # pre-fill, then start the device (soft start)
         playing = True
         put("state", STATE_CODES["playing"])
-        put("texture_serial", stats[STAT_FIELDS.index("texture_serial")] + 1)
+        put("texture_serial", stats[STAT_INDEX["texture_serial"]] + 1)
 
     def command(cmd) -> None:
         """A command from the parent; while no device is connected only the choice is kept."""
