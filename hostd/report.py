@@ -13,6 +13,7 @@ from hostd.codec import stream as vtx
 from hostd.codec import transform
 from hostd.perception import indices, peer
 from hostd.perception.thresholds import ThresholdCurve
+from hostd.plotting import place_labels
 
 TABLE_I_LEVELS = (14, 12, 10, 8, 6, 5, 4)
 TABLE_I_B0 = (-12, -8, -4, 0, 4, 8, 12)
@@ -131,35 +132,6 @@ def write_markdown(rows: list[dict], path: Path, title: str, notes: list[str]) -
     path.write_text("\n".join(lines), encoding="utf-8")
 
 
-def _place_labels(ax, items: list[tuple[float, float, str]], fontsize: float = 6.5) -> None:
-    """Annotate points without overlaps: each label takes the first of a few offsets whose box
-    (estimated in pixels) does not overlap an earlier label or point; a label that finds no
-    free place is left out (its point stays, the CSV holds every value)."""
-    fig = ax.figure
-    fig.canvas.draw()
-    to_px = ax.transData.transform
-    char_w, line_h = 0.62 * fontsize * fig.dpi / 72, 1.25 * fontsize * fig.dpi / 72
-    placed: list[tuple[float, float, float, float]] = []
-    points = [tuple(to_px((x, y))) for x, y, _ in items]
-    offsets = ((4, 3), (4, -10), (-8, 5), (-8, -12), (6, 10), (6, -16))
-    for (x, y, text), (px, py) in zip(items, points, strict=True):
-        w = char_w * len(text)
-        for dx, dy in offsets:
-            x0 = px + dx if dx >= 0 else px + dx - w
-            box = (x0, py + dy, x0 + w, py + dy + line_h)
-            hits_label = any(not (box[2] < b[0] or box[0] > b[2] or box[3] < b[1] or box[1] > b[3])
-                             for b in placed)
-            hits_point = any(box[0] - 2 <= qx <= box[2] + 2 and box[1] - 2 <= qy <= box[3] + 2
-                             for qx, qy in points)
-            inside = (ax.bbox.x0 <= box[0] and box[2] <= ax.bbox.x1
-                      and ax.bbox.y0 <= box[1] and box[3] <= ax.bbox.y1)
-            if inside and not (hits_label or hits_point):
-                placed.append(box)
-                ax.annotate(text, (x, y), xytext=(dx if dx >= 0 else dx - w * 72 / fig.dpi, dy),
-                            textcoords="offset points", fontsize=fontsize)
-                break
-
-
 def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int,
          ab: tuple[float, float] | None = None) -> None:
     """Three panels sharing the byte axis: Iobj = a Ip + b Ia (with a, b), Ip and Ia. Table I
@@ -209,7 +181,7 @@ def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int,
     fig.suptitle(f"Rate-quality: {title}", fontsize=11)
     fig.tight_layout()
     for ax, labels in zip(axes, all_labels, strict=True):  # after the layout: final pixel scale
-        _place_labels(ax, labels)
+        place_labels(ax, labels)
     fig.savefig(path)
     plt.close(fig)
 

@@ -166,3 +166,15 @@ def test_fit_reads_synthetic_profiles_refuses_off_scale_and_gives_intervals(tmp_
     f.write_text("\n".join([*rows, "wood,quant,2,4.5,q4.vtx,synthetic:wood:1"]) + "\n")
     p = run("fit", str(f))
     assert p.returncode == 2 and "outside the rating scale" in p.stderr
+
+
+def test_doctor_and_report_speak_json(tmp_path, capsys):
+    main(["doctor", "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["problems"] == sum(c["status"] == "fail" for c in doc["checks"])
+    assert {c["section"] for c in doc["checks"]} >= {"config", "device"}
+    assert main(["report", "rate-quality", "synthetic:sandpaper:1", "--length-mm", "1", "-o",
+                 str(tmp_path), "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert len(rep["rows"]) > 50 and all(np.isfinite(r["Iobj"]) for r in rep["rows"])
+    assert (tmp_path / "rate_quality.png").stat().st_size > 10_000

@@ -189,7 +189,9 @@ def plot(rows: list[dict], path: str) -> None:
                              squeeze=False)
     knobs = list(dict.fromkeys(r["knob"] for r in rows))
     markers = "osD^v<>p"
+    labels: list[list[tuple[float, float, str]]] = []
     for ax, tex in zip(axes[0], textures, strict=True):
+        labels.append([])
         for i, k in enumerate(knobs):
             rs = [r for r in rows if r["knob"] == k]
             xs = [r["per_texture"][tex]["cpu_ms_per_s"] for r in rs]
@@ -197,7 +199,7 @@ def plot(rows: list[dict], path: str) -> None:
             ax.scatter(xs, ys, marker=markers[i % len(markers)], label=k, s=30)
             for r, x, y in zip(rs, xs, ys, strict=True):
                 if not r["default"] and y > 1.3 * min(ys):  # label the settings that stand out
-                    ax.annotate(r["setting"], (x, y), fontsize=6, xytext=(3, 2), textcoords="offset points")
+                    labels[-1].append((x, y, r["setting"]))
         d = next(r for r in rows if r["default"])
         ax.scatter([d["per_texture"][tex]["cpu_ms_per_s"]], [d["per_texture"][tex]["rms_error_pct"]],
                    s=160, facecolors="none", edgecolors="k", label="defaults")
@@ -210,6 +212,10 @@ def plot(rows: list[dict], path: str) -> None:
     axes[0][-1].legend(fontsize=7)
     fig.suptitle("Render pipeline: accuracy against CPU cost, one knob changed at a time")
     fig.tight_layout()
+    from hostd.plotting import place_labels
+
+    for ax, lab in zip(axes[0], labels, strict=True):  # after the layout, without overlaps
+        place_labels(ax, lab, fontsize=6)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
