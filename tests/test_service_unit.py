@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from hostd.bench.soak import child_pids
 from hostd.cli import main
 from hostd.service.client import ClientError, request, send_file
 
@@ -135,13 +136,6 @@ def test_hostd_run_starts_and_plays_under_the_units_seccomp_filter(tmp_path):
         notify.close()
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        out += [int(x) for x in (task / "children").read_text().split()]
-    return out
-
-
 def test_pump_ramps_to_zero_and_exits_cleanly_on_sigterm(tmp_path):
     """KillMode=mixed / systemctl kill: a SIGTERM to the pump stops output (ramp) and exits 0."""
     cfg = _cfg(tmp_path)
@@ -159,7 +153,7 @@ def test_pump_ramps_to_zero_and_exits_cleanly_on_sigterm(tmp_path):
             if request(sock, {"cmd": "status"})["state"] == "playing":
                 break
             time.sleep(0.1)
-        pumps = [p for p in _children(proc.pid)
+        pumps = [p for p in child_pids(proc.pid)
                  if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()]
         assert len(pumps) == 1
         os.kill(pumps[0], signal.SIGTERM)

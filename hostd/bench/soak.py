@@ -31,7 +31,8 @@ def _proc_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def _children(pid: int) -> list[int]:
+def child_pids(pid: int) -> list[int]:
+    """The process's children, from /proc (every thread's list)."""
     out = []
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
@@ -43,7 +44,7 @@ def _children(pid: int) -> list[int]:
 
 def _pump_pid(daemon_pid: int) -> int | None:
     """The daemon's pump process (a multiprocessing 'spawn' child)."""
-    for c in _children(daemon_pid):
+    for c in child_pids(daemon_pid):
         try:
             if "spawn_main" in Path(f"/proc/{c}/cmdline").read_text():
                 return c

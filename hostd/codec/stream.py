@@ -125,9 +125,8 @@ class Stream:
 # ---------------------------------------------------------------- small codings
 
 
-def _zigzag_varint(v: int) -> bytes:
-    u = (v << 1) ^ (v >> 63)
-    u &= (1 << 64) - 1
+def varint(u: int) -> bytes:
+    """An unsigned LEB128 varint (7 bits a byte, low first); stream v1's q_min and the v2 header."""
     out = bytearray()
     while True:
         b = u & 0x7F
@@ -137,6 +136,10 @@ def _zigzag_varint(v: int) -> bytes:
         else:
             out.append(b)
             return bytes(out)
+
+
+def _zigzag_varint(v: int) -> bytes:
+    return varint(((v << 1) ^ (v >> 63)) & ((1 << 64) - 1))
 
 
 def _read_zigzag_varint(buf: bytes, pos: int) -> tuple[int, int]:

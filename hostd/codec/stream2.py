@@ -27,6 +27,7 @@ from hostd.codec.methods import (
     threshold_cut,
 )
 from hostd.codec.stream import Stream
+from hostd.codec.stream import varint as _varint
 from hostd.errors import CodecError, StreamError
 from hostd.perception import guard, indices
 from hostd.perception import thresholds as th
@@ -97,18 +98,6 @@ def int_geometry(geometry: transform.Geometry) -> IntGeometry:
 
 
 # ---------------------------------------------------------------- small codings
-
-
-def _varint(u: int) -> bytes:
-    out = bytearray()
-    while True:
-        b = u & 0x7F
-        u >>= 7
-        if u:
-            out.append(b | 0x80)
-        else:
-            out.append(b)
-            return bytes(out)
 
 
 def _zigzag(v: int) -> bytes:

@@ -39,6 +39,8 @@ class DeviceMode:
         self.slot = 1
         self.recoveries = 0
         self.uploads = 0
+        # any valid message at least this often: within both the host timeout and host_lost_ms
+        self._keepalive_s = min(self.host_lost_ms, self.timeout_ms) / 2000.0
         self._last_keepalive = time.monotonic()
         self._started_at = 0.0
 
@@ -76,8 +78,7 @@ class DeviceMode:
         """Once per pump cycle: keep alive, and bring the texture back if the display is not
         rendering it."""
         now = time.monotonic()
-        if now - self._last_keepalive >= self.host_lost_ms / 2000.0 or now - self._last_keepalive \
-                >= self.timeout_ms / 2000.0:
+        if now - self._last_keepalive >= self._keepalive_s:
             self.link.set_timeout(self.timeout_ms)
             self._last_keepalive = now
         s = self.link.stats.last_status
