@@ -63,7 +63,7 @@ def settings() -> list[Setting]:
     s.append(Setting("latency_comp", "none", lambda c: replace(c, latency_s=0.0)))
     s.append(Setting("latency_comp", "chain delay (auto)", _same, d.latency_s is None))
     s.append(Setting("equalizer", "off", lambda c: replace(c, equalizer=replace(c.equalizer, enabled=False))))
-    for hz, order in ((600, 2), (800, 2), (800, 4), (1200, 2), (1200, 4)):
+    for hz, order in ((800, 2), (1200, 2), (1300, 2), (1400, 2), (1400, 4)):
         s.append(Setting("equalizer", f"reg {hz} Hz, order {order}",
                          lambda c, hz=hz, o=order: replace(c, equalizer=replace(c.equalizer, reg_hz=float(hz),
                                                                                reg_order=o)),
@@ -200,6 +200,8 @@ def plot(rows: list[dict], path: str) -> None:
             for r, x, y in zip(rs, xs, ys, strict=True):
                 if not r["default"] and y > 1.3 * min(ys):  # label the settings that stand out
                     labels[-1].append((x, y, r["setting"]))
+                elif r["knob"] == "render_at" and r["setting"] == "device":  # host CPU 0
+                    labels[-1].append((x, y, "rendered on the device"))
         d = next(r for r in rows if r["default"])
         ax.scatter([d["per_texture"][tex]["cpu_ms_per_s"]], [d["per_texture"][tex]["rms_error_pct"]],
                    s=160, facecolors="none", edgecolors="k", label="defaults")

@@ -6,11 +6,20 @@ zeta = 1/sqrt(2) (Butterworth) at 270 Hz. A measured response table (Hz, gain dB
 can replace it: the model is then fitted to the table by least squares (scipy.optimize),
 and the table itself is kept so flatness is reported against the measurement.
 
-The inverse is improper, so it is regularized: the equalizer is  H^-1(s) · L(s)  with L a
-Butterworth low-pass at `reg_hz` of order `reg_order` (>= 2), which caps the
-high-frequency gain at about (reg_hz / corner)^2 / g. The pure delay tau cannot be inverted;
-the renderer compensates it by predicting the hand further ahead. Discretized with the
-bilinear transform; the flatness figure includes that warping and the DAC's zero-order hold.
+The equalizer inverts the actuator as the DAC drives it: the actuator behind a zero-order
+hold, discretized exactly at the output rate (scipy.signal.cont2discrete, "zoh"), is
+G(z) = z^-1 B(z) / A(z) with B of first order (the sampling zero) for the second-order model.
+The equalizer is  z G(z)^-1 · R(z) = A(z) / B(z) · R(z), with R a digital Butterworth low-pass
+at `reg_hz` of order `reg_order` (>= 2). At the sample instants the chain DAC → actuator →
+displacement is then exactly  z^-1 R(z):  one sample of delay (which the renderer's look-ahead
+compensates, with R's group delay) times a filter that is flat far into the band. R caps the
+gain near fs/2, where the exact inverse would reach about 94 at 3 kHz for the paper's
+actuator. The sampling zero must lie inside the unit circle (it does for any corner below
+fs/2 with this model); otherwise the design is refused. Designing the inverse in continuous
+time and discretizing it (bilinear) instead ignores the hold's droop and delay: 3 % gain
+error at 400 Hz, the largest error of the whole chain before this design (docs/rendering.md).
+The pure delay tau cannot be inverted; the renderer compensates it by predicting the hand
+further ahead.
 
 State is carried across batches. Small batches (the 3-sample, 1 ms frames of the real-time
 path) run a scalar transposed direct form II that is bit-compatible with scipy.signal.sosfilt's
@@ -138,24 +147,32 @@ def load_actuator(path: str | Path) -> ActuatorModel:
 @dataclass
 class EqualizerConfig:
     enabled: bool = True
-    reg_hz: float = 800.0  # regularizing low-pass corner
+    reg_hz: float = 1400.0  # regularizing low-pass corner (digital Butterworth)
     reg_order: int = 2  # order of the regularizing Butterworth (>= 2 keeps the inverse proper)
     sample_rate_hz: float = 3000.0
 
 
 def design(model: ActuatorModel, cfg: EqualizerConfig) -> np.ndarray:
-    """SOS of the regularized inverse at cfg.sample_rate_hz."""
+    """SOS of the regularized inverse of the zero-order-held actuator at cfg.sample_rate_hz."""
     fs = cfg.sample_rate_hz
     if not (0 < model.corner_hz < cfg.reg_hz < fs / 2):
         raise ValueError("equalizer: need 0 < actuator corner < reg_hz < sample_rate/2")
     if not 2 <= cfg.reg_order <= 8:
         raise ValueError("equalizer.reg_order must be 2..8")
     b_act, a_act = model.analog_ba()
-    b_reg, a_reg = scipy.signal.butter(cfg.reg_order, 2 * np.pi * cfg.reg_hz, analog=True)
-    num = np.polymul(a_act, b_reg)
-    den = np.polymul(b_act, a_reg)
-    bz, az = scipy.signal.bilinear(num, den, fs=fs)
-    return scipy.signal.tf2sos(bz, az)
+    bd, ad, _dt = scipy.signal.cont2discrete((b_act, a_act), 1.0 / fs, method="zoh")
+    bd = np.ravel(bd)
+    if bd[0] != 0.0 and abs(bd[0]) > 1e-12 * np.abs(bd).max():
+        raise ValueError("equalizer: the sampled actuator has no sample of delay; unsupported model")
+    zero_poly = np.trim_zeros(bd[1:], "b")  # B(z): G(z) = z^-1 B(z) / A(z)
+    zeros = np.roots(zero_poly)
+    if zeros.size and np.abs(zeros).max() >= 0.98:
+        raise ValueError("equalizer: the sampled actuator's zero lies on or outside the unit circle "
+                         f"(|z| = {np.abs(zeros).max():.3f}); raise the output rate or lower reg_hz")
+    b_reg, a_reg = scipy.signal.butter(cfg.reg_order, cfg.reg_hz, fs=fs)
+    num = np.polymul(np.ravel(ad), b_reg)
+    den = np.polymul(zero_poly, a_reg)
+    return scipy.signal.tf2sos(num / den[0], den / den[0])
 
 
 class Equalizer:

@@ -64,7 +64,7 @@ class RenderCfg:
     predict_order: int = 2
     predict_window: int = 16
     equalizer: bool = True
-    equalizer_reg_hz: float = 800.0
+    equalizer_reg_hz: float = 1400.0
     actuator: str = "paper-parametric"
 
 
