@@ -58,7 +58,10 @@ def test_device_mode_daemon_survives_a_2s_sigstop_and_swaps_without_a_jump(tmp_p
         time.sleep(0.5)
         t_swap = time.monotonic()
         request(sock, {"cmd": "select", "name": "wood8"})  # a swap: the display crossfades
-        time.sleep(1.0)
+        speeds = []
+        for _ in range(10):  # the hand's speed, as the display measures it
+            time.sleep(0.1)
+            speeds.append(request(sock, {"cmd": "status"})["speed_mm_s"])
         st = request(sock, {"cmd": "status"})
     finally:
         hp.close()
@@ -69,6 +72,7 @@ def test_device_mode_daemon_survives_a_2s_sigstop_and_swaps_without_a_jump(tmp_p
     journal = (tmp_path / "hostd.log").read_text()
     assert st["render_at"] == "device" and st["device_state"] == "rendering", (st, journal[-1500:])
     assert st["device_underruns"] == 0 and st["samples"] == 0  # nothing was streamed
+    assert max(abs(v) for v in speeds) > 5.0, speeds  # the metronome hand moves at up to ~93 mm/s
     rec = hostport.read_log(log)
     codes = rec["code"].astype(np.int64)
     rendering = (rec["flags"] & hostport.RENDERING) != 0

@@ -181,7 +181,11 @@ def pump_main(cfg, conn, stats) -> None:
         put("device_samples_played", h.samples_played)
         put("played_fraction", h.played_fraction)
         put("device_resets", h.resets)
-        if pump.renderer is not None:
+        if dev is not None and dev.rendering:
+            rs = link.render_status
+            if rs is not None:  # the display's own measure, from its encoder's edge times
+                put("speed_mm_s", rs["speed_mm_s"])
+        elif pump.renderer is not None:
             put("speed_mm_s", pump.renderer.motion.velocity_mm_s)
             put("state", STATE_CODES["recovering" if pump.recovering else "playing"])
         st = pump.stats
