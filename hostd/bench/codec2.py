@@ -123,6 +123,16 @@ def rate_rows() -> list[dict]:
                         f"{label}_ssnr_db": round(r.best.ssnr_db, 1),
                         f"{label}_spqi": _quality(y, geom, r.best.data)["spqi"],
                         f"{label}_encodes": r.encodes, f"{label}_search_ms": round(r.seconds * 1e3)})
+        # v1's smallest stream meeting Iobj <= 0.05 AND SPQI >= 0.9 (every v1 candidate)
+        v1c = sorted((k for k in ratecontrol.candidates(y, geom, curve) if k.Iobj <= TARGET),
+                     key=lambda k: k.nbytes)
+        best_v1 = None
+        if peer.available():
+            best_v1 = next((k for k in v1c if _quality(y, geom, k.data)["spqi_exact"] >= 0.9), None)
+        row.update({"v1_min_spqi0.9_bytes": None if best_v1 is None else best_v1.nbytes,
+                    "v1_min_spqi0.9_method": None if best_v1 is None else best_v1.method,
+                    "v2_over_v1_min_spqi0.9": None if best_v1 is None
+                    else round(row["v2_bytes"] / best_v1.nbytes, 3)})
         old = ratecontrol.smallest_within(y, geom, curve, TARGET)  # v1, Iobj alone, exhaustive
         b_k = curve(geom.frequencies_hz())
         c = transform.analyze(y, geom.n_keep)
