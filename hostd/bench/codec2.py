@@ -129,10 +129,29 @@ def rate_rows() -> list[dict]:
         best_v1 = None
         if peer.available():
             best_v1 = next((k for k in v1c if _quality(y, geom, k.data)["spqi_exact"] >= 0.9), None)
+        # v2's smallest stream meeting it (shaped, quant and cut settings of the calibration grid)
+        ig = stream2.int_geometry(geom)
+        c2 = transform.analyze(y, ig.n_keep)
+        b2 = curve(ig.frequencies_hz())
+        v2c = []
+        for st in _calibration_settings(c2, b2):
+            data = stream2.encode_coefficients(c2, ig, curve, **st)
+            s2 = vtx.decode(data)
+            Pp, Ap = indices.weighted_sums(s2.coefficients, b2)
+            if float(indices.scores_from_sums(s2.ref_P, s2.ref_A, Pp, Ap).Iobj) <= TARGET:
+                v2c.append((len(data), st["method"], data))
+        best_v2 = None
+        if peer.available():
+            best_v2 = next((k for k in sorted(v2c, key=lambda k: k[0])
+                            if _quality(y, geom, k[2])["spqi_exact"] >= 0.9), None)
+        row.update({"v2_min_spqi0.9_bytes": None if best_v2 is None else best_v2[0],
+                    "v2_min_spqi0.9_method": None if best_v2 is None else best_v2[1]})
         row.update({"v1_min_spqi0.9_bytes": None if best_v1 is None else best_v1.nbytes,
                     "v1_min_spqi0.9_method": None if best_v1 is None else best_v1.method,
                     "v2_over_v1_min_spqi0.9": None if best_v1 is None
-                    else round(row["v2_bytes"] / best_v1.nbytes, 3)})
+                    else round(row["v2_bytes"] / best_v1.nbytes, 3),
+                    "v2min_over_v1min_spqi0.9": None if best_v1 is None or best_v2 is None
+                    else round(best_v2[0] / best_v1.nbytes, 3)})
         old = ratecontrol.smallest_within(y, geom, curve, TARGET)  # v1, Iobj alone, exhaustive
         b_k = curve(geom.frequencies_hz())
         c = transform.analyze(y, geom.n_keep)
