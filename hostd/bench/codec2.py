@@ -289,6 +289,25 @@ def guard_calibration_rows() -> list[dict]:
                  "default_bytes": sum(r["default_bytes"] for r in rows),
                  "wsnr_only_min_spqi": min(r["wsnr_only_spqi"] for r in rows),
                  "wsnr_only_bytes": sum(r["wsnr_only_bytes"] for r in rows)})
+    return rows + guard_target_rows()
+
+
+def guard_target_rows(targets: tuple[float, ...] = (0.02, 0.05, 0.1, 0.2)) -> list[dict]:
+    """For each target Iobj, the stream rate control returns with the default guard on every
+    calibration texture: the lowest SPQI (and where), how many are below 0.9, total bytes."""
+    curve = thresholds.default_curve()
+    tex = calibration_textures()
+    rows = []
+    for target in targets:
+        spqi, total = [], 0
+        for name, y, geom in tex:
+            r = ratecontrol.search(y, geom, curve, target)
+            spqi.append((_quality(y, geom, r.best.data)["spqi_exact"], name))
+            total += r.best.nbytes
+        low = min(spqi)
+        rows.append({"bench": "guard_target", "target_iobj": target, "textures": len(tex),
+                     "min_spqi": round(low[0], 3), "min_spqi_texture": low[1],
+                     "below_0.9": sum(q < 0.9 for q, _ in spqi), "total_bytes": total})
     return rows
 
 
