@@ -64,7 +64,7 @@ def _real_profile():
 
 def test_the_default_guard_rejects_what_wsnr_alone_accepts_on_a_real_profile():
     """The bundled dektak-1 profile at 25 mm/s: wSNR >= 25 dB alone (the previous default)
-    accepts a stream whose sSNR is < 27 dB (SPQI 0.88 measured); the default guard does not."""
+    accepts a stream whose sSNR is < 27 dB (SPQI 0.894 measured); the default guard does not."""
     prof = _real_profile()
     geom = transform.Geometry(prof.n, prof.length_mm, speed_mm_s=25.0)
     old = ratecontrol.search(prof.heights_um, geom, CURVE, 0.05, method="shaped", ssnr_db=None)

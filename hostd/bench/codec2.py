@@ -289,7 +289,35 @@ def guard_calibration_rows() -> list[dict]:
                  "default_bytes": sum(r["default_bytes"] for r in rows),
                  "wsnr_only_min_spqi": min(r["wsnr_only_spqi"] for r in rows),
                  "wsnr_only_bytes": sum(r["wsnr_only_bytes"] for r in rows)})
-    return rows + guard_target_rows()
+    return rows + guard_target_rows() + guard_heldout_rows()
+
+
+def guard_heldout_rows() -> list[dict]:
+    """Textures not in the calibration set (other seeds, speeds, fmax up to 1000 Hz): the
+    stream `--target-iobj 0.05` returns with the default guard and with wSNR >= 25 dB alone."""
+    from hostd.paths import bundled_profile
+
+    curve = thresholds.default_curve()
+    cases = []
+    for kind, seed in (("wood", 7), ("sandpaper", 8)):
+        p = synth.make(kind, seed=seed)
+        for v, fm in ((25, 400), (100, 400), (50, 800), (200, 1000)):
+            cases.append((f"{kind}:{seed}@{v} fmax {fm}", p.heights_um,
+                          transform.Geometry(p.n, p.length_mm, float(v), float(fm))))
+    b = bundled_profile()
+    if b is not None:
+        for v, fm in ((25, 400), (12.5, 400), (50, 800), (100, 1000)):
+            cases.append((f"bundled@{v:g} fmax {fm}", b.heights_um,
+                          transform.Geometry(b.n, b.length_mm, float(v), float(fm))))
+    rows = []
+    for name, y, geom in cases:
+        row: dict = {"bench": "guard_heldout", "texture": name}
+        for label, extra in (("default", {}), ("wsnr_only", {"ssnr_db": None})):
+            r = ratecontrol.search(y, geom, curve, TARGET, **extra)
+            row.update({"n_keep": vtx.decode(r.best.data).n_keep, f"{label}_bytes": r.best.nbytes,
+                        f"{label}_spqi": _quality(y, geom, r.best.data)["spqi"]})
+        rows.append(row)
+    return rows
 
 
 def guard_target_rows(targets: tuple[float, ...] = (0.02, 0.05, 0.1, 0.2)) -> list[dict]:
