@@ -64,6 +64,7 @@ def test_rate_quality_report_writes_table_and_plot(tmp_path, source):
     assert {14, 12, 10, 8, 6, 5, 4} <= levels and {-12, -8, -4, 0, 4, 8, 12} <= b0s
     for r in rows:
         assert np.isfinite(float(r["Iobj"])) and np.isfinite(float(r["wsnr_db"]))
+        assert np.isfinite(float(r["ssnr_db"]))
         if r["version"] == "1":
             assert int(r["bytes"]) > vtx.HEADER_SIZE
     v2 = [r for r in rows if r["series"] == "v2 shaped"]
