@@ -62,7 +62,7 @@ def weighted_snr_db(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_
 
 @lru_cache(maxsize=64)
 def _spqi_weights(freqs: tuple[float, ...]) -> np.ndarray:
-    ctx = decimal.Context(prec=40)
+    ctx = decimal.Context(prec=25)  # integer arithmetic (libmpdec): the same on every CPU
     D = decimal.Decimal
     xo = D(SPQI_CURVE["x_offset"])
     scale = ctx.divide(D(SPQI_CURVE["x_scaler"]), ctx.power(ctx.log10(xo), 2))
@@ -79,7 +79,7 @@ def _spqi_weights(freqs: tuple[float, ...]) -> np.ndarray:
 
 def spqi_curve_weights(freqs_hz: np.ndarray) -> np.ndarray:
     """w(f) = 10^(-T(f)/10): power weights of the SPQI model's threshold curve at f (Hz),
-    computed in 40-digit decimal arithmetic (the same bits on every CPU)."""
+    computed in 25-digit decimal arithmetic (the same bits on every CPU)."""
     f = np.asarray(freqs_hz, dtype=np.float64)
     if f.ndim != 1 or not np.all(np.isfinite(f)) or np.any(f < 0):
         raise QualityError("component frequencies must be finite and >= 0 Hz")
