@@ -201,6 +201,7 @@ def cmd_encode(args: argparse.Namespace) -> int:
     if args.target_iobj is not None:
         res = ratecontrol.search(prof.heights_um, geom, curve, args.target_iobj, method=args.method,
                                  fmt=args.format, guard_db=None if args.no_guard else args.guard_db,
+                                 ssnr_db=None if args.no_guard else args.guard_ssnr_db,
                                  ab=_ab(args))
         for note in res.notes:
             warn("encode", note)
@@ -469,11 +470,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--coder", default="auto", choices=["auto", "none", "deflate"],
                    help="v1 lossless entropy stage (default auto: the smaller)")
     p.add_argument("--target-iobj", type=_finite, default=None,
-                   help="rate control: the smallest stream whose Iobj <= X and whose wSNR passes "
-                   "the guard (only --method's knob when given, else every method)")
+                   help="rate control: the smallest stream whose Iobj <= X and which passes the "
+                   "waveform guard (--guard-db and --guard-ssnr-db; only --method's knob when "
+                   "given, else every method)")
     p.add_argument("--guard-db", type=_finite, default=25.0,
-                   help="rate control's waveform guard: threshold-weighted SNR >= this, dB "
-                   "(default 25)")
+                   help="rate control's waveform guard, part 1: wSNR (SNR weighted by the "
+                   "detection threshold b(f)) >= this, dB (default 25)")
+    p.add_argument("--guard-ssnr-db", type=_finite, default=27.0,
+                   help="waveform guard, part 2: sSNR (SNR weighted by the SPQI model's "
+                   "threshold curve) >= this, dB (default 27: SPQI >= 0.9 on every texture "
+                   "measured, see docs/benchmarks.md)")
     p.add_argument("--no-guard", action="store_true",
                    help="rate control on Iobj alone (can return a wrong waveform; see docs)")
     p.add_argument("--json", action="store_true",

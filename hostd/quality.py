@@ -55,6 +55,7 @@ def guard_report(stream: Stream, *, reference_um: np.ndarray | None = None,
         b_k = stream_thresholds(stream, curve)
         c = transform.analyze(np.asarray(reference_um, dtype=np.float64), stream.n_keep)
         return {"wsnr_db": guard.weighted_snr_db(c, stream.coefficients, b_k),
+                "ssnr_db": guard.spectral_snr_db(c, stream.coefficients, stream.frequencies_hz),
                 "nmr_max_db": guard.max_nmr_db(c, stream.coefficients, b_k),
                 "guard_source": "profile"}
     if stream.guard_wsnr_db is not None:

@@ -29,8 +29,8 @@ V2_SERIES = {"v2 shaped": {"method": "shaped"}}
 G_DB = tuple(float(g) for g in np.arange(-30.0, 15.0 + 1e-9, 1.5))
 G_TABLE = (-24.0, -18.0, -12.0, -6.0, 0.0, 6.0, 12.0)
 COLUMNS = ("series", "version", "method", "levels", "b0_db", "g_db", "value_bits", "bytes",
-           "ratio_coeffs", "ratio_profile", "kept", "Ip", "Ia", "Iobj", "wsnr_db", "st_sim", "spqi",
-           "table_I")
+           "ratio_coeffs", "ratio_profile", "kept", "Ip", "Ia", "Iobj", "wsnr_db", "ssnr_db", "st_sim",
+           "spqi", "table_I")
 
 
 def sweep(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve,
@@ -61,6 +61,7 @@ def sweep(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve,
             "ratio_profile": s.ratio_profile, "kept": int(np.count_nonzero(s.coefficients)),
             "Ip": float(sc.Ip), "Ia": float(sc.Ia), "Iobj": float(sc.Iobj),
             "wsnr_db": guard_column(c, s.coefficients, b_k),
+            "ssnr_db": ssnr_column(c, s.coefficients, s.frequencies_hz),
             "st_sim": None, "spqi": None,
             "table_I": _in_table(s),
         }
@@ -95,6 +96,13 @@ def guard_column(c: np.ndarray, decoded: np.ndarray, b_k: np.ndarray) -> float:
     return guard.weighted_snr_db(c, decoded, b_k)
 
 
+def ssnr_column(c: np.ndarray, decoded: np.ndarray, freqs_hz: np.ndarray) -> float:
+    """The guard's second SNR (weighted by the SPQI model's threshold curve, dB)."""
+    from hostd.perception import guard
+
+    return guard.spectral_snr_db(c, decoded, freqs_hz)
+
+
 def _in_table(s) -> bool:
     if s.method == "quant":
         return s.levels in TABLE_I_LEVELS
@@ -121,7 +129,7 @@ def write_csv(rows: list[dict], path: Path) -> None:
 
 def write_markdown(rows: list[dict], path: Path, title: str, notes: list[str]) -> None:
     cols = ("series", "levels", "b0_db", "g_db", "bytes", "ratio_coeffs", "ratio_profile", "kept",
-            "Ip", "Ia", "Iobj", "wsnr_db", "st_sim", "spqi")
+            "Ip", "Ia", "Iobj", "wsnr_db", "ssnr_db", "st_sim", "spqi")
     lines = [f"# Rate-quality: {title}", ""] + [f"- {n}" for n in notes] + [""]
     lines.append("| " + " | ".join(cols) + " |")
     lines.append("|" + "---|" * len(cols))

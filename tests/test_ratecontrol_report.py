@@ -64,6 +64,7 @@ def test_rate_quality_report_writes_table_and_plot(tmp_path, source):
     assert {14, 12, 10, 8, 6, 5, 4} <= levels and {-12, -8, -4, 0, 4, 8, 12} <= b0s
     for r in rows:
         assert np.isfinite(float(r["Iobj"])) and np.isfinite(float(r["wsnr_db"]))
+        assert np.isfinite(float(r["ssnr_db"]))
         if r["version"] == "1":
             assert int(r["bytes"]) > vtx.HEADER_SIZE
     v2 = [r for r in rows if r["series"] == "v2 shaped"]
@@ -81,13 +82,14 @@ def test_rate_quality_report_writes_table_and_plot(tmp_path, source):
 def test_search_returns_a_stream_meeting_target_and_guard(wood, fmt, method):
     from hostd.perception import guard
 
-    r = ratecontrol.search(*wood, CURVE, 0.05, method=method, fmt=fmt, guard_db=25.0)
+    r = ratecontrol.search(*wood, CURVE, 0.05, method=method, fmt=fmt)  # default guard
     s = vtx.decode(r.best.data)
     assert s.method == method and s.version == int(fmt[1])
     sc = score_stream(s)  # as a receiver scores it: from the header
     c = transform.analyze(wood[0], s.n_keep)
     w = guard.weighted_snr_db(c, s.coefficients, CURVE(s.frequencies_hz))
-    assert float(sc.Iobj) <= 0.05 and w >= 25.0
+    ss = guard.spectral_snr_db(c, s.coefficients, s.frequencies_hz)
+    assert float(sc.Iobj) <= 0.05 and w >= guard.DEFAULT_GUARD_DB and ss >= guard.DEFAULT_SSNR_DB
     assert r.encodes <= 20  # a bisection, not every candidate
 
 
@@ -97,13 +99,14 @@ def test_search_only_searches_the_given_method_and_finds_the_exhaustive_optimum(
     optimum, in a fraction of the encodes."""
     from hostd.perception import guard
 
-    r = ratecontrol.search(*wood, CURVE, 0.05, method="quant", fmt="v1", guard_db=25.0)
+    r = ratecontrol.search(*wood, CURVE, 0.05, method="quant", fmt="v1")
     c = transform.analyze(wood[0], wood[1].n_keep)
-    b = CURVE(wood[1].frequencies_hz())
+    f = wood[1].frequencies_hz()
+    b = CURVE(f)
     passing = {}
     for L in range(2, ratecontrol.MAX_L + 1):
         s = vtx.decode(vtx.encode_coefficients(c, wood[1], CURVE, method="quant", levels=L))
-        if float(score_stream(s).Iobj) <= 0.05 and guard.weighted_snr_db(c, s.coefficients, b) >= 25:
+        if float(score_stream(s).Iobj) <= 0.05 and guard.check(c, s.coefficients, b, f).passed:
             passing[L] = s.nbytes
     L = r.best.setting["levels"]
     assert L in passing and L - 1 not in passing
@@ -112,9 +115,10 @@ def test_search_only_searches_the_given_method_and_finds_the_exhaustive_optimum(
 
 
 def test_the_guard_rejects_what_iobj_alone_accepts(wood):
-    loose = ratecontrol.search(*wood, CURVE, 0.05, guard_db=None)
+    loose = ratecontrol.search(*wood, CURVE, 0.05, guard_db=None, ssnr_db=None)
     guarded = ratecontrol.search(*wood, CURVE, 0.05)
     assert loose.best.wsnr_db < 25.0 <= guarded.best.wsnr_db
+    assert loose.best.ssnr_db < 27.0 <= guarded.best.ssnr_db
     assert loose.best.nbytes < guarded.best.nbytes
 
 

@@ -53,7 +53,12 @@ def add_parser(sub, parents) -> None:
             b.add_argument("--tune-deadzone", action="store_true",
                            help="only the shaped quantizer's dead-zone / reconstruction table")
             b.add_argument("--guard-calibration", action="store_true",
-                           help="only wSNR against SPQI of shaped streams (the guard's default)")
+                           help="only SPQI against the guard's wSNR and sSNR on 32 textures "
+                           "(the guard's defaults; takes minutes)")
+            b.add_argument("--peers", metavar="DIR", default=None,
+                           help="only v2 against the peer codecs (MPEG-I Haptics RM, VC-PWQ) "
+                           "built under DIR (or named by HOSTD_PEER_* variables): bytes for "
+                           "SPQI >= 0.9; see docs/benchmarks.md 'Peer codecs'")
     p.set_defaults(func=cmd_bench)
 
 
@@ -79,6 +84,16 @@ def _textures(args) -> dict:
         if found is not None:
             tex[Path(found.source).stem or "real"] = found
     return tex
+
+
+def _peer_env() -> bool:
+    """True when a HOSTD_PEER_* variable names a peer executable."""
+    import os
+
+    from hostd.bench import peers
+
+    return any(os.environ.get(v) for v in (peers.VCPWQ_ENV, peers.MPEG_ENCODER_ENV,
+                                           peers.MPEG_SYNTH_ENV))
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -139,7 +154,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif what == "codec" and args.guard_calibration:
         from hostd.bench import codec2
 
-        rows += codec2.guard_calibration_rows()
+        rows += codec2.guard_calibration_rows()  # HostdError without vibromaf: exit 2
+    elif what == "codec" and (args.peers is not None or _peer_env()):
+        from hostd.bench import codec2
+
+        rows += codec2.peer_rows(Path(args.peers) if args.peers is not None else None)
     elif what in ("codec", "all"):
         from hostd.bench import codec2
 

@@ -123,7 +123,7 @@ def apply_cut(coeffs_um: np.ndarray, keep: np.ndarray) -> np.ndarray:
 SHAPED_RHO = 0.5
 SHAPED_DELTA = 0.0
 G_UNIT_DB = 0.25  # the knob g is stored in quarter-dB steps
-G_MIN_DB = -60.0
+G_MIN_DB = -200.0  # nm-scale profiles (opdx-3: largest |C_k| / b_k = -56 dB) need g far below 0
 G_MAX_DB = 120.0
 
 

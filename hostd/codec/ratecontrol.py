@@ -4,10 +4,10 @@
 monotone in quality: the shaped quantizer's g (0.25 dB steps), the number of levels L of
 linear quantization, the cut's b0 (0.25 dB in v2, 0.5 dB in v1). A candidate passes when
 its Iobj (scored as a receiver would: against the reference sums in its header) is <= the
-target AND its threshold-weighted SNR (hostd.perception.guard) is >= the guard, so a stream
-whose sums match but whose spectrum does not is never returned. Each probe is encoded and
-decoded for real. Because Iobj is not strictly monotone in a knob, the search also probes
-a few steps past the boundary it found.
+target AND it passes the waveform guard (hostd.perception.guard: wSNR >= 25 dB and sSNR >=
+27 dB by default), so a stream whose sums match but whose spectrum does not is never
+returned. Each probe is encoded and decoded for real. Because Iobj is not strictly
+monotone in a knob, the search also probes a few steps past the boundary it found.
 
 `candidates` / `smallest_within` keep the exhaustive v1 search (every L and every b0 of a
 grid), used as the reference the bisection is tested against.
@@ -126,6 +126,8 @@ class Probe:
     data: bytes
     Iobj: float
     wsnr_db: float
+    ssnr_db: float
+    guard_ok: bool
 
     @property
     def nbytes(self) -> int:
@@ -134,7 +136,7 @@ class Probe:
     def describe(self) -> str:
         par = ", ".join(f"{k}={v}" for k, v in self.setting.items() if k != "method")
         return (f"{self.method} ({par}): {self.nbytes} bytes, Iobj={self.Iobj:.4f}, "
-                f"wSNR={self.wsnr_db:.1f} dB")
+                f"wSNR={self.wsnr_db:.1f} dB, sSNR={self.ssnr_db:.1f} dB")
 
 
 @dataclass
@@ -181,8 +183,10 @@ def _knobs(fmt: str, method: str, c: np.ndarray, b_k: np.ndarray) -> list[_Knob]
 def search(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve,
            target_iobj: float, *, method: str | None = None, fmt: str = "v2",
            guard_db: float | None = guard.DEFAULT_GUARD_DB,
+           ssnr_db: float | None = guard.DEFAULT_SSNR_DB,
            ab: tuple[float, float] = indices.DEFAULT_AB) -> SearchResult:
-    """The smallest stream with Iobj <= target and wSNR >= guard_db (None: no guard)."""
+    """The smallest stream with Iobj <= target, wSNR >= guard_db and sSNR >= ssnr_db (None:
+    that part of the guard is off)."""
     t0 = time.process_time()
     if not (math.isfinite(target_iobj) and target_iobj >= 0):
         raise CodecError(f"--target-iobj must be a finite number >= 0, got {target_iobj}")
@@ -200,13 +204,15 @@ def search(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve
     if fmt == "v2":
         ig = stream2.int_geometry(geometry)
         c = transform.analyze(y_um, ig.n_keep)
-        b_k = curve(ig.frequencies_hz())
+        f_k = ig.frequencies_hz()
+        b_k = curve(f_k)
 
         def encode(s: dict) -> bytes:
             return stream2.encode_coefficients(c, ig, curve, **s)
     else:
         c = transform.analyze(y_um, geometry.n_keep)
-        b_k = curve(geometry.frequencies_hz())
+        f_k = geometry.frequencies_hz()
+        b_k = curve(f_k)
 
         def encode(s: dict) -> bytes:
             return vtx.encode_coefficients(c, geometry, curve, **s)
@@ -221,12 +227,13 @@ def search(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve
             dec = vtx.decode(data)
             Pp, Ap = indices.weighted_sums(dec.coefficients, b_k)
             sc = indices.scores_from_sums(dec.ref_P, dec.ref_A, Pp, Ap, *ab)
-            cache[key] = Probe(s["method"], s, data, float(sc.Iobj),
-                               guard.weighted_snr_db(c, dec.coefficients, b_k))
+            v = guard.check(c, dec.coefficients, b_k, f_k, guard_db, ssnr_db)
+            cache[key] = Probe(s["method"], s, data, float(sc.Iobj), v.wsnr_db, v.ssnr_db,
+                               v.passed)
         return cache[key]
 
     def ok(p: Probe) -> bool:
-        return p.Iobj <= target_iobj and (guard_db is None or p.wsnr_db >= guard_db)
+        return p.Iobj <= target_iobj and p.guard_ok
 
     passing: list[Probe] = []
     for m in ((method,) if method else allowed):
@@ -251,9 +258,11 @@ def search(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve
     seconds = time.process_time() - t0
     if not passing:
         which = f"no {method} stream" if method else "no stream"
-        g = f" and wSNR >= {guard_db:g} dB (the waveform guard)" if guard_db is not None else ""
+        parts = ([f"wSNR >= {guard_db:g} dB"] if guard_db is not None else []) + (
+            [f"sSNR >= {ssnr_db:g} dB"] if ssnr_db is not None else [])
+        g = f" and {' and '.join(parts)} (the waveform guard)" if parts else ""
         raise CodecError(f"{which} reaches Iobj <= {target_iobj:g}{g}: raise --target-iobj"
-                         + (", lower --guard-db" if guard_db is not None else "")
+                         + (", lower --guard-db / --guard-ssnr-db" if parts else "")
                          + (" or try another --method" if method else ""))
     best = min(passing, key=lambda p: (p.nbytes, p.Iobj))
     return SearchResult(best, encodes, seconds, notes)

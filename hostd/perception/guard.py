@@ -1,53 +1,148 @@
-"""The waveform guard: a per-component distortion measure relative to the detection threshold.
+"""The waveform guard: per-component distortion measures that rate control must satisfy.
 
 Iobj compares two weighted *sums*, so a stream can match the sums with the wrong spectrum
-(issue 14). The guard looks at the error of each component instead:
+(issue 14). The guard looks at the error of each component instead, with two SNRs of the
+same form, each a weighted power sum of the texture over the same sum of the error:
 
-    wSNR = 10 log10( sum_k (C_k / b_k)^2  /  sum_k ((C_k - C'_k) / b_k)^2 )   [dB]
+    wSNR = 10 log10( sum_k (C_k / b_k)^2  /  sum_k ((C_k - C'_k) / b_k)^2 )          [dB]
+    sSNR = 10 log10( sum_k w(f_k) C_k^2   /  sum_k w(f_k) (C_k - C'_k)^2 )            [dB]
 
-the threshold-weighted signal-to-noise ratio: the paper's power sum P of the texture over the
-same sum taken of the error. Errors add as squares whatever their sign, so no choice of
-C'_k can match the sums and keep a high wSNR with a wrong spectrum; weighting by 1/b_k makes
-an error count in units of "how far above the detection threshold", as Iobj's P does.
-We prefer it to the largest per-component error relative to b_k (also reported, `nmr_max_db`),
-which a single component decides and which is unreachable for strong textures at low rates;
-and to a plain SNR, which ignores the threshold curve.
+- wSNR weighs by the project's detection threshold b(f_k) (the weighting of Iobj's P). It is
+  recorded in every v2 header and reported by `inspect` and `iobj`.
+- sSNR weighs by the vibrotactile threshold curve of the SPQI/ST-SIM model (Hassen &
+  Steinbach; as implemented in vibromaf's PerceptualThreshold): w(f) = 10^(-T(f)/10) with
+  T(f) = |62 / log10(c)^2 * log10(f/550 + c)^2| - 77 dB, c = 1 - 250/550, capped at 0 dB.
+  That curve keeps falling from 0 to 250 Hz (-15 dB at DC, -38 dB at 40 Hz, -77 dB at 250 Hz)
+  where b(f) is flat below 40 Hz, so it weighs the small high-frequency components of a
+  low-frequency texture about 16 dB more than wSNR does.
 
-Default guard: wSNR >= 25 dB. Measured (docs/benchmarks.md, `hostd bench codec
---guard-calibration`): on five of six textures (synthetic wood, sandpaper; real xy-1, xy-4)
-SPQI reached 0.9 by wSNR 22.5-24.8 dB; the real 23-component dektak-1 profile needed 30.5 dB.
+Errors add as squares whatever their sign, so neither SNR can be matched by a wrong spectrum.
+Why two: on the 32 textures of the calibration (docs/benchmarks.md, "Waveform guard") the
+largest wSNR at which a stream still had SPQI < 0.9 was 35.5 dB (real profile dektak-1 at
+25 mm/s; 22-25 dB on most textures), so no wSNR default gave SPQI >= 0.9 everywhere; the
+largest such sSNR was at most 24.8 dB on every texture (synthetic, real, 7 to 160 components).
+Defaults: wSNR >= 25 dB (`--guard-db`) AND sSNR >= 27 dB (`--guard-ssnr-db`), 2 dB above the
+worst case measured: rate control then returned SPQI >= 0.945 on all 32 textures (and on 12
+held-out ones), against 0.489-0.834 on 6 of 32 with wSNR >= 25 dB alone.
+The largest per-component error relative to b_k (`nmr_max_db`) is reported, not guarded: a
+single component decides it, and it is unreachable for strong textures at low rates.
+
+Decisions are exact comparisons of correctly rounded sums (math.fsum) against factors
+computed in decimal arithmetic, so the stream rate control picks is the same on every CPU;
+the dB values are for reports.
 """
 
 from __future__ import annotations
 
+import decimal
 import math
+from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
 from hostd.errors import QualityError
 from hostd.perception.indices import exact_sum, weights
 
-DEFAULT_GUARD_DB = 25.0
+DEFAULT_GUARD_DB = 25.0  # wSNR (threshold b(f)) floor of rate control
+DEFAULT_SSNR_DB = 27.0  # sSNR (the SPQI model's threshold curve) floor of rate control
 CAP_DB = 200.0  # a lossless (or float64-exact) stream reports this
+
+# The SPQI model's threshold curve (vibromaf.signal.perception.PerceptualThreshold's defaults)
+SPQI_CURVE = {"x_scaler": 62.0, "y_scaler": 1.0 / 550.0, "x_offset": 1.0 - 250.0 / 550.0,
+              "y_offset_db": 77.0}
 
 
 def weighted_snr_db(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_um: np.ndarray) -> float:
-    """wSNR in dB (capped at CAP_DB; 0 dB for a silent reference that was not kept silent)."""
+    """wSNR in dB (capped at CAP_DB; -CAP_DB for a silent reference that was not kept silent)."""
     c = np.asarray(reference_um, dtype=np.float64)
     d = np.asarray(decoded_um, dtype=np.float64)
+    return _db(*_power_sums(c, d, weights(threshold_um)[0]))
+
+
+@lru_cache(maxsize=64)
+def _spqi_weights(freqs: tuple[float, ...]) -> np.ndarray:
+    ctx = decimal.Context(prec=25)  # integer arithmetic (libmpdec): the same on every CPU
+    D = decimal.Decimal
+    xo = D(SPQI_CURVE["x_offset"])
+    scale = ctx.divide(D(SPQI_CURVE["x_scaler"]), ctx.power(ctx.log10(xo), 2))
+    ln10 = ctx.ln(D(10))
+    out = []
+    for f in freqs:
+        arg = ctx.add(ctx.multiply(D(SPQI_CURVE["y_scaler"]), D(f)), xo)
+        t = ctx.subtract(abs(ctx.multiply(scale, ctx.power(ctx.log10(arg), 2))),
+                         D(SPQI_CURVE["y_offset_db"]))
+        t = min(t, D(0))  # the curve is held at 0 dB above the frequency where it crosses 0
+        out.append(float(ctx.exp(ctx.multiply(ctx.divide(-t, D(10)), ln10))))
+    return np.array(out, dtype=np.float64)
+
+
+def spqi_curve_weights(freqs_hz: np.ndarray) -> np.ndarray:
+    """w(f) = 10^(-T(f)/10): power weights of the SPQI model's threshold curve at f (Hz),
+    computed in 25-digit decimal arithmetic (the same bits on every CPU)."""
+    f = np.asarray(freqs_hz, dtype=np.float64)
+    if f.ndim != 1 or not np.all(np.isfinite(f)) or np.any(f < 0):
+        raise QualityError("component frequencies must be finite and >= 0 Hz")
+    w = _spqi_weights(tuple(f.tolist()))
+    w.flags.writeable = False
+    return w
+
+
+def _power_sums(c: np.ndarray, d: np.ndarray, w2: np.ndarray) -> tuple[float, float]:
+    """(sum w C^2, sum w (C - C')^2), correctly rounded."""
     if c.shape != d.shape:
         raise QualityError(f"{c.size} reference but {d.size} decoded coefficients")
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(d))):
         raise QualityError("coefficients contain NaN or Inf")
-    w2, _ = weights(threshold_um)
     err = np.subtract(c, d)
-    sig = float(exact_sum(np.multiply(np.multiply(c, c), w2)))
-    noise = float(exact_sum(np.multiply(np.multiply(err, err), w2)))
+    return (float(exact_sum(np.multiply(np.multiply(c, c), w2))),
+            float(exact_sum(np.multiply(np.multiply(err, err), w2))))
+
+
+def _db(sig: float, noise: float) -> float:
     if noise == 0.0:
         return CAP_DB
     if sig == 0.0:
         return -CAP_DB
     return max(-CAP_DB, min(CAP_DB, 10.0 * math.log10(sig / noise)))
+
+
+def spectral_snr_db(reference_um: np.ndarray, decoded_um: np.ndarray, freqs_hz: np.ndarray) -> float:
+    """sSNR in dB: the SNR weighted by the SPQI model's threshold curve (capped at CAP_DB)."""
+    c = np.asarray(reference_um, dtype=np.float64)
+    d = np.asarray(decoded_um, dtype=np.float64)
+    return _db(*_power_sums(c, d, spqi_curve_weights(freqs_hz)))
+
+
+def _at_least(sig: float, noise: float, floor_db: float) -> bool:
+    """10 log10(sig / noise) >= floor_db, decided exactly: noise * 10^(floor/10) <= sig."""
+    from hostd.codec.methods import db_to_ratio
+
+    if noise == 0.0:
+        return True
+    return noise * db_to_ratio(2.0 * floor_db) <= sig
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The guard's measures of one decoded stream and whether it passes."""
+
+    wsnr_db: float
+    ssnr_db: float
+    passed: bool
+
+
+def check(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_um: np.ndarray,
+          freqs_hz: np.ndarray, wsnr_min_db: float | None = DEFAULT_GUARD_DB,
+          ssnr_min_db: float | None = DEFAULT_SSNR_DB) -> Verdict:
+    """Both SNRs, and whether wSNR >= wsnr_min_db and sSNR >= ssnr_min_db (None: not required)."""
+    c = np.asarray(reference_um, dtype=np.float64)
+    d = np.asarray(decoded_um, dtype=np.float64)
+    ws, wn = _power_sums(c, d, weights(threshold_um)[0])
+    ss, sn = _power_sums(c, d, spqi_curve_weights(freqs_hz))
+    ok = ((wsnr_min_db is None or _at_least(ws, wn, wsnr_min_db))
+          and (ssnr_min_db is None or _at_least(ss, sn, ssnr_min_db)))
+    return Verdict(_db(ws, wn), _db(ss, sn), ok)
 
 
 def max_nmr_db(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_um: np.ndarray) -> float:
