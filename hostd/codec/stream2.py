@@ -9,6 +9,7 @@ raises StreamError with a one-line message for any malformed input.
 from __future__ import annotations
 
 import binascii
+import functools
 import math
 import struct
 import zlib
@@ -78,6 +79,22 @@ class IntGeometry:
     def frequencies_hz(self) -> np.ndarray:
         return transform.frequencies_hz(np.arange(1, self.n_keep + 1), self.length_mm,
                                         self.speed_mm_s)
+
+
+def thresholds_at(curve: th.ThresholdCurve, ig: IntGeometry) -> np.ndarray:
+    """b(f_k) for k = 1..N' of this geometry (read-only). Memoized per (curve, geometry) for
+    N' <= 2^16 (16 entries, <= 8 MiB): a daemon decodes many streams of the same geometry
+    and shipped curve (curves are immutable; an embedded one is a new object per stream)."""
+    if ig.n_keep > 1 << 16:
+        return curve(ig.frequencies_hz())
+    return _thresholds_memo(curve, ig)
+
+
+@functools.lru_cache(maxsize=16)
+def _thresholds_memo(curve: th.ThresholdCurve, ig: IntGeometry) -> np.ndarray:
+    b = curve(ig.frequencies_hz())
+    b.setflags(write=False)
+    return b
 
 
 PAPER_GEOMETRY = IntGeometry(n=20000, spacing_pm=500_000, speed_um_s=50_000, fmax_mhz=400_000)
@@ -219,7 +236,7 @@ def encode_coefficients(
         raise CodecError(f"expected {n_keep} coefficients for this geometry, got {c.shape}")
     if not np.all(np.isfinite(c)):
         raise CodecError("coefficients contain NaN or Inf")
-    b_k = curve(ig.frequencies_hz())
+    b_k = thresholds_at(curve, ig)
     P, A = indices.weighted_sums(c, b_k)
     if method not in METHOD_IDS:
         raise CodecError(f"unknown method {method!r}: use shaped, quant or cut")
@@ -365,7 +382,7 @@ def decode(data: bytes) -> Stream:
     if method == "shaped":
         if curve is None:
             curve = _shipped_by_short_id(short_id, shipped)
-        coeffs = shaped_values(q, curve(ig.frequencies_hz()), g_db)
+        coeffs = shaped_values(q, thresholds_at(curve, ig), g_db)
     elif method == "quant":
         if np.any(np.abs(q) >= 1 << 53):
             raise StreamError("quantization index out of range")
