@@ -2,6 +2,7 @@
 (exact)"): the compiled hostd/codec/_rangecoder.c and the pure-Python reference in
 hostd/codec/rangecoder.py. Same bytes, same indices, same errors; the suite runs with either."""
 
+import json
 import os
 import shutil
 import subprocess
@@ -177,3 +178,12 @@ def test_pure_python_can_be_forced_and_reads_the_same_streams():
     from hostd.codec import stream as vtx
 
     assert coeffs == vtx.decode((VECTORS / f"{name}.vtx").read_bytes()).coefficients.tobytes().hex()
+
+
+def test_doctor_says_which_coder_is_active(capsys):
+    from hostd.cli import main
+
+    main(["doctor", "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    (check,) = [c for c in doc["checks"] if c["section"] == "codec"]
+    assert ("compiled" in check["message"]) == HAVE_C and check["status"] in ("ok", "note")
