@@ -4,7 +4,7 @@ random run, against the built module or a sanitizer build of it.
     pip install atheris
     python tests/fuzz/fuzz_rangecoder.py -atheris_runs=0 -max_total_time=60
     python tests/fuzz/fuzz_rangecoder.py --random 200000      # no atheris needed
-    tests/fuzz/sanitize_rangecoder.sh --random 200000         # C under ASan + UBSan
+    tests/fuzz/sanitize_rangecoder.sh --random 10000          # C under ASan + UBSan
 
 Each input is a payload for the decoders (first two bytes: N') or, when its first byte is odd,
 indices for the encoders. The compiled coder (hostd/codec/_rangecoder.c; the file named by
