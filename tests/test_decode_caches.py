@@ -37,6 +37,15 @@ def test_shipped_curves_see_a_curve_added_edited_and_removed(tmp_path, monkeypat
     assert set(thresholds.shipped_curves()) == set(base)
 
 
+def test_a_decoder_may_skip_the_disk_check_for_a_while(tmp_path, monkeypatch):
+    monkeypatch.setenv("HOSTD_CONFIG_DIR", str(tmp_path))
+    base = thresholds.shipped_curves()
+    (tmp_path / "thresholds").mkdir()
+    (tmp_path / "thresholds" / "site.csv").write_text(CURVE_CSV)
+    assert thresholds.shipped_curves(max_age_s=3600) is base  # not looked at again yet
+    assert len(thresholds.shipped_curves()) == len(base) + 1  # the default: always checked
+
+
 def test_a_daemon_decodes_a_stream_of_a_curve_installed_after_start(tmp_path, monkeypatch):
     monkeypatch.setenv("HOSTD_CONFIG_DIR", str(tmp_path))
     (tmp_path / "src").mkdir()
@@ -47,9 +56,13 @@ def test_a_daemon_decodes_a_stream_of_a_curve_installed_after_start(tmp_path, mo
     data = stream2.encode_coefficients(c, geom, curve, method="shaped", g_db=-6.0, embed_curve=False)
     with pytest.raises(StreamError, match="not shipped"):
         vtx.decode(data)
+    monkeypatch.setattr(stream2, "SHIPPED_MAX_AGE_S", 3600.0)  # no periodic re-check in this test
+    thresholds.shipped_curves()
     (tmp_path / "thresholds").mkdir()
     (tmp_path / "thresholds" / "c.csv").write_text(CURVE_CSV)
-    assert vtx.decode(data).threshold_id == curve.id_bytes
+    assert vtx.decode(data).threshold_id == curve.id_bytes  # a miss makes it look again
+    quant = stream2.encode_coefficients(c, geom, curve, method="quant", levels=9, embed_curve=False)
+    assert vtx.decode(quant).threshold_id == curve.id_bytes
 
 
 def test_thresholds_at_is_b_of_f_k_and_read_only():

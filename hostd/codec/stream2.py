@@ -40,6 +40,7 @@ METHOD_IDS = {v: k for k, v in METHODS.items()}
 FLAG_CURVE_EMBEDDED = 0x04
 FLAG_EXPLICIT_GEOMETRY = 0x08
 SHORT_ID_BYTES = 2
+SHIPPED_MAX_AGE_S = 1.0  # decode: the shipped curves are re-checked on disk at most once a second
 CRC16_LIMIT = 4096  # streams shorter than this end in a CRC-16, longer ones in a CRC-32
 CUT_VALUE_BITS = (8, 16, 32)
 B0_UNIT_DB = 0.25
@@ -378,7 +379,7 @@ def decode(data: bytes) -> Stream:
             raise StreamError("embedded threshold table does not match the header's curve id")
     payload = body[r.pos :]
     q = rangecoder.decode_indices(payload, n_keep)
-    shipped = th.shipped_curves() if curve is None else {}
+    shipped = th.shipped_curves(SHIPPED_MAX_AGE_S) if curve is None else {}
     if method == "shaped":
         if curve is None:
             curve = _shipped_by_short_id(short_id, shipped)
@@ -407,6 +408,8 @@ def decode(data: bytes) -> Stream:
 
 def _shipped_by_short_id(short_id: bytes, shipped: dict) -> th.ThresholdCurve:
     found = [c for k, c in shipped.items() if k[:SHORT_ID_BYTES] == short_id]
+    if len(found) != 1:  # look again, on disk: the curve may have been installed just now
+        found = [c for k, c in th.shipped_curves().items() if k[:SHORT_ID_BYTES] == short_id]
     if len(found) != 1:
         raise StreamError(
             f"threshold curve {short_id.hex()} is not embedded and "
@@ -419,4 +422,6 @@ def _shipped_by_short_id(short_id: bytes, shipped: dict) -> th.ThresholdCurve:
 def _full_id(short_id: bytes, shipped: dict) -> bytes:
     """The 8-byte id of the shipped curve with this short id, or the short id zero-padded."""
     found = [k for k in shipped if k[:SHORT_ID_BYTES] == short_id]
+    if len(found) != 1:  # look again, on disk (as _shipped_by_short_id)
+        found = [k for k in th.shipped_curves() if k[:SHORT_ID_BYTES] == short_id]
     return found[0] if len(found) == 1 else short_id + bytes(8 - SHORT_ID_BYTES)

@@ -6,6 +6,7 @@ import functools
 import hashlib
 import os
 import struct
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -152,16 +153,24 @@ def default_curve() -> ThresholdCurve:
     return load_csv(paths.find("thresholds", "default.csv"))
 
 
-def shipped_curves() -> dict[bytes, ThresholdCurve]:
+def shipped_curves(max_age_s: float = 0.0) -> dict[bytes, ThresholdCurve]:
     """Every curve under thresholds/ (the override's and the shipped ones), keyed by its 8-byte
-    id. Called on every decode, so cached: the cache holds while the two directories and the
-    .csv files found in them keep their modification times (a few os.stat calls, ~10 µs); a
-    curve file added, removed, renamed or rewritten (also in place) is seen on the next call,
-    so a running daemon picks up a new curve without a restart."""
+    id. Cached: the cache holds while the two directories and the .csv files found in them
+    keep their modification times, so a curve file added, removed, renamed or rewritten (also
+    in place) is seen on the next call. Checking that takes a few os.stat calls (~5 µs each
+    on a VM); a caller may skip the check for max_age_s seconds after the last one (a decoder
+    does, and checks again when the curve it needs is missing: entries are keyed by their
+    content's hash, so a cached one is never a wrong curve, at most one removed moments ago)."""
     dirs = (_override_thresholds_dir(os.environ.get("HOSTD_CONFIG_DIR")), _package_thresholds_dir())
     hit = _SCAN_CACHE.get(dirs)
-    if hit is not None and _mtimes(hit[0]) == hit[1]:
-        return hit[2]
+    if hit is not None:
+        now = time.monotonic()
+        if now - hit[3] < max_age_s:
+            return hit[2]
+        if _mtimes(hit[0]) == hit[1]:
+            hit[3] = now
+            return hit[2]
+    checked = time.monotonic()
     stamp = _mtimes(dirs)  # before the scan: a change during the scan makes the next call rescan
     entries = []
     for d in reversed(dirs):
@@ -175,11 +184,12 @@ def shipped_curves() -> dict[bytes, ThresholdCurve]:
     curves = _load_dir(files)
     paths_all = dirs + tuple(p for p, _ in files)
     _SCAN_CACHE.clear()  # one entry: the current $HOSTD_CONFIG_DIR
-    _SCAN_CACHE[dirs] = (paths_all, stamp + tuple(m for _, m in files), curves)
+    _SCAN_CACHE[dirs] = [paths_all, stamp + tuple(m for _, m in files), curves, checked]
     return curves
 
 
-_SCAN_CACHE: dict[tuple[str, str], tuple[tuple[str, ...], tuple, dict[bytes, ThresholdCurve]]] = {}
+# (paths watched, their modification times, the curves, time.monotonic() of the last check)
+_SCAN_CACHE: dict[tuple[str, str], list] = {}
 
 
 @functools.lru_cache(maxsize=4)
