@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import sysconfig
 import zipfile
 from pathlib import Path
 
@@ -20,7 +21,7 @@ def _copy_tree(dst: Path) -> Path:
     """The source tree as a fresh clone has it (no venv, no build products; symlinks kept)."""
 
     def ignore(_d, names):
-        return {n for n in names if n in SKIP_DIRS or n.endswith(".egg-info")}
+        return {n for n in names if n in SKIP_DIRS or n.endswith((".egg-info", ".so", ".pyd"))}
 
     shutil.copytree(ROOT, dst, symlinks=True, ignore=ignore)
     return dst
@@ -57,6 +58,10 @@ def test_wheel_carries_the_data_the_code_needs(wheel):
     assert f"Version: {hostd.__version__}\n" in meta  # one version number
     assert "License-Expression: MIT" in meta
     assert any(n.endswith("licenses/LICENSE") for n in names)
+    # the compiled index coder (setup.py, optional): built wherever a C compiler is
+    cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
+    if shutil.which(cc):
+        assert [n for n in names if n.startswith("hostd/codec/_rangecoder.") and n.endswith(".so")], names
 
 
 @pytest.fixture(scope="module")
@@ -87,6 +92,12 @@ def test_wheel_works_outside_the_tree(venv, tmp_path):
     r = subprocess.run([str(venv / "bin" / "python"), "-c", "import hostd; print(hostd.__file__)"],
                        cwd=tmp_path, capture_output=True, text=True)
     assert str(venv) in r.stdout and str(ROOT) not in r.stdout, r.stdout + r.stderr
+    r = subprocess.run([str(venv / "bin" / "python"), "-c", "from hostd.codec import rangecoder as r; "
+                        "print(r.IMPLEMENTATION, r._C.__file__ if r._C else '')"],
+                       cwd=tmp_path, capture_output=True, text=True)
+    impl, *where = r.stdout.split()
+    if shutil.which((sysconfig.get_config_var("CC") or "cc").split()[0]):
+        assert impl == "c" and str(venv) in where[0], r.stdout + r.stderr
     r = _run(venv, tmp_path, "encode", "synthetic:wood:1", "-o", "x.vtx", "--method", "quant",
              "--levels", "14")
     assert r.returncode == 0, r.stderr

@@ -23,6 +23,8 @@ Context model for q_1..q_N' (signed integers):
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from hostd.errors import StreamError
@@ -36,6 +38,14 @@ MASK32 = 0xFFFFFFFF
 N_CTX = 5
 EG_MAX_PREFIX = 40                 # Exp-Golomb prefixes longer than this are malformed
 MAX_ABS_INDEX = (1 << 40) - 1      # |q| bound (the encoder refuses larger indices)
+C_REVISION = 1                     # _rangecoder.c's REVISION this module is written for
+
+MSG_TOO_LONG = "entropy-coded number too long"
+MSG_RANGE = "entropy-coded index out of range"
+
+
+def msg_n_sig(n_sig: int, n_keep: int) -> str:
+    return f"entropy-coded payload claims {n_sig} significant components, N' = {n_keep}"
 
 
 def _code(decisions: list[tuple[list[int] | None, int, int]]) -> bytes:
@@ -108,8 +118,8 @@ def _eg(ops: list, probs: list[int], v: int) -> None:
         ops.append((None, 0, (v1 >> i) & 1))
 
 
-def encode_indices(q: np.ndarray) -> bytes:
-    """Range-code signed integer indices q_1..q_N' with the context model above."""
+def encode_indices_py(q: np.ndarray) -> bytes:
+    """Range-code signed integer indices q_1..q_N' with the context model above (reference)."""
     vals = [int(v) for v in np.asarray(q).tolist()]
     if any(abs(v) > MAX_ABS_INDEX for v in vals):
         raise ValueError("index magnitude beyond 2^40")
@@ -141,8 +151,8 @@ def encode_indices(q: np.ndarray) -> bytes:
     return _code(ops)
 
 
-def decode_indices(data: bytes, n_keep: int) -> np.ndarray:
-    """Inverse of encode_indices for N' = n_keep; malformed data raises StreamError.
+def decode_indices_py(data: bytes, n_keep: int) -> np.ndarray:
+    """Inverse of encode_indices for N' = n_keep; malformed data raises StreamError (reference).
 
     The binary decoder (docs/stream-format.md, "Entropy coder (exact)") is written out inline,
     with its state in local variables: in CPython this is about twice as fast as a decoder
@@ -188,7 +198,7 @@ def decode_indices(data: bytes, n_keep: int) -> np.ndarray:
             break
         n += 1
         if n > EG_MAX_PREFIX:
-            raise StreamError("entropy-coded number too long")
+            raise StreamError(MSG_TOO_LONG)
     v1 = 1
     for _ in range(n):
         rng >>= 1
@@ -202,7 +212,7 @@ def decode_indices(data: bytes, n_keep: int) -> np.ndarray:
             code = ((code << 8) | byte()) & 0xFFFFFFFF
     n_sig = v1 - 1
     if n_sig > n_keep:
-        raise StreamError(f"entropy-coded payload claims {n_sig} significant components, N' = {n_keep}")
+        raise StreamError(msg_n_sig(n_sig, n_keep))
     a1 = a2 = 0
     last = n_sig - 1
     for k in range(n_sig):
@@ -272,7 +282,7 @@ def decode_indices(data: bytes, n_keep: int) -> np.ndarray:
                     break
                 n += 1
                 if n > EG_MAX_PREFIX:
-                    raise StreamError("entropy-coded number too long")
+                    raise StreamError(MSG_TOO_LONG)
             v1 = 1
             for _ in range(n):
                 rng >>= 1
@@ -286,7 +296,59 @@ def decode_indices(data: bytes, n_keep: int) -> np.ndarray:
                     code = ((code << 8) | byte()) & 0xFFFFFFFF
             a = 1 + v1
             if a > MAX_ABS_INDEX:
-                raise StreamError("entropy-coded index out of range")
+                raise StreamError(MSG_RANGE)
         out[k] = -a if neg else a
         a2, a1 = a1, a
     return np.array(out, dtype=np.int64)
+
+
+# ---------------------------------------------------------------- the compiled coder
+
+
+def _load_compiled():
+    """hostd.codec._rangecoder when built, of the expected revision, and not disabled."""
+    if os.environ.get("HOSTD_PURE_PYTHON", "") not in ("", "0"):
+        return None
+    try:
+        from hostd.codec import _rangecoder
+    except ImportError:
+        return None
+    return _rangecoder if getattr(_rangecoder, "REVISION", None) == C_REVISION else None
+
+
+_C = _load_compiled()
+
+
+def encode_indices_c(q: np.ndarray) -> bytes:
+    """encode_indices_py's bytes, by the compiled coder (1-D integer arrays; anything else
+    goes to the reference, which gives the same result or error for it)."""
+    a = np.asarray(q)
+    if a.ndim != 1 or a.dtype.kind not in "iu":
+        return encode_indices_py(q)
+    if a.size and max(-int(a.min()), int(a.max())) > MAX_ABS_INDEX:
+        raise ValueError("index magnitude beyond 2^40")
+    return _C.encode(np.ascontiguousarray(a, dtype=np.int64))
+
+
+def decode_indices_c(data: bytes, n_keep: int) -> np.ndarray:
+    """decode_indices_py's indices or StreamError, by the compiled coder."""
+    n_keep = int(n_keep)
+    out = np.zeros(max(n_keep, 0), dtype=np.int64)
+    status, n_sig = _C.decode(data, out)
+    if status == _C.ERR_TOO_LONG:
+        raise StreamError(MSG_TOO_LONG)
+    if status == _C.ERR_N_SIG or n_sig > n_keep:  # (n_keep < 0: decoded against N' = 0)
+        raise StreamError(msg_n_sig(n_sig, n_keep))
+    if status:
+        raise StreamError(MSG_RANGE)
+    return out
+
+
+if _C is not None:
+    IMPLEMENTATION = "c"
+    encode_indices = encode_indices_c
+    decode_indices = decode_indices_c
+else:
+    IMPLEMENTATION = "python"
+    encode_indices = encode_indices_py
+    decode_indices = decode_indices_py

@@ -9,6 +9,7 @@ raises StreamError with a one-line message for any malformed input.
 from __future__ import annotations
 
 import binascii
+import functools
 import math
 import struct
 import zlib
@@ -39,6 +40,7 @@ METHOD_IDS = {v: k for k, v in METHODS.items()}
 FLAG_CURVE_EMBEDDED = 0x04
 FLAG_EXPLICIT_GEOMETRY = 0x08
 SHORT_ID_BYTES = 2
+SHIPPED_MAX_AGE_S = 1.0  # decode: the shipped curves are re-checked on disk at most once a second
 CRC16_LIMIT = 4096  # streams shorter than this end in a CRC-16, longer ones in a CRC-32
 CUT_VALUE_BITS = (8, 16, 32)
 B0_UNIT_DB = 0.25
@@ -78,6 +80,22 @@ class IntGeometry:
     def frequencies_hz(self) -> np.ndarray:
         return transform.frequencies_hz(np.arange(1, self.n_keep + 1), self.length_mm,
                                         self.speed_mm_s)
+
+
+def thresholds_at(curve: th.ThresholdCurve, ig: IntGeometry) -> np.ndarray:
+    """b(f_k) for k = 1..N' of this geometry (read-only). Memoized per (curve, geometry) for
+    N' <= 2^16 (16 entries, <= 8 MiB): a daemon decodes many streams of the same geometry
+    and shipped curve (curves are immutable; an embedded one is a new object per stream)."""
+    if ig.n_keep > 1 << 16:
+        return curve(ig.frequencies_hz())
+    return _thresholds_memo(curve, ig)
+
+
+@functools.lru_cache(maxsize=16)
+def _thresholds_memo(curve: th.ThresholdCurve, ig: IntGeometry) -> np.ndarray:
+    b = curve(ig.frequencies_hz())
+    b.setflags(write=False)
+    return b
 
 
 PAPER_GEOMETRY = IntGeometry(n=20000, spacing_pm=500_000, speed_um_s=50_000, fmax_mhz=400_000)
@@ -219,7 +237,7 @@ def encode_coefficients(
         raise CodecError(f"expected {n_keep} coefficients for this geometry, got {c.shape}")
     if not np.all(np.isfinite(c)):
         raise CodecError("coefficients contain NaN or Inf")
-    b_k = curve(ig.frequencies_hz())
+    b_k = thresholds_at(curve, ig)
     P, A = indices.weighted_sums(c, b_k)
     if method not in METHOD_IDS:
         raise CodecError(f"unknown method {method!r}: use shaped, quant or cut")
@@ -361,11 +379,11 @@ def decode(data: bytes) -> Stream:
             raise StreamError("embedded threshold table does not match the header's curve id")
     payload = body[r.pos :]
     q = rangecoder.decode_indices(payload, n_keep)
-    shipped = th.shipped_curves() if curve is None else {}
+    shipped = th.shipped_curves(SHIPPED_MAX_AGE_S) if curve is None else {}
     if method == "shaped":
         if curve is None:
             curve = _shipped_by_short_id(short_id, shipped)
-        coeffs = shaped_values(q, curve(ig.frequencies_hz()), g_db)
+        coeffs = shaped_values(q, thresholds_at(curve, ig), g_db)
     elif method == "quant":
         if np.any(np.abs(q) >= 1 << 53):
             raise StreamError("quantization index out of range")
@@ -390,6 +408,8 @@ def decode(data: bytes) -> Stream:
 
 def _shipped_by_short_id(short_id: bytes, shipped: dict) -> th.ThresholdCurve:
     found = [c for k, c in shipped.items() if k[:SHORT_ID_BYTES] == short_id]
+    if len(found) != 1:  # look again, on disk: the curve may have been installed just now
+        found = [c for k, c in th.shipped_curves().items() if k[:SHORT_ID_BYTES] == short_id]
     if len(found) != 1:
         raise StreamError(
             f"threshold curve {short_id.hex()} is not embedded and "
@@ -402,4 +422,6 @@ def _shipped_by_short_id(short_id: bytes, shipped: dict) -> th.ThresholdCurve:
 def _full_id(short_id: bytes, shipped: dict) -> bytes:
     """The 8-byte id of the shipped curve with this short id, or the short id zero-padded."""
     found = [k for k in shipped if k[:SHORT_ID_BYTES] == short_id]
+    if len(found) != 1:  # look again, on disk (as _shipped_by_short_id)
+        found = [k for k in th.shipped_curves() if k[:SHORT_ID_BYTES] == short_id]
     return found[0] if len(found) == 1 else short_id + bytes(8 - SHORT_ID_BYTES)

@@ -75,20 +75,27 @@ def n_keep_for(length_mm: float, speed_mm_s: float, fmax_hz: float) -> int:
 
 def amplitudes(y_um: np.ndarray) -> np.ndarray:
     """All N DCT-II amplitudes C_0..C_{N-1} = (2/N) sum_n y_n cos(pi k (2n+1)/(2N))."""
+    y = _checked_profile(y_um)
+    return scipy.fft.dct(y, type=2) / y.size
+
+
+def _checked_profile(y_um: np.ndarray) -> np.ndarray:
     y = np.asarray(y_um, dtype=np.float64)
     if y.ndim != 1 or y.size < 2:
         raise CodecError("a profile must be a 1-D array of at least 2 heights")
     if not np.all(np.isfinite(y)):
         raise CodecError("the profile contains NaN or Inf heights; clean the input file")
-    return scipy.fft.dct(y, type=2) / y.size
+    return y
 
 
 def analyze(y_um: np.ndarray, n_keep: int) -> np.ndarray:
-    """C_1..C_N' of a profile (DC dropped)."""
+    """C_1..C_N' of a profile (DC dropped): amplitudes(y)[1 : N' + 1], the same bits, with the
+    division by N done on the N' kept values only."""
     n = np.asarray(y_um).size
     if not (1 <= n_keep < n):
         raise CodecError(f"N' must be in 1..N-1 = 1..{n - 1}, got {n_keep}")
-    return amplitudes(y_um)[1 : n_keep + 1].copy()
+    y = _checked_profile(y_um)
+    return scipy.fft.dct(y, type=2)[1 : n_keep + 1] / n
 
 
 def synthesize(coeffs_um: np.ndarray, n: int) -> np.ndarray:
@@ -97,9 +104,11 @@ def synthesize(coeffs_um: np.ndarray, n: int) -> np.ndarray:
     if c.ndim != 1 or not (1 <= c.size < n):
         raise CodecError(f"need 1..N-1 coefficients for N = {n}, got {c.size}")
     full = np.zeros(n, dtype=np.float64)
-    full[1 : c.size + 1] = c
-    # scipy's unnormalized DCT-III is x_0 + 2 sum_{k>=1} x_k cos(...); x_0 = 0 here.
-    return scipy.fft.dct(full, type=3) * 0.5
+    # scipy's unnormalized DCT-III is x_0 + 2 sum_{k>=1} x_k cos(...); x_0 = 0 here. The factor
+    # 1/2 is applied to the N' inputs instead of the N outputs (a power of two: the same bits)
+    # and the DCT works in place: one N-point array allocated in all.
+    np.multiply(c, 0.5, out=full[1 : c.size + 1])
+    return scipy.fft.dct(full, type=3, overwrite_x=True)
 
 
 def direct_amplitudes(y_um: np.ndarray, k: np.ndarray) -> np.ndarray:

@@ -6,6 +6,7 @@ import functools
 import hashlib
 import os
 import struct
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -152,11 +153,27 @@ def default_curve() -> ThresholdCurve:
     return load_csv(paths.find("thresholds", "default.csv"))
 
 
-def shipped_curves() -> dict[bytes, ThresholdCurve]:
+def shipped_curves(max_age_s: float = 0.0) -> dict[bytes, ThresholdCurve]:
     """Every curve under thresholds/ (the override's and the shipped ones), keyed by its 8-byte
-    id (cached until files change). os.scandir: cheaper than glob + stat (called per decode)."""
+    id. Cached: the cache holds while the two directories and the .csv files found in them
+    keep their modification times, so a curve file added, removed, renamed or rewritten (also
+    in place) is seen on the next call. Checking that takes a few os.stat calls (~5 µs each
+    on a VM); a caller may skip the check for max_age_s seconds after the last one (a decoder
+    does, and checks again when the curve it needs is missing: entries are keyed by their
+    content's hash, so a cached one is never a wrong curve, at most one removed moments ago)."""
+    dirs = (_override_thresholds_dir(os.environ.get("HOSTD_CONFIG_DIR")), _package_thresholds_dir())
+    hit = _SCAN_CACHE.get(dirs)
+    if hit is not None:
+        now = time.monotonic()
+        if now - hit[3] < max_age_s:
+            return hit[2]
+        if _mtimes(hit[0]) == hit[1]:
+            hit[3] = now
+            return hit[2]
+    checked = time.monotonic()
+    stamp = _mtimes(dirs)  # before the scan: a change during the scan makes the next call rescan
     entries = []
-    for d in reversed(paths.search_dirs("thresholds")):
+    for d in reversed(dirs):
         try:
             with os.scandir(d) as it:
                 entries += [(e.path, e.stat().st_mtime_ns) for e in it
@@ -164,7 +181,37 @@ def shipped_curves() -> dict[bytes, ThresholdCurve]:
         except OSError:
             pass
     files = tuple(sorted(entries))
-    return _load_dir(files)
+    curves = _load_dir(files)
+    paths_all = dirs + tuple(p for p, _ in files)
+    _SCAN_CACHE.clear()  # one entry: the current $HOSTD_CONFIG_DIR
+    _SCAN_CACHE[dirs] = [paths_all, stamp + tuple(m for _, m in files), curves, checked]
+    return curves
+
+
+# (paths watched, their modification times, the curves, time.monotonic() of the last check)
+_SCAN_CACHE: dict[tuple[str, str], list] = {}
+
+
+@functools.lru_cache(maxsize=4)
+def _override_thresholds_dir(_env: str | None) -> str:
+    """paths.override_dir()'s thresholds/, memoized on the variable it reads."""
+    return str(paths.override_dir() / "thresholds")
+
+
+@functools.cache
+def _package_thresholds_dir() -> str:
+    """The package's own thresholds/ (fixed for the life of the process)."""
+    return str(paths.shipped_dir() / "thresholds")
+
+
+def _mtimes(files: tuple[str, ...]) -> tuple[int | None, ...]:
+    out = []
+    for f in files:
+        try:
+            out.append(os.stat(f).st_mtime_ns)
+        except OSError:
+            out.append(None)
+    return tuple(out)
 
 
 @functools.lru_cache(maxsize=8)
