@@ -57,6 +57,8 @@ CASES_V2 = {
     "v2_cut_b0p0_16bit": dict(method="cut", b0_db=0.0, value_bits=16),
     "v2_paper_shaped_gm6": dict(method="shaped", g_db=-6.0, paper=True),
     "v2_paper_quant_l8": dict(method="quant", levels=8, paper=True),
+    # explicit geometry with a reference speed other than the paper's: v_ref and f_max stored
+    "v2_shaped_gm9_v25": dict(method="shaped", g_db=-9.0, speed_mm_s=25.0),
 }
 
 
@@ -69,7 +71,9 @@ def build_v2(name: str) -> bytes:
     if kw.pop("paper", False):
         c = transform.amplitudes(y)[1:161] * 3.0
         return stream2.encode_coefficients(c, stream2.PAPER_GEOMETRY, curve, **kw)
-    return stream2.encode_profile(y, transform.Geometry(n=y.size, length_mm=2.0), curve, **kw)
+    speed = kw.pop("speed_mm_s", 50.0)
+    geom = transform.Geometry(n=y.size, length_mm=2.0, speed_mm_s=speed)
+    return stream2.encode_profile(y, geom, curve, **kw)
 
 
 def build() -> dict[str, bytes]:
