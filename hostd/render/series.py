@@ -25,15 +25,66 @@ def phase_rad(x_mm, n: int, length_mm: float) -> np.ndarray:
     return (x / (length_mm / n) + 0.5) * (np.pi / n)
 
 
+NUFFT_EPS = 1e-14  # relative tolerance of the nonuniform FFTs (finufft), near float64 rounding
+
+
+def _nufft_sums(theta: np.ndarray, w: np.ndarray, kmax: int) -> np.ndarray:
+    """sum_i w_i exp(i k theta_i) for k = 0..kmax: one type-1 nonuniform FFT (finufft, one
+    thread: the offline benchmarks charge the calling thread's CPU time), O(S + K log K)."""
+    import finufft
+
+    f = finufft.nufft1d1(theta, np.asarray(w, dtype=np.complex128), 2 * kmax + 1, eps=NUFFT_EPS,
+                         isign=1, nthreads=1)  # modes -kmax..kmax
+    return f[kmax:]
+
+
 def evaluate(coeffs: np.ndarray, theta: np.ndarray, k0: int = 1) -> np.ndarray:
-    """sum_j coeffs[j] cos((k0 + j) theta) at arbitrary phases, by Horner's rule on
-    z = exp(i theta): O(len(theta) * len(coeffs)) time, O(len(theta)) memory."""
+    """sum_j coeffs[j] cos((k0 + j) theta) at arbitrary phases: one type-2 nonuniform FFT
+    (finufft), O(len(theta) + K log K)."""
+    import finufft
+
     c = np.asarray(coeffs, dtype=np.float64)
-    z = np.exp(1j * np.asarray(theta, dtype=np.float64))
+    th = np.asarray(theta, dtype=np.float64)
+    if c.size == 0 or th.size == 0:
+        return np.zeros(th.shape)
+    kmax = k0 + c.size - 1
+    modes = np.zeros(2 * kmax + 1, dtype=np.complex128)  # modes -kmax..kmax, cos = (e^+ + e^-)/2
+    modes[kmax + k0 :] = c
+    y = finufft.nufft1d2(np.ravel(th), modes, eps=NUFFT_EPS, isign=1, nthreads=1)
+    return np.real(y).reshape(th.shape)
+
+
+def evaluate_faded(coeffs: np.ndarray, theta: np.ndarray, speed: np.ndarray, f_pass: float,
+                   f_stop: float, gain, k0: int = 1) -> np.ndarray:
+    """sum_j g((k0 + j) s_i) coeffs[j] cos((k0 + j) theta_i), with a per-sample scale s_i >= 0
+    (speed / 2L: component k sounds at f = k s_i) and a gain g(f) that is 1 for f <= f_pass, 0
+    for f >= f_stop, and gain(k, s) (vectorized over s) between. Exact (no speed buckets).
+
+    Horner's rule on z_i = exp(i theta_i) from the top component down, over the samples sorted
+    by s: at component k only the samples with k s_i < f_stop are still active (a prefix), so
+    the work is sum_i min(K, f_stop / s_i), not S x K.
+    """
+    c = np.asarray(coeffs, dtype=np.float64)
+    th = np.asarray(theta, dtype=np.float64)
+    s = np.abs(np.asarray(speed, dtype=np.float64))
+    order = np.argsort(s, kind="stable")
+    ss = s[order]
+    z = np.exp(1j * th[order])
     acc = np.zeros(z.shape, dtype=np.complex128)
-    for ck in c[::-1]:
-        acc = acc * z + ck
-    return np.real(acc * z**k0)
+    for j in range(c.size - 1, -1, -1):
+        k = k0 + j
+        n_on = int(np.searchsorted(ss, f_stop / k, side="left"))  # k s < f_stop
+        if n_on == 0:
+            continue
+        n_full = int(np.searchsorted(ss, f_pass / k, side="right"))  # k s <= f_pass
+        a = acc[:n_on]
+        a *= z[:n_on]
+        a[:n_full] += c[j]
+        if n_full < n_on:
+            a[n_full:] += c[j] * gain(k, ss[n_full:n_on])
+    out = np.empty(th.shape)
+    out[order] = np.real(acc * z**k0)
+    return out
 
 
 def evaluate_uniform(coeffs: np.ndarray, theta0: float, dtheta: float, count: int,
@@ -50,36 +101,46 @@ def evaluate_uniform(coeffs: np.ndarray, theta0: float, dtheta: float, count: in
     return np.real(y * np.exp(1j * k0 * (theta0 + m * dtheta)))
 
 
-def project(theta: np.ndarray, y: np.ndarray, n_keep: int, chunk: int = 64) -> np.ndarray:
-    """Least-squares c_0..c_K (K = n_keep) of y ~ sum_k c_k cos(k theta) at arbitrary phases.
+class Projector:
+    """Least-squares fits y ~ sum_k c_k cos(k theta), k = 0..K (K = n_keep), at fixed phases.
 
-    The normal equations come from a nonuniform Fourier transform of the phases and of the
-    data: with m_d = sum_i cos(d theta_i) (d = 0..2K) and r_k = sum_i y_i cos(k theta_i),
-    G_jk = (m_|j-k| + m_(j+k)) / 2 (Toeplitz + Hankel) and G c = r. That is O(S K) time and
-    O(S chunk + K^2) memory, not an S x K basis and its O(S K^2) Gram product. Solved by
-    Cholesky (the cosines are nearly orthogonal over many strokes); least squares on G when
-    the phases do not cover the period.
+    The normal equations come from nonuniform Fourier sums of the phases and of the data
+    (type-1 NUFFTs): with m_d = sum_i cos(d theta_i) (d = 0..2K) and r_k = sum_i y_i cos(k theta_i),
+    G_jk = (m_|j-k| + m_(j+k)) / 2 (Toeplitz + Hankel) and G c = r. That is O(S + K log K) for
+    the sums, not an S x K basis and its O(S K^2) Gram product. G depends only on the phases:
+    it is factored once (Cholesky, O(K^3)) and `fit` reuses the factor for every y (the runs of
+    one scene report that deliver at the same instants share it). Least squares on G when the
+    phases do not cover the period (G singular).
     """
-    th = np.asarray(theta, dtype=np.float64)
-    yy = np.asarray(y, dtype=np.float64)
-    K = int(n_keep)
-    z = np.exp(1j * th)
-    zc = z[:, None] ** np.arange(chunk)  # z^0..z^(chunk-1), S x chunk
-    step = z**chunk
-    m = np.empty(2 * K + 1)
-    r = np.empty(K + 1)
-    base = np.ones_like(z)  # z^d0
-    for d0 in range(0, 2 * K + 1, chunk):
-        w = np.ascontiguousarray((base[:, None] * zc).real)  # cos(d theta_i), S x chunk
-        hi = min(chunk, 2 * K + 1 - d0)
-        m[d0 : d0 + hi] = w[:, :hi].sum(axis=0)
-        if d0 <= K:
-            rk = min(chunk, K + 1 - d0)
-            r[d0 : d0 + rk] = yy @ w[:, :rk]
-        base = base * step
-    j = np.arange(K + 1)
-    gram = 0.5 * (scipy.linalg.toeplitz(m[: K + 1]) + m[j[:, None] + j[None, :]])
-    try:
-        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(gram), r)
-    except np.linalg.LinAlgError:
-        return np.linalg.lstsq(gram, r, rcond=None)[0]
+
+    def __init__(self, theta: np.ndarray, n_keep: int) -> None:
+        self.theta = np.asarray(theta, dtype=np.float64)
+        self.n_keep = K = int(n_keep)
+        m = _nufft_sums(self.theta, np.ones(self.theta.size), 2 * K).real
+        j = np.arange(K + 1)
+        gram = scipy.linalg.toeplitz(m[: K + 1])
+        gram += m[j[:, None] + j[None, :]]
+        gram *= 0.5
+        try:
+            self._cho = scipy.linalg.cho_factor(gram, overwrite_a=True)
+            self._gram = None
+        except np.linalg.LinAlgError:
+            self._cho = None
+            self._gram = 0.5 * (scipy.linalg.toeplitz(m[: K + 1]) + m[j[:, None] + j[None, :]])
+
+    @property
+    def nbytes(self) -> int:
+        return (self.n_keep + 1) ** 2 * 8 + self.theta.nbytes
+
+    def fit(self, y: np.ndarray) -> np.ndarray:
+        """c_0..c_K for samples y at the projector's phases."""
+        r = _nufft_sums(self.theta, np.asarray(y, dtype=np.float64), self.n_keep).real
+        if self._cho is not None:
+            return scipy.linalg.cho_solve(self._cho, r)
+        return np.linalg.lstsq(self._gram, r, rcond=None)[0]
+
+
+def project(theta: np.ndarray, y: np.ndarray, n_keep: int) -> np.ndarray:
+    """Least-squares c_0..c_K (K = n_keep) of y ~ sum_k c_k cos(k theta) at arbitrary phases
+    (see Projector; one fit)."""
+    return Projector(theta, n_keep).fit(y)
