@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
+from hostd.render.series import evaluate as series_evaluate
 from hostd.render.series import phase_rad as series_phase
 
 METHODS = ("series", "table-cubic", "table-linear", "nearest")
@@ -110,7 +111,7 @@ class HeightEvaluator:
         w = ((self.c * self.gains(speed_mm_s)).astype(self.dtype) if exact_gains
              else self.weights(speed_mm_s))
         kept = w.size - int(np.argmax(w[::-1] != 0)) if w.any() else 0  # gains 0 past the band: skip
-        return np.cos(np.multiply.outer(u, self._k[:kept])) @ w[:kept]
+        return series_evaluate(w[:kept], u)
 
     def _bucket(self, speed_mm_s: float) -> int:
         s = abs(speed_mm_s)

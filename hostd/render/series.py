@@ -13,6 +13,8 @@ fits the series (the renderer, the scene simulator, the peer metrics) uses `phas
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import scipy.linalg
 import scipy.signal
@@ -38,20 +40,46 @@ def _nufft_sums(theta: np.ndarray, w: np.ndarray, kmax: int) -> np.ndarray:
     return f[kmax:]
 
 
-def evaluate(coeffs: np.ndarray, theta: np.ndarray, k0: int = 1) -> np.ndarray:
-    """sum_j coeffs[j] cos((k0 + j) theta) at arbitrary phases: one type-2 nonuniform FFT
-    (finufft), O(len(theta) + K log K)."""
+NUFFT_MIN_TERMS = 16384  # evaluate by the cosine matrix below this many (sample, component) terms
+_plans = threading.local()  # type-2 NUFFT plans of this thread, by mode count (reused across calls)
+
+
+def _type2_plan(kmax: int):
+    """A type-2 NUFFT plan for modes -M..M, M = kmax rounded up to a power of two (so that a few
+    plans serve every truncation of one series), cached per thread."""
     import finufft
 
-    c = np.asarray(coeffs, dtype=np.float64)
-    th = np.asarray(theta, dtype=np.float64)
+    m = 1 << max(4, (kmax - 1).bit_length())
+    cache = _plans.__dict__.setdefault("by_m", {})
+    plan = cache.get(m)
+    if plan is None:
+        if len(cache) >= 8:
+            cache.pop(next(iter(cache)))
+        plan = cache[m] = finufft.Plan(2, (2 * m + 1,), eps=NUFFT_EPS, isign=1, nthreads=1)
+    return plan, m
+
+
+def evaluate(coeffs: np.ndarray, theta: np.ndarray, k0: int = 1) -> np.ndarray:
+    """sum_j coeffs[j] cos((k0 + j) theta) at arbitrary phases, in theta's float type.
+
+    Few terms (the renderer's real-time batches): the len(theta) x K cosine matrix. Many (the
+    scene simulator, the fits' intended signal): one type-2 nonuniform FFT (finufft; float64),
+    O(len(theta) + K log K), with a plan reused across calls. Both agree to float rounding.
+    """
+    c = np.asarray(coeffs)
+    th = np.asarray(theta)
+    if th.dtype != np.float32:
+        th = th.astype(np.float64, copy=False)
     if c.size == 0 or th.size == 0:
-        return np.zeros(th.shape)
-    kmax = k0 + c.size - 1
-    modes = np.zeros(2 * kmax + 1, dtype=np.complex128)  # modes -kmax..kmax, cos = (e^+ + e^-)/2
-    modes[kmax + k0 :] = c
-    y = finufft.nufft1d2(np.ravel(th), modes, eps=NUFFT_EPS, isign=1, nthreads=1)
-    return np.real(y).reshape(th.shape)
+        return np.zeros(th.shape, dtype=th.dtype)
+    if th.size * c.size < NUFFT_MIN_TERMS or th.dtype == np.float32:
+        k = np.arange(k0, k0 + c.size, dtype=th.dtype)
+        return np.cos(np.multiply.outer(th, k)) @ c.astype(th.dtype, copy=False)
+    plan, m = _type2_plan(k0 + c.size - 1)
+    modes = np.zeros(2 * m + 1, dtype=np.complex128)  # modes -m..m; Re(c_k e^{ik theta}) = c_k cos
+    modes[m + k0 : m + k0 + c.size] = c
+    plan.setpts(np.mod(np.ravel(th), 2.0 * np.pi))
+    return np.real(plan.execute(modes)).reshape(th.shape)
 
 
 def evaluate_faded(coeffs: np.ndarray, theta: np.ndarray, speed: np.ndarray, f_pass: float,
