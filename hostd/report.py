@@ -180,8 +180,9 @@ def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int,
     axes[0].legend(title="method", fontsize=8)
     fig.suptitle(f"Rate-quality: {title}", fontsize=11)
     fig.tight_layout()
-    for ax, labels in zip(axes, all_labels, strict=True):  # after the layout: final pixel scale
-        place_labels(ax, labels)
+    fig.canvas.draw()  # after the layout: the final pixel scale, once for the three panels
+    for ax, labels in zip(axes, all_labels, strict=True):
+        place_labels(ax, labels, draw=False)
     fig.savefig(path)
     plt.close(fig)
 

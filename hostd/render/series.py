@@ -13,6 +13,7 @@ fits the series (the renderer, the scene simulator, the peer metrics) uses `phas
 
 from __future__ import annotations
 
+import functools
 import threading
 
 import numpy as np
@@ -115,6 +116,13 @@ def evaluate_faded(coeffs: np.ndarray, theta: np.ndarray, speed: np.ndarray, f_p
     return out
 
 
+@functools.lru_cache(maxsize=8)
+def _czt(n: int, count: int, dtheta: float) -> scipy.signal.CZT:
+    """The chirp-z transform sum_j x_j w^(m j), w = exp(i dtheta): its chirps and their FFT are
+    built once per (size, count, step) and reused (a sweep synthesizes many signals alike)."""
+    return scipy.signal.CZT(n, m=count, w=np.exp(1j * dtheta), a=1.0)
+
+
 def evaluate_uniform(coeffs: np.ndarray, theta0: float, dtheta: float, count: int,
                      k0: int = 1) -> np.ndarray:
     """sum_j coeffs[j] cos((k0 + j)(theta0 + m dtheta)) for m = 0..count-1: a hand at constant
@@ -122,9 +130,8 @@ def evaluate_uniform(coeffs: np.ndarray, theta0: float, dtheta: float, count: in
     O((count + K) log(count + K))) instead of a count x K cosine matrix."""
     c = np.asarray(coeffs, dtype=np.float64)
     k = np.arange(k0, k0 + c.size, dtype=np.float64)
-    x = c * np.exp(1j * k0 * 0.0 + 1j * (k - k0) * theta0)
-    w = np.exp(1j * dtheta)
-    y = scipy.signal.czt(x, m=count, w=w, a=1.0)  # sum_j x_j w^(m j)
+    x = c * np.exp(1j * (k - k0) * theta0)
+    y = _czt(c.size, int(count), float(dtheta))(x)  # sum_j x_j w^(m j)
     m = np.arange(count, dtype=np.float64)
     return np.real(y * np.exp(1j * k0 * (theta0 + m * dtheta)))
 
