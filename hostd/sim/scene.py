@@ -6,13 +6,21 @@ effects asked for (hostd.sim.effects) and simulates:
 
 - with no closed-loop effect, the host knows the hand's true position at every play instant:
   the band-limited series is evaluated for all samples at once (vectorized, no loop), then
-  the output effects act on the commands;
+  the output effects act on the commands. The command before the output effects depends
+  only on the renderer's configuration, so the runs of one report that differ only by output
+  effects (dac, actuator, finger_load) render it once (`Shared`);
 - with encoder, transport, clock_drift or cpu_load, the host's real render pipeline runs
-  batch by batch on what the host would see, when it would see it.
+  batch by batch on what the host would see, when it would see it: motion estimate,
+  prediction, re-locks and their crossfade, stalls and underruns. The hand does not feel the
+  display, so the readings do not depend on what was rendered: each batch is planned with
+  the pipeline's own code (Renderer.plan) and the planned heights are evaluated afterwards,
+  one call of the pipeline's height evaluator per speed bucket (Renderer.heights_many_um),
+  equal to rendering batch by batch to float rounding (tests/test_sim_speed.py).
 
 Delivered quality: the displacement the finger received is fitted, by least squares, onto the
-patch's cosine series at the hand's true positions (normal equations from a nonuniform Fourier
-transform, hostd.render.series.project) (the mirror-even series the codec uses), and
+patch's cosine series at the hand's true positions (normal equations from nonuniform FFTs,
+hostd.render.series.Projector; runs delivered at the same instants share its factored Gram
+matrix) (the mirror-even series the codec uses), and
 the fitted C'_k are scored with the same index as the codec (Ip, Ia, Iobj against the stream
 header's reference). With an ideal chain this recovers the decoded coefficients, so the
 delivered Iobj equals the codec-only Iobj.
