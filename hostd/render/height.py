@@ -110,8 +110,7 @@ class HeightEvaluator:
         u = series_phase(x_mm, self.n, self.length_mm).astype(self.dtype)
         w = ((self.c * self.gains(speed_mm_s)).astype(self.dtype) if exact_gains
              else self.weights(speed_mm_s))
-        kept = w.size - int(np.argmax(w[::-1] != 0)) if w.any() else 0  # gains 0 past the band: skip
-        return series_evaluate(w[:kept], u)
+        return series_evaluate(w, u)
 
     def _bucket(self, speed_mm_s: float) -> int:
         s = abs(speed_mm_s)

@@ -42,6 +42,7 @@ def _nufft_sums(theta: np.ndarray, w: np.ndarray, kmax: int) -> np.ndarray:
 
 
 NUFFT_MIN_TERMS = 16384  # evaluate by the cosine matrix below this many (sample, component) terms
+TRIM_MIN_TERMS = 2048  # from this many terms, trailing zero coefficients are trimmed first
 _plans = threading.local()  # type-2 NUFFT plans of this thread, by mode count (reused across calls)
 
 
@@ -60,21 +61,32 @@ def _type2_plan(kmax: int):
     return plan, m
 
 
+@functools.lru_cache(maxsize=64)
+def _orders(k0: int, count: int, dtype: str) -> np.ndarray:
+    """k0, k0 + 1, ..., k0 + count - 1 as floats (read-only; cached for the real-time path)."""
+    k = np.arange(k0, k0 + count, dtype=dtype)
+    k.flags.writeable = False
+    return k
+
+
 def evaluate(coeffs: np.ndarray, theta: np.ndarray, k0: int = 1) -> np.ndarray:
     """sum_j coeffs[j] cos((k0 + j) theta) at arbitrary phases, in theta's float type.
 
     Few terms (the renderer's real-time batches): the len(theta) x K cosine matrix. Many (the
     scene simulator, the fits' intended signal): one type-2 nonuniform FFT (finufft; float64),
     O(len(theta) + K log K), with a plan reused across calls. Both agree to float rounding.
+    Trailing zero coefficients (components past the speed's band) are left out of the sum
+    when that saves more than it costs.
     """
     c = np.asarray(coeffs)
     th = np.asarray(theta)
-    if th.dtype != np.float32:
-        th = th.astype(np.float64, copy=False)
-    if c.size == 0 or th.size == 0:
-        return np.zeros(th.shape, dtype=th.dtype)
+    if th.dtype != np.float32 and th.dtype != np.float64:
+        th = th.astype(np.float64)
+    if th.size * c.size >= TRIM_MIN_TERMS:
+        nz = np.flatnonzero(c)
+        c = c[: nz[-1] + 1 if nz.size else 0]
     if th.size * c.size < NUFFT_MIN_TERMS or th.dtype == np.float32:
-        k = np.arange(k0, k0 + c.size, dtype=th.dtype)
+        k = _orders(k0, c.size, th.dtype.char)
         return np.cos(np.multiply.outer(th, k)) @ c.astype(th.dtype, copy=False)
     plan, m = _type2_plan(k0 + c.size - 1)
     modes = np.zeros(2 * m + 1, dtype=np.complex128)  # modes -m..m; Re(c_k e^{ik theta}) = c_k cos
