@@ -116,3 +116,16 @@ def test_pruned_band_limited_series_and_nufft_sums_equal_direct_sums():
     for _ in range(2):
         y = rng.normal(0, 1, th.size)
         assert np.allclose(pj.fit(y), np.linalg.lstsq(basis, y, rcond=None)[0], rtol=0, atol=1e-9)
+
+
+def test_projector_on_phases_that_do_not_cover_the_period_gives_the_least_squares_fit():
+    rng = np.random.default_rng(2)
+    th = np.repeat(rng.uniform(0, 2 * np.pi, 6), 50)  # 6 distinct phases, 31 unknowns: G singular
+    pj = series.Projector(th, 30)
+    basis = np.cos(np.multiply.outer(th, np.arange(31)))
+    for _ in range(2):
+        y = rng.normal(0, 1, th.size)
+        want = np.linalg.lstsq(basis, y, rcond=None)[0]  # the minimum-norm least-squares solution
+        got = pj.fit(y)
+        assert np.allclose(basis @ got, basis @ want, rtol=0, atol=1e-9)
+        assert np.allclose(got, want, rtol=0, atol=1e-9)

@@ -156,8 +156,8 @@ class Projector:
     G_jk = (m_|j-k| + m_(j+k)) / 2 (Toeplitz + Hankel) and G c = r. That is O(S + K log K) for
     the sums, not an S x K basis and its O(S K^2) Gram product. G depends only on the phases:
     it is factored once (Cholesky, O(K^3)) and `fit` reuses the factor for every y (the runs of
-    one scene report that deliver at the same instants share it). Least squares on G when the
-    phases do not cover the period (G singular).
+    one scene report that deliver at the same instants share it). When the phases do not cover
+    the period (G singular): the minimum-norm solution, from one eigendecomposition of G.
     """
 
     def __init__(self, theta: np.ndarray, n_keep: int) -> None:
@@ -168,12 +168,19 @@ class Projector:
         gram = scipy.linalg.toeplitz(m[: K + 1])
         gram += m[j[:, None] + j[None, :]]
         gram *= 0.5
+        self._eig = None
         try:
             self._cho = scipy.linalg.cho_factor(gram, overwrite_a=True)
-            self._gram = None
         except np.linalg.LinAlgError:
+            # singular (the phases do not cover the period): the minimum-norm least-squares
+            # solution, as np.linalg.lstsq(G, r) gives it (same cutoff on G's singular values,
+            # which are |eigenvalues| here), from one eigendecomposition shared by every fit
             self._cho = None
-            self._gram = 0.5 * (scipy.linalg.toeplitz(m[: K + 1]) + m[j[:, None] + j[None, :]])
+            gram = 0.5 * (scipy.linalg.toeplitz(m[: K + 1]) + m[j[:, None] + j[None, :]])
+            lam, vec = scipy.linalg.eigh(gram)
+            cutoff = np.finfo(np.float64).eps * (K + 1) * np.abs(lam).max()
+            keep = np.abs(lam) > cutoff
+            self._eig = (vec[:, keep], 1.0 / lam[keep])
 
     @property
     def nbytes(self) -> int:
@@ -184,7 +191,8 @@ class Projector:
         r = _nufft_sums(self.theta, np.asarray(y, dtype=np.float64), self.n_keep).real
         if self._cho is not None:
             return scipy.linalg.cho_solve(self._cho, r)
-        return np.linalg.lstsq(self._gram, r, rcond=None)[0]
+        vec, inv = self._eig
+        return vec @ (inv * (vec.T @ r))
 
 
 def project(theta: np.ndarray, y: np.ndarray, n_keep: int) -> np.ndarray:
