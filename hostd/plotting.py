@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 
-def place_labels(ax, items: list[tuple[float, float, str]], fontsize: float = 6.5) -> None:
+def place_labels(ax, items: list[tuple[float, float, str]], fontsize: float = 6.5,
+                 draw: bool = True) -> None:
     """Annotate points without overlaps: each label takes the first of a few offsets whose box
     (estimated in pixels) does not overlap an earlier label or point; a label that finds no
-    free place is left out (its point stays, the CSV holds every value)."""
+    free place is left out (its point stays, the CSV holds every value). The figure is drawn
+    first for its final pixel scale; draw=False when the caller has just drawn it (several
+    axes of one figure need one draw)."""
     fig = ax.figure
-    fig.canvas.draw()
+    if draw:
+        fig.canvas.draw()
     to_px = ax.transData.transform
     char_w, line_h = 0.62 * fontsize * fig.dpi / 72, 1.25 * fontsize * fig.dpi / 72
     placed: list[tuple[float, float, float, float]] = []

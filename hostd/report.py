@@ -188,8 +188,11 @@ def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int,
     axes[0].legend(title="method", fontsize=8)
     fig.suptitle(f"Rate-quality: {title}", fontsize=11)
     fig.tight_layout()
-    for ax, labels in zip(axes, all_labels, strict=True):  # after the layout: final pixel scale
-        place_labels(ax, labels)
+    for ax, labels in zip(axes, all_labels, strict=True):
+        # after the layout the pixel scale is final once the (lazy) autoscaled limits are set:
+        # no full draw is needed before savefig's
+        ax.get_xlim(), ax.get_ylim()
+        place_labels(ax, labels, draw=False)
     fig.savefig(path)
     plt.close(fig)
 

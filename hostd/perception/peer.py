@@ -50,18 +50,52 @@ def _reference_signal(key: bytes, n: int, length_mm: float, speed_mm_s: float,
     return sig
 
 
+ST_SIM_ETA = 2.0 / 3.0  # vibromaf's st_sim() default: weight of the temporal similarity
+
+
+@lru_cache(maxsize=8)
+def _reference_st_sim(key: bytes, n: int, length_mm: float, speed_mm_s: float,
+                      duration_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The reference's side of ST-SIM (its spectral support and normalized blocks, by
+    vibromaf's own building blocks): the same for every variant of one original."""
+    from vibromaf.metrics.stsim import STSIM
+    from vibromaf.signal.spectrum import compute_spectral_support
+
+    ref = _reference_signal(key, n, length_mm, speed_mm_s, duration_s)
+    psb = STSIM.perceptual_spectrum_builder
+    return (compute_spectral_support(psb.compute_perceptual_spectrum(ref)),
+            psb.block_builder.divide_and_normalize(ref))
+
+
+def _st_sim(dist: np.ndarray, ref: np.ndarray, ref_support: np.ndarray, ref_blocks: np.ndarray) -> float:
+    """vibromaf's STSIM(eta).calculate(dist, ref), with the reference's side given."""
+    from vibromaf.metrics.stsim import STSIM
+    from vibromaf.signal.spectrum import compute_spectral_support
+    from vibromaf.signal.transform import preprocess_input_signal
+
+    dist = preprocess_input_signal(dist, ref)
+    if np.array_equal(dist, ref):
+        return 1.0
+    psb = STSIM.perceptual_spectrum_builder
+    spectral = STSIM.compute_sim(ref_support, compute_spectral_support(psb.compute_perceptual_spectrum(dist)))
+    temporal = STSIM.compute_sim(ref_blocks, psb.block_builder.divide_and_normalize(dist))
+    return pow(temporal, ST_SIM_ETA) * pow(spectral, 1 - ST_SIM_ETA)
+
+
 def peer_scores(ref_coeffs_um: np.ndarray, coeffs_um: np.ndarray, n: int, length_mm: float,
                 speed_mm_s: float, duration_s: float = 1.0) -> dict[str, float] | None:
     """{'st_sim': .., 'spqi': ..} (1 = identical), or None when vibromaf is not installed.
-    The reference's played signal is cached (a sweep scores many variants of one original)."""
+    The reference's played signal and its side of ST-SIM are cached (a sweep scores many
+    variants of one original); ST-SIM equals vibromaf's st_sim() (tests/test_peer.py)."""
     if not available():
         return None
     from vibromaf.metrics.spqi import spqi
-    from vibromaf.metrics.stsim import st_sim
 
     key = np.ascontiguousarray(ref_coeffs_um, dtype=np.float64).tobytes()
-    ref = _reference_signal(key, int(n), float(length_mm), float(speed_mm_s), float(duration_s))
+    args = (key, int(n), float(length_mm), float(speed_mm_s), float(duration_s))
+    ref = _reference_signal(*args)
     dist = played_signal(coeffs_um, n, length_mm, speed_mm_s, duration_s)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return {"st_sim": float(st_sim(dist, ref)), "spqi": float(spqi(dist, ref))}
+        return {"st_sim": float(_st_sim(dist, ref, *_reference_st_sim(*args))),
+                "spqi": float(spqi(dist, ref))}

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
+from hostd.render.series import evaluate as series_evaluate
 from hostd.render.series import phase_rad as series_phase
 
 METHODS = ("series", "table-cubic", "table-linear", "nearest")
@@ -113,7 +114,7 @@ class HeightEvaluator:
         u = series_phase(x_mm, self.n, self.length_mm).astype(self.dtype)
         w = ((self.c * self.gains(speed_mm_s)).astype(self.dtype) if exact_gains
              else self.weights(speed_mm_s))
-        return np.cos(np.multiply.outer(u, self._k)) @ w
+        return series_evaluate(w, u)
 
     def _bucket(self, speed_mm_s: float) -> int:
         s = abs(speed_mm_s)

@@ -35,6 +35,15 @@ class RenderConfig:
     relock_fade_s: float = 0.01  # crossfade across a re-lock of the motion estimate
 
 
+@dataclass
+class BatchPlan:
+    """One batch's motion, decided when it is rendered (Renderer.plan)."""
+    x_mm: np.ndarray  # predicted positions at the play instants (+ latency)
+    speed_mm_s: float  # the estimate's speed: selects the band limit
+    x_old_mm: np.ndarray | None = None  # the estimate before a re-lock, while crossfading
+    fade_in: np.ndarray | None = None  # weight of the new estimate per sample (crossfade)
+
+
 class Renderer:
     """Stateful: feed encoder readings, ask for batches of samples at their play times."""
 
@@ -81,19 +90,71 @@ class Renderer:
     def stop(self) -> None:
         self.out.stop()
 
-    def render_um(self, t_play_s: np.ndarray) -> np.ndarray:
-        """Limited displacement (µm) for samples that will be played at t_play_s."""
+    def plan(self, t_play_s: np.ndarray) -> BatchPlan:
+        """The motion part of rendering one batch: where the hand will be at the play instants
+        (+ the chain's latency), at what speed, and the crossfade from the estimate before a
+        re-lock (advances the crossfade). render_um = plan, then heights, then the filters."""
         t = np.asarray(t_play_s, dtype=np.float64) + self.latency_s
         x = self.motion.predict(t)
         v = self.motion.velocity_mm_s
-        h = self.height(x, v)
-        if self._xfade_left > 0:  # linear crossfade, old estimate -> new, over relock_fade_s
-            k = np.arange(self._xfade_n - self._xfade_left, self._xfade_n - self._xfade_left + h.size)
-            w = np.minimum(1.0, (k + 1) / self._xfade_n)
-            h_old = self.height(self.motion.predict_previous(t), v)
-            h = w * h + (1.0 - w) * h_old
-            self._xfade_left = max(0, self._xfade_left - h.size)
-        return self.out.process(self.eq(h))
+        if self._xfade_left <= 0:
+            return BatchPlan(x, v)
+        # linear crossfade, old estimate -> new, over relock_fade_s
+        k = np.arange(self._xfade_n - self._xfade_left, self._xfade_n - self._xfade_left + t.size)
+        w = np.minimum(1.0, (k + 1) / self._xfade_n)
+        self._xfade_left = max(0, self._xfade_left - t.size)
+        return BatchPlan(x, v, self.motion.predict_previous(t), w)
+
+    def heights_um(self, plan: BatchPlan) -> np.ndarray:
+        """Band-limited heights (before the equalizer) of one planned batch."""
+        h = self.height(plan.x_mm, plan.speed_mm_s)
+        if plan.x_old_mm is not None:
+            h = plan.fade_in * h + (1.0 - plan.fade_in) * self.height(plan.x_old_mm, plan.speed_mm_s)
+        return h
+
+    def heights_many_um(self, plans: list[BatchPlan], chunk: int = 2048) -> np.ndarray:
+        """heights_um of many planned batches, concatenated: the same height evaluator, called
+        once per speed bucket (the evaluator's weights or table depend only on the bucket)
+        with every position planned at a speed in that bucket, instead of once per batch.
+        Equal to the batch-by-batch heights to float rounding. For offline use, where the
+        hand's readings are known ahead (the scene simulator): on the real-time path each
+        batch is planned only when its readings have arrived."""
+        sizes = np.array([p.x_mm.size for p in plans], dtype=np.int64)
+        fading = [i for i, p in enumerate(plans) if p.x_old_mm is not None]
+        x = np.concatenate([p.x_mm for p in plans] + [plans[i].x_old_mm for i in fading])
+        speed = np.array([p.speed_mm_s for p in plans])
+        bucket = np.array([self.height._bucket(v) for v in speed], dtype=np.int64)
+        pt_batch = np.concatenate([np.repeat(np.arange(len(plans)), sizes),
+                                   np.repeat(np.array(fading, dtype=np.int64), sizes[fading])])
+        pt_bucket = bucket[pt_batch]
+        order = np.argsort(pt_bucket, kind="stable")
+        edges = np.flatnonzero(np.diff(pt_bucket[order])) + 1
+        h = np.empty(x.size, dtype=np.float64)
+        for grp in np.split(order, edges):
+            if grp.size == 0:
+                continue
+            v = float(speed[pt_batch[grp[0]]])
+            for i in range(0, grp.size, chunk):
+                g = grp[i : i + chunk]
+                h[g] = self.height(x[g], v)
+        n = int(sizes.sum())
+        out = h[:n]
+        if fading:
+            starts = np.concatenate([[0], np.cumsum(sizes)])
+            o = n
+            for i in fading:
+                a, b, w = starts[i], starts[i + 1], plans[i].fade_in
+                out[a:b] = w * out[a:b] + (1.0 - w) * h[o : o + (b - a)]
+                o += b - a
+        return out
+
+    def finish_um(self, h_um: np.ndarray) -> np.ndarray:
+        """Equalizer and output limits (stateful): heights -> limited displacement (µm)."""
+        return self.out.process(self.eq(h_um))
+
+    def render_um(self, t_play_s: np.ndarray) -> np.ndarray:
+        """Limited displacement (µm) for samples that will be played at t_play_s."""
+        return self.finish_um(self.heights_um(self.plan(t_play_s)))
 
     def render_codes(self, t_play_s: np.ndarray) -> np.ndarray:
         return self.out.to_codes(self.render_um(t_play_s))

@@ -13,6 +13,9 @@ fits the series (the renderer, the scene simulator, the peer metrics) uses `phas
 
 from __future__ import annotations
 
+import functools
+import threading
+
 import numpy as np
 import scipy.linalg
 import scipy.signal
@@ -25,15 +28,111 @@ def phase_rad(x_mm, n: int, length_mm: float) -> np.ndarray:
     return (x / (length_mm / n) + 0.5) * (np.pi / n)
 
 
+NUFFT_EPS = 1e-14  # relative tolerance of the nonuniform FFTs (finufft), near float64 rounding
+
+
+def _nufft_sums(theta: np.ndarray, w: np.ndarray, kmax: int) -> np.ndarray:
+    """sum_i w_i exp(i k theta_i) for k = 0..kmax: one type-1 nonuniform FFT (finufft, one
+    thread: the offline benchmarks charge the calling thread's CPU time), O(S + K log K)."""
+    import finufft
+
+    f = finufft.nufft1d1(theta, np.asarray(w, dtype=np.complex128), 2 * kmax + 1, eps=NUFFT_EPS,
+                         isign=1, nthreads=1)  # modes -kmax..kmax
+    return f[kmax:]
+
+
+NUFFT_MIN_TERMS = 16384  # evaluate by the cosine matrix below this many (sample, component) terms
+TRIM_MIN_TERMS = 2048  # from this many terms, trailing zero coefficients are trimmed first
+_plans = threading.local()  # type-2 NUFFT plans of this thread, by mode count (reused across calls)
+
+
+def _type2_plan(kmax: int):
+    """A type-2 NUFFT plan for modes -M..M, M = kmax rounded up to a power of two (so that a few
+    plans serve every truncation of one series), cached per thread."""
+    import finufft
+
+    m = 1 << max(4, (kmax - 1).bit_length())
+    cache = _plans.__dict__.setdefault("by_m", {})
+    plan = cache.get(m)
+    if plan is None:
+        if len(cache) >= 8:
+            cache.pop(next(iter(cache)))
+        plan = cache[m] = finufft.Plan(2, (2 * m + 1,), eps=NUFFT_EPS, isign=1, nthreads=1)
+    return plan, m
+
+
+@functools.lru_cache(maxsize=64)
+def _orders(k0: int, count: int, dtype: str) -> np.ndarray:
+    """k0, k0 + 1, ..., k0 + count - 1 as floats (read-only; cached for the real-time path)."""
+    k = np.arange(k0, k0 + count, dtype=dtype)
+    k.flags.writeable = False
+    return k
+
+
 def evaluate(coeffs: np.ndarray, theta: np.ndarray, k0: int = 1) -> np.ndarray:
-    """sum_j coeffs[j] cos((k0 + j) theta) at arbitrary phases, by Horner's rule on
-    z = exp(i theta): O(len(theta) * len(coeffs)) time, O(len(theta)) memory."""
+    """sum_j coeffs[j] cos((k0 + j) theta) at arbitrary phases, in theta's float type.
+
+    Few terms (the renderer's real-time batches): the len(theta) x K cosine matrix. Many (the
+    scene simulator, the fits' intended signal): one type-2 nonuniform FFT (finufft; float64),
+    O(len(theta) + K log K), with a plan reused across calls. Both agree to float rounding.
+    Trailing zero coefficients (components past the speed's band) are left out of the sum
+    when that saves more than it costs.
+    """
+    c = np.asarray(coeffs)
+    th = np.asarray(theta)
+    if th.dtype != np.float32 and th.dtype != np.float64:
+        th = th.astype(np.float64)
+    if th.size * c.size >= TRIM_MIN_TERMS:
+        nz = np.flatnonzero(c)
+        c = c[: nz[-1] + 1 if nz.size else 0]
+    if th.size * c.size < NUFFT_MIN_TERMS or th.dtype == np.float32:
+        k = _orders(k0, c.size, th.dtype.char)
+        return np.cos(np.multiply.outer(th, k)) @ c.astype(th.dtype, copy=False)
+    plan, m = _type2_plan(k0 + c.size - 1)
+    modes = np.zeros(2 * m + 1, dtype=np.complex128)  # modes -m..m; Re(c_k e^{ik theta}) = c_k cos
+    modes[m + k0 : m + k0 + c.size] = c
+    plan.setpts(np.mod(np.ravel(th), 2.0 * np.pi))
+    return np.real(plan.execute(modes)).reshape(th.shape)
+
+
+def evaluate_faded(coeffs: np.ndarray, theta: np.ndarray, speed: np.ndarray, f_pass: float,
+                   f_stop: float, gain, k0: int = 1) -> np.ndarray:
+    """sum_j g((k0 + j) s_i) coeffs[j] cos((k0 + j) theta_i), with a per-sample scale s_i >= 0
+    (speed / 2L: component k sounds at f = k s_i) and a gain g(f) that is 1 for f <= f_pass, 0
+    for f >= f_stop, and gain(k, s) (vectorized over s) between. Exact (no speed buckets).
+
+    Horner's rule on z_i = exp(i theta_i) from the top component down, over the samples sorted
+    by s: at component k only the samples with k s_i < f_stop are still active (a prefix), so
+    the work is sum_i min(K, f_stop / s_i), not S x K.
+    """
     c = np.asarray(coeffs, dtype=np.float64)
-    z = np.exp(1j * np.asarray(theta, dtype=np.float64))
+    th = np.asarray(theta, dtype=np.float64)
+    s = np.abs(np.asarray(speed, dtype=np.float64))
+    order = np.argsort(s, kind="stable")
+    ss = s[order]
+    z = np.exp(1j * th[order])
     acc = np.zeros(z.shape, dtype=np.complex128)
-    for ck in c[::-1]:
-        acc = acc * z + ck
-    return np.real(acc * z**k0)
+    for j in range(c.size - 1, -1, -1):
+        k = k0 + j
+        n_on = int(np.searchsorted(ss, f_stop / k, side="left"))  # k s < f_stop
+        if n_on == 0:
+            continue
+        n_full = int(np.searchsorted(ss, f_pass / k, side="right"))  # k s <= f_pass
+        a = acc[:n_on]
+        a *= z[:n_on]
+        a[:n_full] += c[j]
+        if n_full < n_on:
+            a[n_full:] += c[j] * gain(k, ss[n_full:n_on])
+    out = np.empty(th.shape)
+    out[order] = np.real(acc * z**k0)
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _czt(n: int, count: int, dtheta: float) -> scipy.signal.CZT:
+    """The chirp-z transform sum_j x_j w^(m j), w = exp(i dtheta): its chirps and their FFT are
+    built once per (size, count, step) and reused (a sweep synthesizes many signals alike)."""
+    return scipy.signal.CZT(n, m=count, w=np.exp(1j * dtheta), a=1.0)
 
 
 def evaluate_uniform(coeffs: np.ndarray, theta0: float, dtheta: float, count: int,
@@ -43,43 +142,60 @@ def evaluate_uniform(coeffs: np.ndarray, theta0: float, dtheta: float, count: in
     O((count + K) log(count + K))) instead of a count x K cosine matrix."""
     c = np.asarray(coeffs, dtype=np.float64)
     k = np.arange(k0, k0 + c.size, dtype=np.float64)
-    x = c * np.exp(1j * k0 * 0.0 + 1j * (k - k0) * theta0)
-    w = np.exp(1j * dtheta)
-    y = scipy.signal.czt(x, m=count, w=w, a=1.0)  # sum_j x_j w^(m j)
+    x = c * np.exp(1j * (k - k0) * theta0)
+    y = _czt(c.size, int(count), float(dtheta))(x)  # sum_j x_j w^(m j)
     m = np.arange(count, dtype=np.float64)
     return np.real(y * np.exp(1j * k0 * (theta0 + m * dtheta)))
 
 
-def project(theta: np.ndarray, y: np.ndarray, n_keep: int, chunk: int = 64) -> np.ndarray:
-    """Least-squares c_0..c_K (K = n_keep) of y ~ sum_k c_k cos(k theta) at arbitrary phases.
+class Projector:
+    """Least-squares fits y ~ sum_k c_k cos(k theta), k = 0..K (K = n_keep), at fixed phases.
 
-    The normal equations come from a nonuniform Fourier transform of the phases and of the
-    data: with m_d = sum_i cos(d theta_i) (d = 0..2K) and r_k = sum_i y_i cos(k theta_i),
-    G_jk = (m_|j-k| + m_(j+k)) / 2 (Toeplitz + Hankel) and G c = r. That is O(S K) time and
-    O(S chunk + K^2) memory, not an S x K basis and its O(S K^2) Gram product. Solved by
-    Cholesky (the cosines are nearly orthogonal over many strokes); least squares on G when
-    the phases do not cover the period.
+    The normal equations come from nonuniform Fourier sums of the phases and of the data
+    (type-1 NUFFTs): with m_d = sum_i cos(d theta_i) (d = 0..2K) and r_k = sum_i y_i cos(k theta_i),
+    G_jk = (m_|j-k| + m_(j+k)) / 2 (Toeplitz + Hankel) and G c = r. That is O(S + K log K) for
+    the sums, not an S x K basis and its O(S K^2) Gram product. G depends only on the phases:
+    it is factored once (Cholesky, O(K^3)) and `fit` reuses the factor for every y (the runs of
+    one scene report that deliver at the same instants share it). When the phases do not cover
+    the period (G singular): the minimum-norm solution, from one eigendecomposition of G.
     """
-    th = np.asarray(theta, dtype=np.float64)
-    yy = np.asarray(y, dtype=np.float64)
-    K = int(n_keep)
-    z = np.exp(1j * th)
-    zc = z[:, None] ** np.arange(chunk)  # z^0..z^(chunk-1), S x chunk
-    step = z**chunk
-    m = np.empty(2 * K + 1)
-    r = np.empty(K + 1)
-    base = np.ones_like(z)  # z^d0
-    for d0 in range(0, 2 * K + 1, chunk):
-        w = np.ascontiguousarray((base[:, None] * zc).real)  # cos(d theta_i), S x chunk
-        hi = min(chunk, 2 * K + 1 - d0)
-        m[d0 : d0 + hi] = w[:, :hi].sum(axis=0)
-        if d0 <= K:
-            rk = min(chunk, K + 1 - d0)
-            r[d0 : d0 + rk] = yy @ w[:, :rk]
-        base = base * step
-    j = np.arange(K + 1)
-    gram = 0.5 * (scipy.linalg.toeplitz(m[: K + 1]) + m[j[:, None] + j[None, :]])
-    try:
-        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(gram), r)
-    except np.linalg.LinAlgError:
-        return np.linalg.lstsq(gram, r, rcond=None)[0]
+
+    def __init__(self, theta: np.ndarray, n_keep: int) -> None:
+        self.theta = np.asarray(theta, dtype=np.float64)
+        self.n_keep = K = int(n_keep)
+        m = _nufft_sums(self.theta, np.ones(self.theta.size), 2 * K).real
+        j = np.arange(K + 1)
+        gram = scipy.linalg.toeplitz(m[: K + 1])
+        gram += m[j[:, None] + j[None, :]]
+        gram *= 0.5
+        self._eig = None
+        try:
+            self._cho = scipy.linalg.cho_factor(gram, overwrite_a=True)
+        except np.linalg.LinAlgError:
+            # singular (the phases do not cover the period): the minimum-norm least-squares
+            # solution, as np.linalg.lstsq(G, r) gives it (same cutoff on G's singular values,
+            # which are |eigenvalues| here), from one eigendecomposition shared by every fit
+            self._cho = None
+            gram = 0.5 * (scipy.linalg.toeplitz(m[: K + 1]) + m[j[:, None] + j[None, :]])
+            lam, vec = scipy.linalg.eigh(gram)
+            cutoff = np.finfo(np.float64).eps * (K + 1) * np.abs(lam).max()
+            keep = np.abs(lam) > cutoff
+            self._eig = (vec[:, keep], 1.0 / lam[keep])
+
+    @property
+    def nbytes(self) -> int:
+        return (self.n_keep + 1) ** 2 * 8 + self.theta.nbytes
+
+    def fit(self, y: np.ndarray) -> np.ndarray:
+        """c_0..c_K for samples y at the projector's phases."""
+        r = _nufft_sums(self.theta, np.asarray(y, dtype=np.float64), self.n_keep).real
+        if self._cho is not None:
+            return scipy.linalg.cho_solve(self._cho, r)
+        vec, inv = self._eig
+        return vec @ (inv * (vec.T @ r))
+
+
+def project(theta: np.ndarray, y: np.ndarray, n_keep: int) -> np.ndarray:
+    """Least-squares c_0..c_K (K = n_keep) of y ~ sum_k c_k cos(k theta) at arbitrary phases
+    (see Projector; one fit)."""
+    return Projector(theta, n_keep).fit(y)

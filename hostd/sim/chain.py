@@ -21,7 +21,7 @@ import scipy.signal
 
 from hostd.render import series
 from hostd.render.equalizer import ActuatorModel
-from hostd.render.height import HeightEvaluator
+from hostd.render.height import band_edges_hz, band_gains
 from hostd.render.pipeline import Renderer
 from hostd.sim.hand import Hand
 
@@ -101,15 +101,13 @@ def actuate(command_um: np.ndarray, model: ActuatorModel, fs: float) -> np.ndarr
 
 
 def reference(coeffs_um: np.ndarray, n: int, length_mm: float, hand: Hand, t_s: np.ndarray,
-              renderer: Renderer, chunk: int = 4096) -> np.ndarray:
-    """The ideal display: exact series with the band gains of the true speed, true position."""
-    ev = HeightEvaluator(coeffs_um, n, length_mm, "series", renderer.height.band)
-    x = hand.position_mm(t_s)
-    v = hand.velocity_mm_s(t_s)
-    out = np.empty(t_s.size)
-    u_all = series.phase_rad(x, ev.n, ev.length_mm)
-    for i in range(0, t_s.size, chunk):
-        u = u_all[i : i + chunk]
-        g = ev.gains(v[i : i + chunk])
-        out[i : i + chunk] = np.einsum("ij,ij->i", np.cos(np.multiply.outer(u, ev.k)), g * ev.c)
-    return out
+              renderer: Renderer) -> np.ndarray:
+    """The ideal display: exact series with the band gains of the true speed, true position
+    (hostd.render.height.band_gains of each sample's own speed, no speed buckets)."""
+    band = renderer.height.band
+    f_pass, f_stop = band_edges_hz(band)
+    two_l = 2.0 * length_mm
+    theta = series.phase_rad(hand.position_mm(t_s), n, length_mm)
+    scale = np.abs(hand.velocity_mm_s(t_s)) / two_l  # component k sounds at k * scale Hz
+    return series.evaluate_faded(coeffs_um, theta, scale, f_pass, f_stop,
+                                 lambda k, s: band_gains(float(k), s * two_l, length_mm, band))

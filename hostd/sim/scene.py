@@ -6,13 +6,21 @@ effects asked for (hostd.sim.effects) and simulates:
 
 - with no closed-loop effect, the host knows the hand's true position at every play instant:
   the band-limited series is evaluated for all samples at once (vectorized, no loop), then
-  the output effects act on the commands;
+  the output effects act on the commands. The command before the output effects depends
+  only on the renderer's configuration, so the runs of one report that differ only by output
+  effects (dac, actuator, finger_load) render it once (`Shared`);
 - with encoder, transport, clock_drift or cpu_load, the host's real render pipeline runs
-  batch by batch on what the host would see, when it would see it.
+  batch by batch on what the host would see, when it would see it: motion estimate,
+  prediction, re-locks and their crossfade, stalls and underruns. The hand does not feel the
+  display, so the readings do not depend on what was rendered: each batch is planned with
+  the pipeline's own code (Renderer.plan) and the planned heights are evaluated afterwards,
+  one call of the pipeline's height evaluator per speed bucket (Renderer.heights_many_um),
+  equal to rendering batch by batch to float rounding (tests/test_sim_speed.py).
 
 Delivered quality: the displacement the finger received is fitted, by least squares, onto the
-patch's cosine series at the hand's true positions (normal equations from a nonuniform Fourier
-transform, hostd.render.series.project) (the mirror-even series the codec uses), and
+patch's cosine series at the hand's true positions (normal equations from nonuniform FFTs,
+hostd.render.series.Projector; runs delivered at the same instants share its factored Gram
+matrix) (the mirror-even series the codec uses), and
 the fitted C'_k are scored with the same index as the codec (Ip, Ia, Iobj against the stream
 header's reference). With an ideal chain this recovers the decoded coefficients, so the
 delivered Iobj equals the codec-only Iobj.
@@ -134,8 +142,49 @@ def _stream(sc: Scene):
     return vtx.decode(vtx.encode_profile(prof.heights_um, geom, thresholds.default_curve(), **kw))
 
 
-def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dict:
-    """Simulate the scene with the effects in `only` (default: all the scene names)."""
+class Shared:
+    """What the runs of one scene report share, computed once: the texture (stream), the hand,
+    the open-loop command of each renderer configuration (an output effect - dac, actuator,
+    finger_load - acts after the renderer, so the runs that differ only by such effects
+    render once), and the least-squares projector of each set of delivery instants (its
+    factored Gram matrix depends only on the phases; runs whose effects do not move the
+    delivery instants reuse it)."""
+
+    def __init__(self, sc: Scene, projector_bytes: int = 256 << 20) -> None:
+        self.stream = _stream(sc)
+        self.hand = _hand(sc)
+        self.open_loop: dict[str, np.ndarray] = {}
+        self._projectors: dict[bytes, object] = {}
+        self._budget = projector_bytes
+
+    def projector(self, theta: np.ndarray, n_keep: int):
+        import hashlib
+
+        from hostd.render import series
+
+        key = hashlib.blake2b(theta.tobytes(), digest_size=16).digest() + n_keep.to_bytes(8, "little")
+        pj = self._projectors.pop(key, None)
+        if pj is None:
+            pj = series.Projector(theta, n_keep)
+        self._projectors[key] = pj  # most recently used last
+        while sum(q.nbytes for q in self._projectors.values()) > self._budget and len(self._projectors) > 1:
+            del self._projectors[next(iter(self._projectors))]
+        return pj
+
+
+def run(sc: Scene, only: list[str] | None = None, progress: bool = False, shared: Shared | None = None,
+        vectorized: bool = True) -> dict:
+    """Simulate the scene with the effects in `only` (default: all the scene names).
+
+    Closed loop, the renderer is fed the encoder readings batch by batch, when the host would
+    have them, and plans each batch (motion estimate, prediction, re-lock crossfade) with the
+    real pipeline's code. The hand does not feel the display, so what the host reads does not
+    depend on what it rendered: with `vectorized` the planned batches' heights are evaluated
+    afterwards in one call per speed bucket, then equalized and limited in one pass
+    (Renderer.heights_many_um, equal to rendering batch by batch to float rounding);
+    vectorized=False renders every batch through Renderer.render_um, as the daemon does.
+    `shared` (from report) reuses what runs of the same scene have in common.
+    """
     from hostd.device import protocol as pr
     from hostd.perception import indices
     from hostd.quality import score_stream, stream_thresholds
@@ -146,8 +195,9 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
 
     names = list(sc.effects) if only is None else only
     es = fx.build({k: sc.effects[k] for k in names}, sc.seed)
-    hand = _hand(sc)
-    s = _stream(sc)
+    shared = shared or Shared(sc)
+    hand = shared.hand
+    s = shared.stream
     coeffs, n, length = s.coefficients, s.n, s.length_mm
     cfg = RenderConfig(equalizer=EqualizerConfig(enabled=es.actuator is not None))
     if es.actuator is not None:
@@ -180,46 +230,52 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
         t_dev_sorted = t_dev_status[order].tolist()
         counts_sorted = (counts[order] % (1 << 32)).tolist()
         stalls = es.cpu_load.stalls(n_batches, b / FS) if es.cpu_load else np.zeros(n_batches)
+        t_host = (np.arange(n_batches) * b / FS) / scale + stalls  # when the host renders batch j
         out = np.empty(n_samp)
+        plans = []
         m = 0
+        n_arrive = len(arrive_sorted)
         last_t = -1.0
-        in_underrun = False
         r.start()
         from tqdm import tqdm
 
-        for j in tqdm(range(n_batches), disable=not progress, desc=f"{sc.name} {'+'.join(names) or 'ideal'}",
-                      unit="ms", leave=False, mininterval=0.5):
-            t_host = (j * b / FS) / scale + stalls[j]
-            while m < len(arrive_sorted) and arrive_sorted[m] <= t_host + 1e-12:
+        on_encoder, plan, render_um = r.on_encoder, r.plan, r.render_um
+        for j, th in enumerate(tqdm(t_host.tolist(), disable=not progress, unit="ms", leave=False,
+                                    desc=f"{sc.name} {'+'.join(names) or 'ideal'}", mininterval=0.5)):
+            while m < n_arrive and arrive_sorted[m] <= th + 1e-12:
                 if t_dev_sorted[m] > last_t:  # a report older than one already seen adds nothing
-                    r.on_encoder(t_dev_sorted[m], counts_sorted[m])
+                    on_encoder(t_dev_sorted[m], counts_sorted[m])
                     last_t = t_dev_sorted[m]
                 m += 1
-            sl = slice(j * b, (j + 1) * b)
-            if es.dac is None:
-                y = r.render_um(t_dev_play[sl])
+            if vectorized:
+                plans.append(plan(t_dev_play[j * b : (j + 1) * b]))
             else:
-                y = r.render_codes(t_dev_play[sl]) * r.out.cfg.um_per_code
-            # samples whose play instant passed before they could arrive: the device underran
-            arrival_s = t_host + (es.transport.p["latency_ms"] * 1e-3 if es.transport else 0.0)
-            late = t_true_play[sl] < arrival_s - 1e-12
-            if late.any():
-                if not in_underrun:
-                    underruns += 1
-                in_underrun = True
-                prev = out[j * b - 1] if j > 0 else 0.0
-                for i in np.flatnonzero(late):  # the device ramps toward zero (50 ms)
-                    step = r.out.limit_um / pr.P["ramp_ticks"]
-                    prev = prev - step if prev > step else prev + step if prev < -step else 0.0
-                    y[i] = prev
-            else:
-                in_underrun = False
-            out[sl] = y
+                out[j * b : (j + 1) * b] = render_um(t_dev_play[j * b : (j + 1) * b])
+        if vectorized:
+            out = r.finish_um(r.heights_many_um(plans))
+        if es.dac is not None:
+            out = r.out.to_codes(out) * r.out.cfg.um_per_code
+        # samples whose play instant passed before they could arrive: the device underran
+        arrival_s = t_host + (es.transport.p["latency_ms"] * 1e-3 if es.transport else 0.0)
+        late = (t_true_play < np.repeat(arrival_s, b) - 1e-12).reshape(n_batches, b)
+        late_batch = late.any(axis=1)
+        underruns = int(np.count_nonzero(late_batch & ~np.concatenate([[False], late_batch[:-1]])))
+        step = r.out.limit_um / pr.P["ramp_ticks"]
+        for j in np.flatnonzero(late_batch).tolist():  # the device ramps toward zero (50 ms)
+            prev = out[j * b - 1] if j > 0 else 0.0
+            for i in np.flatnonzero(late[j]).tolist():
+                prev = prev - step if prev > step else prev + step if prev < -step else 0.0
+                out[j * b + i] = prev
         command = out
     else:
-        h = chain.reference(coeffs, n, length, hand, t_true_play + r.latency_s, r)
-        r.start()
-        command = r.out.process(r.eq(h))
+        # open loop: the host knows the hand's true position; output effects act afterwards,
+        # so the command (before the DAC) depends only on the renderer's configuration
+        key = repr(sorted(sc.effects["actuator"].items())) if es.actuator is not None else ""
+        command = shared.open_loop.get(key)
+        if command is None:
+            h = chain.reference(coeffs, n, length, hand, t_true_play + r.latency_s, r)
+            r.start()
+            command = shared.open_loop[key] = r.finish_um(h)
         if es.dac is not None:
             command = r.out.to_codes(command) * r.out.cfg.um_per_code
     delivered = command
@@ -236,7 +292,7 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
     from hostd.render import series
 
     theta = series.phase_rad(x, n, length)
-    fit = series.project(theta, y, s.n_keep)
+    fit = shared.projector(theta, s.n_keep).fit(y)
     intended = series.evaluate(coeffs, theta)  # the codec's texture at the true positions
     b_k = stream_thresholds(s)
     pp, ap = indices.weighted_sums(fit[1:], b_k)
@@ -256,13 +312,15 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False) -> dic
 
 
 def report(sc: Scene, progress: bool = True) -> dict:
-    """The scene with no effect, each effect alone, then all of them."""
-    runs = [run(sc, [], progress)]
+    """The scene with no effect, each effect alone, then all of them (sharing what the runs
+    have in common: Shared)."""
+    shared = Shared(sc)
+    runs = [run(sc, [], progress, shared)]
     if sc.effects:
         for name in sc.effects:
-            runs.append(run(sc, [name], progress))
+            runs.append(run(sc, [name], progress, shared))
         if len(sc.effects) > 1:
-            runs.append(run(sc, list(sc.effects), progress))
+            runs.append(run(sc, list(sc.effects), progress, shared))
     base = runs[0]["_trace"]["fit"][1:]
     for rr in runs:  # what each run changed in the delivered spectrum, against no effects
         rr["spectrum_change_um"] = float(np.sqrt(np.mean((rr["_trace"]["fit"][1:] - base) ** 2)))
