@@ -104,7 +104,7 @@ def test_series_is_continuous_across_the_patch_edge(wood):
 def test_fast_stroke_has_no_component_above_the_aliasing_limit(wood):
     ev = HeightEvaluator(*wood)
     f_pass, f_stop = band_edges_hz(ev.band)
-    assert (f_pass, f_stop) == (400.0, 800.0)  # the default band (docs/rendering.md)
+    assert (f_pass, f_stop) == (400.0, 1000.0)  # the default band (docs/rendering.md)
     ev = HeightEvaluator(*wood, band=BandLimitConfig(stop_band_hz=None))  # up to the aliasing limit
     f_pass, f_stop = band_edges_hz(ev.band)
     assert (f_pass, f_stop) == (400.0, 1200.0)

@@ -10,13 +10,13 @@ Speed-aware band limit: at hand speed v component k sounds at f_k = k |v| / (2L)
 1 up to f_pass = pass_band_hz (the codec's f_max, 400 Hz: at the reference speed every kept
 component sounds at or below f_max, so a hand at v_ref feels every kept component at full
 amplitude) and fade to 0 with a raised cosine between f_pass and f_stop, so fast strokes do
-not alias and speed changes do not click. f_stop is `stop_band_hz`, 800 Hz by default: the
-band the paper's display follows within its slew limit once equalized (the equalizer's gain
-is 11 at 800 Hz and 34 at 1200 Hz; with the fade reaching 1200 Hz the equalized wood texture
-reaches the 60 mm/s slew limit at the metronome's 93 mm/s peak, with 800 Hz it stays below
-70 % of it; docs/rendering.md). It is never above nyquist_fraction * fs/2 (1200 Hz at 3 kHz:
-the aliasing limit of the output, with a 20 % guard; `stop_band_hz = None` means that) and
-never below f_pass.
+not alias and speed changes do not click. f_stop is `stop_band_hz`, 1000 Hz by default: a
+compromise, measured (docs/rendering.md), between fidelity at fast strokes (more of the texture
+plays the further the fade reaches) and the slew the equalized piezo needs (the equalizer's
+gain is 10 at 800 Hz, 18 at 1000 Hz and 34 at 1200 Hz; with the fade to 1200 Hz the wood
+texture reaches the 60 mm/s slew limit at the metronome's 93 mm/s peak, with 1000 Hz it
+uses 88 % of it). It is never above nyquist_fraction * fs/2 (1200 Hz at 3 kHz: the aliasing
+limit of the output, with a 20 % guard; `stop_band_hz = None` means that) and never below f_pass.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ class BandLimitConfig:
     pass_band_hz: float = 400.0  # full amplitude up to here: the codec's f_max at v_ref
     sample_rate_hz: float = 3000.0
     nyquist_fraction: float = 0.8  # the fade ends at this fraction of fs/2 (aliasing limit)
-    stop_band_hz: float | None = 800.0  # end of the fade (None: the aliasing limit)
+    stop_band_hz: float | None = 1000.0  # end of the fade (None: the aliasing limit)
     speed_bucket: float = 0.02  # relative speed step between cached gains / tables
 
 

@@ -58,7 +58,7 @@ class RenderCfg:
     where: str = "host"  # host: the daemon renders and streams samples; device: the display renders
     host_lost_ms: int = 1000  # device mode: host silence after which the display counts it lost
     height_method: str = "series"
-    band_end_hz: float = 800.0  # the speed-aware fade runs from 400 Hz (f_max at v_ref) to here
+    band_end_hz: float = 1000.0  # the speed-aware fade runs from 400 Hz (f_max at v_ref) to here
     dtype: str = "float64"
     samples_per_batch: int = 3
     predict_order: int = 2
