@@ -243,9 +243,11 @@ def test_typed_one_line_errors():
         (bytes([0x56, 0x28]) + b"\xff\xff\xff\x7f", "N = "),
         (bytes([0x56, good[1] | 0x03]) + good[2:-2], "method"),
         (bytes([0x56, 0x28]) + b"\x02\x00\x02\x02", "zero or too small"),
-        (bytes([0x56, 0x28]) + b"\x05\x02\x02\x02", "N' = 0"),  # 2N + 1: v_ref, f_max follow
-        (bytes([0x56, 0x28]) + b"\x04\x02", "N' = 0"),  # 2N + 0: the paper's v_ref and f_max
-        (bytes([0x56, 0x28]) + b"\x05\x02\x02", "truncated"),  # the rate bit promises two more
+        (bytes([0x56, 0x28]) + b"\x0b\x02\x02\x02", "N' = 0"),  # 4N + 3: v_ref, f_max follow
+        (bytes([0x56, 0x28]) + b"\x08\x02", "N' = 0"),  # 4N + 0: the paper's v_ref and f_max
+        (bytes([0x56, 0x28]) + b"\x0a\x02\x02", "N' = 0"),  # 4N + 2: v_ref only
+        (bytes([0x56, 0x28]) + b"\x09\x02\x02", "N' = 0"),  # 4N + 1: f_max only
+        (bytes([0x56, 0x28]) + b"\x0b\x02\x02", "truncated"),  # the bits promise two more
         (bytes([0x56, 0x20]), "truncated"),
     ]
     for body, msg in cases:

@@ -279,10 +279,14 @@ def encode_coefficients(
     if ig != PAPER_GEOMETRY:
         flags |= FLAG_EXPLICIT_GEOMETRY
         spacing = ig.spacing_pm // 1000 * 2 if ig.spacing_pm % 1000 == 0 else ig.spacing_pm * 2 + 1
-        paper_rate = (ig.speed_um_s, ig.fmax_mhz) == (PAPER_GEOMETRY.speed_um_s, PAPER_GEOMETRY.fmax_mhz)
-        geo = _varint(2 * ig.n + (0 if paper_rate else 1)) + _varint(spacing)
-        if not paper_rate:  # v_ref and f_max only when they are not the paper's 50 mm/s and 400 Hz
-            geo += _varint(ig.speed_um_s) + _varint(ig.fmax_mhz)
+        # v_ref and f_max are stored only where they differ from the paper's 50 mm/s and 400 Hz
+        own_speed = ig.speed_um_s != PAPER_GEOMETRY.speed_um_s
+        own_fmax = ig.fmax_mhz != PAPER_GEOMETRY.fmax_mhz
+        geo = _varint(4 * ig.n + 2 * own_speed + own_fmax) + _varint(spacing)
+        if own_speed:
+            geo += _varint(ig.speed_um_s)
+        if own_fmax:
+            geo += _varint(ig.fmax_mhz)
     body = bytearray([MAGIC0, 0x20 | flags]) + geo + _short_id(curve)
     body += pack_ref(float(P)) + pack_ref(float(A)) + b"\x00"  # guard byte, filled in below
     guard_at = len(body) - 1
@@ -328,17 +332,15 @@ def decode(data: bytes) -> Stream:
     r = _Reader(body, len(body))
     r.pos = 2
     if flags & FLAG_EXPLICIT_GEOMETRY:
-        n2 = r.varint("N", 1 << 63)  # 2·N + the rate bit
-        n = n2 >> 1
+        n4 = r.varint("N", 1 << 63)  # 4·N + 2·(v_ref stored) + (f_max stored)
+        n = n4 >> 2
         if n > transform.MAX_SAMPLES:
             raise StreamError(f"header field N = {n} exceeds {transform.MAX_SAMPLES}")
         sp = r.varint("spacing", 1 << 50)
         spacing_pm = sp >> 1 if sp & 1 else (sp >> 1) * 1000
-        if n2 & 1:
-            speed = r.varint("speed_um_s", 1 << 40)
-            fmax = r.varint("fmax_mhz", 1 << 40)
-        else:  # the paper's reference speed and f_max
-            speed, fmax = PAPER_GEOMETRY.speed_um_s, PAPER_GEOMETRY.fmax_mhz
+        # otherwise the paper's reference speed and f_max
+        speed = r.varint("speed_um_s", 1 << 40) if n4 & 2 else PAPER_GEOMETRY.speed_um_s
+        fmax = r.varint("fmax_mhz", 1 << 40) if n4 & 1 else PAPER_GEOMETRY.fmax_mhz
         if n < 2 or spacing_pm < 1 or speed < 1 or fmax < 1:
             raise StreamError("header geometry has a zero or too small field (N >= 2, others >= 1)")
         ig = IntGeometry(n, spacing_pm, speed, fmax)

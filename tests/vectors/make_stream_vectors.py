@@ -59,6 +59,7 @@ CASES_V2 = {
     "v2_paper_quant_l8": dict(method="quant", levels=8, paper=True),
     # explicit geometry with a reference speed other than the paper's: v_ref and f_max stored
     "v2_shaped_gm9_v25": dict(method="shaped", g_db=-9.0, speed_mm_s=25.0),
+    "v2_shaped_gm9_f300": dict(method="shaped", g_db=-9.0, fmax_hz=300.0),
 }
 
 
@@ -71,8 +72,8 @@ def build_v2(name: str) -> bytes:
     if kw.pop("paper", False):
         c = transform.amplitudes(y)[1:161] * 3.0
         return stream2.encode_coefficients(c, stream2.PAPER_GEOMETRY, curve, **kw)
-    speed = kw.pop("speed_mm_s", 50.0)
-    geom = transform.Geometry(n=y.size, length_mm=2.0, speed_mm_s=speed)
+    geom = transform.Geometry(n=y.size, length_mm=2.0, speed_mm_s=kw.pop("speed_mm_s", 50.0),
+                              fmax_hz=kw.pop("fmax_hz", 400.0))
     return stream2.encode_profile(y, geom, curve, **kw)
 
 
