@@ -196,6 +196,27 @@ def test_v2_vectors_decode_to_their_values_and_are_reproduced(name):
     assert build_v2(name) == data
 
 
+FIRST_LAYOUT = sorted((VECTORS / "v2_first_layout").glob("*.vtx"))
+
+
+@pytest.mark.parametrize("path", FIRST_LAYOUT, ids=lambda p: p.stem)
+def test_streams_of_the_first_v2_layout_still_decode_to_their_values(path):
+    """Streams written before the explicit geometry became 4N + 2 bits (byte 1's nibble 2 with
+    an explicit geometry of 4 varints) decode as they did; the current encoder writes the same
+    texture in the compact layout (nibble 3), 6 bytes shorter."""
+    data = path.read_bytes()
+    assert data[1] >> 4 == 2 and data[1] & stream2.FLAG_EXPLICIT_GEOMETRY
+    want = json.loads(path.with_suffix(".json").read_text())
+    got = vtx.decode(data).summary()
+    for key in ("version", "n", "n_keep", "length_mm", "speed_mm_s", "fmax_hz", "method", "threshold_id",
+                "bytes", "ref_P", "ref_A", "levels", "b0_db", "value_bits", "g_db", "guard_wsnr_db"):
+        assert got.get(key) == want.get(key), key
+    assert got["coefficients"] == want["coefficients"]
+    now = (VECTORS / path.name).read_bytes()
+    assert now[1] >> 4 == 3 and len(now) == len(data) - 6
+    assert vtx.decode(now).summary()["coefficients"] == want["coefficients"]
+
+
 # ---------------------------------------------------------------- malformed input
 
 
@@ -225,9 +246,10 @@ def test_every_single_bit_flip_is_refused(pos, bit):
 
 
 @settings(max_examples=500, deadline=None)
-@given(flags=st.integers(min_value=0, max_value=15), body=st.binary(min_size=0, max_size=300))
-def test_arbitrary_bodies_with_a_valid_crc_never_crash(flags, body):
-    data = _recrc(bytes([0x56, 0x20 | flags]) + body)
+@given(flags=st.integers(min_value=0, max_value=15), layout=st.sampled_from([0x20, 0x30]),
+       body=st.binary(min_size=0, max_size=300))
+def test_arbitrary_bodies_with_a_valid_crc_never_crash(flags, layout, body):
+    data = _recrc(bytes([0x56, layout | flags]) + body)
     try:
         s = vtx.decode(data)
     except StreamError:
@@ -243,11 +265,13 @@ def test_typed_one_line_errors():
         (bytes([0x56, 0x28]) + b"\xff\xff\xff\x7f", "N = "),
         (bytes([0x56, good[1] | 0x03]) + good[2:-2], "method"),
         (bytes([0x56, 0x28]) + b"\x02\x00\x02\x02", "zero or too small"),
-        (bytes([0x56, 0x28]) + b"\x0b\x02\x02\x02", "N' = 0"),  # 4N + 3: v_ref, f_max follow
-        (bytes([0x56, 0x28]) + b"\x08\x02", "N' = 0"),  # 4N + 0: the paper's v_ref and f_max
-        (bytes([0x56, 0x28]) + b"\x0a\x02\x02", "N' = 0"),  # 4N + 2: v_ref only
-        (bytes([0x56, 0x28]) + b"\x09\x02\x02", "N' = 0"),  # 4N + 1: f_max only
-        (bytes([0x56, 0x28]) + b"\x0b\x02\x02", "truncated"),  # the bits promise two more
+        (bytes([0x56, 0x28]) + b"\x02\x02\x02\x02", "N' = 0"),  # first layout: N, spacing, v, f
+        (bytes([0x56, 0x38]) + b"\x0b\x02\x02\x02", "N' = 0"),  # 4N + 3: v_ref, f_max follow
+        (bytes([0x56, 0x38]) + b"\x08\x02", "N' = 0"),  # 4N + 0: the paper's v_ref and f_max
+        (bytes([0x56, 0x38]) + b"\x0a\x02\x02", "N' = 0"),  # 4N + 2: v_ref only
+        (bytes([0x56, 0x38]) + b"\x09\x02\x02", "N' = 0"),  # 4N + 1: f_max only
+        (bytes([0x56, 0x38]) + b"\x0b\x02\x02", "truncated"),  # the bits promise two more
+        (bytes([0x56, 0x38]) + b"\xff\xff\xff\x7f", "N = "),
         (bytes([0x56, 0x20]), "truncated"),
     ]
     for body, msg in cases:

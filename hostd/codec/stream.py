@@ -413,7 +413,7 @@ def _finite_pos(name: str, v: float) -> None:
 def decode(data: bytes) -> Stream:
     """Parse and validate a .vtx stream; every malformed input raises StreamError."""
     data = bytes(data)
-    if data[:1] == b"V" and len(data) >= 2 and data[1] >> 4 == 2:  # version 2 (stream2.py)
+    if data[:1] == b"V" and len(data) >= 2 and data[1] >> 4 in (2, 3):  # version 2 (stream2.py)
         from hostd.codec import stream2
 
         return stream2.decode(data)

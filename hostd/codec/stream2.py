@@ -34,7 +34,12 @@ from hostd.perception import guard, indices
 from hostd.perception import thresholds as th
 
 VERSION = 2
-MAGIC0 = 0x56  # "V"; byte 1 is 0x20 | flags (a v1 stream has "T" = 0x54 there)
+MAGIC0 = 0x56  # "V"; byte 1 is (layout << 4) | flags (a v1 stream has "T" = 0x54 there)
+# Byte 1's high nibble: 3 when an explicit geometry is stored as 4N + 2 bits (v_ref and f_max
+# only where they differ from the paper's), 2 otherwise. Streams of the first v2 layout (nibble
+# 2 with an explicit geometry of 4 varints, written until 2026-11-22) still decode.
+LAYOUT_FIRST = 2
+LAYOUT_COMPACT_GEOMETRY = 3
 METHODS = {0: "shaped", 1: "quant", 2: "cut"}
 METHOD_IDS = {v: k for k, v in METHODS.items()}
 FLAG_CURVE_EMBEDDED = 0x04
@@ -276,7 +281,9 @@ def encode_coefficients(
     embed = embed_curve if embed_curve is not None else curve.id_bytes not in th.shipped_curves()
     flags = METHOD_IDS[method] | (FLAG_CURVE_EMBEDDED if embed else 0)
     geo = b""
+    layout = LAYOUT_FIRST  # the paper's geometry: no geometry bytes, the same in both layouts
     if ig != PAPER_GEOMETRY:
+        layout = LAYOUT_COMPACT_GEOMETRY
         flags |= FLAG_EXPLICIT_GEOMETRY
         spacing = ig.spacing_pm // 1000 * 2 if ig.spacing_pm % 1000 == 0 else ig.spacing_pm * 2 + 1
         # v_ref and f_max are stored only where they differ from the paper's 50 mm/s and 400 Hz
@@ -287,7 +294,7 @@ def encode_coefficients(
             geo += _varint(ig.speed_um_s)
         if own_fmax:
             geo += _varint(ig.fmax_mhz)
-    body = bytearray([MAGIC0, 0x20 | flags]) + geo + _short_id(curve)
+    body = bytearray([MAGIC0, layout << 4 | flags]) + geo + _short_id(curve)
     body += pack_ref(float(P)) + pack_ref(float(A)) + b"\x00"  # guard byte, filled in below
     guard_at = len(body) - 1
     body += (params
@@ -316,7 +323,7 @@ def decode(data: bytes) -> Stream:
     size = len(data)
     if size > MAX_STREAM_BYTES:
         raise StreamError(f"stream of {size} bytes exceeds the {MAX_STREAM_BYTES}-byte limit")
-    if size < 2 or data[0] != MAGIC0 or data[1] >> 4 != VERSION:
+    if size < 2 or data[0] != MAGIC0 or data[1] >> 4 not in (LAYOUT_FIRST, LAYOUT_COMPACT_GEOMETRY):
         raise StreamError("not a version-2 .vtx stream")
     crc_len = 2 if size < CRC16_LIMIT else 4
     if size < 2 + crc_len:
@@ -332,15 +339,18 @@ def decode(data: bytes) -> Stream:
     r = _Reader(body, len(body))
     r.pos = 2
     if flags & FLAG_EXPLICIT_GEOMETRY:
-        n4 = r.varint("N", 1 << 63)  # 4·N + 2·(v_ref stored) + (f_max stored)
-        n = n4 >> 2
-        if n > transform.MAX_SAMPLES:
-            raise StreamError(f"header field N = {n} exceeds {transform.MAX_SAMPLES}")
+        if data[1] >> 4 == LAYOUT_COMPACT_GEOMETRY:
+            n4 = r.varint("N", 1 << 63)  # 4·N + 2·(v_ref stored) + (f_max stored)
+            n, stored = n4 >> 2, n4 & 3
+            if n > transform.MAX_SAMPLES:
+                raise StreamError(f"header field N = {n} exceeds {transform.MAX_SAMPLES}")
+        else:  # the first v2 layout: N, and v_ref and f_max always stored
+            n, stored = r.varint("N", transform.MAX_SAMPLES), 3
         sp = r.varint("spacing", 1 << 50)
         spacing_pm = sp >> 1 if sp & 1 else (sp >> 1) * 1000
         # otherwise the paper's reference speed and f_max
-        speed = r.varint("speed_um_s", 1 << 40) if n4 & 2 else PAPER_GEOMETRY.speed_um_s
-        fmax = r.varint("fmax_mhz", 1 << 40) if n4 & 1 else PAPER_GEOMETRY.fmax_mhz
+        speed = r.varint("speed_um_s", 1 << 40) if stored & 2 else PAPER_GEOMETRY.speed_um_s
+        fmax = r.varint("fmax_mhz", 1 << 40) if stored & 1 else PAPER_GEOMETRY.fmax_mhz
         if n < 2 or spacing_pm < 1 or speed < 1 or fmax < 1:
             raise StreamError("header geometry has a zero or too small field (N >= 2, others >= 1)")
         ig = IntGeometry(n, spacing_pm, speed, fmax)
