@@ -322,7 +322,7 @@ def test_v1_decoder_refuses_q_min_that_overflows(monkeypatch):
     n_keep = 12
 
     def evil_payload(q):
-        return vtx._zigzag_varint(-(2 ** 63)) + bytes([1]) + bytes(n_keep)
+        return vtx.zigzag_varint(-(2 ** 63)) + bytes([1]) + bytes(n_keep)
 
     monkeypatch.setattr(vtx, "_quant_payload", evil_payload)
     data = _quant_stream(n_keep)

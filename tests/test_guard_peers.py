@@ -43,8 +43,11 @@ def test_check_decides_like_the_db_values_and_reports_both():
     for scale in (1e-3, 3e-2, 0.1, 0.3):
         d = c + rng.normal(size=40) * b * scale
         v = guard.check(c, d, b, f, 25.0, 27.0)
-        assert v.wsnr_db == pytest.approx(guard.weighted_snr_db(c, d, b))
-        assert v.ssnr_db == pytest.approx(guard.spectral_snr_db(c, d, f))
+        # the definitions, written out (docs/conventions.md): power over error power, weighted by
+        # 1/b^2 (wSNR) and by the SPQI curve's power weights (sSNR, checked against vibromaf above)
+        w = guard.spqi_curve_weights(f)
+        assert v.wsnr_db == pytest.approx(10 * np.log10(np.sum((c / b) ** 2) / np.sum(((c - d) / b) ** 2)))
+        assert v.ssnr_db == pytest.approx(10 * np.log10(np.sum(w * c**2) / np.sum(w * (c - d) ** 2)))
         if abs(v.wsnr_db - 25) > 1e-6 and abs(v.ssnr_db - 27) > 1e-6:
             assert v.passed == (v.wsnr_db >= 25 and v.ssnr_db >= 27)
     assert guard.check(c, c, b, f).passed and guard.check(c, c, b, f).ssnr_db == guard.CAP_DB

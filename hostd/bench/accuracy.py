@@ -90,25 +90,30 @@ def texture_coeffs(p: Profile, speed_mm_s: float = 50.0) -> tuple[np.ndarray, in
     return transform.analyze(p.heights_um, geom.n_keep), p.n, p.length_mm
 
 
+def _score(coeffs, n, length_mm, hand: Metronome, r: Renderer, t_play: np.ndarray,
+           delivered: np.ndarray, ref_cache: dict) -> dict:
+    """RMS error of the delivered displacement against the ideal display after SETTLE_S."""
+    key = (id(coeffs), t_play.size, t_play[0])
+    if key not in ref_cache:
+        ref_cache[key] = chain.reference(coeffs, n, length_mm, hand, t_play + r.eq.model.delay_s, r)
+    ideal = ref_cache[key]
+    keep = t_play >= SETTLE_S
+    err = delivered[keep] - ideal[keep]
+    rms_ideal = float(np.sqrt(np.mean(ideal[keep] ** 2)))
+    rms_err = float(np.sqrt(np.mean(err**2)))
+    pct = 100.0 * rms_err / rms_ideal if rms_ideal > 0 else math.inf
+    return {"rms_error_um": rms_err, "rms_error_pct": pct, "ideal_rms_um": rms_ideal}
+
+
 def measure(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, hand: Metronome,
             ref_cache: dict) -> dict:
     r = Renderer(coeffs, n, length_mm, cfg)
     link = link_for(cfg)
     res = chain.run_loop(r, hand, duration_s, link)
     delivered = chain.actuate(res.command_um, r.eq.model, cfg.sample_rate_hz)
-    key = (id(coeffs), res.t_play_s.size, res.t_play_s[0])
-    if key not in ref_cache:
-        ref_cache[key] = chain.reference(coeffs, n, length_mm, hand, res.t_play_s + r.eq.model.delay_s, r)
-    ideal = ref_cache[key]
-    keep = res.t_play_s >= SETTLE_S
-    err = delivered[keep] - ideal[keep]
-    rms_ideal = float(np.sqrt(np.mean(ideal[keep] ** 2)))
-    rms_err = float(np.sqrt(np.mean(err**2)))
-    pct = 100.0 * rms_err / rms_ideal if rms_ideal > 0 else math.inf
-    return {"rms_error_um": rms_err, "rms_error_pct": pct,
+    return {**_score(coeffs, n, length_mm, hand, r, res.t_play_s, delivered, ref_cache),
             "cpu_ms_per_s": res.cpu_ms_per_s,
-            "batch_p99_us": float(np.percentile(res.batch_cpu_ns, 99)) / 1e3,
-            "ideal_rms_um": rms_ideal}
+            "batch_p99_us": float(np.percentile(res.batch_cpu_ns, 99)) / 1e3}
 
 
 def measure_device(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, hand: Metronome,
@@ -124,18 +129,9 @@ def measure_device(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, h
     fs = cfg.sample_rate_hz
     t_play = np.arange(codes.size) / fs
     delivered = chain.actuate(codes * r.out.cfg.um_per_code, r.eq.model, fs)
-    key = (id(coeffs), t_play.size, t_play[0])
-    if key not in ref_cache:
-        ref_cache[key] = chain.reference(coeffs, n, length_mm, hand, t_play + r.eq.model.delay_s, r)
-    ideal = ref_cache[key]
-    keep = t_play >= SETTLE_S
-    err = delivered[keep] - ideal[keep]
-    rms_ideal = float(np.sqrt(np.mean(ideal[keep] ** 2)))
-    rms_err = float(np.sqrt(np.mean(err**2)))
     us = ns[round(SETTLE_S * fs):] / 1e3
-    pct = 100.0 * rms_err / rms_ideal if rms_ideal > 0 else math.inf
-    return {"rms_error_um": rms_err, "rms_error_pct": pct, "cpu_ms_per_s": 0.0, "batch_p99_us": 0.0,
-            "ideal_rms_um": rms_ideal,
+    return {**_score(coeffs, n, length_mm, hand, r, t_play, delivered, ref_cache),
+            "cpu_ms_per_s": 0.0, "batch_p99_us": 0.0,
             "fw_tick_p99_us": float(np.percentile(us, 99)), "fw_tick_max_us": float(us.max())}
 
 

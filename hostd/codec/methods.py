@@ -32,6 +32,14 @@ class Quantized:
         return self.q.astype(np.float64) * self.step_um
 
 
+def finite_coeffs(coeffs_um) -> np.ndarray:
+    """The coefficients as float64; NaN or Inf is refused (one message for every encoder)."""
+    c = np.asarray(coeffs_um, dtype=np.float64)
+    if not np.all(np.isfinite(c)):
+        raise CodecError("coefficients contain NaN or Inf")
+    return c
+
+
 def check_levels(levels: int) -> int:
     if isinstance(levels, bool) or int(levels) != levels:
         raise CodecError(f"--levels must be a whole number, got {levels!r}")
@@ -54,8 +62,7 @@ def quantize(coeffs_um: np.ndarray, levels: int) -> Quantized:
     c = np.asarray(coeffs_um, dtype=np.float64)
     if c.ndim != 1 or c.size < 1:
         raise CodecError("quantize needs a 1-D array of coefficients")
-    if not np.all(np.isfinite(c)):
-        raise CodecError("coefficients contain NaN or Inf")
+    finite_coeffs(c)
     lo, hi = float(c.min()), float(c.max())
     step = (hi - lo) / (levels - 1)
     if not (step > 0 and math.isfinite(step)):
@@ -100,9 +107,7 @@ def threshold_cut(coeffs_um: np.ndarray, threshold_um: np.ndarray, b0_db: float)
     Compared on a linear scale: log10|C| < log10 b + b0/20  <=>  |C| < b 10^(b0/20),
     which needs no logarithm of zero.
     """
-    c = np.asarray(coeffs_um, dtype=np.float64)
-    if not np.all(np.isfinite(c)):
-        raise CodecError("coefficients contain NaN or Inf")
+    c = finite_coeffs(coeffs_um)
     level = cut_level_um(threshold_um, b0_db)
     if level.shape != c.shape:
         raise CodecError("one threshold per coefficient is needed")
@@ -146,9 +151,7 @@ def shaped_steps(threshold_um: np.ndarray, g_db: float) -> np.ndarray:
 
 def shaped_quantize(coeffs_um: np.ndarray, threshold_um: np.ndarray, g_db: float) -> np.ndarray:
     """Integer indices q_k of the threshold-shaped quantizer (int64)."""
-    c = np.asarray(coeffs_um, dtype=np.float64)
-    if not np.all(np.isfinite(c)):
-        raise CodecError("coefficients contain NaN or Inf")
+    c = finite_coeffs(coeffs_um)
     step = shaped_steps(threshold_um, g_db)
     if step.shape != c.shape:
         raise CodecError("one threshold per coefficient is needed")

@@ -151,152 +151,87 @@ def encode_indices_py(q: np.ndarray) -> bytes:
     return _code(ops)
 
 
+class _Decoder:
+    """The binary range decoder of docs/stream-format.md ("Entropy coder (exact)"): the mirror
+    of _code, one decision at a time (reads zeros past the end of the payload)."""
+
+    __slots__ = ("_next", "code", "rng")
+
+    def __init__(self, data: bytes) -> None:
+        self.code = int.from_bytes((data[:4] + b"\0\0\0\0")[:4], "big")
+        self.rng = MASK32
+        self._next = iter(data[4:]).__next__
+
+    def _normalize(self) -> None:
+        while self.rng < TOP:
+            self.rng <<= 8
+            try:
+                b = self._next()
+            except StopIteration:
+                b = 0
+            self.code = ((self.code << 8) | b) & MASK32
+
+    def bit(self, probs: list[int], i: int) -> int:
+        """An adaptive bit with probability probs[i] (of a 0, in 1/2048), updated by shift 4."""
+        p = probs[i]
+        bound = (self.rng >> PROB_BITS) * p
+        if self.code < bound:
+            self.rng = bound
+            probs[i] = p + ((PROB_ONE - p) >> ADAPT_SHIFT)
+            b = 0
+        else:
+            self.code -= bound
+            self.rng -= bound
+            probs[i] = p - (p >> ADAPT_SHIFT)
+            b = 1
+        self._normalize()
+        return b
+
+    def bypass(self) -> int:
+        self.rng >>= 1
+        b = 1 if self.code >= self.rng else 0
+        if b:
+            self.code -= self.rng
+        self._normalize()
+        return b
+
+    def exp_golomb(self, probs: list[int]) -> int:
+        """The inverse of _eg."""
+        last = len(probs) - 1
+        n = 0
+        while self.bit(probs, n if n < last else last):
+            n += 1
+            if n > EG_MAX_PREFIX:
+                raise StreamError(MSG_TOO_LONG)
+        v1 = 1
+        for _ in range(n):
+            v1 = (v1 << 1) | self.bypass()
+        return v1 - 1
+
+
 def decode_indices_py(data: bytes, n_keep: int) -> np.ndarray:
-    """Inverse of encode_indices for N' = n_keep; malformed data raises StreamError (reference).
-
-    The binary decoder (docs/stream-format.md, "Entropy coder (exact)") is written out inline,
-    with its state in local variables: in CPython this is about twice as fast as a decoder
-    object with bit()/bypass() methods. Every adaptive bit is the same few lines:
-    bound = (range >> 11) * p, bit = (code >= bound), update code, range and p (shift 4),
-    then normalize (while range < 2^24: shift in the next byte, 0 past the end); a bypass
-    bit halves range and compares.
-    """
-    code = int.from_bytes((data[:4] + b"\0\0\0\0")[:4], "big")
-    rng = 0xFFFFFFFF
-    nxt = iter(data[4:]).__next__
-
-    def byte() -> int:
-        try:
-            return nxt()
-        except StopIteration:
-            return 0
-
+    """Inverse of encode_indices for N' = n_keep; malformed data raises StreamError (the
+    reference; the compiled coder is the fast path)."""
+    d = _Decoder(data)
     p_zero = [PROB_INIT] * N_CTX
     p_gt1 = [PROB_INIT] * N_CTX
     p_sig = [PROB_INIT] * 16
     p_mag = [PROB_INIT] * 16
-    out = [0] * n_keep
-    # n_sig: Exp-Golomb, adaptive prefix in p_sig
-    n = 0
-    while True:
-        i = n if n < 15 else 15
-        p = p_sig[i]
-        bound = (rng >> 11) * p
-        if code < bound:
-            rng = bound
-            p_sig[i] = p + ((2048 - p) >> 4)
-            b = 0
-        else:
-            code -= bound
-            rng -= bound
-            p_sig[i] = p - (p >> 4)
-            b = 1
-        while rng < 0x1000000:
-            rng <<= 8
-            code = ((code << 8) | byte()) & 0xFFFFFFFF
-        if not b:
-            break
-        n += 1
-        if n > EG_MAX_PREFIX:
-            raise StreamError(MSG_TOO_LONG)
-    v1 = 1
-    for _ in range(n):
-        rng >>= 1
-        if code >= rng:
-            code -= rng
-            v1 = (v1 << 1) | 1
-        else:
-            v1 <<= 1
-        while rng < 0x1000000:
-            rng <<= 8
-            code = ((code << 8) | byte()) & 0xFFFFFFFF
-    n_sig = v1 - 1
+    n_sig = d.exp_golomb(p_sig)
     if n_sig > n_keep:
         raise StreamError(msg_n_sig(n_sig, n_keep))
+    out = [0] * n_keep
     a1 = a2 = 0
     last = n_sig - 1
     for k in range(n_sig):
         ctx = (a1 if a1 < 2 else 2) + (a2 if a2 < 2 else 2)
-        if k != last:
-            p = p_zero[ctx]
-            bound = (rng >> 11) * p
-            if code < bound:
-                rng = bound
-                p_zero[ctx] = p + ((2048 - p) >> 4)
-                nz = 0
-            else:
-                code -= bound
-                rng -= bound
-                p_zero[ctx] = p - (p >> 4)
-                nz = 1
-            while rng < 0x1000000:
-                rng <<= 8
-                code = ((code << 8) | byte()) & 0xFFFFFFFF
-            if not nz:
-                a2, a1 = a1, 0
-                continue
-        # sign (bypass)
-        rng >>= 1
-        if code >= rng:
-            code -= rng
-            neg = True
-        else:
-            neg = False
-        while rng < 0x1000000:
-            rng <<= 8
-            code = ((code << 8) | byte()) & 0xFFFFFFFF
-        # gt1
-        p = p_gt1[ctx]
-        bound = (rng >> 11) * p
-        if code < bound:
-            rng = bound
-            p_gt1[ctx] = p + ((2048 - p) >> 4)
-            a = 1
-        else:
-            code -= bound
-            rng -= bound
-            p_gt1[ctx] = p - (p >> 4)
-            a = 2
-        while rng < 0x1000000:
-            rng <<= 8
-            code = ((code << 8) | byte()) & 0xFFFFFFFF
-        if a == 2:
-            n = 0
-            while True:
-                i = n if n < 15 else 15
-                p = p_mag[i]
-                bound = (rng >> 11) * p
-                if code < bound:
-                    rng = bound
-                    p_mag[i] = p + ((2048 - p) >> 4)
-                    b = 0
-                else:
-                    code -= bound
-                    rng -= bound
-                    p_mag[i] = p - (p >> 4)
-                    b = 1
-                while rng < 0x1000000:
-                    rng <<= 8
-                    code = ((code << 8) | byte()) & 0xFFFFFFFF
-                if not b:
-                    break
-                n += 1
-                if n > EG_MAX_PREFIX:
-                    raise StreamError(MSG_TOO_LONG)
-            v1 = 1
-            for _ in range(n):
-                rng >>= 1
-                if code >= rng:
-                    code -= rng
-                    v1 = (v1 << 1) | 1
-                else:
-                    v1 <<= 1
-                while rng < 0x1000000:
-                    rng <<= 8
-                    code = ((code << 8) | byte()) & 0xFFFFFFFF
-            a = 1 + v1
-            if a > MAX_ABS_INDEX:
-                raise StreamError(MSG_RANGE)
+        if k != last and not d.bit(p_zero, ctx):
+            a2, a1 = a1, 0
+            continue
+        neg = d.bypass()
+        a = 2 + d.exp_golomb(p_mag) if d.bit(p_gt1, ctx) else 1
+        if a > MAX_ABS_INDEX:
+            raise StreamError(MSG_RANGE)
         out[k] = -a if neg else a
         a2, a1 = a1, a
     return np.array(out, dtype=np.int64)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hostd.codec import transform
-from hostd.codec.methods import MAX_LEVELS, apply_cut, quantize, threshold_cut
+from hostd.codec.methods import MAX_LEVELS, apply_cut, finite_coeffs, quantize, threshold_cut
 from hostd.errors import CodecError, StreamError
 from hostd.perception import indices
 from hostd.perception import thresholds as th
@@ -138,7 +138,8 @@ def varint(u: int) -> bytes:
             return bytes(out)
 
 
-def _zigzag_varint(v: int) -> bytes:
+def zigzag_varint(v: int) -> bytes:
+    """The varint of v's zigzag code (2v for v >= 0, -2v - 1 below; |v| < 2^63)."""
     return varint(((v << 1) ^ (v >> 63)) & ((1 << 64) - 1))
 
 
@@ -205,7 +206,7 @@ def _quant_payload(q: np.ndarray) -> bytes:
     if span >= 1 << 32:
         raise CodecError("quantization indices span more than 32 bits")
     dt = {1: "<u1", 2: "<u2", 4: "<u4"}[width]
-    return _zigzag_varint(qmin) + bytes([width]) + (q - qmin).astype(dt).tobytes()
+    return zigzag_varint(qmin) + bytes([width]) + (q - qmin).astype(dt).tobytes()
 
 
 def _parse_quant(raw: bytes, n_keep: int) -> np.ndarray:
@@ -348,8 +349,7 @@ def encode_coefficients(
     n_keep = geometry.n_keep
     if c.shape != (n_keep,):
         raise CodecError(f"expected {n_keep} coefficients for this geometry, got {c.shape}")
-    if not np.all(np.isfinite(c)):
-        raise CodecError("coefficients contain NaN or Inf")
+    finite_coeffs(c)
     common = dict(
         geometry=geometry, n_keep=n_keep, curve=curve, ref_coeffs=c, coder=coder,
         embed_curve=embed_curve,

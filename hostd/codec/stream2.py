@@ -22,6 +22,7 @@ from hostd.codec.methods import (
     G_UNIT_DB,
     MAX_LEVELS,
     check_g_db,
+    finite_coeffs,
     quantize,
     shaped_quantize,
     shaped_values,
@@ -29,6 +30,7 @@ from hostd.codec.methods import (
 )
 from hostd.codec.stream import Stream
 from hostd.codec.stream import varint as _varint
+from hostd.codec.stream import zigzag_varint as _zigzag
 from hostd.errors import CodecError, StreamError
 from hostd.perception import guard, indices
 from hostd.perception import thresholds as th
@@ -121,10 +123,6 @@ def int_geometry(geometry: transform.Geometry) -> IntGeometry:
 
 
 # ---------------------------------------------------------------- small codings
-
-
-def _zigzag(v: int) -> bytes:
-    return _varint(2 * v if v >= 0 else -2 * v - 1)
 
 
 class _Reader:
@@ -240,8 +238,7 @@ def encode_coefficients(
     c = np.asarray(coeffs_um, dtype=np.float64)
     if c.shape != (n_keep,):
         raise CodecError(f"expected {n_keep} coefficients for this geometry, got {c.shape}")
-    if not np.all(np.isfinite(c)):
-        raise CodecError("coefficients contain NaN or Inf")
+    finite_coeffs(c)
     b_k = thresholds_at(curve, ig)
     P, A = indices.weighted_sums(c, b_k)
     if method not in METHOD_IDS:

@@ -70,7 +70,7 @@ class DeviceMode:
 
     def end(self) -> None:
         if self.rendering:
-            self.link.t.send(pr.encode("STOP_RENDER"))
+            self.link._send(pr.encode("STOP_RENDER"), must=True)  # retried like STOP
         self.texture = None
         self.rendering = False
 

@@ -14,8 +14,6 @@ count. Nothing here allocates per STATUS beyond a few Python floats.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from hostd.device import protocol as pr
 
 STATE_NAMES = {v: k.lower() for k, v in pr.STATES.items()}  # 0 idle, 1 running, 2 ramp_down
@@ -33,16 +31,6 @@ def fault_names(flags: int) -> list[str]:
     return [name for name, bit in FAULT_NAMES if flags & bit]
 
 
-@dataclass
-class HealthSnapshot:
-    device_state: str
-    device_faults: list[str]
-    device_underruns: int
-    device_samples_played: int
-    played_fraction: float
-    device_resets: int
-
-
 class DeviceHealth:
     """Feed every STATUS (in arrival order); read totals and the current selection's figures."""
 
@@ -51,9 +39,7 @@ class DeviceHealth:
         self.underruns = 0  # episodes since the daemon started (all devices, wrap-aware)
         self.samples_played = 0  # from the buffer, since the daemon started
         self.resets = 0  # counters or clock went back: a device reset or another device
-        self.rendered = 0  # ticks the device reported rendering itself (device mode)
         self.state = -1
-        self.flags = 0  # the latest STATUS's fault flags
         self._recent_flags: dict[int, float] = {}  # fault bit -> device time (s) last seen
         self._last: dict | None = None
         self._time_s = 0.0  # unwrapped device time of the latest STATUS (this device)
@@ -79,7 +65,6 @@ class DeviceHealth:
         last = self._last
         self._last = f
         self.state = f["state"]
-        self.flags = f["fault_flags"]
         if last is None:
             return
         dt_us = (f["device_time_us"] - last["device_time_us"]) & 0xFFFFFFFF
@@ -92,13 +77,12 @@ class DeviceHealth:
         self._time_s += dt_us * 1e-6
         self.samples_played += d_played
         self.underruns += d_under
-        for bit in (b for _, b in FAULT_NAMES if self.flags & b):
+        for bit in (b for _, b in FAULT_NAMES if f["fault_flags"] & b):
             self._recent_flags[bit] = self._time_s
         if f["state"] == RENDERING and last["state"] == RENDERING:
             # device mode: nothing is played from the buffer; every tick between two STATUS
             # messages that both say "rendering" was rendered
             d_played = dt_us * pr.SAMPLE_RATE_HZ // 1_000_000
-            self.rendered += d_played
         if self._sel_active:
             if not self._sel_started and f["state"] in (RUNNING, RENDERING):
                 self._sel_started = True  # count from the first STATUS that shows it playing
@@ -111,14 +95,13 @@ class DeviceHealth:
     def state_name(self) -> str:
         return STATE_NAMES.get(self.state, "unknown")
 
-    def recent_faults(self) -> list[str]:
-        """Fault names the device reported within the last fault_window_s of device time."""
-        t0 = self._time_s - self.fault_window_s
-        return [name for name, bit in FAULT_NAMES if self._recent_flags.get(bit, -1e300) >= t0]
-
     def recent_fault_bits(self) -> int:
+        """Fault bits the device reported within the last fault_window_s of device time."""
         t0 = self._time_s - self.fault_window_s
         return sum(bit for bit, t in self._recent_flags.items() if t >= t0)
+
+    def recent_faults(self) -> list[str]:
+        return fault_names(self.recent_fault_bits())
 
     @property
     def played_fraction(self) -> float:
@@ -128,6 +111,3 @@ class DeviceHealth:
             return 1.0 if self._sel_active else 0.0
         return min(1.0, self._sel_played / self._sel_due)
 
-    def snapshot(self) -> HealthSnapshot:
-        return HealthSnapshot(self.state_name, self.recent_faults(), self.underruns,
-                              self.samples_played, self.played_fraction, self.resets)

@@ -116,7 +116,7 @@ class DeviceLink:
         so until it acknowledges a SAMPLES message sent after this, its reported fill is
         stale and counts as zero."""
         self.stop()
-        self._fill_from_seq = (self._seq + 1) & 0xFFFF
+        self._fill_from_seq = self.next_seq()
 
     def next_seq(self) -> int:
         return (self._seq + 1) & 0xFFFF
@@ -149,11 +149,10 @@ class DeviceLink:
         last = f["last_seq"]
         while self._unacked and ((last - self._unacked[0][0]) & 0xFFFF) < 0x8000:
             self._unacked.popleft()
-        if self._fill_from_seq is not None and ((last - self._fill_from_seq) & 0xFFFF) < 0x8000 \
-                and self._seq_sent_since(self._fill_from_seq):
-            self._fill_from_seq = None  # the device has taken STOP and what followed it
         self.stats.statuses += 1
         self.stats.last_status = f
+        if self._fill_from_seq is not None and self.acked(self._fill_from_seq):
+            self._fill_from_seq = None  # the device has taken STOP and what followed it
         if self.on_status is not None:
             self.on_status(f, self.device_time_s, fresh)
 

@@ -103,12 +103,18 @@ class Pump:
         self._under_seen = 0  # device underrun episodes counted at the last step
         self._last_decay = link.t.now()
         self._last_cycle_start: float | None = None
+        # counts of renderers and links already replaced (a new one per selection / reconnection)
+        self._motion_base = (0, 0)  # relocks, implausible speeds
+        self._retries_base = 0
         self._fill = self.jitter.base_fill
         self.attach(link)
 
     # ------------------------------------------------------------------ wiring
     def attach(self, link: DeviceLink) -> None:
         """Stream to `link` from now on (after a reconnection); the counters carry on."""
+        old = getattr(self, "link", None)
+        if old is not None and old is not link:
+            self._retries_base += old.stats.io_retries
         self.link = link
         link.on_status = self._on_status
         link.target_fill = self._fill
@@ -148,6 +154,10 @@ class Pump:
     # ------------------------------------------------------------------ playback control
     def begin(self, renderer) -> None:
         """Play `renderer` from now: stop what plays, prime the buffer, start (soft start)."""
+        old = self.renderer
+        if old is not None and old is not renderer:
+            self._motion_base = (self._motion_base[0] + old.motion.relocks,
+                                 self._motion_base[1] + old.motion.implausible)
         self.renderer = renderer
         self.health.select(renderer is not None)
         self._episode = None
@@ -279,7 +289,8 @@ class Pump:
             self.stats.late_batches += 1
         sent = self._send(n)
         m = self.renderer.motion
-        self.stats.relocks, self.stats.implausible_speed = m.relocks, m.implausible
+        self.stats.relocks = self._motion_base[0] + m.relocks
+        self.stats.implausible_speed = self._motion_base[1] + m.implausible
         return sent
 
     def run(self, duration_s: float | None = None, stop=None, each_cycle=None) -> PumpStats:
@@ -312,7 +323,7 @@ class Pump:
                 st.io_dropped += 1
             ring[st.cycles % ring.size] = (time.thread_time() - c0) * 1e6
             st.cycles += 1
-            st.io_retries = self.link.stats.io_retries
+            st.io_retries = self._retries_base + self.link.stats.io_retries
             k += 1
             due = start + k * self.period_s
             now = time.monotonic()

@@ -19,6 +19,7 @@ import numpy as np
 import scipy.optimize
 
 from hostd.errors import FitError
+from hostd.texture import synth
 
 REQUIRED = ("texture", "method", "level", "score")
 
@@ -216,7 +217,7 @@ def read_scores(path: str | Path, score_one=None) -> list[Stimulus]:
                 if score_one is None:
                     raise FitError(f"{p}:{i}: no Ip/Ia and no way to score a stream")
                 prof = r.get("profile") or None
-                if prof and not prof.startswith("synthetic:"):
+                if prof and not synth.is_spec(prof):
                     prof = str(p.parent / prof)
                 ip, ia = score_one(p.parent / r["stream"], prof)
         except (ValueError, TypeError):

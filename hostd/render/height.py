@@ -80,12 +80,10 @@ class HeightEvaluator:
         self.n = int(n)
         self.length_mm = float(length_mm)
         self.dx_mm = self.length_mm / self.n
-        self._period_mm = 2.0 * self.length_mm
         self.method = method
         self.band = band or BandLimitConfig()
         self.dtype = dtype
         self.k = np.arange(1, c.size + 1, dtype=np.float64)
-        self._k = self.k.astype(dtype)
         self._w_bucket: int | None = None
         self._w = self.c.astype(dtype)
         self._tables: OrderedDict[int, np.ndarray] = OrderedDict()

@@ -173,7 +173,7 @@ def pump_main(cfg, conn, stats) -> None:
         if s:
             put("fill", s["buffer_fill"])
             put("malformed", s["malformed"])
-            put("device_time_s", s["device_time_us"] * 1e-6)  # the device's clock (wraps at 2^32 µs)
+            put("device_time_s", link.device_time_s)  # the device's clock, unwrapped
         h = pump.health
         put("device_state", h.state)
         put("device_fault_bits", h.recent_fault_bits())
@@ -193,6 +193,8 @@ def pump_main(cfg, conn, stats) -> None:
                      "longest_stall_ms", "implausible_speed", "relocks", "io_retries", "io_dropped"):
             put(name, getattr(st, name))
         put("recoveries", st.recoveries + (dev.recoveries if dev is not None else 0))
+        if dev is not None:
+            put("device_uploads", dev.uploads)
         put("target_fill", pump.target_fill)
         now = time.monotonic()
         if now - last_pct[0] >= 1.0:  # percentiles once a second, off the per-cycle budget
@@ -207,8 +209,6 @@ def pump_main(cfg, conn, stats) -> None:
             command(conn.recv())
         if dev is not None:
             dev.tick()
-            put("recoveries", pump.stats.recoveries + dev.recoveries)
-            put("device_uploads", dev.uploads)
         publish()
 
     while not quit_:

@@ -100,14 +100,20 @@ def actuate(command_um: np.ndarray, model: ActuatorModel, fs: float) -> np.ndarr
     return scipy.signal.lfilter(np.ravel(bd), ad, command_um)
 
 
-def reference(coeffs_um: np.ndarray, n: int, length_mm: float, hand: Hand, t_s: np.ndarray,
-              renderer: Renderer) -> np.ndarray:
-    """The ideal display: exact series with the band gains of the true speed, true position
-    (hostd.render.height.band_gains of each sample's own speed, no speed buckets)."""
-    band = renderer.height.band
+def ideal(coeffs_um: np.ndarray, n: int, length_mm: float, x_mm: np.ndarray, v_mm_s: np.ndarray,
+          band) -> np.ndarray:
+    """The ideal display at positions x_mm and speeds v_mm_s: the exact series with the band
+    gains of each sample's own speed (hostd.render.height.band_gains, no speed buckets)."""
     f_pass, f_stop = band_edges_hz(band)
     two_l = 2.0 * length_mm
-    theta = series.phase_rad(hand.position_mm(t_s), n, length_mm)
-    scale = np.abs(hand.velocity_mm_s(t_s)) / two_l  # component k sounds at k * scale Hz
+    theta = series.phase_rad(x_mm, n, length_mm)
+    scale = np.abs(v_mm_s) / two_l  # component k sounds at k * scale Hz
     return series.evaluate_faded(coeffs_um, theta, scale, f_pass, f_stop,
                                  lambda k, s: band_gains(float(k), s * two_l, length_mm, band))
+
+
+def reference(coeffs_um: np.ndarray, n: int, length_mm: float, hand: Hand, t_s: np.ndarray,
+              renderer: Renderer) -> np.ndarray:
+    """The ideal display for the hand at instants t_s, with the renderer's band."""
+    return ideal(coeffs_um, n, length_mm, hand.position_mm(t_s), hand.velocity_mm_s(t_s),
+                 renderer.height.band)

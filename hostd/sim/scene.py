@@ -340,14 +340,10 @@ def strip(result: dict) -> dict:
 def band_limited(tr: dict, sl: slice) -> np.ndarray:
     """The ideal display over trace samples sl: the codec's series with the band gains of the
     hand's true speed at each sample (what a perfect chain delivers)."""
-    from hostd.render import series
-    from hostd.render.height import band_gains
+    from hostd.sim import chain
 
-    c = tr["codec"]
-    k = np.arange(1, c.size + 1, dtype=np.float64)
-    g = band_gains(k, tr["speed_mm_s"][sl], tr["length_mm"], tr["band"])  # samples x K
-    theta = series.phase_rad(tr["x_mm"][sl], tr["n"], tr["length_mm"])
-    return np.einsum("ij,ij->i", np.cos(np.multiply.outer(theta, k)), g * c)
+    return chain.ideal(tr["codec"], tr["n"], tr["length_mm"], tr["x_mm"][sl], tr["speed_mm_s"][sl],
+                       tr["band"])
 
 
 def threshold_crossings(f_hz: np.ndarray, err: np.ndarray, b: np.ndarray) -> np.ndarray:
