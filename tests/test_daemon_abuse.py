@@ -324,7 +324,7 @@ def test_v1_decoder_refuses_q_min_that_overflows(monkeypatch):
     def evil_payload(q):
         return vtx.zigzag_varint(-(2 ** 63)) + bytes([1]) + bytes(n_keep)
 
-    monkeypatch.setattr(vtx, "_quant_payload", evil_payload)
+    monkeypatch.setattr(vtx.v1, "_quant_payload", evil_payload)
     data = _quant_stream(n_keep)
     monkeypatch.undo()
     with pytest.raises(StreamError, match="out of range"):

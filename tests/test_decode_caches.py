@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from hostd.codec import stream as vtx
-from hostd.codec import stream2, transform
+from hostd.codec import transform
+from hostd.codec.stream import v2 as stream2
 from hostd.errors import StreamError
 from hostd.perception import thresholds
 

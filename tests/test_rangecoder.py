@@ -14,7 +14,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hostd.codec import rangecoder, stream2
+from hostd.codec import rangecoder
+from hostd.codec.stream import v2 as stream2
 from hostd.errors import StreamError
 from tests import test_stream_v2 as v2
 from tests.conftest import ROOT, VECTORS

@@ -11,8 +11,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from hostd.codec import rangecoder, stream2, transform
+from hostd.codec import rangecoder, transform
 from hostd.codec import stream as vtx
+from hostd.codec.stream import v2 as stream2
 from hostd.errors import CodecError, StreamError
 from hostd.perception import guard, indices, thresholds
 from hostd.texture import synth

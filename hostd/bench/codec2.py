@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from hostd.bench.common import cpu_median_s
-from hostd.codec import methods, ratecontrol, stream2, transform
+from hostd.codec import methods, ratecontrol, transform
 from hostd.codec import stream as vtx
+from hostd.codec.stream import v2 as stream2
 from hostd.perception import guard, indices, peer, thresholds
 from hostd.texture import synth
 

@@ -18,8 +18,9 @@ import atheris
 import numpy as np
 
 with atheris.instrument_imports(include=["hostd"]):
-    from hostd.codec import rangecoder, stream2  # noqa: F401
+    from hostd.codec import rangecoder  # noqa: F401
     from hostd.codec import stream as vtx
+    from hostd.codec.stream import v2  # noqa: F401
     from hostd.errors import StreamError
 
 

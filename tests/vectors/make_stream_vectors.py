@@ -46,7 +46,7 @@ def profile() -> np.ndarray:
     return np.frombuffer(PROFILE_FILE.read_bytes(), dtype="<f8").astype(np.float64)
 
 
-# Version 2 (stream2.py). "paper" vectors use the paper's geometry (N = 20000, 0.5 µm, 50 mm/s,
+# Version 2 (hostd/codec/stream/v2.py). "paper" vectors use the paper's geometry (N = 20000, 0.5 µm, 50 mm/s,
 # 400 Hz: no geometry bytes) with C_1..C_160 taken from the stored profile's amplitudes.
 CASES_V2 = {
     "v2_shaped_gm9": dict(method="shaped", g_db=-9.0),
@@ -64,7 +64,7 @@ CASES_V2 = {
 
 
 def build_v2(name: str) -> bytes:
-    from hostd.codec import stream2
+    from hostd.codec.stream import v2 as stream2
 
     kw = dict(CASES_V2[name])
     y = profile()

@@ -1,4 +1,4 @@
-"""The .vtx stream: a compressed DCT texture with its geometry and quality reference.
+"""The .vtx stream, version 1: fixed 80-byte header, float64 geometry, deflate payloads.
 
 The byte layout is specified in docs/stream-format.md; this module is its reference
 implementation. Decoding validates every size before it allocates, checks the CRC and the
@@ -11,12 +11,12 @@ from __future__ import annotations
 import math
 import struct
 import zlib
-from dataclasses import dataclass
 
 import numpy as np
 
 from hostd.codec import transform
 from hostd.codec.methods import MAX_LEVELS, apply_cut, finite_coeffs, quantize, threshold_cut
+from hostd.codec.stream.common import Stream, zigzag_varint
 from hostd.errors import CodecError, StreamError
 from hostd.perception import indices
 from hostd.perception import thresholds as th
@@ -37,110 +37,7 @@ MAX_STREAM_BYTES = HEADER_SIZE + 2 + 16 * th.MAX_POINTS + 16 + 9 * (1 << 22) + C
 assert HEADER_SIZE == 80
 
 
-@dataclass(frozen=True)
-class Stream:
-    """A decoded stream: header fields and the decoded coefficients C'_1..C'_N'."""
-
-    method: str
-    coder: str
-    n: int
-    n_keep: int
-    length_mm: float
-    speed_mm_s: float
-    fmax_hz: float
-    threshold_id: bytes
-    ref_P: float
-    ref_A: float
-    levels: int | None
-    step_um: float | None
-    b0_db: float | None
-    value_bits: int | None
-    curve: th.ThresholdCurve | None  # embedded curve, if any
-    coefficients: np.ndarray
-    nbytes: int
-    payload_bytes: int
-    version: int = VERSION
-    g_db: float | None = None  # shaped (v2): the knob, dB relative to the threshold
-    guard_wsnr_db: float | None = None  # v2: the sender's wSNR (lower bound, 0.5 dB steps)
-
-    @property
-    def spacing_um(self) -> float:
-        return self.length_mm * 1000.0 / self.n
-
-    @property
-    def frequencies_hz(self) -> np.ndarray:
-        return transform.frequencies_hz(
-            np.arange(1, self.n_keep + 1), self.length_mm, self.speed_mm_s
-        )
-
-    @property
-    def ratio_coeffs(self) -> float:
-        """Stream bytes over 16-bit raw coefficients (2 bytes x N')."""
-        return self.nbytes / (2.0 * self.n_keep)
-
-    @property
-    def ratio_profile(self) -> float:
-        """Stream bytes over the raw 16-bit profile (2 bytes x N)."""
-        return self.nbytes / (2.0 * self.n)
-
-    def reconstruct(self) -> np.ndarray:
-        return transform.synthesize(self.coefficients, self.n)
-
-    def summary(self) -> dict:
-        out = {
-            "version": self.version,
-            "n": self.n,
-            "length_mm": self.length_mm,
-            "spacing_um": self.spacing_um,
-            "speed_mm_s": self.speed_mm_s,
-            "fmax_hz": self.fmax_hz,
-            "n_keep": self.n_keep,
-            "method": self.method,
-            "coder": self.coder,
-            "threshold_id": self.threshold_id.hex(),
-            "curve_embedded": self.curve is not None,
-            "bytes": self.nbytes,
-            "payload_bytes": self.payload_bytes,
-            "ratio_coeffs": self.ratio_coeffs,
-            "ratio_profile": self.ratio_profile,
-            "ref_P": self.ref_P,
-            "ref_A": self.ref_A,
-        }
-        if self.guard_wsnr_db is not None:
-            out["guard_wsnr_db"] = self.guard_wsnr_db
-        if self.method == "shaped":
-            out["g_db"] = self.g_db
-            out["kept"] = int(np.count_nonzero(self.coefficients))
-        elif self.method == "quant":
-            out["levels"] = self.levels
-            out["step_um"] = self.step_um
-        else:
-            out["b0_db"] = self.b0_db
-            out["value_bits"] = self.value_bits
-            out["kept"] = int(np.count_nonzero(self.coefficients))
-        out["coefficients"] = self.coefficients.tolist()
-        return out
-
-
 # ---------------------------------------------------------------- small codings
-
-
-def varint(u: int) -> bytes:
-    """An unsigned LEB128 varint (7 bits a byte, low first); stream v1's q_min and the v2 header."""
-    out = bytearray()
-    while True:
-        b = u & 0x7F
-        u >>= 7
-        if u:
-            out.append(b | 0x80)
-        else:
-            out.append(b)
-            return bytes(out)
-
-
-def zigzag_varint(v: int) -> bytes:
-    """The varint of v's zigzag code (2v for v >= 0, -2v - 1 below; |v| < 2^63)."""
-    return varint(((v << 1) ^ (v >> 63)) & ((1 << 64) - 1))
 
 
 def _read_zigzag_varint(buf: bytes, pos: int) -> tuple[int, int]:
@@ -411,12 +308,8 @@ def _finite_pos(name: str, v: float) -> None:
 
 
 def decode(data: bytes) -> Stream:
-    """Parse and validate a .vtx stream; every malformed input raises StreamError."""
+    """Parse and validate a version-1 stream; every malformed input raises StreamError."""
     data = bytes(data)
-    if data[:1] == b"V" and len(data) >= 2 and data[1] >> 4 in (2, 3):  # version 2 (stream2.py)
-        from hostd.codec import stream2
-
-        return stream2.decode(data)
     size = len(data)
     if size > MAX_STREAM_BYTES:
         raise StreamError(f"stream of {size} bytes exceeds the {MAX_STREAM_BYTES}-byte limit")
@@ -517,23 +410,3 @@ def decode(data: bytes) -> Stream:
         nbytes=size,
         payload_bytes=payload_len,
     )
-
-
-def curve_for(stream: Stream, given: th.ThresholdCurve | None = None) -> th.ThresholdCurve:
-    """The curve a stream was made with: the embedded one, the user's, or a shipped one by id."""
-    if stream.curve is not None:
-        return stream.curve
-    if given is not None:
-        if given.id_bytes != stream.threshold_id:
-            raise StreamError(
-                f"stream was made with threshold curve {stream.threshold_id.hex()}, "
-                f"but {given.name} is {given.curve_id}: pass the curve it was encoded with"
-            )
-        return given
-    found = th.shipped_curves().get(stream.threshold_id)
-    if found is None:
-        raise StreamError(
-            f"threshold curve {stream.threshold_id.hex()} is not embedded and not shipped: "
-            "pass it with --thresholds CSV"
-        )
-    return found
