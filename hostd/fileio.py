@@ -111,3 +111,122 @@ def write_output(path: str | os.PathLike, data: bytes, mode: int | None = None, 
 def is_temporary(name: str) -> bool:
     """A name write_output uses for its temporaries (removed at start-up after a crash)."""
     return name.startswith(TMP_PREFIX) and name.endswith(TMP_SUFFIX)
+
+
+# ---------------------------------------------------------------- relative to a directory fd
+# The daemon's library and spool: every operation is relative to a directory descriptor the
+# daemon opened and checked itself, and never follows a symbolic link, so a path another user
+# can change (a renamed directory, a planted link) is never trusted.
+
+
+class NotRegular(HostdError):
+    """A name that is not a regular file (symlink, FIFO, device, directory)."""
+
+
+def open_dir(path: str | os.PathLike, what: str, *, dir_fd: int | None = None, others_may_write: bool = False,
+             create_mode: int | None = None) -> int:
+    """A checked directory descriptor: a real directory (not a link), owned by us, writable by
+    nobody else unless others_may_write (then it must be sticky). Created with create_mode if
+    missing. Raises HostdError saying what to fix."""
+    flags = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
+    if create_mode is not None:
+        try:
+            os.mkdir(path, create_mode, dir_fd=dir_fd)
+        except FileExistsError:
+            pass
+        except OSError as e:
+            raise HostdError(f"{what}: cannot create {path}: {e.strerror}") from None
+    try:
+        fd = os.open(path, flags, dir_fd=dir_fd)
+    except OSError as e:
+        why = "a symbolic link or not a directory" if e.errno in (40, 20) else e.strerror
+        raise HostdError(f"{what}: cannot use {path}: {why}") from None
+    st = os.fstat(fd)
+    mode = stat.S_IMODE(st.st_mode)
+    problem = None
+    if st.st_uid != os.geteuid():
+        problem = f"owned by uid {st.st_uid}, not by this daemon's user (uid {os.geteuid()})"
+    elif mode & (stat.S_IWGRP | stat.S_IWOTH) and not others_may_write:
+        problem = f"mode {mode:04o} lets other users rename or replace what is in it"
+    elif mode & (stat.S_IWGRP | stat.S_IWOTH) and not mode & stat.S_ISVTX:
+        # ours, so we may: with the sticky bit a writer can rename or remove only its own files
+        os.fchmod(fd, mode | stat.S_ISVTX)
+    if problem:
+        os.close(fd)
+        raise HostdError(f"{what}: {path} is {problem}: give it to hostd's user with mode 0750 "
+                         "(the spool: 3770, sticky), as systemd-tmpfiles does with hostd's tmpfiles.d file")
+    return fd
+
+
+def read_regular_at(dir_fd: int, name: str, max_bytes: int, expect: tuple[int, int] | None = None) -> bytes:
+    """A regular file's bytes, name relative to dir_fd: no link followed (O_NOFOLLOW), no FIFO
+    waited on (O_NONBLOCK), the type and size checked on the open descriptor before any byte is
+    read, at most max_bytes read. expect: (size, mtime_ns) it must still have, else
+    BlockingIOError (still being written)."""
+    try:
+        fd = os.open(name, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC,
+                     dir_fd=dir_fd)
+    except OSError as e:
+        if e.errno in (40, 6):  # ELOOP: a symbolic link; ENXIO: a socket or a FIFO without writer
+            raise NotRegular("a symbolic link or special file: only regular files are read") from None
+        raise
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise NotRegular("not a regular file (FIFO, device or directory): only regular files are read")
+        if st.st_size > max_bytes:
+            raise HostdError(f"stream of {st.st_size} bytes exceeds the limit of {max_bytes} "
+                             "(library.max_stream_bytes)")
+        if expect is not None and (st.st_size, st.st_mtime_ns) != expect:
+            raise BlockingIOError("still being written")
+        chunks, left = [], max_bytes + 1
+        while left > 0:
+            b = os.read(fd, min(left, 1 << 16))
+            if not b:
+                break
+            chunks.append(b)
+            left -= len(b)
+        data = b"".join(chunks)
+        if len(data) > max_bytes:
+            raise HostdError(f"stream exceeds the limit of {max_bytes} bytes (library.max_stream_bytes)")
+        return data
+    finally:
+        os.close(fd)
+
+
+def write_at(dir_fd: int, name: str, data: bytes, mode: int = 0o640, durable: bool = True) -> None:
+    """Atomic replace of name in dir_fd: a new temporary (O_CREAT|O_EXCL|O_NOFOLLOW), written,
+    fsynced, renamed over name (a link there is replaced, never written through), the
+    directory fsynced. On failure the temporary is removed and HostdError raised."""
+    tmp = None
+    try:
+        for _ in range(100):
+            cand = f"{TMP_PREFIX}{name}.{os.urandom(6).hex()}{TMP_SUFFIX}"
+            try:
+                fd = os.open(cand, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
+                             0o600, dir_fd=dir_fd)
+            except FileExistsError:
+                continue
+            tmp = cand
+            break
+        else:
+            raise HostdError(f"cannot write {name}: no free temporary name")
+        try:
+            _write_all(fd, data)
+            os.fchmod(fd, mode)
+            if durable:
+                os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.rename(tmp, name, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
+        tmp = None
+        if durable:
+            os.fsync(dir_fd)
+    except OSError as e:
+        raise HostdError(f"cannot write {name}: {e.strerror or e}") from None
+    finally:
+        if tmp is not None:
+            try:
+                os.unlink(tmp, dir_fd=dir_fd)
+            except OSError:
+                pass

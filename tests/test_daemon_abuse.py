@@ -236,24 +236,31 @@ def test_spool_takes_regular_finished_files_only(daemon):
 
 
 def test_socket_directory_others_can_write_is_refused(tmp_path):
+    """Issue 20 item 3: only a directory the daemon's user owns and nobody else writes; a
+    sticky one (root's 1777) is refused too: after a stop another user could bind the name."""
     from hostd.service.control import check_socket_dir
 
     d = tmp_path / "open"
     d.mkdir()
     os.chmod(d, 0o777)
-    with pytest.raises(ConfigError, match="can be written by other users"):
+    with pytest.raises(ConfigError, match="can be written by others"):
         check_socket_dir(d)
-    os.chmod(d, 0o1777)  # sticky and ours: others cannot replace our socket
-    check_socket_dir(d)
+    os.chmod(d, 0o1777)  # sticky: another user can still take the name once we are stopped
+    with pytest.raises(ConfigError, match="RuntimeDirectory=hostd"):
+        check_socket_dir(d)
     os.chmod(d, 0o750)
     check_socket_dir(d)
+    os.chown(d, 65534, -1)  # owned by someone else (nobody), even if closed
+    with pytest.raises(ConfigError, match="not owned by hostd's user"):
+        check_socket_dir(d)
+    os.chown(d, os.geteuid(), -1)
     cfg = _cfg(tmp_path)
     cfg.write_text(cfg.read_text().replace('socket = "run/hostd.sock"', f'socket = "{d}/x/hostd.sock"'))
     (d / "x").mkdir()
     os.chmod(d / "x", 0o777)
     r = subprocess.run([sys.executable, "-m", "hostd", "run", "--config", str(cfg)], capture_output=True,
                        text=True, cwd=tmp_path, timeout=120)
-    assert r.returncode == 2 and "can be written by other users" in r.stderr, r.stderr
+    assert r.returncode == 2 and "can be written by others" in r.stderr, r.stderr
 
 
 def test_dead_worker_is_restarted_then_starves_the_watchdog(tmp_path, caplog):

@@ -5,7 +5,10 @@ from __future__ import annotations
 import errno
 import json
 import os
+import pwd
 import socket
+import stat
+import struct
 from pathlib import Path
 
 from hostd.errors import HostdError
@@ -21,6 +24,40 @@ def socket_path(config: str | None) -> str:
     from hostd.service.config import load
 
     return load(config).control.socket if config else load(None).control.socket
+
+
+SERVICE_USER = "hostd"  # the unit's User=
+
+
+def trusted_uids(path: str) -> set[int]:
+    """Who may hold hostd's socket: root, ourselves, the service user, and the owner of the
+    socket's directory when nobody else can write into it (where hostd refuses to bind otherwise)."""
+    uids = {0, os.geteuid()}
+    try:
+        uids.add(pwd.getpwnam(SERVICE_USER).pw_uid)
+    except KeyError:
+        pass
+    try:
+        st = os.stat(Path(path).parent)
+        if not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+            uids.add(st.st_uid)
+    except OSError:
+        pass
+    return uids
+
+
+def check_peer(s: socket.socket, path: str) -> None:
+    """SO_PEERCRED: refuse, before sending a byte, a socket held by a process of another user."""
+    _pid, uid, _gid = struct.unpack("3i", s.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
+                                                       struct.calcsize("3i")))
+    if uid not in trusted_uids(path):
+        try:
+            who = pwd.getpwuid(uid).pw_name
+        except KeyError:
+            who = "unknown user"
+        raise ClientError(f"refusing to talk to {path}: it is held by uid {uid} ({who}), not by hostd's "
+                          f"user: nothing sent; stop that process and put control.socket in a directory "
+                          f"only hostd's user owns (/run/hostd)")
 
 
 def request(path: str, req: dict, payload: bytes = b"", timeout_s: float = 30.0) -> dict:
@@ -41,6 +78,11 @@ def request(path: str, req: dict, payload: bytes = b"", timeout_s: float = 30.0)
         if e.errno == errno.EACCES:
             raise ClientError(f"permission denied on {path}") from None
         raise ClientError(f"cannot reach hostd at {path}: {e}") from None
+    try:
+        check_peer(s, path)
+    except ClientError:
+        s.close()
+        raise
     try:
         with s, s.makefile("rb") as f:
             try:

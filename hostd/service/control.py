@@ -1,14 +1,18 @@
 """The control socket: a checked directory, a real listen backlog, a bounded pool of handlers.
 
-- The socket's directory must not be writable by anyone but its owner (us or root), or be
-  sticky and ours: otherwise a local user could replace the socket and answer our clients.
+- The socket's directory must be owned by the daemon's user and writable by nobody else (not
+  merely sticky: in a sticky directory another user can take the name after a stop and answer
+  our clients). Clients check who holds the socket (SO_PEERCRED, hostd.service.client).
 - The socket is created 0660 by bind() itself (umask), so it is never more open, and given to
   control.group through the checked directory's file descriptor (no symlink followed).
 - Up to control.max_clients connections are served at once by a fixed pool of threads; one
   more is answered with a one-line refusal and closed. The listen backlog is SOMAXCONN.
 - accept() failing with EMFILE/ENFILE (out of file descriptors) backs off (50 ms doubling to
   1 s) with one log line per episode, instead of spinning.
-- Every connection has a read timeout, so a client that stops sending cannot hold a handler.
+- Every request has a deadline for the whole of it (REQUEST_DEADLINE_S, not per read) and a
+  byte budget (the request line and the announced upload, nothing more). When every handler is
+  busy, a new connection evicts the client that has been sending its request the longest (at
+  least EVICT_AFTER_S), so clients that drip bytes cannot lock out one that sends promptly.
 """
 
 from __future__ import annotations
@@ -29,7 +33,81 @@ from pathlib import Path
 from hostd.errors import ConfigError
 
 log = logging.getLogger("hostd")
-CLIENT_TIMEOUT_S = 10.0
+REQUEST_DEADLINE_S = 10.0  # the whole request (line and upload) from accept to the last byte
+EVICT_AFTER_S = 1.0  # a client still sending its request after this may give its handler away
+REPLY_TIMEOUT_S = 5.0
+
+
+class RequestTimeout(TimeoutError):
+    """The client did not send its whole request within the deadline (or was evicted)."""
+
+
+class ClientConn:
+    """One client's connection as the handler reads it: readline/read under one deadline for
+    the whole request and a byte budget; done_reading() once the request is in."""
+
+    def __init__(self, conn: socket.socket, budget: int, deadline_s: float = REQUEST_DEADLINE_S) -> None:
+        self.conn = conn
+        self.started = time.monotonic()
+        self.deadline = self.started + deadline_s
+        self.budget = budget
+        self.buf = bytearray()
+        self.reading = True
+        self.evicted = False
+
+    def _fill(self, want: int) -> bool:
+        """Receive more (at most want bytes); False at end of stream."""
+        left = self.deadline - time.monotonic()
+        if left <= 0 or self.evicted:
+            raise RequestTimeout("request not complete within the deadline")
+        if self.budget <= 0:
+            raise RequestTimeout("request larger than announced")
+        self.conn.settimeout(left)
+        try:
+            b = self.conn.recv(max(1, min(want, self.budget, 1 << 16)))
+        except TimeoutError:
+            raise RequestTimeout("request not complete within the deadline") from None
+        if self.evicted:
+            raise RequestTimeout("evicted")
+        self.budget -= len(b)
+        self.buf += b
+        return bool(b)
+
+    def readline(self, limit: int) -> bytes:
+        """Up to and including the first newline, or limit + 1 bytes if none came by then."""
+        while b"\n" not in self.buf and len(self.buf) <= limit:
+            if not self._fill(limit + 1 - len(self.buf)):
+                break
+        i = self.buf.find(b"\n")
+        end = i + 1 if 0 <= i <= limit else min(len(self.buf), limit + 1)
+        out = bytes(self.buf[:end])
+        del self.buf[:end]
+        return out
+
+    def read(self, n: int) -> bytes:
+        while len(self.buf) < n:
+            if not self._fill(n - len(self.buf)):
+                break
+        out = bytes(self.buf[:n])
+        del self.buf[:n]
+        return out
+
+    def done_reading(self) -> None:
+        self.reading = False
+
+    def evict(self) -> None:
+        self.evicted = True
+        try:
+            self.conn.shutdown(socket.SHUT_RD)  # its handler's recv returns at once
+        except OSError:
+            pass
+
+    def reply(self, data: bytes) -> None:
+        try:
+            self.conn.settimeout(REPLY_TIMEOUT_S)
+            self.conn.sendall(data)
+        except OSError:
+            pass
 
 
 def check_socket_dir(d: Path) -> None:
@@ -43,19 +121,21 @@ def check_socket_dir(d: Path) -> None:
     finally:
         os.close(fd)
     me = os.geteuid()
-    others_write = st.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
-    if st.st_mode & stat.S_ISVTX and st.st_uid == me:
-        return
-    if st.st_uid not in (me, 0) or others_write:
-        raise ConfigError(f"control.socket: directory {d} can be written by other users (mode "
-                          f"{stat.S_IMODE(st.st_mode):04o}, owner uid {st.st_uid}): a local user could "
-                          "replace the socket; use a directory only hostd can write, such as /run/hostd")
+    if st.st_uid != me or st.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        raise ConfigError(f"control.socket: directory {d} (mode {stat.S_IMODE(st.st_mode):04o}, owner "
+                          f"uid {st.st_uid}) is not owned by hostd's user (uid {me}) or can be written by "
+                          "others: "
+                          "another user could take the socket's name; set control.socket in a directory "
+                          "only hostd's user owns and writes, such as /run/hostd (RuntimeDirectory=hostd)")
 
 
 class ControlServer:
     def __init__(self, path: str | Path, group: str, max_clients: int,
-                 handle: Callable[[socket.socket], None]) -> None:
+                 handle: Callable[[ClientConn], None], budget: int = 1 << 20) -> None:
         self.path = Path(path)
+        self.budget = budget  # bytes one request may send: its line and the largest upload
+        self.clients: set[ClientConn] = set()  # being served, under busy_lock
+        self.evicted = 0
         self.max_clients = max_clients
         self.handle = handle
         self.stopping = threading.Event()
@@ -141,6 +221,8 @@ class ControlServer:
                 backoff = 0.0
             with self.busy_lock:
                 full = self.busy >= self.max_clients
+                if full and self._evict_slowest():
+                    full = False
                 if not full:
                     self.busy += 1
             if full:
@@ -148,6 +230,20 @@ class ControlServer:
                 self._refuse(conn)
                 continue
             self.jobs.put(conn)
+
+    def _evict_slowest(self) -> bool:
+        """Under busy_lock: drop the client that has been sending its request the longest, if
+        for at least EVICT_AFTER_S; its handler answers it and is free again at once."""
+        now = time.monotonic()
+        slow = [c for c in self.clients if c.reading and not c.evicted and now - c.started >= EVICT_AFTER_S]
+        if not slow:
+            return False
+        victim = min(slow, key=lambda c: c.started)
+        victim.evict()
+        self.evicted += 1
+        log.warning("control socket: all %d handlers busy; dropped a client still sending its request "
+                    "after %.1f s", self.max_clients, now - victim.started)
+        return True
 
     def _refuse(self, conn: socket.socket) -> None:
         try:
@@ -164,9 +260,11 @@ class ControlServer:
             conn = self.jobs.get()
             if conn is None:
                 return
+            client = ClientConn(conn, self.budget)
+            with self.busy_lock:
+                self.clients.add(client)
             try:
-                conn.settimeout(CLIENT_TIMEOUT_S)
-                self.handle(conn)
+                self.handle(client)
             except Exception as e:  # one client's failure never takes a handler down
                 log.warning("control socket: a client's request failed: %s", e)
             finally:
@@ -175,6 +273,7 @@ class ControlServer:
                 except OSError:
                     pass
                 with self.busy_lock:
+                    self.clients.discard(client)
                     self.busy -= 1
 
     def close(self) -> None:

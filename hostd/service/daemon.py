@@ -15,11 +15,11 @@ import multiprocessing as mp
 import os
 import queue
 import signal
-import socket
 import sqlite3
 import stat
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
@@ -27,53 +27,71 @@ from hostd.device.health import STATE_NAMES as DEVICE_STATES
 from hostd.device.health import fault_names
 from hostd.device.protocol import SAMPLE_RATE_HZ
 from hostd.errors import ConfigError, HostdError
-from hostd.fileio import write_output
+from hostd.fileio import open_dir, read_regular_at, write_at
 from hostd.service import qualitylog
 from hostd.service.config import Config, check_paths
-from hostd.service.control import ControlServer
+from hostd.service.control import REQUEST_DEADLINE_S, ClientConn, ControlServer
 from hostd.service.library import Library, check_name
+from hostd.service.logsetup import CONTROL_CHARS
 from hostd.service.pumpproc import FLOAT_FIELDS, STAT_FIELDS, STATE_NAMES, pump_main
 
 log = logging.getLogger("hostd")
 MAX_HEADER = 4096
 RESTARTS_PER_MINUTE = 3  # a worker that dies more often stays dead and the watchdog starves
+QUALITY_RETRY_S = (0.5, 30.0)  # a quality row that cannot be written is retried, back-off doubling
 
 
 class BadRequest(HostdError):
     """A control-socket request that is not well formed."""
 
 
-def _read_spool_file(path: Path, max_bytes: int, expect: tuple[int, int]) -> bytes:
-    """A spool file's bytes: a regular file only (no symlink, FIFO, device, directory), at most
-    max_bytes, and unchanged since it was seen to hold still (size, mtime_ns)."""
-    try:  # O_NONBLOCK: a FIFO must not block the spool thread waiting for a writer
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_NOCTTY)
-    except OSError as e:
-        if e.errno == 40:  # ELOOP: a symbolic link
-            raise HostdError("a symbolic link: the spool takes regular files only") from None
-        raise
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise HostdError("not a regular file: the spool takes regular files only")
-        if st.st_size > max_bytes:
-            raise HostdError(f"stream of {st.st_size} bytes exceeds the limit of {max_bytes} "
-                             "(library.max_stream_bytes)")
-        if (st.st_size, st.st_mtime_ns) != expect:
-            raise BlockingIOError("still being written")
-        chunks, left = [], max_bytes + 1
-        while left > 0:
-            b = os.read(fd, min(left, 1 << 16))
-            if not b:
-                break
-            chunks.append(b)
-            left -= len(b)
-        data = b"".join(chunks)
-        if len(data) > max_bytes:
-            raise HostdError(f"stream exceeds the limit of {max_bytes} bytes (library.max_stream_bytes)")
-        return data
-    finally:
-        os.close(fd)
+class PumpWriter:
+    """The one writer of the pump's pipe. Handler threads hand their commands to this thread, so
+    no two messages ever interleave on the pipe (a texture of N' = 16,000 pickles to more than
+    a pipe's atomic write). A select or stop still waiting to be sent is superseded by a newer
+    one: only the latest choice matters to the pump."""
+
+    def __init__(self, conn) -> None:
+        self.conn = conn
+        self.cv = threading.Condition()
+        self.pending: deque = deque()
+        self.closed = False
+        self.thread = threading.Thread(target=self._run, name="pump-writer", daemon=True)
+        self.thread.start()
+
+    def send(self, msg: tuple) -> None:
+        with self.cv:
+            if self.closed:
+                raise HostdError("hostd is stopping")
+            if msg[0] in ("select", "stop"):
+                kept = [m for m in self.pending if m[0] not in ("select", "stop")]
+                self.pending.clear()
+                self.pending.extend(kept)
+            self.pending.append(msg)
+            self.cv.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self.cv:
+                while not self.pending:
+                    self.cv.wait()
+                msg = self.pending.popleft()
+            if msg is None:
+                return
+            try:
+                self.conn.send(msg)
+            except (OSError, ValueError) as e:  # the pump is gone: the main loop says so and stops
+                log.error("cannot send %s to the pump: %s", msg[0], e)
+
+    def close(self, last: tuple = ("quit",), timeout_s: float = 3.0) -> None:
+        with self.cv:
+            if self.closed:
+                return
+            self.pending.append(last)
+            self.pending.append(None)
+            self.closed = True
+            self.cv.notify()
+        self.thread.join(timeout_s)
 
 
 class Notifier:
@@ -104,11 +122,14 @@ class Daemon:
         self.db_path = cfg.quality.db
         try:
             self.library = Library(cfg.library.dir, cfg.library.max_stream_bytes, cfg.library.max_n,
-                                   cfg.library.max_n_keep)
-            self.spool.mkdir(parents=True, exist_ok=True)
-            (self.spool / "rejected").mkdir(exist_ok=True)
+                                   cfg.library.max_n_keep, travel_um=cfg.output.travel_um)
+            self.spool.parent.mkdir(parents=True, exist_ok=True)
+            # group members may drop files here: the spool is sticky (made so if it is not), so
+            # they cannot rename or remove what is not theirs, rejected/ included
+            self.spool_fd = open_dir(self.spool, "library.spool", others_may_write=True, create_mode=0o1770)
+            self.rejected_fd = self._open_rejected()
             qualitylog.connect(self.db_path).close()
-        except (OSError, sqlite3.Error) as e:
+        except (OSError, sqlite3.Error, HostdError) as e:
             raise ConfigError(f"{cfg.path}: cannot set up the library, spool or quality log: {e}") from None
         self.curve = None
         if cfg.quality.thresholds:
@@ -116,10 +137,15 @@ class Daemon:
 
             self.curve = load_csv(cfg.quality.thresholds)
         ctx = mp.get_context("spawn")
+        self.select_lock = threading.Lock()  # one select or stop at a time
+        self.selected_sha: str | None = None
+        self.quality_pending: deque = deque()  # scored rows not yet written (disk full, I/O error)
         self.stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=pump_main, args=(cfg, child, self.stats), name="hostd-pump",
                                 daemon=True)
+        self.pump_writer: PumpWriter | None = None
+        self._stop_deadline = math.inf  # the quality worker's last retry at shutdown
         self.quality_q: queue.Queue = queue.Queue()
         self.stop_event = threading.Event()
         self.selected: str | None = None
@@ -130,6 +156,18 @@ class Daemon:
         self.control: ControlServer | None = None
         self.workers: dict[str, tuple[Callable[[], None], threading.Thread | None, list[float]]] = {}
         self.dead_workers: set[str] = set()
+
+    def _open_rejected(self) -> int:
+        """spool/rejected, created and checked by us (a directory, ours, not a link). Anything
+        else by that name (a member's link or directory, left before the spool was sticky) is
+        moved aside first; afterwards its descriptor is used, so renaming it changes nothing."""
+        try:
+            return open_dir("rejected", "library.spool rejected/", dir_fd=self.spool_fd, create_mode=0o750)
+        except HostdError as e:
+            aside = f"rejected.untrusted-{int(time.time())}"
+            log.warning("spool: %s; moved aside as %s", e, aside)
+            os.rename("rejected", aside, src_dir_fd=self.spool_fd, dst_dir_fd=self.spool_fd)
+            return open_dir("rejected", "library.spool rejected/", dir_fd=self.spool_fd, create_mode=0o750)
 
     # ------------------------------------------------------------ intake
     def accept(self, name: str, data: bytes, source: str) -> dict:
@@ -149,17 +187,23 @@ class Daemon:
         return {"name": name, "sha256": sha, "bytes": len(data), "method": s.method, "n_keep": s.n_keep}
 
     def select(self, name: str) -> dict:
-        from hostd.codec import stream as vtx
-
-        s = vtx.decode(self.library.read(name))
-        self.conn.send(("select", (name, s.coefficients.tolist(), s.n, s.length_mm)))
-        self.selected = name
+        """Serialized and idempotent: the texture already playing (same name, same bytes) is not
+        sent again; the pipe has one writer (PumpWriter)."""
+        with self.select_lock:
+            data = self.library.read(name)
+            sha = hashlib.sha256(data).hexdigest()
+            if self.selected == name and self.selected_sha == sha:
+                return {"playing": name}
+            s = self.library.decode(data)  # the library's limits, again: it may predate them
+            self.pump_writer.send(("select", (name, s.coefficients, s.n, s.length_mm)))
+            self.selected, self.selected_sha = name, sha
         log.info("playing %s", name)
         return {"playing": name}
 
     def stop_playing(self) -> dict:
-        self.conn.send(("stop",))
-        self.selected = None
+        with self.select_lock:
+            self.pump_writer.send(("stop",))
+            self.selected = self.selected_sha = None
         return {"playing": None}
 
     def counters(self) -> dict:
@@ -183,25 +227,74 @@ class Daemon:
         st = self.counters()
         st.update({"texture": self.selected, "pid": os.getpid(), "pump_alive": self.proc.is_alive(),
                    "accepted": self.accepted, "refused": self.refused, "library": len(self.library.names()),
-                   "quality_pending": self.quality_q.qsize(), "device": self.cfg.device.transport})
+                   "quality_pending": self.quality_q.qsize() + len(self.quality_pending),
+                   "device": self.cfg.device.transport})
         return st
 
     # ------------------------------------------------------------ workers
     def quality_worker(self) -> None:
-        con = qualitylog.connect(self.db_path)
-        while not self.stop_event.is_set() or not self.quality_q.empty():
+        """Score each accepted stream and write its row. A row that cannot be written (disk full,
+        I/O error, a locked or unopenable database) stays in quality_pending and is retried,
+        back-off doubling from 0.5 s to 30 s, until it is written; one log line when writing
+        fails and one when it works again. What is still pending at exit is scored again at
+        the next start (a stored stream without a row)."""
+        con = None
+        failing_since = None
+        retry_at = 0.0
+        backoff = QUALITY_RETRY_S[0]
+        while True:
+            stopping = self.stop_event.is_set()
             try:
-                name, data, sha, t = self.quality_q.get(timeout=0.2)
+                item = self.quality_q.get(timeout=0.05 if self.quality_pending else 0.2)
             except queue.Empty:
+                item = None
+            if item is not None:
+                name, data, sha, t = item
+                try:
+                    q = self.cfg.quality
+                    row = qualitylog.score_row(data, name, sha, t, q.a, q.b, self.curve)
+                    self.quality_pending.append(row)
+                except Exception as e:  # a scoring failure must not stop the service
+                    log.error("quality scoring of %s failed: %s", name, e)
+                continue
+            if not self.quality_pending:
+                if stopping:
+                    break
+                continue
+            if time.monotonic() < retry_at:
+                if stopping and time.monotonic() > self._stop_deadline:
+                    break
                 continue
             try:
-                q = self.cfg.quality
-                row = qualitylog.score_row(data, name, sha, t, q.a, q.b, self.curve)
-                qualitylog.insert(con, row)
-                log.info("quality %s: Ip=%.4f Ia=%.4f Iobj=%.4f", name, row["ip"], row["ia"], row["iobj"])
-            except Exception as e:  # a scoring failure must not stop the service
-                log.error("quality logging of %s failed: %s", name, e)
-        con.close()
+                if con is None:
+                    con = qualitylog.connect(self.db_path)
+                while self.quality_pending:
+                    row = self.quality_pending[0]
+                    qualitylog.insert(con, row)
+                    self.quality_pending.popleft()
+                    log.info("quality %s: Ip=%.4f Ia=%.4f Iobj=%.4f", row["name"], row["ip"], row["ia"],
+                             row["iobj"])
+                if failing_since is not None:
+                    log.warning("quality log: writing again after %.0f s; every pending row is written",
+                                time.monotonic() - failing_since)
+                failing_since, backoff = None, QUALITY_RETRY_S[0]
+            except (sqlite3.Error, OSError) as e:
+                if failing_since is None:
+                    failing_since = time.monotonic()
+                    log.error("quality log: cannot write to %s (%s); %d rows kept pending and retried until "
+                              "written (free disk space)", self.db_path, e, len(self.quality_pending))
+                if con is not None:
+                    con.close()
+                    con = None
+                retry_at = time.monotonic() + backoff
+                backoff = min(backoff * 2, QUALITY_RETRY_S[1])
+                if stopping and time.monotonic() > self._stop_deadline:
+                    break
+        if self.quality_pending:
+            log.error("quality log: %d rows not written at exit; their streams are scored again at the "
+                      "next start", len(self.quality_pending))
+        if con is not None:
+            con.close()
 
     def rescore_missing(self) -> None:
         """Streams stored before a crash but not yet logged are scored now."""
@@ -209,105 +302,110 @@ class Daemon:
         known = qualitylog.known(con)
         con.close()
         for name in self.library.names():
-            data = self.library.read(name)
-            sha = hashlib.sha256(data).hexdigest()
-            if (name, sha) not in known:
-                self.quality_q.put((name, data, sha, self.library.path(name).stat().st_mtime))
+            try:
+                data = self.library.read(name)
+                sha = hashlib.sha256(data).hexdigest()
+                if (name, sha) in known:
+                    continue
+                self.library.decode(data)  # within today's limits, or it would fail every start
+                self.quality_q.put((name, data, sha, self.library.mtime(name)))
+            except (HostdError, OSError) as e:
+                log.warning("library: %s not scored: %s", name, e)
 
     def spool_watcher(self) -> None:
         """Take in .vtx files dropped into the spool once their writer is done: size and mtime
         unchanged for library.spool_settle_s and the mtime at least that old. Anything else
-        named *.vtx (symlink, FIFO, device, directory, too big) is moved to rejected/ with a note."""
+        named *.vtx (symlink, FIFO, device, directory, too big) is moved to rejected/ with a note.
+        Every operation is relative to the spool's and rejected/'s descriptors (opened and
+        checked at start-up) and follows no link: a member who renames rejected/ or plants
+        links changes nothing the daemon writes or reads."""
         settle = self.cfg.library.spool_settle_s
+        limit = self.cfg.library.max_stream_bytes
         seen: dict[str, tuple[tuple[int, int], float]] = {}  # name -> (size, mtime_ns), since
         while not self.stop_event.wait(min(0.3, settle / 2)):
             try:
-                entries = list(os.scandir(self.spool))
+                with os.scandir(self.spool_fd) as it:
+                    entries = list(it)
             except OSError as e:
                 log.error("spool: cannot list %s: %s", self.spool, e.strerror)
                 continue
             now = time.time()
             for ent in entries:
-                if not ent.name.endswith(".vtx") or ent.name.startswith("."):
+                name = ent.name
+                if not name.endswith(".vtx") or name.startswith("."):
                     continue
-                p = Path(ent.path)
                 try:
                     st = ent.stat(follow_symlinks=False)
                 except FileNotFoundError:
                     continue
                 if not stat.S_ISREG(st.st_mode):
-                    self._reject_spool(p, "not a regular file (symlink, FIFO, device or directory): the "
-                                          "spool takes regular files only")
+                    self._reject_spool(name, "not a regular file (symlink, FIFO, device or directory): the "
+                                             "spool takes regular files only")
                     continue
-                if st.st_size > self.cfg.library.max_stream_bytes:
-                    self._reject_spool(p, f"stream of {st.st_size} bytes exceeds the limit of "
-                                          f"{self.cfg.library.max_stream_bytes} (library.max_stream_bytes)")
+                if st.st_size > limit:
+                    self._reject_spool(name, f"stream of {st.st_size} bytes exceeds the limit of {limit} "
+                                             "(library.max_stream_bytes)")
                     continue
                 sig = (st.st_size, st.st_mtime_ns)
-                prev = seen.get(ent.name)
+                prev = seen.get(name)
                 if prev is None or prev[0] != sig:
-                    seen[ent.name] = (sig, now)  # (still) being written: wait until it holds still
+                    seen[name] = (sig, now)  # (still) being written: wait until it holds still
                     continue
                 if now - prev[1] < settle or now - st.st_mtime_ns / 1e9 < settle:
                     continue
+                seen.pop(name, None)
                 try:
-                    data = _read_spool_file(p, self.cfg.library.max_stream_bytes, sig)
+                    data = read_regular_at(self.spool_fd, name, limit, expect=sig)
                 except BlockingIOError:
-                    seen.pop(ent.name, None)
                     continue
-                except HostdError as e:
-                    seen.pop(ent.name, None)
-                    self._reject_spool(p, str(e))
+                except HostdError as e:  # NotRegular (swapped since the stat), too big
+                    self._reject_spool(name, str(e))
                     continue
                 except OSError as e:
-                    log.error("spool: cannot take in %s: %s", p, e.strerror or e)
+                    log.error("spool: cannot take in %s: %s", name, e.strerror or e)
                     continue
-                seen.pop(ent.name, None)
                 try:
-                    self.accept(p.stem, data, f"spool {p}")
-                    p.unlink()
+                    self.accept(name[:-4], data, "spool")
+                    os.unlink(name, dir_fd=self.spool_fd)
                 except HostdError as e:
-                    self._reject_spool(p, str(e))
+                    self._reject_spool(name, str(e))
+                except OSError:
+                    pass  # taken in; its writer removed or replaced it meanwhile
             for name in set(seen) - {e.name for e in entries}:
                 seen.pop(name, None)
 
-    def _reject_spool(self, p: Path, why: str) -> None:
-        dest = self.spool / "rejected" / p.name
+    def _reject_spool(self, name: str, why: str) -> None:
         try:  # the reason first, so that whoever sees the rejected file finds why
-            write_output(dest.with_name(dest.name + ".error"), (why + "\n").encode(), mode=0o640)
-            os.replace(p, dest)
-            log.warning("spool: rejected %s: %s", p.name, why)
+            write_at(self.rejected_fd, name + ".error", (why + "\n").encode(), mode=0o640)
+            # renameat moves the entry itself (a link, not its target) into our rejected/
+            os.rename(name, name, src_dir_fd=self.spool_fd, dst_dir_fd=self.rejected_fd)
+            log.warning("spool: rejected %s: %s", name, why)
         except (OSError, HostdError) as e:
-            log.error("spool: cannot move %s to %s (%s); it stays: %s", p, dest.parent, e, why)
+            log.error("spool: cannot move %s to rejected/ (%s); it stays: %s", name, e, why)
 
     # ------------------------------------------------------------ control socket
-    def handle_conn(self, conn: socket.socket) -> None:
+    def handle_conn(self, client: ClientConn) -> None:
         """One client: one request line (and an upload's bytes), one reply line, always."""
-        rfile = conn.makefile("rb")
         try:
-            reply = {"ok": True, **self.respond(rfile)}
+            reply = {"ok": True, **self.respond(client)}
         except HostdError as e:
             reply = {"ok": False, "error": str(e)}
         except TimeoutError:
-            reply = {"ok": False, "error": "timed out waiting for the request"}
-            log.warning("control socket: a client timed out")
+            reply = {"ok": False, "error": f"request not complete within {REQUEST_DEADLINE_S:g} s (or "
+                                           "dropped to serve another client): send the whole request at once"}
+            log.warning("control socket: dropped a client that did not send its request in time")
         except Exception as e:  # a bug must still give the client an answer and the log one line
             log.error("control socket: request failed: %s: %s", type(e).__name__, e)
             reply = {"ok": False, "error": f"internal error ({type(e).__name__}): see hostd's log"}
-        finally:
-            rfile.close()
-        try:
-            conn.sendall((json.dumps(reply) + "\n").encode())
-        except OSError:
-            pass
+        client.reply((json.dumps(reply) + "\n").encode())
 
     def refuse(self, msg: str) -> None:
         with self.lock:
             self.refused += 1
         raise HostdError(msg)
 
-    def respond(self, rfile) -> dict:
-        line = rfile.readline(MAX_HEADER + 1)
+    def respond(self, rfile: ClientConn) -> dict:
+        line = rfile.readline(MAX_HEADER)
         if len(line) > MAX_HEADER or not line.endswith(b"\n"):
             raise BadRequest(f"bad request: one JSON object of at most {MAX_HEADER} bytes on one line "
                              "expected")
@@ -330,10 +428,14 @@ class Daemon:
             name = req.get("name", "")
             if not isinstance(name, str):
                 self.refuse("bad request: name must be a string")
+            if not isinstance(name, str) or CONTROL_CHARS.search(name):
+                self.refuse(f"bad texture name {name!r}: control characters are not allowed")
             data = rfile.read(size)
+            rfile.done_reading()
             if len(data) != size:
                 self.refuse(f"upload truncated: got {len(data)} of {size} bytes")
             return self.accept(name, data, "socket")
+        rfile.done_reading()
         if cmd == "list":
             return {"textures": self.library.names(), "playing": self.selected}
         if cmd == "select":
@@ -362,7 +464,8 @@ class Daemon:
 
     def serve_socket(self) -> None:
         c = self.cfg.control
-        self.control = ControlServer(c.socket, c.group, c.max_clients, self.handle_conn)
+        self.control = ControlServer(c.socket, c.group, c.max_clients, self.handle_conn,
+                                     budget=MAX_HEADER + 1 + self.cfg.library.max_stream_bytes)
         self.control.start_pool()
 
     # ------------------------------------------------------------ supervision
@@ -398,6 +501,7 @@ class Daemon:
     # ------------------------------------------------------------ main
     def run(self) -> int:
         self.proc.start()
+        self.pump_writer = PumpWriter(self.conn)
         self.serve_socket()
         log.info("listening on %s", self.cfg.control.socket)
         self.start_worker("control", self.control.accept_loop)
@@ -439,10 +543,7 @@ class Daemon:
                                      f"stalls={st['stalls']} recoveries={st['recoveries']}")
         finally:
             self.notifier.notify("STOPPING=1")
-            try:
-                self.conn.send(("quit",))
-            except (OSError, BrokenPipeError):
-                pass
+            self.pump_writer.close(("quit",))
             self.proc.join(3.0)
             if self.proc.is_alive():
                 self.proc.terminate()
@@ -452,6 +553,9 @@ class Daemon:
                 Path(self.cfg.control.socket).unlink(missing_ok=True)
             quality = self.workers.get("quality")
             if quality is not None and quality[1] is not None:
-                quality[1].join(30.0)  # rows for everything accepted are written before exit
+                # rows for everything accepted are written before exit; a disk that stays full
+                # is retried for 5 s (TimeoutStopSec=10), the rest is scored at the next start
+                self._stop_deadline = time.monotonic() + 5.0
+                quality[1].join(8.0)
             log.info("stopped")
         return 0

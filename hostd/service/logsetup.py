@@ -8,12 +8,14 @@
 - A message identical to an earlier one (the same text: "no display found" every second while
   none is plugged in) is let through again only after a back-off that doubles from 1 s to
   10 min, with the number of repeats held back; a different message resets nothing else.
+- Control characters in a message are escaped (a name with a newline cannot forge a line).
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import re
 import sys
 import threading
 import time
@@ -37,7 +39,24 @@ def under_journald(stream=None) -> bool:
     return (st.st_dev, st.st_ino) == (dev, ino)
 
 
-class JournalFormatter(logging.Formatter):
+# Control characters (newline, carriage return, escape sequences) and Unicode line breaks in a
+# message are shown escaped (\n, \x1b): a client's text cannot forge or hide a log line.
+CONTROL_CHARS = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+
+
+def escape_controls(text: str) -> str:
+    return CONTROL_CHARS.sub(lambda m: repr(m.group())[1:-1], text)
+
+
+class EscapingFormatter(logging.Formatter):
+    """Escapes the message's control characters (a traceback, added after, keeps its lines)."""
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        record.message = escape_controls(record.message)
+        return super().formatMessage(record)
+
+
+class JournalFormatter(EscapingFormatter):
     def format(self, record: logging.LogRecord) -> str:
         prio = PRIORITY.get(record.levelno, 6)
         return f"<{prio}>" + super().format(record)
@@ -81,7 +100,7 @@ def setup(level: str = "info", stream=None) -> logging.Handler:
     if under_journald(stream):
         handler.setFormatter(JournalFormatter("hostd %(levelname)s %(message)s"))
     else:
-        handler.setFormatter(logging.Formatter("%(asctime)s hostd %(levelname)s %(message)s"))
+        handler.setFormatter(EscapingFormatter("%(asctime)s hostd %(levelname)s %(message)s"))
     handler.addFilter(RepeatFilter())
     root = logging.getLogger()
     root.handlers[:] = [handler]

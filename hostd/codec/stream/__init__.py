@@ -8,7 +8,7 @@ write version 1 (`v2.encode_*` write version 2). What both share is in `common`.
 from __future__ import annotations
 
 from hostd.codec.stream import v1, v2
-from hostd.codec.stream.common import Stream, curve_for, varint, zigzag_varint
+from hostd.codec.stream.common import NO_LIMITS, Limits, Stream, curve_for, varint, zigzag_varint
 from hostd.codec.stream.v1 import (
     CRC_SIZE,
     HEADER,
@@ -22,9 +22,9 @@ from hostd.codec.stream.v1 import (
     expected_coefficients,
 )
 
-__all__ = ["CRC_SIZE", "HEADER", "HEADER_SIZE", "MAGIC", "MAX_STREAM_BYTES", "VALUE_BITS", "VERSION",
-           "Stream", "curve_for", "decode", "encode_coefficients", "encode_profile", "expected_coefficients",
-           "is_v2", "v1", "v2", "varint", "zigzag_varint"]
+__all__ = ["CRC_SIZE", "HEADER", "HEADER_SIZE", "MAGIC", "MAX_STREAM_BYTES", "NO_LIMITS", "VALUE_BITS",
+           "VERSION", "Limits", "Stream", "curve_for", "decode", "encode_coefficients", "encode_profile",
+           "expected_coefficients", "is_v2", "v1", "v2", "varint", "zigzag_varint"]
 
 
 def is_v2(data: bytes) -> bool:
@@ -33,7 +33,10 @@ def is_v2(data: bytes) -> bool:
             and data[1] >> 4 in (v2.LAYOUT_FIRST, v2.LAYOUT_COMPACT_GEOMETRY))
 
 
-def decode(data: bytes) -> Stream:
-    """Parse and validate a .vtx stream of either version; every malformed input raises StreamError."""
+def decode(data: bytes, limits: Limits = NO_LIMITS) -> Stream:
+    """Parse and validate a .vtx stream of either version; every malformed input raises
+    StreamError. limits: the caller's caps, N and N' checked from the header before allocating."""
     data = bytes(data)
-    return v2.decode(data) if is_v2(data) else v1.decode(data)
+    s = v2.decode(data, limits) if is_v2(data) else v1.decode(data, limits)
+    limits.check_values(s.coefficients)
+    return s

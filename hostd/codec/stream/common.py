@@ -1,4 +1,5 @@
-"""What both stream versions share: the decoded Stream, the varints, the curve a stream names."""
+"""What both stream versions share: the decoded Stream, the varints, the curve a stream names,
+and the caller's limits (checked from the header before any allocation proportional to N or N')."""
 
 from __future__ import annotations
 
@@ -9,6 +10,38 @@ import numpy as np
 from hostd.codec import transform
 from hostd.errors import StreamError
 from hostd.perception import thresholds as th
+
+
+@dataclass(frozen=True)
+class Limits:
+    """A caller's caps (the daemon's library.max_n, max_n_keep; the display's travel). N and N'
+    are checked from the header, before any array of their size is allocated (a 21-byte stream
+    can promise N = 2^22); max_abs_um on the decoded values (a quant step of 1e300 decodes to
+    finite coefficients no display can play and whose sums overflow)."""
+
+    max_n: int | None = None
+    max_n_keep: int | None = None
+    max_abs_um: float | None = None
+
+    def check_size(self, n: int, n_keep: int) -> None:
+        if self.max_n is not None and n > self.max_n:
+            raise StreamError(f"stream has N = {n} samples, more than this daemon plays "
+                              f"({self.max_n}, library.max_n)")
+        if self.max_n_keep is not None and n_keep > self.max_n_keep:
+            raise StreamError(f"stream has N' = {n_keep} coefficients, more than this daemon plays "
+                              f"({self.max_n_keep}, library.max_n_keep)")
+
+    def check_values(self, coeffs: np.ndarray) -> None:
+        if self.max_abs_um is None or coeffs.size == 0:
+            return
+        peak = float(np.max(np.abs(coeffs)))
+        if not peak <= self.max_abs_um:
+            raise StreamError(f"stream has a coefficient of {peak:.3g} µm, beyond {self.max_abs_um:g} µm "
+                              "(100 times the display's travel, output.travel_um): it cannot be played "
+                              "or scored; re-encode it from a profile in µm")
+
+
+NO_LIMITS = Limits()
 
 
 @dataclass(frozen=True)

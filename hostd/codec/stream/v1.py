@@ -16,7 +16,7 @@ import numpy as np
 
 from hostd.codec import transform
 from hostd.codec.methods import MAX_LEVELS, apply_cut, finite_coeffs, quantize, threshold_cut
-from hostd.codec.stream.common import Stream, zigzag_varint
+from hostd.codec.stream.common import NO_LIMITS, Limits, Stream, zigzag_varint
 from hostd.errors import CodecError, StreamError
 from hostd.perception import indices
 from hostd.perception import thresholds as th
@@ -307,7 +307,7 @@ def _finite_pos(name: str, v: float) -> None:
         raise StreamError(f"header field {name} must be a finite number > 0, got {v!r}")
 
 
-def decode(data: bytes) -> Stream:
+def decode(data: bytes, limits: Limits = NO_LIMITS) -> Stream:
     """Parse and validate a version-1 stream; every malformed input raises StreamError."""
     data = bytes(data)
     size = len(data)
@@ -352,6 +352,7 @@ def decode(data: bytes) -> Stream:
         raise StreamError(f"N = {n} is outside 2..{transform.MAX_SAMPLES}")
     if not 1 <= n_keep < n:
         raise StreamError(f"N' = {n_keep} must be in 1..N-1 (N = {n})")
+    limits.check_size(n, n_keep)  # before the payload is inflated to N' values
     _finite_pos("length_mm", length_mm)
     _finite_pos("speed_mm_s", speed_mm_s)
     _finite_pos("fmax_hz", fmax_hz)

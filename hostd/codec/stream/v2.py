@@ -28,7 +28,7 @@ from hostd.codec.methods import (
     shaped_values,
     threshold_cut,
 )
-from hostd.codec.stream.common import Stream
+from hostd.codec.stream.common import NO_LIMITS, Limits, Stream
 from hostd.codec.stream.common import varint as _varint
 from hostd.codec.stream.common import zigzag_varint as _zigzag
 from hostd.errors import CodecError, StreamError
@@ -314,7 +314,7 @@ def encode_profile(y_um: np.ndarray, geometry: transform.Geometry, curve: th.Thr
 # ---------------------------------------------------------------- decode
 
 
-def decode(data: bytes) -> Stream:
+def decode(data: bytes, limits: Limits = NO_LIMITS) -> Stream:
     """Parse and validate a version-2 stream; every malformed input raises StreamError."""
     data = bytes(data)
     size = len(data)
@@ -356,6 +356,7 @@ def decode(data: bytes) -> Stream:
     n_keep = ig.n_keep
     if not 1 <= n_keep < ig.n:
         raise StreamError(f"header geometry gives N' = {n_keep}, outside 1..N-1 (N = {ig.n})")
+    limits.check_size(ig.n, n_keep)  # before anything of size N' is decoded or allocated
     short_id = r.take(SHORT_ID_BYTES, "curve id")
     ref_P = unpack_ref(r, "ref_P")
     ref_A = unpack_ref(r, "ref_A")
