@@ -11,6 +11,7 @@ import os
 import signal
 import socket
 import stat
+import struct
 import subprocess
 import sys
 import threading
@@ -371,3 +372,382 @@ def test_writer_writes_through_fifos_and_stdout_and_honours_umask(tmp_path, capf
     vtx.decode(out)
     assert not (Path.cwd() / "-").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+# ---------------------------------------------------------------- issue 20: hostile local users
+# Each test plays one reproduction of issue 20 against the real daemon (or the piece of it that
+# owns the defence) and fails on the code before the fix.
+
+NOBODY = 65534
+SYSTEM_PYTHON = "/usr/bin/python3"  # an unprivileged user cannot run the venv's under /work
+
+
+def _unprivileged(code: str, *args: str, **kw) -> subprocess.Popen:
+    """A stdlib-only script run as nobody: another local user."""
+    if os.geteuid() != 0 or not os.path.exists(SYSTEM_PYTHON):
+        pytest.skip("needs root (to run a script as another user) and /usr/bin/python3")
+    return subprocess.Popen([SYSTEM_PYTHON, "-I", "-c", code, *args], user=NOBODY, group=NOBODY,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+def _open_dir(prefix: str, mode: int) -> Path:
+    """A directory outside pytest's 0700 tree, so that nobody can reach a socket in it."""
+    import tempfile
+
+    d = Path(tempfile.mkdtemp(prefix=prefix))
+    os.chmod(d, mode)
+    return d
+
+
+def _vm_kib(pid: int, field: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise AssertionError(field)
+
+
+@pytest.fixture(scope="module")
+def hostile(tmp_path_factory):
+    """A daemon with the default max_clients (16), its socket reachable by nobody, its quality
+    database on a 2 MB tmpfs (when this runs as root) so that the disk can really be filled."""
+    import shutil
+
+    d = tmp_path_factory.mktemp("hostile")
+    qfs = d / "qfs"
+    qfs.mkdir()
+    mount = ["mount", "-t", "tmpfs", "-o", "size=2m,mode=0700", "tmpfs", str(qfs)]
+    mounted = os.geteuid() == 0 and subprocess.run(mount, capture_output=True).returncode == 0
+    rundir = _open_dir("hostd-i20-", 0o711)
+    cfg = _cfg(d)
+    cfg.write_text(cfg.read_text().replace('socket = "run/hostd.sock"', f'socket = "{rundir}/hostd.sock"')
+                   .replace('db = "q.sqlite"', 'db = "qfs/q.sqlite"'))
+    proc = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)],
+                            stderr=open(d / "log.txt", "w"), cwd=d)
+    sock = str(rundir / "hostd.sock")
+    try:
+        from tests.daemon_helpers import wait_for
+
+        wait_for(lambda: request(sock, {"cmd": "status"}, timeout_s=5)["ok"], START_S, "the daemon")
+        os.chmod(sock, 0o666)  # let nobody connect: the share per user, the drip clients
+        yield proc, d, sock, mounted
+    finally:
+        _stop(proc)
+        if mounted:
+            subprocess.run(["umount", "-l", str(qfs)], capture_output=True)
+        shutil.rmtree(rundir, ignore_errors=True)
+
+
+def _retry_busy(fn, tries: int = 200):
+    for _ in range(tries):
+        try:
+            return fn()
+        except ClientError as e:
+            if "busy" not in str(e):
+                raise
+            time.sleep(0.02)
+    raise AssertionError("always busy")
+
+
+def test_concurrent_selects_of_large_textures_keep_the_pump_alive(daemon):
+    """Item 1: 8 clients select two textures of N' = 16,000 five times each at once: the pump
+    pipe has one writer, so no message interleaves and the pump keeps running."""
+    proc, d, sock = daemon
+    from tests.daemon_helpers import wait_for
+
+    wait_for(lambda: request(sock, {"cmd": "status"})["connected"], START_S, "the simulated display")
+    for name, seed in (("big", "wood"), ("big2", "wood:7")):
+        p = d / f"{name}.vtx"
+        assert main(["encode", f"synthetic:{seed}", "-o", str(p), "--fmax", "40000", "--method", "quant",
+                     "--levels", "14"]) == 0
+        assert vtx.decode(p.read_bytes()).n_keep == 16000
+        send_file(sock, str(p), name)
+    errors: list = []
+
+    def selects(i: int) -> None:
+        for k in range(5):
+            name = ("big", "big2")[(i + k) % 2]
+            try:
+                _retry_busy(lambda name=name: request(sock, {"cmd": "select", "name": name}))
+            except (ClientError, AssertionError) as e:
+                errors.append(str(e))
+
+    ts = [threading.Thread(target=selects, args=(i,)) for i in range(8)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join(120)
+    assert not errors, errors[:3]
+    time.sleep(0.5)
+    st = request(sock, {"cmd": "status"})
+    assert proc.poll() is None and st["pump_alive"] and st["texture"] in ("big", "big2")
+    s0 = st["samples"]
+    time.sleep(0.5)
+    assert request(sock, {"cmd": "status"})["samples"] > s0  # still playing
+    assert "UnpicklingError" not in (d / "log.txt").read_text()
+    # idempotent: selecting what plays sends nothing to the pump (its serial does not move)
+    serial = request(sock, {"cmd": "status"})["texture_serial"]
+    for _ in range(5):
+        request(sock, {"cmd": "select", "name": st["texture"]})
+    time.sleep(0.3)
+    assert request(sock, {"cmd": "status"})["texture_serial"] == serial
+
+
+def test_spool_symlink_swap_writes_nothing_outside(hostile):
+    """Item 2, as the issue plays it: rejected/ renamed and replaced by a link to the library,
+    links to a victim file and to /dev/zero planted; the daemon follows none of them."""
+    proc, d, sock, _ = hostile
+    spool, lib = d / "spool", d / "lib"
+    assert stat.S_IMODE(os.stat(spool).st_mode) & stat.S_ISVTX  # made sticky by the daemon
+    victim = d / "victim.txt"
+    victim.write_bytes(b"precious\n")
+    os.rename(spool / "rejected", spool / "r.old")
+    os.symlink(lib, spool / "rejected")
+    os.symlink(victim, spool / "evil.vtx")
+    os.symlink("/dev/zero", spool / "zero.vtx")
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and (os.path.lexists(spool / "evil.vtx")
+                                           or os.path.lexists(spool / "zero.vtx")):
+        time.sleep(0.1)
+    # moved (as links) into the directory the daemon opened, which is now r.old; nothing in the library
+    assert os.path.islink(spool / "r.old" / "evil.vtx") and os.path.islink(spool / "r.old" / "zero.vtx")
+    assert "regular files only" in (spool / "r.old" / "evil.vtx.error").read_text()
+    assert not os.path.lexists(lib / "evil.vtx") and not os.path.lexists(lib / "zero.vtx")
+    good = _streams(d, 1)[0]
+    assert request(sock, {"cmd": "send", "name": "evil", "size": len(good)}, good)["ok"]
+    assert victim.read_bytes() == b"precious\n"
+    assert stat.S_ISREG(os.lstat(lib / "evil.vtx").st_mode) and (lib / "evil.vtx").read_bytes() == good
+    # a link left in the library itself (to /dev/zero, to the victim) is neither listed nor read
+    rss0 = _vm_kib(proc.pid, "VmRSS")
+    os.symlink("/dev/zero", lib / "zero.vtx")
+    os.symlink(victim, lib / "vic.vtx")
+    assert "zero" not in request(sock, {"cmd": "list"})["textures"]
+    for name in ("zero", "vic"):
+        with pytest.raises(ClientError, match="not a regular file"):
+            request(sock, {"cmd": "select", "name": name})
+    assert _vm_kib(proc.pid, "VmRSS") < rss0 + 20_000
+    # a replaced file is written as a new file, the link is gone, the victim intact
+    assert request(sock, {"cmd": "send", "name": "vic", "size": len(good)}, good)["ok"]
+    assert victim.read_bytes() == b"precious\n" and not os.path.islink(lib / "vic.vtx")
+    os.unlink(lib / "zero.vtx")
+    os.unlink(spool / "rejected")
+    assert proc.poll() is None
+
+
+def test_client_refuses_an_impostor_holding_the_socket(tmp_path):
+    """Item 3: another user binds the socket's name in a sticky directory; root's client sees
+    who holds it (SO_PEERCRED) and sends nothing."""
+    shared = _open_dir("hostd-sticky-", 0o1777)
+    path = str(shared / "hostd.sock")
+    code = ("import socket,sys\n"
+            "s=socket.socket(socket.AF_UNIX); s.bind(sys.argv[1]); s.listen(1); print('ready', flush=True)\n"
+            "s.settimeout(20); c,_=s.accept(); c.settimeout(2); got=b''\n"
+            "try:\n    while True:\n        b=c.recv(65536)\n        if not b: break\n        got+=b\n"
+            "        if len(got)>4:\n"
+            "            c.sendall(b'{\"ok\": true, \"name\": \"x\", \"sha256\": \"0\"}\\n'); break\n"
+            "except OSError: pass\n"
+            "print(len(got), flush=True)\n")
+    imp = _unprivileged(code, path)
+    try:
+        assert imp.stdout.readline().strip() == "ready", imp.stderr.read()
+        with pytest.raises(ClientError, match=r"refusing to talk to .*uid 65534"):
+            request(path, {"cmd": "send", "name": "x", "size": 5}, b"hello")
+        out, _ = imp.communicate(timeout=20)
+        assert out.split()[-1] == "0"  # the impostor received nothing
+    finally:
+        if imp.poll() is None:
+            imp.kill()
+        import shutil
+
+        shutil.rmtree(shared, ignore_errors=True)
+
+
+def _drip_code() -> str:
+    return ("import socket,sys,threading,time\n"
+            "path,n,period,dur=sys.argv[1],int(sys.argv[2]),float(sys.argv[3]),float(sys.argv[4])\n"
+            "end=time.monotonic()+dur\n"
+            "def drip():\n"
+            "    while time.monotonic()<end:\n"
+            "        s=socket.socket(socket.AF_UNIX)\n"
+            "        try:\n"
+            "            s.connect(path)\n"
+            "            while time.monotonic()<end:\n"
+            "                s.send(b'{'); time.sleep(period)\n"
+            "        except OSError: time.sleep(period)\n"
+            "        finally: s.close()\n"
+            "ts=[threading.Thread(target=drip) for _ in range(n)]\n"
+            "[t.start() for t in ts]; [t.join() for t in ts]\n")
+
+
+@pytest.mark.parametrize("who", ["same user", "another user"])
+def test_drip_clients_do_not_lock_out_a_prompt_client(hostile, who):
+    """Item 4: 16 clients that send one byte every 2 s (as many as max_clients) hold every
+    handler on the old code; a client that sends its request at once is served every time:
+    the slowest sender is evicted (same user), or a user's share is max_clients // 4."""
+    proc, _d, sock, _ = hostile
+    args = [sock, "16", "2.0", "8"]
+    if who == "another user":
+        drip = _unprivileged(_drip_code(), *args)
+    else:
+        drip = subprocess.Popen([sys.executable, "-c", _drip_code(), *args])
+    try:
+        time.sleep(2.5)  # every dripper connected and older than the eviction age
+        served = []
+        for _ in range(15):
+            try:
+                served.append(request(sock, {"cmd": "status"}, timeout_s=5)["ok"])
+            except ClientError as e:
+                served.append(str(e))
+            time.sleep(0.2)
+        assert served == [True] * 15, served
+    finally:
+        drip.kill()
+        drip.wait()
+    assert proc.poll() is None
+
+
+def _hostile_v2(n: int, fmax_mhz: int) -> bytes:
+    """A v2 stream of a few dozen bytes whose header promises N = n (all zero indices but one)."""
+    from hostd.codec.stream import v2
+
+    ig = v2.IntGeometry(n, 500_000, 50_000, fmax_mhz)
+    c = np.zeros(ig.n_keep)
+    c[0] = 1.0
+    return v2.encode_coefficients(c, ig, thresholds.default_curve(), method="quant", levels=2)
+
+
+def test_tiny_streams_that_decode_huge_are_refused_from_the_header(hostile):
+    """Item 5: 16 concurrent uploads of a 33-byte stream with N = 2^22, N' ~ 4.2 million: refused
+    from the header before anything is decoded; the daemon's peak memory does not move."""
+    proc, _d, sock, _ = hostile
+    data = _hostile_v2(1 << 22, 49_999_000)
+    assert len(data) < 64 and vtx.decode(data).n_keep > 4_000_000
+    hwm0 = _vm_kib(proc.pid, "VmHWM")
+    replies: list = []
+
+    def up() -> None:
+        try:
+            _retry_busy(lambda: request(sock, {"cmd": "send", "name": "huge", "size": len(data)}, data))
+            replies.append("accepted")
+        except ClientError as e:
+            replies.append(str(e))
+
+    t0 = time.monotonic()
+    ts = [threading.Thread(target=up) for _ in range(16)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join(60)
+    assert len(replies) == 16 and all("library.max_n" in r for r in replies), replies[:2]
+    assert time.monotonic() - t0 < 10
+    # each decode of it allocates ~70 MB (17 B per coefficient): one would show
+    assert _vm_kib(proc.pid, "VmHWM") - hwm0 < 30_000
+    assert proc.poll() is None
+
+
+def test_concurrent_decodes_stay_within_the_decode_budget(tmp_path):
+    """Item 5, the budget: with limits that admit N' = 2^20, 16 threads decoding such a stream
+    at once together stay within DECODE_BUDGET_BYTES (decode slots), measured by tracemalloc."""
+    import tracemalloc
+
+    from hostd.service import library as libmod
+
+    data = _hostile_v2(1 << 21, 25_000_000)
+    lib = Library(tmp_path / "lib", 4096, max_n=1 << 21, max_n_keep=1 << 20)
+    assert lib.decode_slots == libmod.DECODE_BUDGET_BYTES // (libmod.DECODE_BYTES_PER_COEFF << 20) == 2
+    lib.decode(data)
+    tracemalloc.start()
+    one = lib.decode(data)
+    single = tracemalloc.get_traced_memory()[1]
+    del one
+    tracemalloc.reset_peak()
+    ts = [threading.Thread(target=lib.decode, args=(data,)) for _ in range(16)]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join(60)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak <= lib.decode_slots * single * 1.2 + (1 << 20), (peak, single)
+    assert peak <= libmod.DECODE_BUDGET_BYTES
+
+
+def test_full_disk_quality_rows_are_written_once_space_returns(hostile):
+    """Item 6: the quality database's filesystem (a real 2 MB tmpfs) is full while streams are
+    accepted; their rows wait in the pending queue and are all written once space returns."""
+    proc, d, sock, mounted = hostile
+    if not mounted:
+        pytest.skip("needs root to mount a small tmpfs")
+    filler = d / "qfs" / "filler"
+    with open(filler, "wb") as f:
+        try:
+            while True:
+                f.write(b"\0" * 65536)
+                f.flush()
+        except OSError as e:
+            assert e.errno == errno.ENOSPC
+    bodies = _streams(d, 6)
+    names = [f"full{i}" for i in range(6)]
+    for name, body in zip(names, bodies, strict=True):
+        assert request(sock, {"cmd": "send", "name": name, "size": len(body)}, body)["ok"]
+    time.sleep(2.0)
+    st = request(sock, {"cmd": "status"})
+    logged = {r["name"] for r in request(sock, {"cmd": "quality"})["rows"]}
+    assert st["quality_pending"] > 0 and not set(names) <= logged, (st["quality_pending"], logged)
+    assert "kept pending" in (d / "log.txt").read_text()
+    filler.unlink()
+    from tests.daemon_helpers import wait_for
+
+    wait_for(lambda: set(names) <= {r["name"] for r in request(sock, {"cmd": "quality"})["rows"]}, 60,
+             "the pending quality rows")
+    assert request(sock, {"cmd": "status"})["quality_pending"] == 0
+    assert "writing again" in (d / "log.txt").read_text()
+    assert proc.poll() is None
+
+
+def _huge_step_stream() -> bytes:
+    """A valid v2 quant stream whose step is 1e300: finite coefficients of ~1e300 µm."""
+    from hostd.codec.stream import v2
+
+    ig = v2.IntGeometry(100, 500_000, 50_000, 10_000_000)  # N' = 10
+    c = np.zeros(ig.n_keep)
+    c[:3] = (1.0, -1.0, 0.5)
+    data = v2.encode_coefficients(c, ig, thresholds.default_curve(), method="quant", levels=4)
+    body = data[:-2]  # CRC-16
+    step = struct.pack("<d", vtx.decode(data).step_um)
+    assert body.count(step) == 1
+    body = body.replace(step, struct.pack("<d", 1e300))
+    return body + v2._crc(body)
+
+
+def test_huge_coefficients_are_refused_at_intake(daemon):
+    """Item 7: a 30-odd-byte stream with quant step 1e300 decodes to finite coefficients far
+    beyond the display's travel: refused at intake with the reason, never stored or played."""
+    proc, _d, sock = daemon
+    data = _huge_step_stream()
+    s = vtx.decode(data)
+    assert len(data) < 48 and np.all(np.isfinite(s.coefficients)) and np.max(np.abs(s.coefficients)) > 1e299
+    with pytest.raises(ClientError, match=r"travel.*output\.travel_um"):
+        request(sock, {"cmd": "send", "name": "square", "size": len(data)}, data)
+    assert "square" not in request(sock, {"cmd": "list"})["textures"]
+    with pytest.raises(ClientError, match="no texture"):
+        request(sock, {"cmd": "select", "name": "square"})
+    assert proc.poll() is None
+
+
+def test_names_cannot_forge_log_lines(daemon):
+    """Item 8: a name with a newline is refused at intake and, in the log, escaped."""
+    proc, d, sock = daemon
+    good = _streams(d, 1)[0]
+    forged = "x\n2026-11-23 12:00:00,000 hostd INFO FORGED accepted"
+    with pytest.raises(ClientError, match="control characters"):
+        request(sock, {"cmd": "send", "name": forged, "size": len(good)}, good)
+    (d / "spool" / "y\nFORGED2 line.vtx").write_bytes(good)
+    deadline = time.monotonic() + 20
+    while os.path.lexists(d / "spool" / "y\nFORGED2 line.vtx") and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(0.2)
+    lines = (d / "log.txt").read_text().splitlines()
+    assert not [ln for ln in lines if "FORGED" in ln and not ln.startswith(lines[0][:2])]
+    assert any("\\nFORGED2" in ln for ln in lines)  # the spool name, escaped
+    assert not any(ln.startswith(("2026-11-23 12:00", "FORGED")) for ln in lines)
+    assert proc.poll() is None

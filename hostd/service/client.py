@@ -8,10 +8,10 @@ import os
 import pwd
 import socket
 import stat
-import struct
 from pathlib import Path
 
 from hostd.errors import HostdError
+from hostd.service.control import peer_uid
 
 
 class ClientError(HostdError):
@@ -48,8 +48,7 @@ def trusted_uids(path: str) -> set[int]:
 
 def check_peer(s: socket.socket, path: str) -> None:
     """SO_PEERCRED: refuse, before sending a byte, a socket held by a process of another user."""
-    _pid, uid, _gid = struct.unpack("3i", s.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
-                                                       struct.calcsize("3i")))
+    uid = peer_uid(s)
     if uid not in trusted_uids(path):
         try:
             who = pwd.getpwuid(uid).pw_name

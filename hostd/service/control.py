@@ -13,6 +13,8 @@
   byte budget (the request line and the announced upload, nothing more). When every handler is
   busy, a new connection evicts the client that has been sending its request the longest (at
   least EVICT_AFTER_S), so clients that drip bytes cannot lock out one that sends promptly.
+- A user other than root and the daemon's own (SO_PEERCRED) is served at most
+  max(1, max_clients // 4) connections at once: one group member cannot take every handler.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import os
 import queue
 import socket
 import stat
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -46,8 +49,10 @@ class ClientConn:
     """One client's connection as the handler reads it: readline/read under one deadline for
     the whole request and a byte budget; done_reading() once the request is in."""
 
-    def __init__(self, conn: socket.socket, budget: int, deadline_s: float = REQUEST_DEADLINE_S) -> None:
+    def __init__(self, conn: socket.socket, budget: int, deadline_s: float = REQUEST_DEADLINE_S,
+                 uid: int = -1) -> None:
         self.conn = conn
+        self.uid = uid
         self.started = time.monotonic()
         self.deadline = self.started + deadline_s
         self.budget = budget
@@ -129,6 +134,13 @@ def check_socket_dir(d: Path) -> None:
                           "only hostd's user owns and writes, such as /run/hostd (RuntimeDirectory=hostd)")
 
 
+def peer_uid(conn: socket.socket) -> int:
+    """The connected process's uid (SO_PEERCRED: the kernel's word, not the client's)."""
+    _pid, uid, _gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
+                                                          struct.calcsize("3i")))
+    return uid
+
+
 class ControlServer:
     def __init__(self, path: str | Path, group: str, max_clients: int,
                  handle: Callable[[ClientConn], None], budget: int = 1 << 20) -> None:
@@ -136,6 +148,8 @@ class ControlServer:
         self.budget = budget  # bytes one request may send: its line and the largest upload
         self.clients: set[ClientConn] = set()  # being served, under busy_lock
         self.evicted = 0
+        self.per_user: dict[int, int] = {}  # connections held per (untrusted) uid, under busy_lock
+        self.user_share = max(1, max_clients // 4)
         self.max_clients = max_clients
         self.handle = handle
         self.stopping = threading.Event()
@@ -219,17 +233,24 @@ class ControlServer:
             if backoff:
                 log.info("control socket: accepting again")
                 backoff = 0.0
+            uid = peer_uid(conn)
+            limited = uid not in (0, os.geteuid())
             with self.busy_lock:
-                full = self.busy >= self.max_clients
-                if full and self._evict_slowest():
+                over_share = limited and self.per_user.get(uid, 0) >= self.user_share
+                full = over_share or self.busy >= self.max_clients
+                if full and not over_share and self._evict_slowest():
                     full = False
                 if not full:
                     self.busy += 1
+                    if limited:
+                        self.per_user[uid] = self.per_user.get(uid, 0) + 1
             if full:
                 self.refused_busy += 1
-                self._refuse(conn)
+                self._refuse(conn, f"hostd is busy: uid {uid} already has {self.user_share} requests being "
+                                   "served (a user's share of control.max_clients); try again" if over_share
+                              else None)
                 continue
-            self.jobs.put(conn)
+            self.jobs.put((conn, uid if limited else None))
 
     def _evict_slowest(self) -> bool:
         """Under busy_lock: drop the client that has been sending its request the longest, if
@@ -245,11 +266,12 @@ class ControlServer:
                     "after %.1f s", self.max_clients, now - victim.started)
         return True
 
-    def _refuse(self, conn: socket.socket) -> None:
+    def _refuse(self, conn: socket.socket, why: str | None = None) -> None:
+        why = why or (f"hostd is busy: {self.max_clients} clients are being served (control.max_clients); "
+                      "try again")
         try:
             conn.settimeout(0.5)
-            conn.sendall((json.dumps({"ok": False, "error": f"hostd is busy: {self.max_clients} clients "
-                                      "are being served (control.max_clients); try again"}) + "\n").encode())
+            conn.sendall((json.dumps({"ok": False, "error": why}) + "\n").encode())
         except OSError:
             pass
         finally:
@@ -257,10 +279,11 @@ class ControlServer:
 
     def _worker(self) -> None:
         while True:
-            conn = self.jobs.get()
-            if conn is None:
+            job = self.jobs.get()
+            if job is None:
                 return
-            client = ClientConn(conn, self.budget)
+            conn, limited_uid = job
+            client = ClientConn(conn, self.budget, uid=-1 if limited_uid is None else limited_uid)
             with self.busy_lock:
                 self.clients.add(client)
             try:
@@ -275,6 +298,8 @@ class ControlServer:
                 with self.busy_lock:
                     self.clients.discard(client)
                     self.busy -= 1
+                    if limited_uid is not None:
+                        self.per_user[limited_uid] -= 1
 
     def close(self) -> None:
         self.stopping.set()
