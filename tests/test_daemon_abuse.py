@@ -721,7 +721,7 @@ def _huge_step_stream() -> bytes:
 def test_huge_coefficients_are_refused_at_intake(daemon):
     """Item 7: a 30-odd-byte stream with quant step 1e300 decodes to finite coefficients far
     beyond the display's travel: refused at intake with the reason, never stored or played."""
-    proc, _d, sock = daemon
+    proc, d, sock = daemon
     data = _huge_step_stream()
     s = vtx.decode(data)
     assert len(data) < 48 and np.all(np.isfinite(s.coefficients)) and np.max(np.abs(s.coefficients)) > 1e299
@@ -730,6 +730,11 @@ def test_huge_coefficients_are_refused_at_intake(daemon):
     assert "square" not in request(sock, {"cmd": "list"})["textures"]
     with pytest.raises(ClientError, match="no texture"):
         request(sock, {"cmd": "select", "name": "square"})
+    # one stored before the limit existed (put straight into the library) is not played either
+    (d / "lib" / "old-square.vtx").write_bytes(data)
+    with pytest.raises(ClientError, match="travel"):
+        request(sock, {"cmd": "select", "name": "old-square"})
+    (d / "lib" / "old-square.vtx").unlink()
     assert proc.poll() is None
 
 
