@@ -408,8 +408,10 @@ def _vm_kib(pid: int, field: str) -> int:
 
 @pytest.fixture(scope="module")
 def hostile(tmp_path_factory):
-    """A daemon with the default max_clients (16), its socket reachable by nobody, its quality
-    database on a 2 MB tmpfs (when this runs as root) so that the disk can really be filled."""
+    """A daemon with the default max_clients (16), its socket reachable by nobody, its spool
+    group-writable for nobody's group (2770, as the old tmpfiles.d made it: the daemon must make
+    it sticky), its quality database on a 2 MB tmpfs (when this runs as root) so that the disk
+    can really be filled."""
     import shutil
 
     d = tmp_path_factory.mktemp("hostile")
@@ -418,9 +420,13 @@ def hostile(tmp_path_factory):
     mount = ["mount", "-t", "tmpfs", "-o", "size=2m,mode=0700", "tmpfs", str(qfs)]
     mounted = os.geteuid() == 0 and subprocess.run(mount, capture_output=True).returncode == 0
     rundir = _open_dir("hostd-i20-", 0o711)
+    spool = _open_dir("hostd-spool-", 0o770)
+    os.chown(spool, -1, NOBODY)
+    os.chmod(spool, 0o2770)
     cfg = _cfg(d)
     cfg.write_text(cfg.read_text().replace('socket = "run/hostd.sock"', f'socket = "{rundir}/hostd.sock"')
-                   .replace('db = "q.sqlite"', 'db = "qfs/q.sqlite"'))
+                   .replace('db = "q.sqlite"', 'db = "qfs/q.sqlite"')
+                   .replace('spool = "spool"', f'spool = "{spool}"'))
     proc = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)],
                             stderr=open(d / "log.txt", "w"), cwd=d)
     sock = str(rundir / "hostd.sock")
@@ -429,12 +435,13 @@ def hostile(tmp_path_factory):
 
         wait_for(lambda: request(sock, {"cmd": "status"}, timeout_s=5)["ok"], START_S, "the daemon")
         os.chmod(sock, 0o666)  # let nobody connect: the share per user, the drip clients
-        yield proc, d, sock, mounted
+        yield proc, d, sock, mounted, spool
     finally:
         _stop(proc)
         if mounted:
             subprocess.run(["umount", "-l", str(qfs)], capture_output=True)
         shutil.rmtree(rundir, ignore_errors=True)
+        shutil.rmtree(spool, ignore_errors=True)
 
 
 def _retry_busy(fn, tries: int = 200):
@@ -495,8 +502,8 @@ def test_concurrent_selects_of_large_textures_keep_the_pump_alive(daemon):
 def test_spool_symlink_swap_writes_nothing_outside(hostile):
     """Item 2, as the issue plays it: rejected/ renamed and replaced by a link to the library,
     links to a victim file and to /dev/zero planted; the daemon follows none of them."""
-    proc, d, sock, _ = hostile
-    spool, lib = d / "spool", d / "lib"
+    proc, d, sock, _, spool = hostile
+    lib = d / "lib"
     victim = d / "victim.txt"
     victim.write_bytes(b"precious\n")
     os.rename(spool / "rejected", spool / "r.old")
@@ -529,8 +536,27 @@ def test_spool_symlink_swap_writes_nothing_outside(hostile):
     assert victim.read_bytes() == b"precious\n" and not os.path.islink(lib / "vic.vtx")
     os.unlink(lib / "zero.vtx")
     os.unlink(spool / "rejected")
+    os.rename(spool / "r.old", spool / "rejected")  # as it was, for the tests that follow
     assert proc.poll() is None
+
+
+def test_group_member_cannot_swap_rejected_in_the_sticky_spool(hostile):
+    """Item 2, as an unprivileged member (nobody, in the spool's group): the daemon made the
+    spool sticky, so renaming rejected/ fails; a planted link is moved to rejected/ as a link."""
+    proc, d, _sock, _, spool = hostile
     assert stat.S_IMODE(os.stat(spool).st_mode) & stat.S_ISVTX  # made sticky by the daemon
+    code = ("import os,sys\n"
+            "sp=sys.argv[1]\n"
+            "try:\n    os.rename(sp+'/rejected', sp+'/r.mine'); print('renamed')\n"
+            "except OSError as e: print('refused', e.errno)\n"
+            "os.symlink(sys.argv[2], sp+'/member.vtx'); print('planted')\n")
+    out, err = _unprivileged(code, str(spool), str(d / "lib")).communicate(timeout=30)
+    assert out.split() == ["refused", str(errno.EPERM), "planted"], (out, err)
+    deadline = time.monotonic() + 20
+    while os.path.lexists(spool / "member.vtx") and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert os.path.islink(spool / "rejected" / "member.vtx") and not os.path.islink(spool / "rejected")
+    assert proc.poll() is None
 
 
 def test_client_refuses_an_impostor_holding_the_socket(tmp_path):
@@ -583,7 +609,7 @@ def test_drip_clients_do_not_lock_out_a_prompt_client(hostile, who):
     """Item 4: 16 clients that send one byte every 2 s (as many as max_clients) hold every
     handler on the old code; a client that sends its request at once is served every time:
     the slowest sender is evicted (same user), or a user's share is max_clients // 4."""
-    proc, _d, sock, _ = hostile
+    proc, _d, sock, _, _ = hostile
     args = [sock, "16", "2.0", "8"]
     if who == "another user":
         drip = _unprivileged(_drip_code(), *args)
@@ -618,7 +644,7 @@ def _hostile_v2(n: int, fmax_mhz: int) -> bytes:
 def test_tiny_streams_that_decode_huge_are_refused_from_the_header(hostile):
     """Item 5: 16 concurrent uploads of a 33-byte stream with N = 2^22, N' ~ 4.2 million: refused
     from the header before anything is decoded; the daemon's peak memory does not move."""
-    proc, _d, sock, _ = hostile
+    proc, _d, sock, _, _ = hostile
     data = _hostile_v2(1 << 22, 49_999_000)
     assert len(data) < 64 and vtx.decode(data).n_keep > 4_000_000
     hwm0 = _vm_kib(proc.pid, "VmHWM")
@@ -674,7 +700,7 @@ def test_concurrent_decodes_stay_within_the_decode_budget(tmp_path):
 def test_full_disk_quality_rows_are_written_once_space_returns(hostile):
     """Item 6: the quality database's filesystem (a real 2 MB tmpfs) is full while streams are
     accepted; their rows wait in the pending queue and are all written once space returns."""
-    proc, d, sock, mounted = hostile
+    proc, d, sock, mounted, _ = hostile
     if not mounted:
         pytest.skip("needs root to mount a small tmpfs")
     filler = d / "qfs" / "filler"
@@ -756,3 +782,42 @@ def test_names_cannot_forge_log_lines(daemon):
     assert not any(ln.startswith(("2026-11-23 12:00", "FORGED")) for ln in lines)
     assert "control characters" in str(refused.value)
     assert proc.poll() is None
+
+
+def test_dir_fd_reader_and_writer_follow_no_link(tmp_path):
+    """The library's and spool's file operations (hostd.fileio: open_dir, read_regular_at,
+    write_at): a link is replaced, never written through or read; FIFOs and devices are refused
+    without blocking; the size is checked before reading; an open directory must be ours."""
+    from hostd.fileio import NotRegular, open_dir, read_regular_at, write_at
+
+    victim = tmp_path / "victim"
+    victim.write_bytes(b"precious")
+    d = tmp_path / "d"
+    fd = open_dir(d, "test", create_mode=0o750)
+    try:
+        os.symlink(victim, d / "x.vtx")
+        with pytest.raises(NotRegular):
+            read_regular_at(fd, "x.vtx", 100)
+        write_at(fd, "x.vtx", b"new", mode=0o640)
+        assert victim.read_bytes() == b"precious" and (d / "x.vtx").read_bytes() == b"new"
+        assert not os.path.islink(d / "x.vtx") and stat.S_IMODE(os.stat(d / "x.vtx").st_mode) == 0o640
+        os.mkfifo(d / "f.vtx")
+        os.symlink("/dev/zero", d / "z.vtx")
+        for name in ("f.vtx", "z.vtx"):
+            with pytest.raises(NotRegular):
+                read_regular_at(fd, name, 100)
+        (d / "big.vtx").write_bytes(b"\0" * 101)
+        with pytest.raises(HostdError, match="max_stream_bytes"):
+            read_regular_at(fd, "big.vtx", 100)
+        assert [n for n in os.listdir(d) if n.endswith(".tmp")] == []
+    finally:
+        os.close(fd)
+    os.symlink(d, tmp_path / "link")
+    with pytest.raises(HostdError, match="symbolic link"):
+        open_dir(tmp_path / "link", "test")
+    os.chmod(d, 0o777)
+    with pytest.raises(HostdError, match="other users"):
+        open_dir(d, "test")
+    os.chmod(d, 0o770)
+    os.close(open_dir(d, "test", others_may_write=True))  # ours and group-writable: made sticky
+    assert os.stat(d).st_mode & stat.S_ISVTX
