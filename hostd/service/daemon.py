@@ -1,8 +1,9 @@
 """`hostd run`: the background service.
 
-Threads of the main process: the control socket (one thread per client), the spool watcher,
-the quality worker (scoring and SQLite), and the main loop (systemd notify and watchdog,
-pump log lines, signals). The real-time pump is a separate process (pumpproc).
+Threads of the main process: the control socket (a pool of handlers), the spool watcher,
+the quality worker (scoring and SQLite, with its pending queue), the pump writer (the one
+writer of the pump's pipe), and the main loop (systemd notify and watchdog, pump log lines,
+signals). The real-time pump is a separate process (pumpproc).
 """
 
 from __future__ import annotations
