@@ -314,12 +314,12 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     from hostd.perception import peer
 
     if ref is None:
-        out["peer_note"] = "peer metrics (ST-SIM, SPQI) need the original: pass REFERENCE_PROFILE"
-    elif not peer.available():
-        out["peer_note"] = peer.NOTE_MISSING
+        out["peer_note"] = "peer metrics (SPQI, ST-SIM) need the original: pass REFERENCE_PROFILE"
     else:
         out.update(peer.peer_scores(transform.analyze(ref, s.n_keep), s.coefficients, s.n,
-                                    s.length_mm, s.speed_mm_s) or {})
+                                    s.length_mm, s.speed_mm_s))
+        if not peer.available():
+            out["peer_note"] = peer.NOTE_MISSING
     out.update(bytes=s.nbytes, ratio_coeffs=s.ratio_coeffs, ratio_profile=s.ratio_profile,
                method=s.method)
     if args.json:
