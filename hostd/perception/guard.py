@@ -145,6 +145,13 @@ def check(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_um: np.nda
     return Verdict(_db(ws, wn), _db(ss, sn), ok)
 
 
+def check_db(wsnr_db: float, ssnr_db: float, wsnr_min_db: float = DEFAULT_GUARD_DB,
+             ssnr_min_db: float = DEFAULT_SSNR_DB) -> bool:
+    """The proxy floors on reported dB values: rate control's fallback when SPQI, the
+    criterion it certifies, cannot be computed (it then says so: waveform_verified false)."""
+    return wsnr_db >= wsnr_min_db and ssnr_db >= ssnr_min_db
+
+
 def max_nmr_db(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_um: np.ndarray) -> float:
     """20 log10 max_k |C_k - C'_k| / b_k: the worst component's error over its threshold, dB."""
     c = np.asarray(reference_um, dtype=np.float64)

@@ -104,8 +104,9 @@ def played_spqi(ref_coeffs_um: np.ndarray, coeffs_um: np.ndarray, n: int, length
 
 
 def peer_scores(ref_coeffs_um: np.ndarray, coeffs_um: np.ndarray, n: int, length_mm: float,
-                speed_mm_s: float, duration_s: float = 1.0) -> dict[str, float]:
-    """{'spqi': .., 'st_sim': ..} (1 = identical); 'st_sim' only when vibromaf is installed.
+                speed_mm_s: float, duration_s: float = 1.0) -> dict:
+    """{'spqi': .., 'st_sim': ..} (1 = identical); 'st_sim' only when vibromaf is installed
+    (None, with 'st_sim_note', where vibromaf's formula gives a complex number).
     The reference's played signal and its sides of SPQI and ST-SIM are cached (a sweep scores
     many variants of one original); both equal vibromaf's (tests/test_peer.py, test_spqi.py)."""
     key = np.ascontiguousarray(ref_coeffs_um, dtype=np.float64).tobytes()
@@ -116,5 +117,12 @@ def peer_scores(ref_coeffs_um: np.ndarray, coeffs_um: np.ndarray, n: int, length
         ref = _reference_signal(*args)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            out["st_sim"] = float(_st_sim(dist, ref, *_reference_st_sim(*args)))
+            st = _st_sim(dist, ref, *_reference_st_sim(*args))
+        # vibromaf raises a negative similarity (anti-correlated blocks) to a fractional power:
+        # a complex number, which is no score
+        if isinstance(st, complex):
+            out["st_sim"] = None
+            out["st_sim_note"] = "ST-SIM undefined: a negative similarity (anti-correlated signals)"
+        else:
+            out["st_sim"] = float(st)
     return out
