@@ -206,3 +206,55 @@ def textures(names: tuple[str, ...] | None = None) -> list[tuple[str, np.ndarray
             p = load_profile(d / fname, LoadOptions(**opts))
             out.append((name, p.heights_um, transform.Geometry(p.n, p.length_mm, speed, fmax)))
     return out
+
+
+def rows(repeat: int = 3) -> list[dict]:
+    """`hostd bench codec --holdout`: per texture, the stream `--target-iobj 0.05` returns with
+    the defaults (bytes, method, Iobj, SPQI by hostd and by vibromaf where installed, which
+    criterion set the size, encodes, the search's CPU time: median of `repeat` runs, thread
+    time) and with the previous default (the proxy guard wSNR >= 25 dB, sSNR >= 27 dB); then
+    a summary row."""
+    import statistics
+
+    from hostd.bench.codec2 import PROXY_GUARD
+    from hostd.codec import ratecontrol
+    from hostd.codec import stream as vtx
+    from hostd.perception import peer, thresholds
+
+    curve = thresholds.default_curve()
+    try:
+        from vibromaf.metrics.spqi import spqi as vibromaf_spqi
+    except ImportError:
+        vibromaf_spqi = None
+    out = []
+    for name, y, geom in textures():
+        runs = [ratecontrol.search(y, geom, curve, 0.05) for _ in range(repeat)]
+        r = runs[0]
+        s = vtx.decode(r.best.data)
+        c = transform.analyze(y, s.n_keep)
+        row: dict = {"bench": "codec_holdout", "texture": name, "n_keep": s.n_keep,
+                     "bytes": r.best.nbytes, "method": r.best.method, "Iobj": round(r.best.Iobj, 4),
+                     "spqi": round(r.best.spqi, 4), "size_set_by": r.size_set_by,
+                     "encodes": r.encodes,
+                     "search_ms": round(statistics.median(x.seconds for x in runs) * 1e3, 1)}
+        if vibromaf_spqi is not None:
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                row["spqi_vibromaf"] = round(float(vibromaf_spqi(
+                    peer.played_signal(s.coefficients, s.n, s.length_mm, s.speed_mm_s),
+                    peer.played_signal(c, s.n, s.length_mm, s.speed_mm_s))), 4)
+        old = ratecontrol.search(y, geom, curve, 0.05, **PROXY_GUARD)
+        so = vtx.decode(old.best.data)
+        row.update(prev_bytes=old.best.nbytes, prev_spqi=round(peer.played_spqi(
+            c, so.coefficients, so.n, so.length_mm, so.speed_mm_s), 4))
+        out.append(row)
+    out.append({"bench": "codec_holdout_summary", "textures": len(out),
+                "max_Iobj": max(r["Iobj"] for r in out), "min_spqi": min(r["spqi"] for r in out),
+                "bytes": sum(r["bytes"] for r in out), "prev_bytes": sum(r["prev_bytes"] for r in out),
+                "prev_below_0.9": sum(r["prev_spqi"] < 0.9 for r in out),
+                "search_ms_median": statistics.median(r["search_ms"] for r in out),
+                "search_ms_max": max(r["search_ms"] for r in out),
+                "size_set_by_waveform": sum(r["size_set_by"] == "waveform" for r in out)})
+    return out
