@@ -128,7 +128,8 @@ def rate_rows() -> list[dict]:
                         f"{label}_wsnr_db": round(r.best.wsnr_db, 1),
                         f"{label}_ssnr_db": round(r.best.ssnr_db, 1),
                         f"{label}_spqi": _quality(y, geom, r.best.data)["spqi"],
-                        f"{label}_encodes": r.encodes, f"{label}_search_ms": round(r.seconds * 1e3)})
+                        f"{label}_encodes": r.encodes, f"{label}_search_ms": round(r.seconds * 1e3),
+                        f"{label}_size_set_by": r.size_set_by})
         # v1's smallest stream meeting Iobj <= 0.05 AND SPQI >= 0.9 (every v1 candidate)
         v1c = sorted((k for k in ratecontrol.candidates(y, geom, curve) if k.Iobj <= TARGET),
                      key=lambda k: k.nbytes)
