@@ -183,3 +183,25 @@ def test_api_encode_with_rate_control_returns_the_clis_report():
     floors = api.encode(prof, target_iobj=0.05, guard_db=25.0, ssnr_db=27.0)
     assert floors["wsnr_db"] >= 25.0 and floors["ssnr_db"] >= 27.0 and floors["spqi"] >= 0.9
     assert math.isfinite(enc["search_cpu_s"])
+
+
+def test_when_spqi_cannot_be_computed_rate_control_says_so(monkeypatch, tmp_path, capsys):
+    """waveform_verified is false (never a silent promise) and the proxy floors decide."""
+    import json
+
+    from hostd.errors import QualityError
+    from hostd.perception import guard, peer
+
+    def unmeasurable(*a, **k):
+        raise QualityError("the played signal is not finite")
+
+    monkeypatch.setattr(peer, "played_spqi", unmeasurable)
+    r = ratecontrol.search(_wood(), transform.Geometry(N, 10.0), CURVE, 0.05)
+    assert r.waveform_verified is False and r.best.spqi is None
+    assert r.best.wsnr_db >= guard.DEFAULT_GUARD_DB and r.best.ssnr_db >= guard.DEFAULT_SSNR_DB
+    assert any("could not be computed" in n for n in r.notes)
+    out = tmp_path / "w.vtx"
+    assert main(["encode", "synthetic:wood:3", "--target-iobj", "0.05", "-o", str(out), "--json"]) == 0
+    cap = capsys.readouterr()
+    assert json.loads(cap.out)["waveform_verified"] is False
+    assert "could not be computed" in cap.err
