@@ -91,3 +91,16 @@ def test_spqi_refuses_short_or_non_finite_signals_with_a_message():
         spqi(np.zeros(600), np.ones(700))
     with pytest.raises(QualityError, match="NaN"):
         spqi(np.full(600, np.nan), np.ones(600))
+
+
+def test_peer_scores_give_spqi_without_the_peer_extra(monkeypatch):
+    rng = np.random.default_rng(4)
+    c = rng.normal(0, 1, 160) / np.arange(1, 161)
+    d = np.round(c * 8) / 8
+    with_extra = peer.peer_scores(c, d, 20000, 10.0, 50.0)
+    monkeypatch.setattr(peer, "available", lambda: False)
+    without = peer.peer_scores(c, d, 20000, 10.0, 50.0)
+    assert "st_sim" not in without and without["spqi"] == with_extra["spqi"]
+    ref = peer.played_signal(c, 20000, 10.0, 50.0)
+    assert without["spqi"] == spqi(peer.played_signal(d, 20000, 10.0, 50.0), ref)
+    assert peer.played_spqi(c, d, 20000, 10.0, 50.0) == without["spqi"]

@@ -350,11 +350,11 @@ def search(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve
 def _no_stream_message(method, fmt, target_iobj, spqi_min, guard_db, ssnr_db, cache, top_db) -> str:
     """One line: why no stream was returned, and what the user can change."""
     if cache and all(p is None for p in cache.values()):
-        which = f"method {method}" if method else "no method"
-        return (f"{which} can code this texture at any setting (largest |C_k| / b(f_k) is "
-                f"{top_db:.0f} dB): check "
-                f"the heights' unit (--y-unit) and the threshold curve "
-                f"(--thresholds)" + (", or use --format v1" if fmt == "v2" else ""))
+        which = f"method {method} cannot" if method else "no method can"
+        return (f"{which} code this texture at any setting (largest |C_k| / b(f_k) is "
+                f"{top_db:.0f} dB): check the heights' unit (--y-unit) and the threshold curve "
+                f"(--thresholds)" + (", or use --format v1" if fmt == "v2" else "")
+                + (", or try another --method" if method else ""))
     parts = ([f"SPQI >= {spqi_min:g}"] if spqi_min is not None else []) + (
         [f"wSNR >= {guard_db:g} dB"] if guard_db is not None else []) + (
         [f"sSNR >= {ssnr_db:g} dB"] if ssnr_db is not None else [])
