@@ -205,3 +205,29 @@ def test_when_spqi_cannot_be_computed_rate_control_says_so(monkeypatch, tmp_path
     cap = capsys.readouterr()
     assert json.loads(cap.out)["waveform_verified"] is False
     assert "could not be computed" in cap.err
+
+
+def test_the_guard_snrs_do_not_switch_off_at_extreme_scales():
+    """Heights x1e-300 or thresholds of 1e200 µm: the squares underflowed, both sums were 0 and
+    a 6-level quantization reported wSNR 200 dB. Now the SNRs equal the written-out definition
+    at scale 1 (exactly for powers of two, to 1e-9 dB otherwise)."""
+    from hostd.codec.methods import quantize
+    from hostd.perception import guard
+
+    rng = np.random.default_rng(7)
+    f = np.arange(1, 161) * 2.5
+    b = CURVE(f)
+    c = rng.normal(size=160) * b * 10
+    qz = quantize(c, 6)
+    d = qz.q * qz.step_um
+    w = guard.spqi_curve_weights(f)
+    want_w = 10 * np.log10(np.sum((c / b) ** 2) / np.sum(((c - d) / b) ** 2))
+    want_s = 10 * np.log10(np.sum(w * c**2) / np.sum(w * (c - d) ** 2))
+    base = guard.check(c, d, b, f)
+    assert base.wsnr_db == pytest.approx(want_w, abs=1e-9) and base.ssnr_db == pytest.approx(want_s, abs=1e-9)
+    assert base.wsnr_db < 30
+    for hs, bs in ((2.0**-1000, 1.0), (1e-300, 1.0), (1.0, 1e200), (1e150, 1.0), (1.0, 1e-300)):
+        v = guard.check(c * hs, d * hs, b * bs, f)
+        assert v.wsnr_db == pytest.approx(want_w, abs=1e-9) and v.ssnr_db == pytest.approx(want_s, abs=1e-9)
+        assert v.passed == base.passed
+        assert guard.weighted_snr_db(c * hs, d * hs, b * bs) == pytest.approx(want_w, abs=1e-9)

@@ -61,11 +61,29 @@ SPQI_CURVE = {"x_scaler": 62.0, "y_scaler": 1.0 / 550.0, "x_offset": 1.0 - 250.0
               "y_offset_db": 77.0}
 
 
+def _pow2_scale(x: np.ndarray) -> float:
+    """2^-e with e the binary exponent of max |x| (1 for an all-zero x): multiplying by it is
+    exact (a power of two), and brings the largest value into [0.5, 1)."""
+    top = float(np.max(np.abs(x))) if x.size else 0.0
+    return math.ldexp(1.0, -math.frexp(top)[1]) if top > 0.0 else 1.0
+
+
+def _threshold_weights(threshold_um: np.ndarray) -> np.ndarray:
+    """1/b^2 up to one power of two: computed from b scaled into [0.5, 1) at its largest, so
+    thresholds of 1e200 or 5e-324 µm do not underflow or overflow the weights (an SNR is a
+    ratio of two sums with the same weights, so the common factor cancels exactly)."""
+    b = np.asarray(threshold_um, dtype=np.float64)
+    with np.errstate(over="ignore"):  # only its refusal of non-finite or non-positive b is used
+        weights(b)
+    inv = np.divide(1.0, np.multiply(b, _pow2_scale(b)))
+    return np.multiply(inv, inv)
+
+
 def weighted_snr_db(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_um: np.ndarray) -> float:
     """wSNR in dB (capped at CAP_DB; -CAP_DB for a silent reference that was not kept silent)."""
     c = np.asarray(reference_um, dtype=np.float64)
     d = np.asarray(decoded_um, dtype=np.float64)
-    return _db(*_power_sums(c, d, weights(threshold_um)[0]))
+    return _db(*_power_sums(c, d, _threshold_weights(threshold_um)))
 
 
 @lru_cache(maxsize=64)
@@ -97,11 +115,18 @@ def spqi_curve_weights(freqs_hz: np.ndarray) -> np.ndarray:
 
 
 def _power_sums(c: np.ndarray, d: np.ndarray, w2: np.ndarray) -> tuple[float, float]:
-    """(sum w C^2, sum w (C - C')^2), correctly rounded."""
+    """(sum w C^2, sum w (C - C')^2), correctly rounded, both times one common power of two:
+    C and C' are first scaled so that the larger peak is in [0.5, 1), w likewise, so the
+    squares neither underflow (heights of 1e-300 µm: both sums 0, an SNR of "200 dB" for any
+    stream) nor overflow (1e150 µm). Exact scaling: in the normal range the SNR and every
+    decision are bit-identical to the unscaled sums'."""
     if c.shape != d.shape:
         raise QualityError(f"{c.size} reference but {d.size} decoded coefficients")
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(d))):
         raise QualityError("coefficients contain NaN or Inf")
+    k = min(_pow2_scale(c), _pow2_scale(d))
+    c, d = np.multiply(c, k), np.multiply(d, k)
+    w2 = np.multiply(w2, _pow2_scale(w2))
     err = np.subtract(c, d)
     return (float(exact_sum(np.multiply(np.multiply(c, c), w2))),
             float(exact_sum(np.multiply(np.multiply(err, err), w2))))
@@ -146,7 +171,7 @@ def check(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_um: np.nda
     """Both SNRs, and whether wSNR >= wsnr_min_db and sSNR >= ssnr_min_db (None: not required)."""
     c = np.asarray(reference_um, dtype=np.float64)
     d = np.asarray(decoded_um, dtype=np.float64)
-    ws, wn = _power_sums(c, d, weights(threshold_um)[0])
+    ws, wn = _power_sums(c, d, _threshold_weights(threshold_um))
     ss, sn = _power_sums(c, d, spqi_curve_weights(freqs_hz))
     ok = ((wsnr_min_db is None or _at_least(ws, wn, wsnr_min_db))
           and (ssnr_min_db is None or _at_least(ss, sn, ssnr_min_db)))
