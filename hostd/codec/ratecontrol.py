@@ -257,7 +257,7 @@ def search(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve
             return vtx.encode_coefficients(c, geometry, curve, **s)
 
     cache: dict[tuple, Probe | None] = {}
-    refused: dict[str, str] = {}  # method -> the coder's message at the setting that failed
+    refused: set[str] = set()  # methods whose coder refused some setting
     unmeasurable: list[str] = []  # why SPQI could not be computed (then the proxies decide)
 
     def probe(knob: _Knob, u: int) -> Probe | None:
@@ -270,8 +270,8 @@ def search(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve
                 dec = vtx.decode(data)
                 sc = score_stream(dec, curve=curve, a=ab[0], b=ab[1])  # as `hostd iobj STREAM`
                 v = guard.check(c, dec.coefficients, b_k, f_k, guard_db, ssnr_db)
-            except (CodecError, QualityError) as exc:
-                refused.setdefault(knob.method, str(exc))
+            except (CodecError, QualityError):  # this setting cannot code the input
+                refused.add(knob.method)
                 cache[key] = None
                 return None
             sp = None
