@@ -8,9 +8,11 @@ dicts (records) and 1-D numpy arrays, so that ``pandas.DataFrame(result)`` or
 Functions
 ---------
 load_profile      a profile file or ``synthetic:KIND[:SEED]`` -> heights in µm on a uniform grid
-encode            heights -> ``.vtx`` stream bytes (linear quantization or threshold cut)
+encode            heights -> a ``.vtx`` stream and its report (rate control by default method
+                  set: Iobj and SPQI verified on the returned bytes), as ``hostd encode --json``
 decode            stream bytes -> :class:`hostd.codec.stream.Stream`
-score             Ip, Ia, Iobj of a stream (from its header, or against its original)
+score             Ip, Ia, Iobj of a stream (from its header, or against its original), and
+                  SPQI, ST-SIM, wSNR, sSNR where they can be computed
 fit               fit (a, b) of Iobj = a Ip + b Ia to subjective scores
 render_stroke     the displacement a hand moving at constant speed feels (offline)
 run_scene         a scene simulation: delivered quality per effect
@@ -26,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from hostd.codec.stream import Stream
+from hostd.errors import HostdError
 from hostd.texture.load import Profile
 
 __all__ = ["Profile", "Stream", "decode", "encode", "fit", "load_profile", "render_stroke",
@@ -87,49 +90,178 @@ def _heights(profile: Profile | np.ndarray, length_mm: float | None) -> tuple[np
     return y, float(length_mm)
 
 
-def encode(profile: Profile | np.ndarray, *, method: str, levels: int | None = None,
-           b0_db: float | None = None, value_bits: int = 0, length_mm: float | None = None,
-           speed_mm_s: float = 50.0, fmax_hz: float = 400.0,
-           thresholds: str | None = None) -> bytes:
-    """Compress heights into a ``.vtx`` stream (paper eq. 5-7).
+# CLI option -> the keyword argument of this module that means the same (errors raised below
+# this layer name CLI options; `_python_names` renames them for Python callers).
+_ARG_NAMES = (("--target-iobj", "target_iobj="), ("--guard-ssnr-db", "ssnr_db="), ("--guard-db", "guard_db="),
+              ("--spqi-min", "spqi_min="), ("--no-guard", "spqi_min=None"), ("--method", "method="),
+              ("--format", "format="), ("--levels", "levels="), ("--value-bits", "value_bits="),
+              ("--b0", "b0_db="), ("--g", "g_db="), ("--coder", "coder="), ("--speed", "speed_mm_s="),
+              ("--fmax", "fmax_hz="), ("--length-mm", "length_mm="), ("--thresholds", "thresholds="),
+              ("--y-unit", "y_unit= of load_profile"), ("--x-unit", "x_unit= of load_profile"),
+              ("--a", "a="), ("--b", "b="))
+_ARG_RE = None
+
+
+def _python_names(exc: Exception) -> Exception:
+    """The same error with CLI options renamed to this API's keyword arguments."""
+    import re
+
+    global _ARG_RE
+    if _ARG_RE is None:
+        _ARG_RE = re.compile("|".join(re.escape(f) + r"(?![\w-])" for f, _ in _ARG_NAMES))
+    table = dict(_ARG_NAMES)
+    msg = _ARG_RE.sub(lambda m: table[m.group(0)], str(exc))
+    return type(exc)(msg)
+
+
+def encode(profile: Profile | np.ndarray, *, method: str | None = None, format: str = "v2",
+           target_iobj: float | None = None, spqi_min: float | None = 0.9,
+           guard_db: float | None = None, ssnr_db: float | None = None,
+           g_db: float | None = None, levels: int | None = None, b0_db: float | None = None,
+           value_bits: int | None = None, coder: str = "auto", length_mm: float | None = None,
+           speed_mm_s: float = 50.0, fmax_hz: float = 400.0, thresholds: str | None = None,
+           a: float = 0.581, b: float = 0.464) -> dict:
+    """Compress heights into a ``.vtx`` stream: the default codec with rate control, or one
+    method at one setting. The same function `hostd encode` runs; returns what its ``--json``
+    prints, plus the stream's bytes.
 
     The patch's DCT-II amplitudes C_k = (2/N) sum_n y_n cos(pi k (2n+1) / (2N)) are kept for
-    k = 1..N' with f_k = k v / (2L) <= fmax_hz at v = speed_mm_s. ``method="quant"``
-    quantizes them linearly into `levels` steps (eq. 5, 6); ``method="cut"`` zeroes those
-    below the detection threshold shifted by `b0_db` (eq. 7).
+    k = 1..N' with f_k = k v / (2L) <= fmax_hz at v = speed_mm_s, then coded by one method:
+    ``"shaped"`` (v2 only) quantizes C_k with the step 10^(g/20) b(f_k); ``"quant"`` quantizes
+    linearly into `levels` steps (paper eq. 5, 6); ``"cut"`` zeroes those below the detection
+    threshold shifted by `b0_db` (eq. 7).
+
+    With `target_iobj` (rate control, hostd.codec.ratecontrol), the smallest stream of the
+    format (every method, or only `method`) that meets, measured on its own bytes,
+    Iobj <= target_iobj (against the header's sums, as `score` computes it) and
+    SPQI >= spqi_min (the played signal against the original's, as `score(stream, profile)`
+    reports it; spqi_min=None: Iobj alone); `guard_db` / `ssnr_db` add wSNR / sSNR floors.
 
     Parameters
     ----------
     profile : Profile or array of float
         Heights in µm (an array needs `length_mm`).
-    method : {"quant", "cut"}
-    levels : int
-        Quantization steps L (quant).
-    b0_db : float
-        Threshold shift b0 in dB (cut).
-    value_bits : {0, 8, 16, 32}
-        Cut survivors: 0 = exact float64, else integers of this width.
+    method : {"shaped", "quant", "cut"}, optional
+        Required without `target_iobj`; with it, restricts the search to this method.
+    format : {"v2", "v1"}
+        Stream format (v1: the original 84-byte header, quant and cut only).
+    target_iobj : float, optional
+        Rate control's Iobj target (e.g. 0.05).
+    spqi_min : float or None
+        Rate control's waveform criterion (default 0.9).
+    guard_db, ssnr_db : float, optional
+        Extra floors on wSNR and sSNR (dB); off by default.
+    g_db, levels, b0_db : float, int, float
+        The setting of `method` without rate control: shaped step g (dB, multiple of 0.25),
+        quantization steps L, cut shift b0 (dB).
+    value_bits : {0, 8, 16, 32}, optional
+        Cut survivors: 0 = exact float64 (v1 only, its default), else integers (v2 default 16).
+    coder : {"auto", "none", "deflate"}
+        v1's entropy stage.
     speed_mm_s, fmax_hz : float
         Reference hand speed v_ref (mm/s) and band limit at v_ref (Hz).
     thresholds : str, optional
         A threshold-curve CSV (default: config/thresholds/default.csv).
+    a, b : float
+        Iobj's weights (default: the paper's fit over both materials).
 
     Returns
     -------
-    bytes
-        The stream (header with the reference sums P and A, payload, CRC).
+    dict
+        ``stream`` (bytes), ``method``, ``levels``, ``b0_db``, ``value_bits``, ``chosen``,
+        ``n``, ``n_keep``, ``kept``, ``bytes``, ``ratio_coeffs``, ``ratio_profile``, ``Ip``,
+        ``Ia``, ``Iobj``, ``a``, ``b``, ``spqi``, ``wsnr_db``, ``ssnr_db``, ``notes`` (list of
+        warnings); with `target_iobj` also ``target_iobj``, ``spqi_min``,
+        ``waveform_verified`` (True: SPQI >= spqi_min measured on this stream; False: SPQI
+        could not be computed, see notes), ``size_set_by`` ("Iobj" or "waveform": which
+        criterion kept a smaller stream out), ``encodes`` and ``search_cpu_s``.
     """
-    from hostd.codec import stream, transform
-    from hostd.perception import thresholds as th
-
     y, length = _heights(profile, length_mm)
-    geom = transform.Geometry(y.size, length, speed_mm_s, fmax_hz)
-    return stream.encode_profile(y, geom, th.resolve(thresholds), method=method, levels=levels,
-                                 b0_db=b0_db, value_bits=value_bits)
+    try:
+        return encode_heights(y, length, method=method, fmt=format, target_iobj=target_iobj,
+                              spqi_min=spqi_min, guard_db=guard_db, ssnr_db=ssnr_db, g_db=g_db,
+                              levels=levels, b0_db=b0_db, value_bits=value_bits, coder=coder,
+                              speed_mm_s=speed_mm_s, fmax_hz=fmax_hz, thresholds=thresholds,
+                              ab=(a, b))
+    except HostdError as exc:
+        raise _python_names(exc) from None
 
 
-def decode(data: bytes | str | Path) -> Stream:
-    """Parse and validate a stream (bytes, or the path of a ``.vtx`` file).
+def encode_heights(y_um: np.ndarray, length_mm: float, *, method: str | None, fmt: str,
+                   target_iobj: float | None, spqi_min: float | None, guard_db: float | None,
+                   ssnr_db: float | None, g_db: float | None, levels: int | None,
+                   b0_db: float | None, value_bits: int | None, coder: str, speed_mm_s: float,
+                   fmax_hz: float, thresholds: str | None, ab: tuple[float, float]) -> dict:
+    """`encode` and `hostd encode`'s one code path (errors name the CLI's options)."""
+    from hostd.codec import ratecontrol, stream, stream2, transform
+    from hostd.errors import CodecError
+    from hostd.perception import guard, peer
+    from hostd.perception import thresholds as th
+    from hostd.quality import score_stream
+
+    curve = th.resolve(thresholds)
+    geom = transform.Geometry(y_um.size, length_mm, speed_mm_s, fmax_hz)
+    if fmt not in ratecontrol.FORMATS:
+        raise CodecError(f"unknown stream format {fmt!r}: use --format v2 or v1")
+    if fmt == "v2" and coder != "auto":
+        raise CodecError("--coder applies to --format v1 only (v2 has one entropy coder, the "
+                         "adaptive range coder)")
+    if fmt == "v1" and method == "shaped":
+        raise CodecError("--method shaped needs --format v2 (the default)")
+    notes: list[str] = []
+    out: dict = {}
+    if target_iobj is not None:
+        res = ratecontrol.search(y_um, geom, curve, target_iobj, method=method, fmt=fmt,
+                                 spqi_min=spqi_min, guard_db=guard_db, ssnr_db=ssnr_db, ab=ab)
+        notes += res.notes
+        data = res.best.data
+        out.update(target_iobj=target_iobj, spqi_min=res.spqi_min,
+                   waveform_verified=res.waveform_verified, size_set_by=res.size_set_by,
+                   chosen=res.best.describe(), encodes=res.encodes, search_cpu_s=res.seconds)
+    elif method is None:
+        raise CodecError("give --method shaped|quant|cut (or --target-iobj X)")
+    else:
+        for opt, val, m in (("--b0", b0_db, "quant"), ("--b0", b0_db, "shaped"),
+                            ("--levels", levels, "cut"), ("--levels", levels, "shaped"),
+                            ("--g", g_db, "quant"), ("--g", g_db, "cut"),
+                            ("--value-bits", value_bits or None, "quant")):
+            if val is not None and method == m:
+                notes.append(f"{opt} is ignored with --method {method}")
+        vb = value_bits if value_bits is not None else (16 if fmt == "v2" else 0)
+        if fmt == "v2":
+            data = stream2.encode_profile(y_um, geom, curve, method=method, g_db=g_db,
+                                          levels=levels, b0_db=b0_db, value_bits=vb)
+        else:
+            data = stream.encode_profile(y_um, geom, curve, method=method, levels=levels,
+                                         b0_db=b0_db, value_bits=vb, coder=coder)
+        out.update(chosen=None)
+    s = stream.decode(data)
+    kept = int(np.count_nonzero(s.coefficients))
+    if kept == 0:
+        rms = float(np.sqrt(np.mean(np.square(y_um))))
+        notes.append(f"the stream keeps no component (every amplitude was quantized or cut to 0; "
+                     f"the profile's RMS is {rms:.3g} µm): check --y-unit (heights are read in "
+                     "that unit), or ask for more levels / a lower --b0 / a smaller --target-iobj")
+    sc = score_stream(s, curve=curve, a=ab[0], b=ab[1])
+    c = transform.analyze(y_um, s.n_keep)
+    try:
+        sp = peer.played_spqi(c, s.coefficients, s.n, s.length_mm, s.speed_mm_s)
+    except HostdError as exc:
+        sp = None
+        notes.append(f"SPQI not computed: {exc}")
+    out = {"stream": data, "method": s.method, "levels": s.levels, "b0_db": s.b0_db,
+           "value_bits": s.value_bits, "n": s.n, "n_keep": s.n_keep, "kept": kept,
+           "bytes": s.nbytes, "ratio_coeffs": s.ratio_coeffs, "ratio_profile": s.ratio_profile,
+           "Ip": float(sc.Ip), "Ia": float(sc.Ia), "Iobj": float(sc.Iobj), "a": float(sc.a),
+           "b": float(sc.b), "spqi": sp,
+           "wsnr_db": guard.weighted_snr_db(c, s.coefficients, curve(s.frequencies_hz)),
+           "ssnr_db": guard.spectral_snr_db(c, s.coefficients, s.frequencies_hz),
+           **out, "notes": notes}
+    return out
+
+
+def decode(data: bytes | str | Path | Mapping) -> Stream:
+    """Parse and validate a stream (bytes, the path of a ``.vtx`` file, or `encode`'s result).
 
     Returns
     -------
@@ -140,42 +272,65 @@ def decode(data: bytes | str | Path) -> Stream:
     """
     from hostd.codec import stream
 
+    if isinstance(data, Mapping):  # what `encode` returns
+        data = data["stream"]
     if isinstance(data, str | Path):
         data = Path(data).read_bytes()
     return stream.decode(bytes(data))
 
 
-def score(stream: Stream | bytes, reference: Profile | np.ndarray | None = None, *,
+def score(stream: Stream | bytes | Mapping, reference: Profile | np.ndarray | None = None, *,
           a: float = 0.581, b: float = 0.464) -> dict:
-    """Quality of a stream: Iobj = a Ip + b Ia (paper eq. 8-12).
+    """Quality of a stream: Iobj = a Ip + b Ia (paper eq. 8-12), and the waveform measures.
 
     With the threshold b(f_k) of the stream's curve, P = sum (C_k / b_k)^2 and
     A = sum |C_k| / b_k over the reference and P', A' over the stream's C'_k;
-    Ip = |P - P'| / P and Ia = |A - A'| / A (dimensionless).
+    Ip = |P - P'| / ((P + P') / 2) and Ia = |A - A'| / ((A + A') / 2) (dimensionless; the
+    relative error against the mean of the two sums, as hostd.perception.indices computes
+    it and docs/conventions.md defines it: symmetric, at most 2, 0 when both sums are 0).
+
+    Against the original (`reference` given), also the waveform: SPQI and ST-SIM of the
+    signal a hand at the stream's v_ref feels for 1 s (8 kHz) against the original's (1 =
+    identical; SPQI is hostd's own, ST-SIM needs the ``peer`` extra), and the waveform
+    guard's wSNR and sSNR (dB). These are exactly what ``hostd iobj REF STREAM --json``
+    reports, and SPQI is the criterion rate control (`encode(target_iobj=...)`) verifies.
 
     Parameters
     ----------
-    stream : Stream or bytes
+    stream : Stream, bytes, or `encode`'s result
     reference : Profile or array, optional
-        The original heights (µm, N samples). Default: the P and A in the stream's header.
+        The original heights (µm, N samples). Default: the P and A in the stream's header
+        (then only wSNR, from a v2 header, of the waveform measures is known).
     a, b : float
         Weights (default: the paper's fit over both materials).
 
     Returns
     -------
     dict
-        P, A, P_prime, A_prime, Ip, Ia, Iobj, a, b (floats) and ``reference_mismatch``
-        (True when a given reference is not the stream's original: its P, A differ from
-        the header's).
+        P, A, P_prime, A_prime, Ip, Ia, Iobj, a, b (floats), ``reference_mismatch`` (True
+        when a given reference is not the stream's original: its P, A differ from the
+        header's), ``wsnr_db`` (None when unknown) and, with a reference, ``ssnr_db``,
+        ``nmr_max_db``, ``spqi`` and ``st_sim`` (None without the ``peer`` extra).
     """
-    from hostd.quality import reference_mismatch, score_stream
+    from hostd.codec import transform
+    from hostd.perception import peer
+    from hostd.quality import guard_report, reference_mismatch, score_stream
 
     s = stream if isinstance(stream, Stream) else decode(stream)
     ref = None
     if reference is not None:
         ref = reference.heights_um if isinstance(reference, Profile) else np.asarray(reference, float)
-    out = score_stream(s, reference_um=ref, a=a, b=b).as_dict()
-    out["reference_mismatch"] = ref is not None and reference_mismatch(s, out["P"], out["A"]) is not None
+    try:
+        out = score_stream(s, reference_um=ref, a=a, b=b).as_dict()
+        out["reference_mismatch"] = ref is not None and reference_mismatch(s, out["P"], out["A"]) is not None
+        g = guard_report(s, reference_um=ref)
+        out.update({k: v for k, v in g.items() if k != "guard_source"})
+        if ref is not None:
+            out.update({"st_sim": None, **peer.peer_scores(transform.analyze(ref, s.n_keep),
+                                                           s.coefficients, s.n, s.length_mm,
+                                                           s.speed_mm_s)})
+    except HostdError as exc:
+        raise _python_names(exc) from None
     return out
 
 

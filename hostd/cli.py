@@ -183,72 +183,34 @@ def _write_bytes_atomic(path: str, data: bytes) -> None:
 
 
 def cmd_encode(args: argparse.Namespace) -> int:
-    from hostd.codec import ratecontrol, stream, stream2, transform
-    from hostd.errors import CodecError
-    from hostd.perception import thresholds
-    from hostd.quality import score_stream
+    from hostd.api import encode_heights
 
     prof = read_profile(args.profile, args)
-    curve = thresholds.resolve(args.thresholds)
-    geom = transform.Geometry(prof.n, prof.length_mm, args.speed, args.fmax)
-    if args.format == "v2" and args.coder != "auto":
-        raise CodecError("--coder applies to --format v1 only (v2 has one entropy coder, the "
-                         "adaptive range coder)")
-    if args.format == "v1" and args.method == "shaped":
-        raise CodecError("--method shaped needs --format v2 (the default)")
-    value_bits = args.value_bits if args.value_bits is not None else (16 if args.format == "v2" else 0)
-    chosen = None
-    if args.target_iobj is not None:
-        res = ratecontrol.search(prof.heights_um, geom, curve, args.target_iobj, method=args.method,
-                                 fmt=args.format, guard_db=None if args.no_guard else args.guard_db,
-                                 ssnr_db=None if args.no_guard else args.guard_ssnr_db,
-                                 ab=_ab(args))
-        for note in res.notes:
-            warn("encode", note)
-        data = res.best.data
-        chosen = res.best.describe()
-        print(f"chose {chosen} after {res.encodes} encodes in "
-              f"{res.seconds * 1e3:.0f} ms CPU", file=sys.stderr)
-    elif args.method is None:
-        raise CodecError("give --method shaped|quant|cut (or --target-iobj X)")
-    else:
-        for opt, val, method in (("--b0", args.b0, "quant"), ("--b0", args.b0, "shaped"),
-                                 ("--levels", args.levels, "cut"), ("--levels", args.levels, "shaped"),
-                                 ("--g", getattr(args, "g", None), "quant"),
-                                 ("--g", getattr(args, "g", None), "cut"),
-                                 ("--value-bits", args.value_bits or None, "quant")):
-            if val is not None and args.method == method:
-                warn("encode", f"{opt} is ignored with --method {method}")
-        if args.format == "v2":
-            data = stream2.encode_profile(prof.heights_um, geom, curve, method=args.method,
-                                          g_db=args.g, levels=args.levels, b0_db=args.b0,
-                                          value_bits=value_bits)
-        else:
-            data = stream.encode_profile(
-                prof.heights_um, geom, curve, method=args.method, levels=args.levels,
-                b0_db=args.b0, value_bits=value_bits, coder=args.coder,
-            )
+    res = encode_heights(prof.heights_um, prof.length_mm, method=args.method, fmt=args.format,
+                         target_iobj=args.target_iobj,
+                         spqi_min=None if args.no_guard else args.spqi_min,
+                         guard_db=None if args.no_guard else args.guard_db,
+                         ssnr_db=None if args.no_guard else args.guard_ssnr_db, g_db=args.g,
+                         levels=args.levels, b0_db=args.b0, value_bits=args.value_bits,
+                         coder=args.coder, speed_mm_s=args.speed, fmax_hz=args.fmax,
+                         thresholds=args.thresholds, ab=_ab(args))
+    data = res.pop("stream")
     _write_bytes_atomic(args.output, data)
-    s = stream.decode(data)
-    kept = int(np.count_nonzero(s.coefficients))
-    if kept == 0:
-        rms = float(np.sqrt(np.mean(prof.heights_um ** 2)))
-        warn("encode", f"the stream keeps no component (every amplitude was quantized or cut to 0; "
-             f"the profile's RMS is {rms:.3g} µm): check --y-unit (heights are read as "
-             f"{getattr(args, 'y_unit', 'um')}), or ask for more levels / a lower --b0 / a smaller "
-             "--target-iobj")
-    sc = score_stream(s, a=_ab(args)[0], b=_ab(args)[1])
+    for note in res["notes"]:
+        warn("encode", note)
+    if res.get("size_set_by") == "waveform":
+        print("hostd encode: the waveform criterion, not Iobj, set the size", file=sys.stderr)
+    if res["chosen"] is not None:
+        print(f"chose {res['chosen']} after {res['encodes']} encodes in "
+              f"{res['search_cpu_s'] * 1e3:.0f} ms CPU", file=sys.stderr)
     if args.json:
-        _dump({"output": args.output, "method": s.method, "levels": s.levels, "b0_db": s.b0_db,
-               "value_bits": s.value_bits, "chosen": chosen, "n": s.n, "n_keep": s.n_keep,
-               "kept": kept, "bytes": s.nbytes, "ratio_coeffs": s.ratio_coeffs,
-               "ratio_profile": s.ratio_profile, "Ip": float(sc.Ip), "Ia": float(sc.Ia),
-               "Iobj": float(sc.Iobj), "a": float(sc.a), "b": float(sc.b)})
+        _dump({"output": args.output, **res})
         return 0
+    sp = "" if res["spqi"] is None else f", SPQI {res['spqi']:.3f}"
     print(
-        f"{args.output}: v{s.version} {s.method}, N={s.n}, N'={s.n_keep}, {s.nbytes} bytes "
-        f"({100 * s.ratio_coeffs:.1f}% of 16-bit coefficients, "
-        f"{100 * s.ratio_profile:.2f}% of the 16-bit profile), Iobj {float(sc.Iobj):.4f}",
+        f"{args.output}: {args.format} {res['method']}, N={res['n']}, N'={res['n_keep']}, "
+        f"{res['bytes']} bytes ({100 * res['ratio_coeffs']:.1f}% of 16-bit coefficients, "
+        f"{100 * res['ratio_profile']:.2f}% of the 16-bit profile), Iobj {res['Iobj']:.4f}{sp}",
         file=sys.stderr,
     )
     return 0
@@ -314,12 +276,12 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     from hostd.perception import peer
 
     if ref is None:
-        out["peer_note"] = "peer metrics (ST-SIM, SPQI) need the original: pass REFERENCE_PROFILE"
-    elif not peer.available():
-        out["peer_note"] = peer.NOTE_MISSING
+        out["peer_note"] = "peer metrics (SPQI, ST-SIM) need the original: pass REFERENCE_PROFILE"
     else:
         out.update(peer.peer_scores(transform.analyze(ref, s.n_keep), s.coefficients, s.n,
-                                    s.length_mm, s.speed_mm_s) or {})
+                                    s.length_mm, s.speed_mm_s))
+        if not peer.available():
+            out["peer_note"] = peer.NOTE_MISSING
     out.update(bytes=s.nbytes, ratio_coeffs=s.ratio_coeffs, ratio_profile=s.ratio_profile,
                method=s.method)
     if args.json:
@@ -470,20 +432,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--coder", default="auto", choices=["auto", "none", "deflate"],
                    help="v1 lossless entropy stage (default auto: the smaller)")
     p.add_argument("--target-iobj", type=_finite, default=None,
-                   help="rate control: the smallest stream whose Iobj <= X and which passes the "
-                   "waveform guard (--guard-db and --guard-ssnr-db; only --method's knob when "
-                   "given, else every method)")
-    p.add_argument("--guard-db", type=_finite, default=25.0,
-                   help="rate control's waveform guard, part 1: wSNR (SNR weighted by the "
-                   "detection threshold b(f)) >= this, dB (default 25)")
-    p.add_argument("--guard-ssnr-db", type=_finite, default=27.0,
-                   help="waveform guard, part 2: sSNR (SNR weighted by the SPQI model's "
-                   "threshold curve) >= this, dB (default 27: SPQI >= 0.9 on every texture "
-                   "measured, see docs/benchmarks.md)")
+                   help="rate control: the smallest stream whose Iobj <= X and SPQI >= --spqi-min, "
+                   "both measured on the stream returned (only --method's knob when given, else "
+                   "every method)")
+    p.add_argument("--spqi-min", type=_finite, default=0.9,
+                   help="rate control's waveform criterion: SPQI of the played signal >= this "
+                   "(default 0.9; as hostd iobj REF STREAM reports it)")
+    p.add_argument("--guard-db", type=_finite, default=None,
+                   help="rate control: also require wSNR (SNR weighted by the detection threshold "
+                   "b(f)) >= this, dB (default: off; the proxy is reported, SPQI is measured)")
+    p.add_argument("--guard-ssnr-db", type=_finite, default=None,
+                   help="rate control: also require sSNR (SNR weighted by the SPQI model's "
+                   "threshold curve) >= this, dB (default: off)")
     p.add_argument("--no-guard", action="store_true",
-                   help="rate control on Iobj alone (can return a wrong waveform; see docs)")
+                   help="rate control on Iobj alone (no waveform criterion; can return a wrong "
+                   "waveform, see docs)")
     p.add_argument("--json", action="store_true",
-                   help="print the result (setting, bytes, Ip, Ia, Iobj) as JSON on stdout")
+                   help="print the result (setting, bytes, Ip, Ia, Iobj, SPQI, waveform_verified, "
+                   "size_set_by) as JSON on stdout")
     p.set_defaults(func=cmd_encode)
 
     p = sub.add_parser("decode", help="reconstruct heights (µm, one per line) from a stream")

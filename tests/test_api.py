@@ -24,7 +24,7 @@ def test_the_worked_example_in_docs_api_md_runs(capsys):
 
 def test_render_stroke_matches_the_direct_series_and_is_full_band_at_v_ref():
     prof = api.load_profile("synthetic:sandpaper:2")
-    s = api.decode(api.encode(prof, method="quant", levels=10))
+    s = api.decode(api.encode(prof, method="quant", levels=10)["stream"])
     out = api.render_stroke(s, speed_mm_s=50.0, seconds=0.05, rate_hz=3000.0, x0_mm=1.0)
     k = np.arange(1, s.n_keep + 1)
     theta = (out["x_mm"] / (s.length_mm / s.n) + 0.5) * np.pi / s.n
@@ -48,7 +48,7 @@ def test_hostd_render_writes_a_wav_scaled_to_the_full_scale(tmp_path):
     import scipy.io.wavfile
 
     vtx = tmp_path / "w.vtx"
-    vtx.write_bytes(api.encode(api.load_profile("synthetic:wood:1"), method="quant", levels=14))
+    vtx.write_bytes(api.encode(api.load_profile("synthetic:wood:1"), method="quant", levels=14)["stream"])
     wav = tmp_path / "w.wav"
     p = subprocess.run([sys.executable, "-m", "hostd", "render", str(vtx), "--speed", "50",
                         "--seconds", "0.5", "--rate", "8000", "-o", str(wav), "--json"],

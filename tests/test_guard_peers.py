@@ -66,12 +66,15 @@ def _real_profile():
 
 
 def test_the_default_guard_rejects_what_wsnr_alone_accepts_on_a_real_profile():
-    """The bundled dektak-1 profile at 25 mm/s: wSNR >= 25 dB alone (the previous default)
-    accepts a stream whose sSNR is < 27 dB (SPQI 0.894 measured); the default guard does not."""
+    """The bundled dektak-1 profile at 25 mm/s, the proxy floors as explicit criteria (rate
+    control's default certifies SPQI itself): wSNR >= 25 dB alone accepts a stream whose sSNR
+    is < 27 dB (SPQI 0.894 measured); both floors do not."""
     prof = _real_profile()
     geom = transform.Geometry(prof.n, prof.length_mm, speed_mm_s=25.0)
-    old = ratecontrol.search(prof.heights_um, geom, CURVE, 0.05, method="shaped", ssnr_db=None)
-    new = ratecontrol.search(prof.heights_um, geom, CURVE, 0.05)
+    old = ratecontrol.search(prof.heights_um, geom, CURVE, 0.05, method="shaped", spqi_min=None,
+                             guard_db=guard.DEFAULT_GUARD_DB)
+    new = ratecontrol.search(prof.heights_um, geom, CURVE, 0.05, spqi_min=None,
+                             guard_db=guard.DEFAULT_GUARD_DB, ssnr_db=guard.DEFAULT_SSNR_DB)
     assert old.best.wsnr_db >= 25.0 and old.best.ssnr_db < guard.DEFAULT_SSNR_DB
     assert new.best.wsnr_db >= 25.0 and new.best.ssnr_db >= guard.DEFAULT_SSNR_DB
     s = vtx.decode(new.best.data)

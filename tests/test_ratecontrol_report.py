@@ -77,20 +77,33 @@ def test_rate_quality_report_writes_table_and_plot(tmp_path, source):
 # ---------------------------------------------------------------- bisection with the waveform guard
 
 
+def _independent_spqi(ref_heights, s):
+    """SPQI of the decoded stream's played signal, by vibromaf when installed (the definition's
+    reference implementation), else by hostd's own."""
+    from hostd.perception import peer
+
+    c = transform.analyze(ref_heights, s.n_keep)
+    ref = peer.played_signal(c, s.n, s.length_mm, s.speed_mm_s)
+    dist = peer.played_signal(s.coefficients, s.n, s.length_mm, s.speed_mm_s)
+    try:
+        from vibromaf.metrics.spqi import spqi
+    except ImportError:
+        from hostd.perception.spqi import spqi
+    return float(spqi(dist, ref))
+
+
 @pytest.mark.parametrize("fmt,method", [("v2", "shaped"), ("v2", "quant"), ("v1", "quant"),
                                         ("v2", "cut")])
-def test_search_returns_a_stream_meeting_target_and_guard(wood, fmt, method):
-    from hostd.perception import guard
-
-    r = ratecontrol.search(*wood, CURVE, 0.05, method=method, fmt=fmt)  # default guard
+def test_search_returns_a_stream_meeting_target_and_spqi_measured(wood, fmt, method):
+    r = ratecontrol.search(*wood, CURVE, 0.05, method=method, fmt=fmt)  # default: SPQI >= 0.9
     s = vtx.decode(r.best.data)
     assert s.method == method and s.version == int(fmt[1])
     sc = score_stream(s)  # as a receiver scores it: from the header
-    c = transform.analyze(wood[0], s.n_keep)
-    w = guard.weighted_snr_db(c, s.coefficients, CURVE(s.frequencies_hz))
-    ss = guard.spectral_snr_db(c, s.coefficients, s.frequencies_hz)
-    assert float(sc.Iobj) <= 0.05 and w >= guard.DEFAULT_GUARD_DB and ss >= guard.DEFAULT_SSNR_DB
-    assert r.encodes <= 20  # a bisection, not every candidate
+    assert float(sc.Iobj) <= 0.05
+    spqi = _independent_spqi(wood[0], s)
+    assert spqi >= 0.9 and r.best.spqi == pytest.approx(spqi, abs=1e-12)
+    assert r.waveform_verified is True
+    assert r.encodes <= 25  # a bisection, not every candidate
 
 
 def test_search_only_searches_the_given_method_and_finds_the_exhaustive_optimum(wood):
@@ -99,7 +112,8 @@ def test_search_only_searches_the_given_method_and_finds_the_exhaustive_optimum(
     optimum, in a fraction of the encodes."""
     from hostd.perception import guard
 
-    r = ratecontrol.search(*wood, CURVE, 0.05, method="quant", fmt="v1")
+    r = ratecontrol.search(*wood, CURVE, 0.05, method="quant", fmt="v1", spqi_min=None,
+                           guard_db=25.0, ssnr_db=27.0)  # the proxy floors as explicit criteria
     c = transform.analyze(wood[0], wood[1].n_keep)
     f = wood[1].frequencies_hz()
     b = CURVE(f)
@@ -114,12 +128,16 @@ def test_search_only_searches_the_given_method_and_finds_the_exhaustive_optimum(
     assert r.encodes <= 20
 
 
-def test_the_guard_rejects_what_iobj_alone_accepts(wood):
-    loose = ratecontrol.search(*wood, CURVE, 0.05, guard_db=None, ssnr_db=None)
-    guarded = ratecontrol.search(*wood, CURVE, 0.05)
-    assert loose.best.wsnr_db < 25.0 <= guarded.best.wsnr_db
-    assert loose.best.ssnr_db < 27.0 <= guarded.best.ssnr_db
-    assert loose.best.nbytes < guarded.best.nbytes
+def test_the_waveform_criterion_rejects_what_iobj_alone_accepts(wood):
+    loose = ratecontrol.search(*wood, CURVE, 0.05, spqi_min=None)
+    strict = ratecontrol.search(*wood, CURVE, 0.05)
+    assert loose.waveform_verified is None and strict.waveform_verified is True
+    assert _independent_spqi(wood[0], vtx.decode(loose.best.data)) < 0.9
+    assert _independent_spqi(wood[0], vtx.decode(strict.best.data)) >= 0.9
+    assert loose.best.nbytes < strict.best.nbytes and strict.size_set_by == "waveform"
+    # explicit proxy floors are still honoured on top
+    floors = ratecontrol.search(*wood, CURVE, 0.05, guard_db=25.0, ssnr_db=27.0)
+    assert floors.best.wsnr_db >= 25.0 and floors.best.ssnr_db >= 27.0 and floors.best.spqi >= 0.9
 
 
 def test_degenerate_and_unreachable_targets_are_reported(wood):

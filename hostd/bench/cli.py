@@ -55,6 +55,9 @@ def add_parser(sub, parents) -> None:
             b.add_argument("--guard-calibration", action="store_true",
                            help="only SPQI against the guard's wSNR and sSNR on 32 textures "
                            "(the guard's defaults; takes minutes)")
+            b.add_argument("--holdout", action="store_true",
+                           help="only rate control's defaults on the held-out textures (not the "
+                           "guard's calibration set): bytes, Iobj, SPQI, CPU time")
             b.add_argument("--peers", metavar="DIR", default=None,
                            help="only v2 against the peer codecs (MPEG-I Haptics RM, VC-PWQ) "
                            "built under DIR (or named by HOSTD_PEER_* variables): bytes for "
@@ -151,10 +154,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from hostd.bench import codec2
 
         rows += codec2.tune_deadzone_rows()
+    elif what == "codec" and args.holdout:
+        from hostd.bench import holdout
+
+        rows += holdout.rows()
     elif what == "codec" and args.guard_calibration:
         from hostd.bench import codec2
 
-        rows += codec2.guard_calibration_rows()  # HostdError without vibromaf: exit 2
+        rows += codec2.guard_calibration_rows()
     elif what == "codec" and (args.peers is not None or _peer_env()):
         from hostd.bench import codec2
 

@@ -1,12 +1,13 @@
-"""Peer metrics ST-SIM and SPQI (Hassen/Steinbach; Noll et al., TUM) via the optional `vibromaf`.
+"""Peer metrics SPQI and ST-SIM (Hassen/Steinbach; Noll et al., TUM) on the played signal.
 
 Both are computed on the displacement signals that a hand at the reference speed would feel:
 the band-limited series of the reference and of the compressed coefficients, played for
 `duration_s` over the patch's mirror-even extension, sampled at vibromaf's 8 kHz. Their
 perceptual model was built for vibrotactile acceleration signals, so read them as a
 side-by-side reference, not as a calibrated predictor for displacement textures.
-Install with `pip install 'hostd[peer]'`; without it, `available()` is False and callers
-print a note instead of failing.
+SPQI is hostd's own implementation (hostd.perception.spqi, tested equal to vibromaf's), so it
+is always computed; ST-SIM comes from the optional `vibromaf` (`pip install 'hostd[peer]'`):
+without it, `available()` is False, `peer_scores` has no 'st_sim' and callers print a note.
 """
 
 from __future__ import annotations
@@ -16,11 +17,14 @@ from functools import lru_cache
 
 import numpy as np
 
+from hostd.perception import spqi as spqi_mod
+
 FS_HZ = 8000.0
-NOTE_MISSING = "peer metrics (ST-SIM, SPQI) not computed: install the extra with pip install 'hostd[peer]'"
+NOTE_MISSING = "ST-SIM not computed: install the extra with pip install 'hostd[peer]'"
 
 
 def available() -> bool:
+    """Whether vibromaf (ST-SIM) is installed; SPQI needs nothing extra."""
     try:
         import vibromaf.metrics.spqi
         import vibromaf.metrics.stsim  # noqa: F401
@@ -82,20 +86,43 @@ def _st_sim(dist: np.ndarray, ref: np.ndarray, ref_support: np.ndarray, ref_bloc
     return pow(temporal, ST_SIM_ETA) * pow(spectral, 1 - ST_SIM_ETA)
 
 
-def peer_scores(ref_coeffs_um: np.ndarray, coeffs_um: np.ndarray, n: int, length_mm: float,
-                speed_mm_s: float, duration_s: float = 1.0) -> dict[str, float] | None:
-    """{'st_sim': .., 'spqi': ..} (1 = identical), or None when vibromaf is not installed.
-    The reference's played signal and its side of ST-SIM are cached (a sweep scores many
-    variants of one original); ST-SIM equals vibromaf's st_sim() (tests/test_peer.py)."""
-    if not available():
-        return None
-    from vibromaf.metrics.spqi import spqi
+@lru_cache(maxsize=8)
+def _reference_spqi(key: bytes, n: int, length_mm: float, speed_mm_s: float,
+                    duration_s: float) -> spqi_mod.Reference:
+    """The reference's half of SPQI (its block spectra), once per original."""
+    return spqi_mod.Reference(_reference_signal(key, n, length_mm, speed_mm_s, duration_s))
 
+
+def played_spqi(ref_coeffs_um: np.ndarray, coeffs_um: np.ndarray, n: int, length_mm: float,
+                speed_mm_s: float, duration_s: float = 1.0) -> float:
+    """SPQI of the signal played from `coeffs_um` against the one played from the reference's
+    coefficients (both at speed_mm_s for duration_s, 8 kHz), exactly as `hostd iobj REF
+    STREAM` reports it; the reference's half is cached."""
+    key = np.ascontiguousarray(ref_coeffs_um, dtype=np.float64).tobytes()
+    ref = _reference_spqi(key, int(n), float(length_mm), float(speed_mm_s), float(duration_s))
+    return ref.score(played_signal(coeffs_um, n, length_mm, speed_mm_s, duration_s))
+
+
+def peer_scores(ref_coeffs_um: np.ndarray, coeffs_um: np.ndarray, n: int, length_mm: float,
+                speed_mm_s: float, duration_s: float = 1.0) -> dict:
+    """{'spqi': .., 'st_sim': ..} (1 = identical); 'st_sim' only when vibromaf is installed
+    (None, with 'st_sim_note', where vibromaf's formula gives a complex number).
+    The reference's played signal and its sides of SPQI and ST-SIM are cached (a sweep scores
+    many variants of one original); both equal vibromaf's (tests/test_peer.py, test_spqi.py)."""
     key = np.ascontiguousarray(ref_coeffs_um, dtype=np.float64).tobytes()
     args = (key, int(n), float(length_mm), float(speed_mm_s), float(duration_s))
-    ref = _reference_signal(*args)
     dist = played_signal(coeffs_um, n, length_mm, speed_mm_s, duration_s)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return {"st_sim": float(_st_sim(dist, ref, *_reference_st_sim(*args))),
-                "spqi": float(spqi(dist, ref))}
+    out = {"spqi": _reference_spqi(*args).score(dist)}
+    if available():
+        ref = _reference_signal(*args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            st = _st_sim(dist, ref, *_reference_st_sim(*args))
+        # vibromaf raises a negative similarity (anti-correlated blocks) to a fractional power:
+        # a complex number, which is no score
+        if isinstance(st, complex):
+            out["st_sim"] = None
+            out["st_sim_note"] = "ST-SIM undefined: a negative similarity (anti-correlated signals)"
+        else:
+            out["st_sim"] = float(st)
+    return out
