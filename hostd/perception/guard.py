@@ -42,7 +42,7 @@ from functools import lru_cache
 import numpy as np
 
 from hostd.errors import QualityError
-from hostd.perception.indices import exact_sum, weights
+from hostd.perception.indices import exact_sum, scale_exponent, scaled_weights
 
 DEFAULT_GUARD_DB = 25.0  # wSNR (threshold b(f)) floor of rate control
 DEFAULT_SSNR_DB = 27.0  # sSNR (the SPQI model's threshold curve) floor of rate control
@@ -57,7 +57,7 @@ def weighted_snr_db(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_
     """wSNR in dB (capped at CAP_DB; -CAP_DB for a silent reference that was not kept silent)."""
     c = np.asarray(reference_um, dtype=np.float64)
     d = np.asarray(decoded_um, dtype=np.float64)
-    return _db(*_power_sums(c, d, weights(threshold_um)[0]))
+    return _db(*_power_sums(c, d, scaled_weights(threshold_um)[0]))
 
 
 @lru_cache(maxsize=64)
@@ -89,11 +89,19 @@ def spqi_curve_weights(freqs_hz: np.ndarray) -> np.ndarray:
 
 
 def _power_sums(c: np.ndarray, d: np.ndarray, w2: np.ndarray) -> tuple[float, float]:
-    """(sum w C^2, sum w (C - C')^2), correctly rounded."""
+    """(sum w C^2, sum w (C - C')^2) times one common power of two, correctly rounded.
+
+    Only their ratio is used. Issue 23: unscaled, both sums underflow to 0 for heights x 1e-300
+    (or thresholds of 1e200 µm) and the guard read 200 dB for any stream, or overflow for
+    x 1e150; C and C' are scaled by one power of two (exact; none inside the safe range, so
+    the same bits as before there), the weights come from `scaled_weights`."""
     if c.shape != d.shape:
         raise QualityError(f"{c.size} reference but {d.size} decoded coefficients")
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(d))):
         raise QualityError("coefficients contain NaN or Inf")
+    s = scale_exponent(np.maximum(np.abs(c), np.abs(d)), np.sqrt(w2))
+    if s:
+        c, d = np.ldexp(c, -s), np.ldexp(d, -s)
     err = np.subtract(c, d)
     return (float(exact_sum(np.multiply(np.multiply(c, c), w2))),
             float(exact_sum(np.multiply(np.multiply(err, err), w2))))
@@ -138,7 +146,7 @@ def check(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_um: np.nda
     """Both SNRs, and whether wSNR >= wsnr_min_db and sSNR >= ssnr_min_db (None: not required)."""
     c = np.asarray(reference_um, dtype=np.float64)
     d = np.asarray(decoded_um, dtype=np.float64)
-    ws, wn = _power_sums(c, d, weights(threshold_um)[0])
+    ws, wn = _power_sums(c, d, scaled_weights(threshold_um)[0])
     ss, sn = _power_sums(c, d, spqi_curve_weights(freqs_hz))
     ok = ((wsnr_min_db is None or _at_least(ws, wn, wsnr_min_db))
           and (ssnr_min_db is None or _at_least(ss, sn, ssnr_min_db)))
@@ -149,11 +157,12 @@ def max_nmr_db(reference_um: np.ndarray, decoded_um: np.ndarray, threshold_um: n
     """20 log10 max_k |C_k - C'_k| / b_k: the worst component's error over its threshold, dB."""
     c = np.asarray(reference_um, dtype=np.float64)
     d = np.asarray(decoded_um, dtype=np.float64)
-    _, w1 = weights(threshold_um)
-    worst = float(np.max(np.multiply(np.abs(np.subtract(c, d)), w1)))
+    _, w1, t = scaled_weights(threshold_um)  # w1 = 2^-t / b: finite for any b > 0
+    s = scale_exponent(np.maximum(np.abs(c), np.abs(d)), w1)
+    worst = float(np.max(np.multiply(np.abs(np.subtract(np.ldexp(c, -s), np.ldexp(d, -s))), w1)))
     if worst == 0.0:
         return -CAP_DB
-    return max(-CAP_DB, min(CAP_DB, 20.0 * math.log10(worst)))
+    return max(-CAP_DB, min(CAP_DB, 20.0 * (math.log10(worst) + (s + t) * math.log10(2.0))))
 
 
 def header_code(wsnr_db: float) -> int:
