@@ -128,19 +128,18 @@ def scale_exponent(coeffs_um: np.ndarray, w1: np.ndarray) -> int:
     return 0 if abs(s) <= _SAFE_LOG2 // 2 else s
 
 
-def scaled_sums(coeffs_um: np.ndarray, threshold_um: np.ndarray, exp: int | None = None) -> WeightedSums:
+def scaled_sums(coeffs_um: np.ndarray, threshold_um: np.ndarray) -> WeightedSums:
     """P and A of eq. 8, 9 as (mantissa, exponent) pairs, never over- or underflowing.
 
-    exp forces the binary exponent e (to compare two spectra on one scale); by default it is
-    chosen from this spectrum. A 1-D spectrum is summed with `exact_sum` (the same bits on
-    every CPU); a 2-D array of variants takes the BLAS path (~1e-16 relative).
+    A 1-D spectrum is summed with `exact_sum` (the same bits on every CPU); a 2-D array of
+    variants takes the BLAS path (~1e-16 relative), with one exponent for all of them.
     """
     c = np.asarray(coeffs_um, dtype=np.float64)
     _finite("coefficients", c)
     w2, w1, t = scaled_weights(threshold_um)
     if c.shape[-1] != w1.shape[-1]:
         raise QualityError(f"{c.shape[-1]} coefficients but {w1.shape[-1]} thresholds")
-    s = scale_exponent(c, w1) if exp is None else exp - t
+    s = scale_exponent(c, w1)
     if s:
         c = np.ldexp(c, -s)
     if c.ndim > 1:
@@ -154,6 +153,9 @@ def scaled_sums(coeffs_um: np.ndarray, threshold_um: np.ndarray, exp: int | None
         raise QualityError("weighted sums overflow float64 even after scaling; the coefficients "
                            "span too wide a range")
     return WeightedSums(p, a, s + t)
+
+
+_NORMAL_MIN = float(np.finfo(np.float64).tiny)
 
 
 def weighted_sums(coeffs_um: np.ndarray, threshold_um: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -180,9 +182,6 @@ def weighted_sums(coeffs_um: np.ndarray, threshold_um: np.ndarray) -> tuple[np.n
             "so a stream header cannot carry it: heights or thresholds are far off the µm scale; "
             "check --y-unit and the threshold curve's unit, or rescale the heights")
     return P, A
-
-
-_NORMAL_MIN = float(np.finfo(np.float64).tiny)
 
 
 def relative_error(x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
@@ -214,8 +213,6 @@ def relative_error_scaled(xm, xe, ym, ye) -> np.ndarray:
     diff = np.abs(x - y)
     safe = np.where(mean > 0, mean, 1.0)
     return np.where(mean > 0, diff / safe, 0.0)
-
-
 
 
 @dataclass(frozen=True)
