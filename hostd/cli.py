@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -268,7 +269,7 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     if ref is not None:
         from hostd.quality import reference_mismatch
 
-        mismatch = reference_mismatch(s, out["P"], out["A"])
+        mismatch = reference_mismatch(s, float(sc.P), float(sc.A))
         out["reference_mismatch"] = mismatch is not None
         if mismatch:
             warn("iobj", mismatch)
@@ -284,6 +285,10 @@ def cmd_iobj(args: argparse.Namespace) -> int:
             out["peer_note"] = peer.NOTE_MISSING
     out.update(bytes=s.nbytes, ratio_coeffs=s.ratio_coeffs, ratio_profile=s.ratio_profile,
                method=s.method)
+    for k in ("st_sim", "spqi"):  # a peer metric that overflows at this scale: said, never NaN
+        if out.get(k) is not None and not math.isfinite(out[k]):
+            out[k] = None
+            out["peer_note"] = f"{k} is not finite for heights of this magnitude (the metric overflows)"
     if args.json:
         _dump(out)
     else:
@@ -313,14 +318,17 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.json:
         _dump(res.as_dict())
         return 0
+    def num(v: float) -> str:  # 4 decimals, or 4 significant digits for weights far from 1
+        return f"{v:.4f}" if v == 0 or 1e-3 <= abs(v) < 1e6 else f"{v:.4e}"
+
     sign = "-" if res.b < 0 else "+"
-    print(f"Iobj = {res.a:.4f} Ip {sign} {abs(res.b):.4f} Ia   ({res.n_used} stimuli"
+    print(f"Iobj = {num(res.a)} Ip {sign} {num(abs(res.b))} Ia   ({res.n_used} stimuli"
           f"{', a, b >= 0' if res.nonnegative else ''})")
     pct = f"{100 * res.ci_level:g}%"
     for name, v, se, ci in (("a", res.a, res.se_a, res.ci_a), ("b", res.b, res.se_b, res.ci_b)):
-        se_s = "n/a" if se is None else f"{se:.4f}"
-        ci_s = "n/a" if ci is None else f"[{ci[0]:.4f}, {ci[1]:.4f}]"
-        print(f"  {name} = {v:.4f}   standard error {se_s}   bootstrap {pct} interval {ci_s}")
+        se_s = "n/a" if se is None else num(se)
+        ci_s = "n/a" if ci is None else f"[{num(ci[0])}, {num(ci[1])}]"
+        print(f"  {name} = {num(v)}   standard error {se_s}   bootstrap {pct} interval {ci_s}")
     print(f"{'index':<6} {'r2_pearson':>11} {'r2_fit':>8}")
     for name, m in res.metrics.items():
         rp = "n/a" if m["r2_pearson"] is None else f"{m['r2_pearson']:.3f}"

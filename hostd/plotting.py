@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 
 def place_labels(ax, items: list[tuple[float, float, str]], fontsize: float = 6.5,
                  draw: bool = True) -> None:
@@ -34,3 +36,28 @@ def place_labels(ax, items: list[tuple[float, float, str]], fontsize: float = 6.
                 ax.annotate(text, (x, y), xytext=(dx if dx >= 0 else dx - w * 72 / fig.dpi, dy),
                             textcoords="offset points", fontsize=fontsize)
                 break
+
+
+def log_byte_axis(ax, lo: float, hi: float) -> None:
+    """A logarithmic x axis over lo..hi (bytes) with plain-number ticks that do not collide:
+    the finest of 1 / 1-3 / 1-2-5 / finer steps per decade that gives at most 7 ticks (at
+    least 3 where possible); no minor tick labels (matplotlib labels those on a short log
+    axis, and they overlap)."""
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullFormatter
+
+    ax.set_xscale("log")
+    lo, hi = max(lo, 1.0), max(hi, lo * 1.2)
+    x0, x1 = lo / 1.15, hi * 1.15
+    ax.set_xlim(x0, x1)
+    decades = range(int(np.floor(np.log10(x0))), int(np.ceil(np.log10(x1))) + 1)
+    ticks: list[float] = []
+    for steps in ((1,), (1, 3), (1, 2, 5), (1, 1.5, 2, 3, 5, 7), (1, 1.2, 1.5, 2, 2.5, 3, 4, 5, 6, 7, 8, 9)):
+        t = [m * 10.0 ** d for d in decades for m in steps if x0 <= m * 10.0 ** d <= x1]
+        if len(t) > 7:
+            break
+        ticks = t
+        if len(t) >= 3 and steps == (1, 2, 5):
+            break
+    ax.xaxis.set_major_locator(FixedLocator(ticks))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+    ax.xaxis.set_minor_formatter(NullFormatter())

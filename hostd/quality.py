@@ -7,6 +7,8 @@ scores exactly what the sender would.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from hostd.codec import transform
@@ -31,18 +33,18 @@ def score_stream(
 ) -> indices.Scores:
     """Score a decoded stream; against reference_um (N heights) if given, else its header."""
     b_k = stream_thresholds(stream, curve)
-    Pp, Ap = indices.weighted_sums(stream.coefficients, b_k)
+    comp = indices.scaled_sums(stream.coefficients, b_k)  # no overflow at any scale
     if reference_um is None:
-        P, A = stream.ref_P, stream.ref_A
+        ref = indices.WeightedSums(np.float64(stream.ref_P), np.float64(stream.ref_A), 0)
     else:
-        ref = np.asarray(reference_um, dtype=np.float64)
-        if ref.size != stream.n:
+        y = np.asarray(reference_um, dtype=np.float64)
+        if y.size != stream.n:
             raise CodecError(
-                f"the reference profile has {ref.size} samples but the stream {stream.n}: "
+                f"the reference profile has {y.size} samples but the stream {stream.n}: "
                 "load it with the same options (--length-mm, --spacing, units) as at encode"
             )
-        P, A = indices.weighted_sums(transform.analyze(ref, stream.n_keep), b_k)
-    return indices.scores_from_sums(P, A, Pp, Ap, a, b)
+        ref = indices.scaled_sums(transform.analyze(y, stream.n_keep), b_k)
+    return indices.scores_from_weighted(ref, comp, a, b)
 
 
 def guard_report(stream: Stream, *, reference_um: np.ndarray | None = None,
@@ -72,6 +74,8 @@ def reference_mismatch(s, P: float, A: float, rel: float | None = None) -> str |
         rel = 1e-6 if getattr(s, "version", 1) == 1 else 2.0 ** -16
 
     def close(x: float, y: float) -> bool:
+        if not (math.isfinite(x) and math.isfinite(y)):
+            return False  # a sum beyond float64 cannot be the header's (finite) one
         return abs(x - y) <= rel * max(abs(x), abs(y), 1e-300)
 
     if close(P, s.ref_P) and close(A, s.ref_A):

@@ -1,6 +1,7 @@
 """Rate control and the rate-quality report."""
 
 import csv
+import itertools
 
 import numpy as np
 import pytest
@@ -147,3 +148,85 @@ def test_degenerate_and_unreachable_targets_are_reported(wood):
         ratecontrol.search(*wood, CURVE, 0.0, method="cut")
     with pytest.raises(CodecError, match="not available"):
         ratecontrol.search(*wood, CURVE, 0.05, method="shaped", fmt="v1")
+
+
+# ---------------------------------------------------------------- issue 23 / 20: report costs and figure
+
+
+def test_report_to_dev_null_is_a_one_line_error_and_writes_nothing(capsys):
+    from hostd import cli
+
+    assert cli.main(["report", "rate-quality", "synthetic:wood", "-o", "/dev/null",
+                     "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "not a directory" in err and len(err.strip().splitlines()) == 1
+
+
+def test_report_rows_carry_encode_and_decode_cpu_and_spqi(tmp_path):
+    from hostd.perception import peer
+
+    prof = synth.make("wood", seed=3)
+    geom = transform.Geometry(prof.n, prof.length_mm)
+    rows = rate_quality(prof.heights_um, geom, CURVE, tmp_path, "wood", progress=False)["rows"]
+    assert all(r["encode_ms"] > 0 and r["decode_ms"] > 0 for r in rows)
+    header = (tmp_path / "rate_quality.csv").read_text().splitlines()[0].split(",")
+    assert {"encode_ms", "decode_ms", "spqi"} <= set(header)
+    got = peer.peer_scores(transform.analyze(prof.heights_um, geom.n_keep),
+                           vtx.decode(_row_stream(rows[5], prof, geom)).coefficients,
+                           geom.n, geom.length_mm, geom.speed_mm_s)
+    if got and got.get("spqi") is not None:  # the peer metric is there: the row holds it
+        assert rows[5]["spqi"] == pytest.approx(got["spqi"], rel=1e-12)
+    else:
+        assert all(r["spqi"] is None for r in rows)
+
+
+def _row_stream(row, prof, geom):
+    from hostd.codec import stream as v1
+
+    kw = {"levels": row["levels"]} if row["method"] == "quant" else {"b0_db": row["b0_db"],
+                                                                      "value_bits": row["value_bits"]}
+    return v1.encode_profile(prof.heights_um, geom, CURVE, method=row["method"], **kw)
+
+
+@pytest.mark.parametrize("lo,hi", [(18, 250), (20, 2400), (15, 200_000), (90, 130)])
+def test_log_byte_ticks_do_not_collide(lo, hi):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hostd.plotting import log_byte_axis
+
+    fig, ax = plt.subplots(figsize=(4.6, 3.5), dpi=110)  # one panel of the report
+    ax.plot([lo, hi], [0, 1])
+    log_byte_axis(ax, lo, hi)
+    fig.canvas.draw()
+    boxes = [t.get_window_extent() for t in ax.get_xticklabels() if t.get_text() and t.get_visible()]
+    boxes = [b for b in boxes if ax.bbox.x0 - 5 <= (b.x0 + b.x1) / 2 <= ax.bbox.x1 + 5]
+    assert len(boxes) >= 2
+    boxes.sort(key=lambda b: b.x0)
+    assert all(a.x1 < b.x0 for a, b in itertools.pairwise(boxes))
+    assert all(not t.label1.get_text() for t in ax.xaxis.get_minor_ticks())
+    plt.close(fig)
+
+
+def test_the_iobj_panel_shows_the_target_region(tmp_path):
+    from hostd import report
+
+    prof = synth.make("sandpaper", seed=2)
+    geom = transform.Geometry(prof.n, prof.length_mm)
+    rows = report.sweep(prof.heights_um, geom, CURVE, with_peers=False, progress=False, repeats=1)
+    fig = report.figure(rows, "t", 2 * geom.n_keep, ab=(0.581, 0.464))
+    ax = fig.axes[0]
+    to_axes = ax.transAxes.inverted().transform
+    y0, y_target = (to_axes(ax.transData.transform((100.0, v)))[1] for v in (0.0, 0.05))
+    assert y0 == pytest.approx(0.0, abs=1e-9) and y_target > 0.3  # the region <= 0.05 is visible
+    assert any(abs(line.get_ydata()[0] - 0.05) < 1e-12 for line in ax.get_lines()
+               if len(set(line.get_ydata())) == 1)
+    legend = fig.legends[0]
+    inside = [a.bbox for a in fig.axes]
+    lb = legend.get_window_extent(fig.canvas.get_renderer())
+    assert all(not lb.overlaps(b) for b in inside)  # the legend hides no panel
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)

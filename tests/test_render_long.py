@@ -163,22 +163,47 @@ def test_closed_loop_error_is_small_with_defaults_and_large_without_prediction(w
 
 def test_bench_accuracy_json_contract(capsys, tmp_path):
     png = tmp_path / "acc.png"
-    assert main(["bench", "accuracy", "--json", "--duration", "0.6", "--plot", str(png)]) == 0
+    assert main(["bench", "accuracy", "--json", "--duration", "0.6", "--repeats", "2", "--plot",
+                 str(png)]) == 0
     rows = json.loads(capsys.readouterr().out)
     for r in rows:
-        for key in ("knob", "setting", "default", "rms_error_um", "rms_error_pct", "cpu_ms_per_s"):
+        for key in ("knob", "setting", "default", "rms_error_um", "rms_error_pct", "cpu_ms_per_s",
+                    "cpu_min_ms_per_s", "cpu_max_ms_per_s", "repeats", "fw_cpu_ms_per_s"):
             assert key in r
         assert np.isfinite(r["rms_error_um"])
         if r["knob"] == "render_at" and r["setting"] == "device":  # the host only supervises
             assert r["cpu_ms_per_s"] == 0 and r["fw_tick_p99_us"] > 0
+            _check_firmware_cost(r)
         else:
             assert r["cpu_ms_per_s"] > 0 and r["fw_tick_p99_us"] is None
+            assert r["repeats"] == 2 and all(len(v["cpu_runs_ms_per_s"]) == 2
+                                             for v in r["per_texture"].values())
+            assert r["cpu_min_ms_per_s"] <= r["cpu_ms_per_s"] <= r["cpu_max_ms_per_s"]
     knobs = {r["knob"] for r in rows}
     assert {"height_method", "dtype", "prediction", "equalizer", "samples_per_batch", "render_at"} <= knobs
     for k in knobs - {"table_oversample"}:
         assert sum(r["default"] for r in rows if r["knob"] == k) == 1, k
     assert len(rows[0]["per_texture"]) == 3  # wood, sandpaper and the bundled real profile
     assert png.stat().st_size > 10_000
+
+
+def _check_firmware_cost(row):
+    """The device row's firmware cost is QEMU's instruction count (not 0): compared with the
+    share of the 170 MHz core's 3 kHz period that bench_tick.elf itself prints."""
+    import re
+    import shutil
+    import subprocess
+
+    from hostd.device import hostport
+
+    if not (shutil.which("qemu-system-arm") and shutil.which("arm-none-eabi-gcc")):
+        assert row["fw_cpu_ms_per_s"] is None and "qemu" in row["fw_cost_source"]
+        return
+    out = subprocess.run(["make", "-s", "-C", str(hostport.FIRMWARE), "qemu-bench"],
+                         capture_output=True, text=True, timeout=600, check=True).stdout
+    pct = float(re.search(r"N'=512, 4 sections \(mean\):.*= *([0-9.]+) %", out).group(1))
+    assert row["fw_cpu_ms_per_s"] / 10.0 == pytest.approx(pct, abs=0.01)  # ms per s -> % of a core
+    assert row["fw_insn_per_tick"] > 1000 and row["fw_insn_per_tick_max"] >= row["fw_insn_per_tick"]
 
 
 def test_bench_pipeline_reports_percentiles(capsys):

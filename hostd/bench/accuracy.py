@@ -8,18 +8,28 @@ buffer, the DAC's hold and the actuator model. The error is the displacement del
 minus the ideal display's (the exact series at the true position, true speed and true
 instant), RMS over the run after a settling time; `rms_error_pct` is relative to the RMS of
 the ideal displacement. A setting's row reports the worst texture. CPU is the renderer's
-thread CPU time per second of 3 kHz output (median over textures).
+thread CPU time per second of 3 kHz output (median over textures); every host setting is
+run `repeats` times (default 3) and the row also gives the spread: the smallest and largest
+of the per-run figures (each run's median over textures), which shows how much of a
+difference between two rows is the machine's load.
 
 The knob render_at = device renders on the display instead (protocol v2): the firmware core
 itself (firmware/build/fw-replay, the C code) runs on the same hand, with encoder edges at the
 hand's true times, set up by the same RenderConfig (hostd.device.devrender). Its host CPU is 0
-(the host only uploads and supervises); the firmware's time per tick on this machine is the
-extra column.
+(the host only uploads and supervises); its cost is the firmware's: instructions per render
+tick counted by QEMU on the emulated Cortex-M4F (`make -C firmware qemu-bench`, the worst case
+N' = 512 with 4 equalizer sections), given as ms per second of output on a 170 MHz core at
+one instruction per cycle (a lower bound: loads, branches and flash wait states cost more).
+Without QEMU or the ARM compiler the figure is None with the reason; the firmware's time per
+tick on this machine (fw-replay) is the extra column either way.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+import re
+import subprocess
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -32,6 +42,8 @@ from hostd.sim.hand import Metronome
 from hostd.texture.load import Profile
 
 SETTLE_S = 0.2  # soft start (50 ms) and the filters settle before the error is measured
+REPEATS = 3  # runs per host setting and texture, for the CPU figure's spread
+FW_CORE_HZ = 170e6  # the board's Cortex-M4F (STM32G4)
 
 
 @dataclass
@@ -106,14 +118,51 @@ def _score(coeffs, n, length_mm, hand: Metronome, r: Renderer, t_play: np.ndarra
 
 
 def measure(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, hand: Metronome,
-            ref_cache: dict) -> dict:
-    r = Renderer(coeffs, n, length_mm, cfg)
+            ref_cache: dict, repeats: int = 1) -> dict:
+    """The error of one run (the simulation is deterministic) and the renderer's CPU of each
+    of `repeats` runs (the median and every run's figure)."""
     link = link_for(cfg)
-    res = chain.run_loop(r, hand, duration_s, link)
+    runs = []
+    for _ in range(max(1, repeats)):
+        r = Renderer(coeffs, n, length_mm, cfg)
+        runs.append((r, chain.run_loop(r, hand, duration_s, link)))
+    r, res = runs[0]
     delivered = chain.actuate(res.command_um, r.eq.model, cfg.sample_rate_hz)
+    cpu = [x.cpu_ms_per_s for _, x in runs]
     return {**_score(coeffs, n, length_mm, hand, r, res.t_play_s, delivered, ref_cache),
-            "cpu_ms_per_s": res.cpu_ms_per_s,
-            "batch_p99_us": float(np.percentile(res.batch_cpu_ns, 99)) / 1e3}
+            "cpu_ms_per_s": float(np.median(cpu)), "cpu_runs_ms_per_s": cpu,
+            "batch_p99_us": float(np.median([np.percentile(x.batch_cpu_ns, 99) for _, x in runs])) / 1e3}
+
+
+@functools.lru_cache(maxsize=1)
+def firmware_tick_cost() -> dict:
+    """Instructions per device-renderer tick on QEMU's Cortex-M4F (bench_tick.elf, -icount:
+    its SysTick counts instructions), run once per process: {'insn_mean', 'insn_swap',
+    'insn_max', 'ms_per_s', 'source'}, or {'error': reason} when it cannot be run."""
+    from hostd.device import hostport
+
+    try:
+        r = subprocess.run(["make", "-s", "-C", str(hostport.FIRMWARE), "qemu-bench"],
+                           capture_output=True, text=True, timeout=600)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return {"error": f"make -C firmware qemu-bench did not run: {exc}"}
+    text = r.stdout
+    got = {}
+    for key, label in (("insn_mean", "device renderer tick, N'=512, 4 sections (mean):"),
+                       ("insn_swap", "device renderer tick during a swap (mean):"),
+                       ("insn_max", "device renderer, slowest tick (+-40):")):
+        m = re.search(re.escape(label) + r"\s+([0-9.]+) instructions", text)
+        if m:
+            got[key] = float(m.group(1))
+    if r.returncode != 0 or len(got) < 3:
+        last = (r.stderr.strip() or r.stdout.strip() or "no output").splitlines()[-1]
+        return {"error": f"make -C firmware qemu-bench failed (needs qemu-system-arm and "
+                         f"gcc-arm-none-eabi with newlib): {last}"}
+    fs = RenderConfig().sample_rate_hz
+    got["ms_per_s"] = got["insn_mean"] * fs / FW_CORE_HZ * 1e3
+    got["source"] = ("QEMU mps2-an386 -icount (instructions), N'=512, 4 sections; ms per s at "
+                     f"{FW_CORE_HZ / 1e6:g} MHz and 1 instruction per cycle (a lower bound)")
+    return got
 
 
 def measure_device(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, hand: Metronome,
@@ -135,7 +184,8 @@ def measure_device(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, h
             "fw_tick_p99_us": float(np.percentile(us, 99)), "fw_tick_max_us": float(us.max())}
 
 
-def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = True) -> list[dict]:
+def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = True,
+        repeats: int = REPEATS) -> list[dict]:
     from tqdm import tqdm
 
     hand = Metronome()
@@ -153,22 +203,39 @@ def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = 
         if key not in done:
             per = {}
             for name, (c, n, length) in coeffs.items():
-                fn = measure_device if st.where == "device" else measure
-                per[name] = fn(c, n, length, cfg, duration_s, hand, ref_cache)
+                if st.where == "device":
+                    per[name] = measure_device(c, n, length, cfg, duration_s, hand, ref_cache)
+                else:
+                    per[name] = measure(c, n, length, cfg, duration_s, hand, ref_cache, repeats)
                 bar.update(1)
             done[key] = per
         else:
             bar.update(len(coeffs))
         per = done[key]
         worst = max(per, key=lambda k: per[k]["rms_error_pct"])
-        rows.append({"knob": st.knob, "setting": st.setting, "default": st.default,
-                     "rms_error_um": per[worst]["rms_error_um"],
-                     "rms_error_pct": per[worst]["rms_error_pct"], "worst_texture": worst,
-                     "cpu_ms_per_s": float(np.median([v["cpu_ms_per_s"] for v in per.values()])),
-                     "batch_p99_us": float(np.median([v["batch_p99_us"] for v in per.values()])),
-                     "fw_tick_p99_us": (max(v["fw_tick_p99_us"] for v in per.values())
-                                        if st.where == "device" else None),
-                     "per_texture": per})
+        row = {"knob": st.knob, "setting": st.setting, "default": st.default,
+               "rms_error_um": per[worst]["rms_error_um"],
+               "rms_error_pct": per[worst]["rms_error_pct"], "worst_texture": worst,
+               "cpu_ms_per_s": float(np.median([v["cpu_ms_per_s"] for v in per.values()])),
+               "batch_p99_us": float(np.median([v["batch_p99_us"] for v in per.values()])),
+               "fw_tick_p99_us": (max(v["fw_tick_p99_us"] for v in per.values())
+                                  if st.where == "device" else None),
+               "per_texture": per}
+        if st.where == "device":
+            fw = firmware_tick_cost()
+            row.update(repeats=1, cpu_min_ms_per_s=0.0, cpu_max_ms_per_s=0.0,
+                       fw_cpu_ms_per_s=fw.get("ms_per_s"), fw_insn_per_tick=fw.get("insn_mean"),
+                       fw_insn_per_tick_max=fw.get("insn_max"),
+                       fw_cost_source=fw.get("source", fw.get("error")))
+        else:
+            # the spread over repeats: run i's median over textures, smallest and largest
+            per_run = [float(np.median([v["cpu_runs_ms_per_s"][i] for v in per.values()]))
+                       for i in range(min(len(v["cpu_runs_ms_per_s"]) for v in per.values()))]
+            row.update(repeats=len(per_run), cpu_ms_per_s=float(np.median(per_run)),
+                       cpu_min_ms_per_s=min(per_run),
+                       cpu_max_ms_per_s=max(per_run), fw_cpu_ms_per_s=None,
+                       fw_insn_per_tick=None, fw_insn_per_tick_max=None, fw_cost_source=None)
+        rows.append(row)
     bar.close()
     return rows
 
@@ -190,22 +257,30 @@ def plot(rows: list[dict], path: str) -> None:
         labels.append([])
         for i, k in enumerate(knobs):
             rs = [r for r in rows if r["knob"] == k]
-            xs = [r["per_texture"][tex]["cpu_ms_per_s"] for r in rs]
+            xs = [_plot_cpu(r, tex) for r in rs]
             ys = [r["per_texture"][tex]["rms_error_pct"] for r in rs]
-            ax.scatter(xs, ys, marker=markers[i % len(markers)], label=k, s=30)
+            sc = ax.scatter(xs, ys, marker=markers[i % len(markers)], label=k, s=30)
+            for r, y in zip(rs, ys, strict=True):  # the spread over repeats
+                runs = r["per_texture"][tex].get("cpu_runs_ms_per_s") or []
+                if len(runs) > 1:
+                    ax.plot([min(runs), max(runs)], [y, y], color=sc.get_facecolor()[0], lw=1.2,
+                            alpha=0.7)
             for r, x, y in zip(rs, xs, ys, strict=True):
-                if not r["default"] and y > 1.3 * min(ys):  # label the settings that stand out
+                if r["knob"] == "render_at" and r["setting"] == "device":
+                    labels[-1].append((x, y, "on the device (M4 firmware, QEMU count)"
+                                       if r.get("fw_cpu_ms_per_s") is not None
+                                       else "on the device (host CPU 0)"))
+                elif not r["default"] and y > 1.3 * min(ys):  # label the settings that stand out
                     labels[-1].append((x, y, r["setting"]))
-                elif r["knob"] == "render_at" and r["setting"] == "device":  # host CPU 0
-                    labels[-1].append((x, y, "rendered on the device"))
         d = next(r for r in rows if r["default"])
-        ax.scatter([d["per_texture"][tex]["cpu_ms_per_s"]], [d["per_texture"][tex]["rms_error_pct"]],
+        ax.scatter([_plot_cpu(d, tex)], [d["per_texture"][tex]["rms_error_pct"]],
                    s=160, facecolors="none", edgecolors="k", label="defaults")
         ax.axvline(30.0, color="0.6", ls="--", lw=0.8)
         ax.axhline(1.0, color="0.6", ls=":", lw=0.8)
         ax.set_yscale("log")
         ax.set_title(tex)
-        ax.set_xlabel("CPU ms per second of 3 kHz output (dashed: 3 % of a core)")
+        ax.set_xlabel("CPU ms per second of 3 kHz output (dashed: 3 % of a core; bars: min-max "
+                      "of the repeats)", fontsize=8)
     axes[0][0].set_ylabel("RMS error, % of the ideal displacement's RMS (dotted: 1 %)")
     axes[0][-1].legend(fontsize=7)
     fig.suptitle("Render pipeline: accuracy against CPU cost, one knob changed at a time")
@@ -218,13 +293,32 @@ def plot(rows: list[dict], path: str) -> None:
     plt.close(fig)
 
 
+def _plot_cpu(r: dict, tex: str) -> float:
+    """x of a setting in the plot: the host's CPU, or for the device row the firmware's."""
+    if r.get("fw_cpu_ms_per_s") is not None:
+        return r["fw_cpu_ms_per_s"]
+    return r["per_texture"][tex]["cpu_ms_per_s"]
+
+
 def table(rows: list[dict]) -> str:
     lines = [f"{'knob':<18} {'setting':<26} {'default':<7} {'rms µm':>9} {'rms %':>8} "
-             f"{'CPU ms/s':>9} {'p99 µs':>8} {'fw tick p99 µs':>14}  worst"]
+             f"{'CPU ms/s':>9} {'min-max (runs)':>17} {'p99 µs':>8} {'fw tick p99 µs':>14}  worst"]
+    notes = []
     for r in rows:
         fw = r.get("fw_tick_p99_us")
         fw_s = "" if fw is None else f"{fw:.2f}"
+        if r.get("fw_cost_source") is not None:  # the device row: the firmware's cost
+            cpu_s = "n/a" if r.get("fw_cpu_ms_per_s") is None else f"{r['fw_cpu_ms_per_s']:.1f}*"
+            spread = "firmware"
+            notes.append(f"* {r['knob']} = {r['setting']}: host CPU 0 (the host supervises); the "
+                         f"firmware's cost: {r['fw_cost_source']}"
+                         + (f"; {r['fw_insn_per_tick']:.0f} instructions per tick (mean), "
+                            f"{r['fw_insn_per_tick_max']:.0f} slowest"
+                            if r.get("fw_insn_per_tick") is not None else ""))
+        else:
+            cpu_s = f"{r['cpu_ms_per_s']:.2f}"
+            spread = f"{r['cpu_min_ms_per_s']:.1f}-{r['cpu_max_ms_per_s']:.1f} ({r['repeats']})"
         lines.append(f"{r['knob']:<18} {r['setting']:<26} {'yes' if r['default'] else '':<7} "
-                     f"{r['rms_error_um']:>9.4f} {r['rms_error_pct']:>8.3f} {r['cpu_ms_per_s']:>9.2f} "
+                     f"{r['rms_error_um']:>9.4f} {r['rms_error_pct']:>8.3f} {cpu_s:>9} {spread:>17} "
                      f"{r['batch_p99_us']:>8.1f} {fw_s:>14}  {r['worst_texture']}")
-    return "\n".join(lines)
+    return "\n".join(lines + notes)

@@ -23,6 +23,8 @@ def add_parser(sub, parents) -> None:
                    help="a real profile to include (repeatable; loader options apply); default: the "
                    "bundled instrument profile when present")
     a.add_argument("--quiet", action="store_true", help="no progress bar")
+    a.add_argument("--repeats", type=int, default=3, metavar="N",
+                   help="runs per host setting and texture: the CPU median and its min-max (default 3)")
     q = bsub.add_parser("pipeline", help="time per 1 ms batch at default settings (p50/p99/p99.9)")
     q.add_argument("--json", action="store_true")
     q.add_argument("--duration", type=float, default=60.0, metavar="S", help="simulated seconds (default 60)")
@@ -109,7 +111,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if what == "accuracy":
         if not (0.5 <= args.duration <= 600):
             raise SystemExit("hostd bench: error: --duration must be 0.5..600 s")
-        rows = accuracy.run(_textures(args), args.duration, progress=not (args.quiet or args.json))
+        if not 1 <= args.repeats <= 50:
+            raise SystemExit("hostd bench: error: --repeats must be 1..50")
+        rows = accuracy.run(_textures(args), args.duration, progress=not (args.quiet or args.json),
+                            repeats=args.repeats)
         if args.plot:
             accuracy.plot(rows, args.plot)
         if args.json:

@@ -21,17 +21,26 @@ def one_blas_thread():
     return threadpool_limits(limits=1)
 
 
-def cpu_median_s(fn, repeat: int, inner: int = 1) -> float:
+def cpu_median_s(fn, repeat: int, inner: int = 1, limit_blas: bool = True) -> float:
     """Median over `repeat` runs of the CPU time of this thread (time.thread_time) for `inner`
-    calls, per call, with BLAS limited to this thread (see one_blas_thread)."""
+    calls, per call, with BLAS limited to this thread (see one_blas_thread). limit_blas=False
+    when the caller already holds one_blas_thread() around many calls (entering it costs ~10 ms:
+    threadpoolctl scans the loaded libraries)."""
+    return float(np.median(cpu_times_s(fn, repeat, inner, limit_blas)))
+
+
+def cpu_times_s(fn, repeat: int, inner: int = 1, limit_blas: bool = True) -> list[float]:
+    """Every run's CPU time of `cpu_median_s` (s per call), for a median and its spread."""
+    import contextlib
+
     times = []
-    with one_blas_thread():
+    with one_blas_thread() if limit_blas else contextlib.nullcontext():
         for _ in range(repeat):
             t0 = time.thread_time_ns()
             for _ in range(inner):
                 fn()
-            times.append((time.thread_time_ns() - t0) / inner)
-    return float(np.median(times)) * 1e-9
+            times.append((time.thread_time_ns() - t0) / inner * 1e-9)
+    return times
 
 
 def machine() -> str:

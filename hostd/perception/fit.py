@@ -66,12 +66,21 @@ class FitResult:
 
 
 def pearson_r2(x: np.ndarray, y: np.ndarray) -> float:
+    """Squared Pearson correlation; x and y are first scaled by their largest magnitude (so
+    indices of order 1e-13 or 1e200 give the same r^2 as of order 1). NaN when one is constant."""
+    x = _unit_scaled(x)
+    y = _unit_scaled(y)
     x = x - x.mean()
     y = y - y.mean()
     den = math.sqrt(float(x @ x) * float(y @ y))
     if den == 0:
         return float("nan")
-    return (float(x @ y) / den) ** 2
+    return min(1.0, (float(x @ y) / den) ** 2)
+
+
+def _unit_scaled(v: np.ndarray) -> np.ndarray:
+    m = float(np.max(np.abs(v))) if v.size else 0.0
+    return v / m if m > 0 else v
 
 
 def r2_fit(pred: np.ndarray, y: np.ndarray) -> float:
@@ -79,24 +88,69 @@ def r2_fit(pred: np.ndarray, y: np.ndarray) -> float:
     return 1.0 - float(((y - pred) ** 2).sum()) / ss_tot
 
 
-def _solve(X: np.ndarray, y: np.ndarray, nonnegative: bool) -> np.ndarray:
-    if nonnegative:
-        return scipy.optimize.nnls(X, y)[0]
-    return np.linalg.lstsq(X, y, rcond=None)[0]
-
-
 MIN_PER_PARAMETER = 5  # fewer stimuli per fitted weight than this: a warning
+# Rank and conditioning are judged on the columns scaled to unit size (so only the angle
+# between Ip and Ia matters, not their magnitude): Ip and Ia count as collinear when the
+# smaller singular value is <= RANK_RTOL times the larger; above COND_WARN the fit is made
+# but warned about (its weights are then sensitive to the scores' last digits).
+RANK_RTOL = 1e-12
+COND_WARN = 1e6
 
 
-def standard_errors(X: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[float, float] | None:
+@dataclass(frozen=True)
+class _Design:
+    """X = [Ip, Ia] with each column divided by its largest magnitude: X = Xs diag(norms)."""
+
+    Xs: np.ndarray
+    norms: np.ndarray
+    sv: np.ndarray  # singular values of Xs, descending
+
+    @property
+    def cond(self) -> float:
+        return float(self.sv[0] / self.sv[-1]) if self.sv[-1] > 0 else math.inf
+
+    @property
+    def rank(self) -> int:
+        return int(np.count_nonzero(self.sv > RANK_RTOL * self.sv[0])) if self.sv[0] > 0 else 0
+
+
+def _design(X: np.ndarray) -> _Design:
+    norms = np.max(np.abs(X), axis=0)  # largest magnitude per column (2-norm within sqrt(n))
+    norms = np.where(norms > 0, norms, 1.0)
+    Xs = X / norms
+    return _Design(Xs, norms, np.linalg.svd(Xs, compute_uv=False))
+
+
+def _solve(X: np.ndarray, y: np.ndarray, nonnegative: bool) -> np.ndarray:
+    """Least squares on the unit-scaled columns (SVD, relative cut-off RANK_RTOL), unscaled."""
+    d = _design(X)
+    if nonnegative:
+        w = scipy.optimize.nnls(d.Xs, y)[0]
+    else:
+        w = np.linalg.lstsq(d.Xs, y, rcond=RANK_RTOL)[0]
+    return w / d.norms
+
+
+def standard_errors(X: np.ndarray, y: np.ndarray, w: np.ndarray,
+                    dof: int | None = None) -> tuple[float, float] | None:
     """Standard errors of the no-intercept least-squares weights w:
-    se_j = sqrt(s^2 [(X^T X)^-1]_jj), s^2 = sum (y - X w)^2 / (n - p). None when n <= p."""
+    se_j = sqrt(s^2 [(X^T X)^-1]_jj), s^2 = sum (y - X w)^2 / dof (dof = n - p by default).
+
+    (X^T X)^-1 is taken from the SVD of the unit-scaled columns, V S^-2 V^T, whose diagonal is a
+    sum of squares (never negative, unlike an explicit inverse of an ill-conditioned X^T X).
+    None when dof <= 0 or X is rank-deficient."""
     n, p = X.shape
-    if n <= p:
+    dof = n - p if dof is None else dof
+    if dof <= 0:
         return None
-    s2 = float(((y - X @ w) ** 2).sum()) / (n - p)
-    cov = s2 * np.linalg.inv(X.T @ X)
-    return float(math.sqrt(cov[0, 0])), float(math.sqrt(cov[1, 1]))
+    d = _design(X)
+    if d.rank < p:
+        return None
+    _, sv, vt = np.linalg.svd(d.Xs, full_matrices=False)
+    s2 = float(((y - X @ w) ** 2).sum()) / dof
+    diag = np.sum(np.square(vt.T / sv), axis=1)  # diag of (Xs^T Xs)^-1
+    se = np.sqrt(s2 * diag) / d.norms
+    return float(se[0]), float(se[1])
 
 
 def bootstrap_intervals(X: np.ndarray, y: np.ndarray, nonnegative: bool, n_boot: int = 2000,
@@ -111,7 +165,7 @@ def bootstrap_intervals(X: np.ndarray, y: np.ndarray, nonnegative: bool, n_boot:
     for _ in range(n_boot):
         i = rng.integers(0, n, n)
         Xi = X[i]
-        if np.linalg.matrix_rank(Xi) < 2:
+        if _design(Xi).rank < 2:
             continue
         est.append(_solve(Xi, y[i], nonnegative))
     if len(est) < n_boot // 2:
@@ -131,15 +185,32 @@ def check_scale(stimuli: list[Stimulus], scale_min: float, scale_max: float) -> 
                            "--scale-min/--scale-max")
 
 
+def check_indices(stimuli: list[Stimulus]) -> None:
+    """Ip and Ia are relative errors: finite and >= 0 (a negative one is a wrong column)."""
+    for s in stimuli:
+        for name in ("Ip", "Ia"):
+            v = getattr(s, name)
+            if not math.isfinite(v):
+                raise FitError(f"{s.texture} {s.method} {s.level}: {name} is {v}; give a finite "
+                               "number")
+            if v < 0:
+                raise FitError(f"{s.texture} {s.method} {s.level}: {name} = {v:g} is negative, but "
+                               f"{name} is a relative error (>= 0): check the column")
+
+
 def fit(stimuli: list[Stimulus], *, nonnegative: bool = False,
         scale_max: float | None = None, exclude_saturated: bool = False,
         scale_min: float | None = None, n_boot: int = 2000) -> FitResult:
     """Fit Iobj = a Ip + b Ia to the scores by least squares without intercept (eq. 13-15).
 
     Stimuli with a mean score at scale_max are excluded when asked (flagged). Scores outside
-    [scale_min, scale_max] are refused (when the scale is given). Returns (a, b), their
-    standard errors (unconstrained fit) and bootstrap percentile intervals (2000 resamples,
-    seeded: reproducible), and warnings (fewer than 5 stimuli per fitted weight).
+    [scale_min, scale_max] are refused (when the scale is given); negative or non-finite Ip,
+    Ia are refused. The solve is an SVD of the columns scaled to unit size, so Ip or Ia of any
+    magnitude fit alike; Ip and Ia collinear within RANK_RTOL are refused, a condition number
+    above COND_WARN is warned about. Returns (a, b), their standard errors (unconstrained fit;
+    None when the stimuli have no distinct rows to spare) and bootstrap percentile intervals
+    (2000 resamples, seeded: reproducible), and warnings (fewer than 5 stimuli per fitted
+    weight, ill-conditioning, repeated stimuli).
     """
     if scale_max is not None:
         check_scale(stimuli, -math.inf if scale_min is None else scale_min, scale_max)
@@ -150,22 +221,23 @@ def fit(stimuli: list[Stimulus], *, nonnegative: bool = False,
     if len(used) < 2:
         raise FitError(f"need at least 2 stimuli to fit (a, b), have {len(used)}")
     y = np.array([s.score for s in used])
+    if not np.all(np.isfinite(y)):
+        raise FitError("a score value is NaN or Inf")
+    check_indices(used)
     ip = np.array([s.Ip for s in used])
     ia = np.array([s.Ia for s in used])
-    for name, v in (("score", y), ("Ip", ip), ("Ia", ia)):
-        if not np.all(np.isfinite(v)):
-            raise FitError(f"a {name} value is NaN or Inf")
     if np.ptp(y) == 0:
         raise FitError("every score is equal: nothing to explain; check the scores column")
     X = np.column_stack([ip, ia])
-    if np.linalg.matrix_rank(X, tol=1e-12 * max(1.0, float(np.abs(X).max()))) < 2:
+    design = _design(X)
+    if design.rank < 2:
         raise FitError("Ip and Ia are collinear (or zero) over these stimuli: (a, b) is not "
                        "identifiable; add stimuli from both methods")
     a, b = (float(v) for v in _solve(X, y, nonnegative))
     metrics = {}
     for name, pred, x in (("Iobj", X @ [a, b], a * ip + b * ia), ("Ip", None, ip), ("Ia", None, ia)):
         if pred is None:
-            w = float(_solve(x[:, None], y, nonnegative)[0])
+            w = float(_solve(x[:, None], y, nonnegative)[0]) if np.any(x) else 0.0
             pred = w * x
         metrics[name] = {"r2_pearson": pearson_r2(x, y), "r2_fit": r2_fit(pred, y)}
     for m in metrics.values():
@@ -174,9 +246,20 @@ def fit(stimuli: list[Stimulus], *, nonnegative: bool = False,
                 m[k] = None  # an index that is constant over the stimuli has no correlation
     excluded = [{"texture": s.texture, "method": s.method, "level": s.level, "why": s.excluded}
                 for s in stimuli if s.excluded]
-    se = standard_errors(X, y, np.array([a, b]))
-    ci = bootstrap_intervals(X, y, nonnegative, n_boot) if n_boot else None
     warns = []
+    distinct = len({(float(p), float(q)) for p, q in X})
+    if distinct < len(used):
+        warns.append(f"only {distinct} distinct (Ip, Ia) rows among {len(used)} stimuli: repeats of "
+                     "one stimulus are not independent evidence, so the standard errors count "
+                     "each distinct row once"
+                     + (" and are not available (no degrees of freedom left)" if distinct <= 2
+                        else f" ({distinct - 2} degrees of freedom)"))
+    se = standard_errors(X, y, np.array([a, b]), dof=distinct - 2)
+    if design.cond > COND_WARN:
+        warns.append(f"Ip and Ia are nearly collinear over these stimuli (condition number "
+                     f"{design.cond:.1e} of the unit-scaled columns): (a, b) are poorly determined; "
+                     "add stimuli that separate the two indices (both methods, several levels)")
+    ci = bootstrap_intervals(X, y, nonnegative, n_boot) if n_boot else None
     if len(used) < 2 * MIN_PER_PARAMETER:
         warns.append(f"only {len(used)} stimuli for 2 weights (fewer than {MIN_PER_PARAMETER} per "
                      "parameter): (a, b) are poorly determined; see their intervals")

@@ -57,39 +57,158 @@ def exact_sum(terms: np.ndarray) -> np.ndarray:
         raise QualityError("a weighted sum overflows float64; the coefficients are too large") from None
 
 
+# Scaling (issue 23): P = sum (C_k / b_k)^2 over- or underflows float64 long before the
+# texture stops making sense as numbers (heights x 1e150 or x 1e-300, thresholds of 1e200 µm
+# or 5e-324 µm). The sums are therefore computed on C 2^-s and b 2^t, powers of two chosen
+# so the largest weighted term is near 1, and carried as (mantissa, binary exponent) pairs:
+# P = ldexp(p, 2 e), A = ldexp(a, e) with e = s + t. Scaling by a power of two is exact in
+# float64's normal range, so every term, and the correctly rounded sum, is exactly the
+# unscaled one times 2^(-2e) (or 2^-e): where the unscaled computation has no over- or
+# underflow the scaled one gives the same bits (stream headers are unchanged). Inputs in that
+# safe range are not scaled at all.
+_SAFE_LOG2 = 400  # |log2| of b and of the largest |C_k| / b_k inside which no scaling is done
+
+
+def _log2_exponent(x: float) -> int:
+    """e with x = m 2^e, 0.5 <= m < 1 (x > 0, finite; subnormals included)."""
+    return math.frexp(x)[1]
+
+
+@dataclass(frozen=True)
+class WeightedSums:
+    """P = ldexp(p, 2 exp) and A = ldexp(a, exp), each mantissa sum correctly rounded."""
+
+    p: np.ndarray
+    a: np.ndarray
+    exp: int
+
+    @property
+    def P(self) -> np.ndarray:
+        """P as float64 (inf or a denormal when it does not fit)."""
+        with np.errstate(over="ignore", under="ignore"):
+            return np.ldexp(self.p, 2 * self.exp)
+
+    @property
+    def A(self) -> np.ndarray:
+        with np.errstate(over="ignore", under="ignore"):
+            return np.ldexp(self.a, self.exp)
+
+
+def scaled_weights(threshold_um: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """(1/b'^2, 1/b', t) with b' = b 2^t: weights that are finite and nonzero for any b > 0
+    (t = 0 when b is inside 2^-400..2^400, so the weights are exactly `weights(b)`)."""
+    b = np.asarray(threshold_um, dtype=np.float64)
+    _finite("threshold", b)
+    if np.any(b <= 0):
+        raise QualityError("thresholds must be > 0 µm")
+    t = 0
+    if b.size:
+        lo, hi = float(b.min()), float(b.max())
+        if not (2.0 ** -_SAFE_LOG2 <= lo and hi <= 2.0 ** _SAFE_LOG2):
+            t = -_log2_exponent(hi)
+            b = np.ldexp(b, t)  # max b' in [0.5, 1): exact, also for subnormal b
+    w2, w1 = weights(b)
+    if not (np.all(np.isfinite(w2)) and np.all(w2 > 0)):
+        raise QualityError("the threshold curve spans more than float64 can weigh (its largest and "
+                           "smallest value differ by more than 1e300): check its unit (µm peak)")
+    return w2, w1, t
+
+
+def scale_exponent(coeffs_um: np.ndarray, w1: np.ndarray) -> int:
+    """s such that max |C_k 2^-s| / b_k is near 1 (0 when no scaling is needed)."""
+    c = np.abs(np.asarray(coeffs_um, dtype=np.float64))
+    cmax = float(c.max()) if c.size else 0.0
+    if cmax == 0.0:
+        return 0
+    ec = _log2_exponent(cmax)
+    r = float(np.max(np.multiply(np.ldexp(c, -ec), w1)))  # <= max w1: finite
+    if r == 0.0:
+        return 0
+    s = ec + _log2_exponent(r)
+    return 0 if abs(s) <= _SAFE_LOG2 // 2 else s
+
+
+def scaled_sums(coeffs_um: np.ndarray, threshold_um: np.ndarray) -> WeightedSums:
+    """P and A of eq. 8, 9 as (mantissa, exponent) pairs, never over- or underflowing.
+
+    A 1-D spectrum is summed with `exact_sum` (the same bits on every CPU); a 2-D array of
+    variants takes the BLAS path (~1e-16 relative), with one exponent for all of them.
+    """
+    c = np.asarray(coeffs_um, dtype=np.float64)
+    _finite("coefficients", c)
+    w2, w1, t = scaled_weights(threshold_um)
+    if c.shape[-1] != w1.shape[-1]:
+        raise QualityError(f"{c.shape[-1]} coefficients but {w1.shape[-1]} thresholds")
+    s = scale_exponent(c, w1)
+    if s:
+        c = np.ldexp(c, -s)
+    if c.ndim > 1:
+        # Bulk scoring of many variants (benchmarks, sweeps): BLAS, ~1e-16 relative, and the
+        # last bit may depend on the CPU. Nothing written into a stream comes from here.
+        p, a = np.multiply(c, c) @ w2, np.abs(c) @ w1
+    else:
+        p = exact_sum(np.multiply(np.multiply(c, c), w2))
+        a = exact_sum(np.multiply(np.abs(c), w1))
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(a))):
+        raise QualityError("weighted sums overflow float64 even after scaling; the coefficients "
+                           "span too wide a range")
+    return WeightedSums(p, a, s + t)
+
+
+_NORMAL_MIN = float(np.finfo(np.float64).tiny)
+
+
 def weighted_sums(coeffs_um: np.ndarray, threshold_um: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """P = sum C_k^2 / b(f_k)^2 and A = sum |C_k| / b(f_k) over the last axis.
+    """P = sum C_k^2 / b(f_k)^2 and A = sum |C_k| / b(f_k) over the last axis, as float64.
 
     Terms: (C_k * C_k) * (1/b_k)^2 and |C_k| * (1/b_k), each an elementwise IEEE operation;
     sums of a 1-D spectrum: `exact_sum` (correctly rounded), bit-identical on every CPU; this
     is the path of every stream header and every decoded stream. A 2-D array (many variants
     at once) takes the fast BLAS path instead (equal to ~1e-16 relative).
+
+    The values must fit float64's normal range (a stream header stores them): a sum that
+    over- or underflows is refused with a message, never returned as inf or a denormal 0.
+    Scores that need no header (`score`, `scores_from_weighted`) use `scaled_sums` instead and
+    work for any finite input.
     """
-    c = np.asarray(coeffs_um, dtype=np.float64)
-    _finite("coefficients", c)
-    w2, w1 = weights(threshold_um)
-    if c.shape[-1] != w1.shape[-1]:
-        raise QualityError(f"{c.shape[-1]} coefficients but {w1.shape[-1]} thresholds")
-    if c.ndim > 1:
-        # Bulk scoring of many variants (benchmarks, sweeps): BLAS, ~1e-16 relative, and the
-        # last bit may depend on the CPU. Nothing written into a stream comes from here.
-        P, A = np.multiply(c, c) @ w2, np.abs(c) @ w1
-    else:
-        P = exact_sum(np.multiply(np.multiply(c, c), w2))
-        A = exact_sum(np.multiply(np.abs(c), w1))
-    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(A))):
-        raise QualityError("weighted sums overflow float64; the coefficients are too large")
+    ws = scaled_sums(coeffs_um, threshold_um)
+    P, A = ws.P, ws.A
+    big = not (np.all(np.isfinite(P)) and np.all(np.isfinite(A)))
+    tiny = np.any((ws.p > 0) & (P < _NORMAL_MIN)) or np.any((ws.a > 0) & (A < _NORMAL_MIN))
+    if big or tiny:
+        e10 = round((2 * ws.exp + math.log2(float(np.max(ws.p)) or 1.0)) * math.log10(2))
+        raise QualityError(
+            f"P = sum (C_k/b_k)^2 is about 1e{e10}, {'beyond' if big else 'below'} float64's range, "
+            "so a stream header cannot carry it: heights or thresholds are far off the µm scale; "
+            "check --y-unit and the threshold curve's unit, or rescale the heights")
     return P, A
 
 
 def relative_error(x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
     """|x - y| / ((x + y) / 2) for x, y >= 0; defined as 0 when both are 0 (never NaN)."""
-    x = np.asarray(x, dtype=np.float64)
-    y = np.asarray(y, dtype=np.float64)
-    _finite("sums", x)
-    _finite("sums", y)
-    if np.any(x < 0) or np.any(y < 0):
+    return relative_error_scaled(x, 0, y, 0)
+
+
+_NO_EXP = -(1 << 20)  # the exponent of a zero sum (below every real one)
+
+
+def relative_error_scaled(xm, xe, ym, ye) -> np.ndarray:
+    """The relative error of x = ldexp(xm, xe) and y = ldexp(ym, ye) (x, y >= 0), computed on
+    a common power-of-two scale (exact), so it is right whatever the magnitudes: 0 when both
+    are 0, 2 when one is 0 (or smaller than the other by more than float64's range)."""
+    xm = np.asarray(xm, dtype=np.float64)
+    ym = np.asarray(ym, dtype=np.float64)
+    _finite("sums", xm)
+    _finite("sums", ym)
+    if np.any(xm < 0) or np.any(ym < 0):
         raise QualityError("weighted sums must be >= 0")
+    ex = np.where(xm > 0, np.frexp(xm)[1].astype(np.int64) + int(xe), _NO_EXP)
+    ey = np.where(ym > 0, np.frexp(ym)[1].astype(np.int64) + int(ye), _NO_EXP)
+    top = np.maximum(ex, ey)
+    top = np.where(top == _NO_EXP, 0, top)  # both zero
+    # ldexp takes a C int exponent: shifts beyond float64's range give 0 anyway
+    x = np.ldexp(xm, np.clip(int(xe) - top, -2200, 2200).astype(np.int32))
+    y = np.ldexp(ym, np.clip(int(ye) - top, -2200, 2200).astype(np.int32))
     mean = 0.5 * (x + y)
     diff = np.abs(x - y)
     safe = np.where(mean > 0, mean, 1.0)
@@ -112,10 +231,12 @@ class Scores:
 
     def as_dict(self) -> dict[str, float]:
         """Scalar fields as plain floats (for a single variant)."""
-        return {
-            k: float(getattr(self, k))
-            for k in ("P", "A", "P_prime", "A_prime", "Ip", "Ia", "Iobj", "a", "b")
-        }
+        out = {k: float(getattr(self, k))
+               for k in ("P", "A", "P_prime", "A_prime", "Ip", "Ia", "Iobj", "a", "b")}
+        for k in ("P", "A", "P_prime", "A_prime"):
+            if not math.isfinite(out[k]):
+                out[k] = None  # outside float64's range (the indices are still exact: scaled sums)
+        return out
 
 
 def check_ab(a: float, b: float) -> tuple[float, float]:
@@ -149,6 +270,17 @@ def scores_from_sums(
     )
 
 
+def scores_from_weighted(ref: WeightedSums, comp: WeightedSums, a: float = DEFAULT_AB[0],
+                         b: float = DEFAULT_AB[1]) -> Scores:
+    """Ip, Ia, Iobj from scaled sums (`scaled_sums`): exact whatever their magnitude."""
+    a, b = check_ab(a, b)
+    ip = relative_error_scaled(ref.p, 2 * ref.exp, comp.p, 2 * comp.exp)
+    ia = relative_error_scaled(ref.a, ref.exp, comp.a, comp.exp)
+    with np.errstate(over="ignore"):
+        return Scores(P=np.asarray(ref.P), A=np.asarray(ref.A), P_prime=np.asarray(comp.P),
+                      A_prime=np.asarray(comp.A), Ip=ip, Ia=ia, Iobj=a * ip + b * ia, a=a, b=b)
+
+
 def score(
     reference_um: np.ndarray,
     compressed_um: np.ndarray,
@@ -156,7 +288,11 @@ def score(
     a: float = DEFAULT_AB[0],
     b: float = DEFAULT_AB[1],
 ) -> Scores:
-    """Score compressed coefficients (shape (N',) or (M, N')) against reference ones (N',)."""
-    P, A = weighted_sums(reference_um, threshold_um)
-    Pp, Ap = weighted_sums(compressed_um, threshold_um)
-    return scores_from_sums(P, A, Pp, Ap, a, b)
+    """Score compressed coefficients (shape (N',) or (M, N')) against reference ones (N',).
+
+    The sums are scaled (`scaled_sums`), so heights or thresholds anywhere in float64's range
+    give the same indices as at the display's scale; the P, A fields are inf or 0 when the
+    sums themselves do not fit float64.
+    """
+    return scores_from_weighted(scaled_sums(reference_um, threshold_um),
+                                scaled_sums(compressed_um, threshold_um), a, b)
