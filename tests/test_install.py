@@ -137,23 +137,82 @@ def test_etc_overrides_the_shipped_data(tmp_path, monkeypatch):
 
 def test_install_service_from_the_wheel(venv, tmp_path):
     stage = tmp_path / "root"
+    # this venv is under /tmp, which the unit hides (PrivateTmp=yes): refused with the reason and the fix
     r = _run(venv, tmp_path, "install-service", "--prefix", str(stage), "--dry-run")
+    assert r.returncode == 2 and "PrivateTmp=yes" in r.stderr and "203/EXEC" in r.stderr, r.stderr
+    assert "/opt/hostd" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    exe = "/opt/hostd/bin/hostd"  # a package build stages the files for where hostd will be
+    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage), "--exec", exe, "--dry-run")
     assert r.returncode == 0 and "would install" in r.stdout, r.stderr
     assert not stage.exists()  # a dry run writes nothing
-    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage))
+    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage), "--exec", exe)
     assert r.returncode == 0, r.stderr
     unit = stage / "etc/systemd/system/hostd.service"
     for f in (unit, stage / "etc/udev/rules.d/70-hostd.rules", stage / "etc/sysusers.d/hostd.conf",
               stage / "etc/tmpfiles.d/hostd.conf", stage / "etc/hostd/hostd.toml"):
         assert f.is_file() and (f.stat().st_mode & 0o777) == 0o644, f
-    exe = venv / "bin" / "hostd"
     assert f"ExecStart={exe} run --config /etc/hostd/hostd.toml" in unit.read_text()
     assert "systemctl daemon-reload" in r.stdout  # another prefix: the commands are printed, not run
     # an edited config is never overwritten
     (stage / "etc/hostd/hostd.toml").write_text("# mine\n")
-    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage))
+    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage), "--exec", exe)
     assert r.returncode == 0 and "kept" in r.stdout
     assert (stage / "etc/hostd/hostd.toml").read_text() == "# mine\n"
     if shutil.which("systemd-analyze"):
-        v = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True)
+        # verify wants ExecStart to exist: the same unit pointed at this venv's hostd (the man page
+        # of Documentation= is installed by the live install-service, not in this staging tree)
+        here = tmp_path / "hostd.service"
+        here.write_text(unit.read_text().replace(exe, str(venv / "bin" / "hostd")))
+        v = subprocess.run(["systemd-analyze", "verify", "--man=no", str(here)], capture_output=True,
+                           text=True)
         assert v.returncode == 0, v.stderr
+
+
+@pytest.mark.parametrize("where, why", [
+    ("/home/ann/.venv/bin/hostd", "ProtectHome=yes"), ("/root/v/bin/hostd", "ProtectHome=yes"),
+    ("/run/user/1000/v/bin/hostd", "ProtectHome=yes"), ("/tmp/v/bin/hostd", "PrivateTmp=yes"),
+    ("/var/tmp/v/bin/hostd", "PrivateTmp=yes"), ("/opt/pipx/venvs/hostd/bin/hostd", "pipx"),
+    ("/home/ann/.local/share/pipx/venvs/hostd/bin/hostd", "pipx"),
+])
+def test_install_service_refuses_an_exec_the_unit_cannot_reach(where, why, tmp_path, capsys):
+    from hostd.cli import main
+
+    assert main(["install-service", "--prefix", str(tmp_path / "r"), "--exec", where]) == 2
+    err = capsys.readouterr().err
+    assert why in err and "/opt/hostd" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "r").exists()
+    from hostd.service.install import exec_problem
+
+    assert exec_problem(Path("/opt/hostd/bin/hostd"), Path("/usr/bin/python3.11")) is None
+    assert "its Python" in exec_problem(Path("/opt/hostd/bin/hostd"), Path("/home/a/.pyenv/bin/python3"))
+
+
+def test_dry_run_says_exactly_what_the_real_run_does(tmp_path, monkeypatch, capsys):
+    """--dry-run lists the commands the same call runs (and --enable adds systemctl enable --now)."""
+    from hostd.service import install as inst
+
+    monkeypatch.setattr(inst, "hostd_executable", lambda: Path("/opt/hostd/bin/hostd"))
+    monkeypatch.setattr(inst.sys, "executable", "/usr/bin/python3")
+    sysfs = tmp_path / "sys"  # a plugged-in display and another USB device
+    for name, vid, pid in (("1-2", "1209", "7470"), ("1-3", "046d", "c52b")):
+        (sysfs / name).mkdir(parents=True)
+        (sysfs / name / "idVendor").write_text(vid + "\n")
+        (sysfs / name / "idProduct").write_text(pid + "\n")
+    monkeypatch.setattr(inst, "SYS_USB", sysfs)
+    monkeypatch.setattr(inst.shutil, "which", lambda c: f"/usr/bin/{c}")
+    ran: list[str] = []
+    monkeypatch.setattr(inst.subprocess, "run", lambda c, **kw: ran.append(" ".join(c)) or
+                        subprocess.CompletedProcess(c, 0, "", ""))
+    for enable in (False, True):
+        root = tmp_path / f"root{enable}"
+        assert inst.install(str(root), dry_run=True, run_commands=True, enable=enable) == 0
+        said = [ln.removeprefix("would run ") for ln in capsys.readouterr().out.splitlines()
+                if ln.startswith("would run ")]
+        assert not root.exists() and not ran
+        assert inst.install(str(root), dry_run=False, run_commands=True, enable=enable) == 0
+        capsys.readouterr()
+        assert said == ran, (said, ran)
+        assert ("systemctl enable --now hostd" in ran) == enable
+        assert f"udevadm trigger --action=add --parent-match={(sysfs / '1-2').resolve()}" in ran
+        assert not [c for c in ran if "1-3" in c or "--subsystem-match" in c]  # only the display
+        ran.clear()

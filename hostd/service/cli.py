@@ -14,15 +14,23 @@ from hostd.errors import HostdError
 def _conn_parent() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(add_help=False)
     p.add_argument("--config", default=None, metavar="FILE",
-                   help="daemon config (its control.socket and quality.db); default: built-in defaults")
+                   help="daemon config (its control.socket and quality.db); default: $HOSTD_CONFIG, "
+                   "else /etc/hostd/hostd.toml if it exists, else the built-in defaults (as hostd run)")
     p.add_argument("--socket", default=None, metavar="PATH", help="control socket (overrides --config)")
     return p
+
+
+def _config(args) -> str | None:
+    """The config file this command reads: the daemon's own resolution (config.resolve_path)."""
+    from hostd.service.config import resolve_path
+
+    return resolve_path(args.config)
 
 
 def _sock(args) -> str:
     from hostd.service.client import socket_path
 
-    return args.socket or socket_path(args.config)
+    return args.socket or socket_path(_config(args))
 
 
 def cmd_run(args) -> int:
@@ -30,7 +38,7 @@ def cmd_run(args) -> int:
     from hostd.service.daemon import Daemon
     from hostd.service.logsetup import setup
 
-    cfg = load(args.config)
+    cfg = load(_config(args))
     setup(args.log_level)
     return Daemon(cfg).run()
 
@@ -119,7 +127,7 @@ def cmd_quality(args) -> int:
     from hostd.service import qualitylog
     from hostd.service.config import load
 
-    db = args.db or load(args.config).quality.db
+    db = args.db or load(_config(args)).quality.db
     import sqlite3
 
     try:
@@ -147,20 +155,23 @@ def cmd_quality(args) -> int:
 def cmd_doctor(args) -> int:
     from hostd.service.doctor import doctor
 
-    return doctor(args.config, json_out=args.json)
+    return doctor(_config(args), json_out=args.json)
 
 
 def cmd_install_service(args) -> int:
     from hostd.service.install import install
 
-    return install(args.prefix, dry_run=args.dry_run)
+    return install(args.prefix, dry_run=args.dry_run, enable=args.enable, exec_path=args.exec_path)
 
 
 def add_parsers(sub) -> None:
     conn = _conn_parent()
     p = sub.add_parser("run", help="run the daemon (foreground; systemd runs it as a service)")
-    p.add_argument("--config", default=None, metavar="FILE", help="config file (see config/hostd.toml)")
-    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="config file (see config/hostd.toml); default: $HOSTD_CONFIG, else "
+                   "/etc/hostd/hostd.toml if it exists, else the built-in defaults")
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
+                   help="least severe message logged (default info; debug adds per-request detail)")
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("send", parents=[conn], help="send a .vtx stream to the daemon's library")
     p.add_argument("file")
@@ -188,9 +199,15 @@ def add_parsers(sub) -> None:
                        "and a default config (pointing the unit at this installation)")
     p.add_argument("--prefix", default="/", help="install under this root (default /; another root only "
                    "stages the files and prints the commands)")
-    p.add_argument("--dry-run", action="store_true", help="say what would be installed; write nothing")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print exactly what the same call without --dry-run writes and runs; change nothing")
+    p.add_argument("--enable", action="store_true", help="also run systemctl enable --now hostd")
+    p.add_argument("--exec", dest="exec_path", default=None, metavar="PATH",
+                   help="the hostd the unit runs (default: this installation's; for package builds "
+                   "staged with --prefix, e.g. /opt/hostd/bin/hostd)")
     p.set_defaults(func=cmd_install_service)
     p = sub.add_parser("doctor", help="check device, permissions, real-time capability, config, database")
-    p.add_argument("--config", default=None, metavar="FILE")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="default: $HOSTD_CONFIG, else /etc/hostd/hostd.toml if it exists, else the defaults")
     p.add_argument("--json", action="store_true", help="print the checks as one JSON object")
     p.set_defaults(func=cmd_doctor)

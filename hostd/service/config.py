@@ -180,6 +180,22 @@ def _check(path: str, section: str, key: str, value, default):
     return value
 
 
+DEFAULT_PATH = "/etc/hostd/hostd.toml"  # what `hostd install-service` installs and the unit names
+ENV_VAR = "HOSTD_CONFIG"
+
+
+def resolve_path(given: str | Path | None) -> str | None:
+    """The config file the daemon and every client read: --config if given, else $HOSTD_CONFIG,
+    else /etc/hostd/hostd.toml when it exists, else None (the built-in defaults). One function,
+    so that `hostd status` after editing control.socket looks where `hostd run` listens."""
+    if given:
+        return str(given)
+    env = os.environ.get(ENV_VAR)
+    if env:
+        return env
+    return DEFAULT_PATH if Path(DEFAULT_PATH).is_file() else None
+
+
 def load(path: str | Path | None) -> Config:
     """Read and validate a config file (None: the defaults)."""
     cfg = Config()
