@@ -123,6 +123,7 @@ class Daemon:
         self.quality_q: queue.Queue = queue.Queue()
         self.stop_event = threading.Event()
         self.selected: str | None = None
+        self.play: tuple[str, str, float, dict] | None = None  # name, sha256, started, counters
         self.accepted = 0
         self.refused = 0
         self.lock = threading.Lock()
@@ -151,16 +152,49 @@ class Daemon:
     def select(self, name: str) -> dict:
         from hostd.codec import stream as vtx
 
-        s = vtx.decode(self.library.read(name))
+        data = self.library.read(name)
+        s = vtx.decode(data)
+        self.end_play()
         self.conn.send(("select", (name, s.coefficients.tolist(), s.n, s.length_mm)))
         self.selected = name
+        self.play = (name, hashlib.sha256(data).hexdigest(), time.time(), self.counters())
         log.info("playing %s", name)
         return {"playing": name}
 
     def stop_playing(self) -> dict:
+        self.end_play()
         self.conn.send(("stop",))
         self.selected = None
         return {"playing": None}
+
+    def end_play(self) -> None:
+        """Log what the texture being played was delivered, from the device's own counters (the
+        pump's health snapshot) before the next select, stop or shutdown: the time the device
+        played it from its buffer, its played_fraction and the underruns it counted meanwhile."""
+        with self.lock:
+            play, self.play = self.play, None
+        if play is None:
+            return
+        name, sha, started, c0 = play
+        c1 = self.counters()
+        row = {"name": name, "sha256": sha, "started_at": started, "ended_at": time.time(),
+               "device_s": max(c1["device_time_s"] - c0["device_time_s"], 0.0),
+               "played_s": max(c1["device_samples_played"] - c0["device_samples_played"], 0)
+               / SAMPLE_RATE_HZ,
+               "played_fraction": (c1["played_fraction"] if c1["device_time_s"] > c0["device_time_s"]
+                                   else None),
+               "underruns": max(c1["device_underruns"] - c0["device_underruns"], 0)}
+        try:
+            con = qualitylog.connect(self.db_path)
+            try:
+                qualitylog.insert_play(con, row)
+            finally:
+                con.close()
+            log.info("played %s: %.1f s from the buffer, played fraction %s, %d underruns", name,
+                     row["played_s"], "-" if row["played_fraction"] is None else
+                     f"{row['played_fraction']:.2%}", row["underruns"])
+        except sqlite3.Error as e:  # the log must not stop playback
+            log.error("quality log: cannot record the play of %s: %s", name, e)
 
     def counters(self) -> dict:
         """The pump's counters, from shared memory."""
@@ -439,6 +473,8 @@ class Daemon:
                                      f"stalls={st['stalls']} recoveries={st['recoveries']}")
         finally:
             self.notifier.notify("STOPPING=1")
+            if self.proc.is_alive():
+                self.end_play()
             try:
                 self.conn.send(("quit",))
             except (OSError, BrokenPipeError):
