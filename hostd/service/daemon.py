@@ -129,6 +129,7 @@ class Daemon:
         self.lock = threading.Lock()
         self.notifier = Notifier()
         self.control: ControlServer | None = None
+        self.metrics = None  # the Prometheus endpoint's server, when metrics.listen is set
         self.workers: dict[str, tuple[Callable[[], None], threading.Thread | None, list[float]]] = {}
         self.dead_workers: set[str] = set()
 
@@ -394,6 +395,21 @@ class Daemon:
             return {"shutting_down": True}
         raise BadRequest(f"unknown command {cmd!r:.40}")
 
+    def latest_quality(self) -> list[dict]:
+        """The latest quality row per texture name, with what was delivered (for the metrics)."""
+        con = qualitylog.connect_readonly(self.db_path)
+        try:
+            return list({r["name"]: r for r in qualitylog.query(con)}.values())
+        finally:
+            con.close()
+
+    def serve_metrics(self) -> None:
+        from hostd.service.metrics import parse_listen, start
+
+        listen = parse_listen(self.cfg.metrics.listen, f"{self.cfg.path}: metrics.listen")
+        if listen is not None:
+            self.metrics = start(listen, self.status, self.latest_quality)
+
     def serve_socket(self) -> None:
         c = self.cfg.control
         self.control = ControlServer(c.socket, c.group, c.max_clients, self.handle_conn)
@@ -431,6 +447,7 @@ class Daemon:
 
     # ------------------------------------------------------------ main
     def run(self) -> int:
+        self.serve_metrics()  # a wrong or busy metrics.listen stops the start, before the pump runs
         self.proc.start()
         self.serve_socket()
         log.info("listening on %s", self.cfg.control.socket)
@@ -483,6 +500,8 @@ class Daemon:
             if self.proc.is_alive():
                 self.proc.terminate()
             self.stop_event.set()
+            if self.metrics is not None:
+                self.metrics.shutdown()
             if self.control is not None:
                 self.control.close()
                 Path(self.cfg.control.socket).unlink(missing_ok=True)
