@@ -54,7 +54,8 @@ class Geometry:
         if k >= self.n:
             raise CodecError(
                 f"fmax {self.fmax_hz} Hz asks for N' = {k} components but the patch has only "
-                f"N = {self.n} samples (N' must be < N): lower --fmax or sample more finely"
+                f"N = {self.n} samples (N' must be < N; spacing {self.spacing_um:.4g} µm): check --x-unit "
+                f"(is x really in that unit?), or lower --fmax or sample more finely"
             )
         return k
 

@@ -117,9 +117,10 @@ class Daemon:
             self.curve = load_csv(cfg.quality.thresholds)
         ctx = mp.get_context("spawn")
         self.stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
-        self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=pump_main, args=(cfg, child, self.stats), name="hostd-pump",
-                                daemon=True)
+        self.conn, self.child_conn = ctx.Pipe()
+        self.proc = ctx.Process(target=pump_main, args=(cfg, self.child_conn, self.stats),
+                                name="hostd-pump", daemon=True)
+        self.signalled = False  # set by the SIGTERM/SIGINT handler, which must take no lock
         self.quality_q: queue.Queue = queue.Queue()
         self.stop_event = threading.Event()
         self.selected: str | None = None
@@ -446,9 +447,45 @@ class Daemon:
         return not self.dead_workers
 
     # ------------------------------------------------------------ main
+    def on_signal(self, *_) -> None:
+        """SIGTERM/SIGINT: only a flag. The handler runs in the main thread between two bytecodes,
+        possibly while that thread holds stop_event's internal lock (inside Event.wait); calling
+        stop_event.set() here would then wait for itself forever."""
+        self.signalled = True
+
+    def send_to_pump(self, msg: tuple, timeout_s: float = 1.0) -> bool:
+        """Send a command unless the pipe stays full for timeout_s (a pump that stopped reading)."""
+        import select
+
+        try:
+            if select.select([], [self.conn.fileno()], [], timeout_s)[1]:
+                self.conn.send(msg)
+                return True
+        except (OSError, ValueError):
+            pass
+        return False
+
+    def stop_pump(self) -> None:
+        """Bounded: ask the pump to quit (it ramps the output to zero), then SIGTERM, then SIGKILL;
+        the process is reaped in every case, so interpreter exit has no child left to wait for
+        (multiprocessing joins daemonic children without a timeout at exit)."""
+        self.send_to_pump(("quit",))
+        self.proc.join(3.0)
+        if self.proc.is_alive():
+            log.warning("the pump did not stop within 3 s; terminating it")
+            self.proc.terminate()
+            self.proc.join(2.0)
+        if self.proc.is_alive():
+            log.error("the pump ignored SIGTERM; killing it (the firmware ramps to zero on host timeout)")
+            self.proc.kill()
+            self.proc.join(2.0)
+
     def run(self) -> int:
         self.serve_metrics()  # a wrong or busy metrics.listen stops the start, before the pump runs
         self.proc.start()
+        # our copy of the pump's end: closed, so a dead pump reads as EOF (a pending recv() or a
+        # send into a full pipe would otherwise wait forever for a peer that no longer exists)
+        self.child_conn.close()
         self.serve_socket()
         log.info("listening on %s", self.cfg.control.socket)
         self.start_worker("control", self.control.accept_loop)
@@ -456,11 +493,11 @@ class Daemon:
         self.start_worker("spool", self.spool_watcher)
         self.rescore_missing()
         for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda *_: self.stop_event.set())
+            signal.signal(sig, self.on_signal)
         ready = False
         last_cycles = -1.0
         try:
-            while not self.stop_event.wait(0.2):
+            while not (self.signalled or self.stop_event.wait(0.2) or self.signalled):
                 try:
                     while self.conn.poll():
                         kind, msg = self.conn.recv()
@@ -492,13 +529,7 @@ class Daemon:
             self.notifier.notify("STOPPING=1")
             if self.proc.is_alive():
                 self.end_play()
-            try:
-                self.conn.send(("quit",))
-            except (OSError, BrokenPipeError):
-                pass
-            self.proc.join(3.0)
-            if self.proc.is_alive():
-                self.proc.terminate()
+            self.stop_pump()
             self.stop_event.set()
             if self.metrics is not None:
                 self.metrics.shutdown()
