@@ -302,9 +302,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 def cmd_report_rate_quality(args: argparse.Namespace) -> int:
     from hostd.codec import transform
+    from hostd.extras import need
     from hostd.perception import thresholds
     from hostd.report import rate_quality
 
+    need("matplotlib", "plot", "hostd report rate-quality (its PNG)")  # before the sweep
     prof = read_profile(args.profile, args)
     curve = thresholds.resolve(args.thresholds)
     geom = transform.Geometry(prof.n, prof.length_mm, args.speed, args.fmax)
@@ -366,6 +368,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
         return codec_demo(out_dir=args.out)
     return daemon_demo(out_dir=args.out, seconds_per_texture=args.seconds, force_sim=args.sim,
                        render_at=args.render)
+
+
+def cmd_completion(args: argparse.Namespace) -> int:
+    from hostd.docgen import completion
+
+    sys.stdout.write(completion(args.shell))
+    return 0
+
+
+def cmd_manpage(args: argparse.Namespace) -> int:
+    from hostd.docgen import man_page
+
+    sys.stdout.write(man_page())
+    return 0
 
 
 # ---------------------------------------------------------------- parser
@@ -483,6 +499,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-progress", action="store_true")
     r.add_argument("--json", action="store_true", help="print notes and every row as JSON")
     r.set_defaults(func=cmd_report_rate_quality)
+
+    p = sub.add_parser("completion", help="print the shell completion script (bash, zsh)",
+                       description="Print the completion script; install-service installs both. By "
+                       "hand: hostd completion bash > ~/.local/share/bash-completion/completions/hostd")
+    p.add_argument("shell", choices=["bash", "zsh"])
+    p.set_defaults(func=cmd_completion)
+    p = sub.add_parser("manpage", help="print the man page hostd(8) (roff), generated from this parser",
+                       description="install-service installs it as /usr/local/share/man/man8/hostd.8")
+    p.set_defaults(func=cmd_manpage)
 
     from hostd.bench.cli import add_parser as add_bench
     from hostd.service.cli import add_parsers as add_service

@@ -145,7 +145,9 @@ def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int,
     """Three panels sharing the byte axis: Iobj = a Ip + b Ia (with a, b), Ip and Ia. Table I
     settings of the paper are labelled (L = levels for quant, b0 in dB for cut) where there
     is room; the cut series with 16-bit survivors shares the b0 labels of the exact one."""
-    import matplotlib
+    from hostd.extras import need
+
+    matplotlib = need("matplotlib", "plot", "the rate-quality PNG")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -79,11 +79,17 @@ def unit_text(exe: Path) -> str:
 
 
 def plan(prefix: Path, exe: Path) -> list[tuple[Path, bytes, int, bool]]:
-    """(destination, content, mode, overwrite) for every file."""
+    """(destination, content, mode, overwrite) for every file: the unit and its companions, the man
+    page the unit's Documentation= names and the shell completions (generated from the parser)."""
+    from hostd import docgen
+
     out = []
     for src, dest, mode in FILES:
         data = unit_text(exe).encode() if src == "hostd.service" else (paths.systemd_dir() / src).read_bytes()
         out.append((prefix / dest, data, mode, True))
+    out.append((prefix / docgen.MAN_DEST, docgen.man_page().encode(), 0o644, True))
+    for shell, dest in docgen.COMPLETION_DEST.items():
+        out.append((prefix / dest, docgen.completion(shell).encode(), 0o644, True))
     out.append((prefix / CONFIG_DEST, (paths.shipped_dir() / "hostd.toml").read_bytes(), 0o644, False))
     return out
 

@@ -25,6 +25,12 @@ def add_parser(sub) -> None:
 def cmd_sim(args) -> int:
     from pathlib import Path
 
+    from hostd.extras import need
+
+    need("finufft", "sim", "hostd sim")  # before any work: the series fits of every run
+    if args.plot:
+        need("matplotlib", "plot", "hostd sim --plot")
+
     from hostd.paths import find
     from hostd.sim import scene
 
