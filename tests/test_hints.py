@@ -151,3 +151,15 @@ def test_demo_removes_its_temporary_directory(monkeypatch, tmp_path):
     assert demo._in_dir(None, body(0)) == 0 and not seen[-1].exists()  # success: removed
     assert demo._in_dir(None, body(1)) == 1 and seen[-1].exists()  # failure: kept for its logs
     assert demo._in_dir(str(tmp_path / "keep"), body(0)) == 0 and (tmp_path / "keep" / "f").exists()
+
+
+def test_profile_options_live_below_both_clis():
+    """cli.py <-> bench/cli.py: the profile-reading options are in hostd/cliopts.py, which both import."""
+    import subprocess
+    import sys
+
+    src = (ROOT / "hostd" / "bench" / "cli.py").read_text()
+    assert "from hostd.cli import" not in src and "from hostd.cliopts import read_profile" in src
+    r = subprocess.run([sys.executable, "-c", "import sys, hostd.bench.cli, hostd.cliopts; "
+                        "print('hostd.cli' in sys.modules)"], capture_output=True, text=True, timeout=120)
+    assert r.stdout.strip() == "False", r.stderr

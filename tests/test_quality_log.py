@@ -128,7 +128,7 @@ def test_csv_and_json_times_are_iso_8601_with_the_zone(tmp_path, capsys):
     assert {"plays", "played_s", "played_fraction", "underruns"} <= set(rows[0])
 
 
-def test_what_was_delivered_is_logged_with_the_quality_row(daemon, capsys):  # noqa: F811
+def test_what_was_delivered_is_logged_with_the_quality_row(daemon, capsys, monkeypatch):  # noqa: F811
     """Per texture played: the time the device played it from its buffer, its played fraction and
     the underruns it counted, from the device's own counters, next to Iobj."""
     _proc, d, sock = daemon
@@ -159,6 +159,8 @@ def test_what_was_delivered_is_logged_with_the_quality_row(daemon, capsys):  # n
         <= after["device_samples_played"] / 3000
     assert w1["played_s"] > 0.5 and 0.0 < w1["played_fraction"] <= 1.0
     assert w1["underruns"] == 0 or w1["underruns"] <= after["device_underruns"]
-    assert main(["quality", "--config", str(d / "hostd.toml")]) == 0
+    monkeypatch.setenv("HOSTD_CONFIG", str(d / "hostd.toml"))  # as /etc/hostd/hostd.toml would be
+    assert main(["quality"]) == 0  # no --config: the daemon's own config
     out = capsys.readouterr().out
     assert "underruns" in out.splitlines()[0] and "%" in out
+    assert main(["status", "--json"]) == 0 and json.loads(capsys.readouterr().out)["library"] == 2
