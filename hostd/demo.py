@@ -206,8 +206,11 @@ def _daemon_demo(out: Path, seconds_per_texture: float, force_sim: bool, render_
                   f"{fig['underrun_episodes']} underrun episode(s), "
                   f"longest silence {fig['longest_silence_ms']:.0f} ms")
     print(f"  quality log ({out / 'quality.sqlite'}): {len(rows)} rows")
-    print(f"  {'name':<16} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8}")
-    for r in rows:
+    print(f"  {'name':<16} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8} {'played':>8} "
+          f"{'underruns':>9}")
+    for r in rows:  # received (Iobj) next to delivered (the device's counters while it played)
+        pf = "-" if r.get("played_fraction") is None else f"{r['played_fraction']:.2%}"
+        un = "-" if r.get("underruns") is None else str(r["underruns"])
         print(f"  {r['name']:<16} {r['bytes']:>6} {r['method']:<6} {r['ip']:>8.4f} {r['ia']:>8.4f} "
-              f"{r['iobj']:>8.4f}")
+              f"{r['iobj']:>8.4f} {pf:>8} {un:>9}")
     return 0
