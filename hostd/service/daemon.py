@@ -179,12 +179,14 @@ class Daemon:
             return
         name, sha, started, c0 = play
         c1 = self.counters()
+        device_s = max(c1["device_time_s"] - c0["device_time_s"], 0.0)
+        fraction = c1["played_fraction"] if device_s > 0 else None
+        if c1["render_at"] == "device":  # the display renders: nothing is played from its buffer,
+            played_s = (fraction or 0.0) * device_s  # the share of device time it reported rendering
+        else:
+            played_s = max(c1["device_samples_played"] - c0["device_samples_played"], 0) / SAMPLE_RATE_HZ
         row = {"name": name, "sha256": sha, "started_at": started, "ended_at": time.time(),
-               "device_s": max(c1["device_time_s"] - c0["device_time_s"], 0.0),
-               "played_s": max(c1["device_samples_played"] - c0["device_samples_played"], 0)
-               / SAMPLE_RATE_HZ,
-               "played_fraction": (c1["played_fraction"] if c1["device_time_s"] > c0["device_time_s"]
-                                   else None),
+               "device_s": device_s, "played_s": played_s, "played_fraction": fraction,
                "underruns": max(c1["device_underruns"] - c0["device_underruns"], 0)}
         try:
             con = qualitylog.connect(self.db_path)

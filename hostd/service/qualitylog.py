@@ -49,7 +49,8 @@ CREATE TABLE IF NOT EXISTS plays (
     started_at REAL NOT NULL,       -- unix time, s (host clock)
     ended_at REAL NOT NULL,
     device_s REAL NOT NULL,         -- device clock elapsed while selected, s
-    played_s REAL NOT NULL,         -- samples the device played from its buffer / 3 kHz, s
+    played_s REAL NOT NULL,         -- samples played from the device's buffer / 3 kHz, s (device
+                                    -- mode: played_fraction x device_s, the time it rendered)
     played_fraction REAL,           -- the pump's played_fraction at the end (NULL: never ran)
     underruns INTEGER NOT NULL      -- underrun episodes the device counted meanwhile
 );
