@@ -11,150 +11,20 @@ from pathlib import Path
 import numpy as np
 
 from hostd import __version__
+from hostd.cliopts import (  # noqa: F401  (read_profile, warn, load_opts: kept importable from here)
+    Parser,
+    _ab,
+    _finite,
+    _positive,
+    geometry_parent,
+    index_parent,
+    load_opts,
+    loader_parent,
+    needs_subcommand,
+    read_profile,
+    warn,
+)
 from hostd.errors import HostdError
-
-
-class Parser(argparse.ArgumentParser):
-    """argparse with options anywhere between the positionals (every command) and one-line errors.
-
-    Options may come before, between or after positionals (`hostd iobj REF --length-mm 10 S`):
-    each leaf command parses with `parse_known_intermixed_args`. Errors are one line on stderr
-    with the hint to `--help`, exit code 2.
-    """
-
-    _intermixing = False
-
-    def parse_known_args(self, args=None, namespace=None):
-        if self._intermixing or any(isinstance(a, argparse._SubParsersAction) for a in self._actions):
-            return super().parse_known_args(args, namespace)
-        self._intermixing = True
-        try:
-            return super().parse_known_intermixed_args(args, namespace)
-        finally:
-            self._intermixing = False
-
-    def error(self, message: str):
-        message = " ".join(message.split())
-        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
-
-
-_WARNED: set[str] = set()
-
-
-def warn(command: str, message: str) -> None:
-    """A warning on stderr, once per message and process."""
-    if message not in _WARNED:
-        _WARNED.add(message)
-        print(f"hostd {command}: warning: {message}", file=sys.stderr)
-
-
-def _positive(v: str) -> float:
-    try:
-        x = float(v)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {v!r}") from None
-    if not (np.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0: {v!r}")
-    return x
-
-
-def _finite(v: str) -> float:
-    try:
-        x = float(v)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {v!r}") from None
-    if not np.isfinite(x):
-        raise argparse.ArgumentTypeError(f"must be finite: {v!r}")
-    return x
-
-
-def loader_parent(length_default: float | None = 10.0) -> argparse.ArgumentParser:
-    """The profile-loading options shared by every command that reads a profile."""
-    p = Parser(add_help=False)
-    g = p.add_argument_group("profile loading")
-    units = ["m", "mm", "um", "nm"]
-    g.add_argument("--x-unit", default=None, choices=units, help="unit of x / spacing (default um)")
-    g.add_argument("--y-unit", default="um", choices=units, help="unit of heights (default um)")
-    g.add_argument("--spacing", type=_positive, default=None,
-                   help="sample spacing in x-unit (one-column files; or resampling target)")
-    g.add_argument("--length-mm", type=_positive, default=length_default,
-                   help="patch length taken from the profile, mm "
-                   + ("(default 10; the whole profile if shorter)" if length_default
-                      else "(default: the stream's)"))
-    g.add_argument("--offset-mm", type=float, default=0.0, help="patch start, mm (default 0)")
-    g.add_argument("--detrend", default="none", choices=["none", "mean", "linear"])
-    g.add_argument("--columns", default=None, metavar="X,Y",
-                   help="text files: which columns (1-based) hold x and height, e.g. 2,3; or one "
-                   "column Y for heights only (with --spacing). Default: one or two columns")
-    g.add_argument("--decimal-comma", action="store_true",
-                   help="text files: numbers use a decimal comma (1,5); columns split on ; tab or space")
-    return p
-
-
-def geometry_parent() -> argparse.ArgumentParser:
-    p = Parser(add_help=False)
-    g = p.add_argument_group("geometry and perception")
-    g.add_argument("--speed", type=_positive, default=50.0,
-                   help="reference hand speed v_ref, mm/s (default 50)")
-    g.add_argument("--fmax", type=_positive, default=400.0,
-                   help="band limit at v_ref, Hz (default 400)")
-    g.add_argument("--thresholds", default=None, metavar="CSV",
-                   help="detection-threshold curve (default config/thresholds/default.csv)")
-    return p
-
-
-def index_parent() -> argparse.ArgumentParser:
-    p = Parser(add_help=False)
-    g = p.add_argument_group("quality index")
-    g.add_argument("--preset", default="both", choices=["both", "wood", "sandpaper"],
-                   help="(a, b) fitted in the paper (default both: 0.581, 0.464)")
-    g.add_argument("--a", type=_finite, default=None, help="weight of Ip (overrides --preset)")
-    g.add_argument("--b", type=_finite, default=None, help="weight of Ia (overrides --preset)")
-    return p
-
-
-def _ab(args: argparse.Namespace) -> tuple[float, float]:
-    from hostd.perception.indices import PRESETS
-
-    a, b = PRESETS[args.preset]
-    return (args.a if args.a is not None else a, args.b if args.b is not None else b)
-
-
-def load_opts(args: argparse.Namespace, length_mm: float | None = None):
-    from hostd.texture.load import LoadOptions, parse_columns
-
-    return LoadOptions(
-        x_unit=getattr(args, "x_unit", None) or "um",
-        y_unit=args.y_unit,
-        spacing=args.spacing,
-        length_mm=args.length_mm if args.length_mm is not None else length_mm,
-        offset_mm=args.offset_mm,
-        detrend=args.detrend,
-        columns=parse_columns(getattr(args, "columns", None)),
-        decimal_comma=bool(getattr(args, "decimal_comma", False)),
-        progress=sys.stderr.isatty(),
-    )
-
-
-def read_profile(spec: str, args: argparse.Namespace, length_mm: float | None = None):
-    """A profile file, or 'synthetic:wood[:SEED]' / 'synthetic:sandpaper[:SEED]'."""
-    from hostd.texture import synth
-    from hostd.texture.load import cut_patch, load_profile
-
-    command = getattr(args, "command", "") or ""
-    if synth.is_spec(spec):
-        ignored = [name for name, given in (
-            ("--spacing", getattr(args, "spacing", None) is not None),
-            ("--x-unit", getattr(args, "x_unit", None) is not None),
-            ("--columns", getattr(args, "columns", None) is not None),
-            ("--decimal-comma", getattr(args, "decimal_comma", False)),
-            ("--y-unit", getattr(args, "y_unit", "um") != "um")) if given]
-        if ignored:
-            warn(command, f"{', '.join(ignored)} ignored for {spec} (synthetic profiles are "
-                 "generated in µm at 0.5 µm spacing)")
-        prof = synth.from_spec(spec)
-        return cut_patch(prof.heights_um, prof.spacing_um, load_opts(args, length_mm), spec)
-    return load_profile(spec, load_opts(args, length_mm))
 
 
 def _dump(obj) -> None:
@@ -200,7 +70,9 @@ def cmd_encode(args: argparse.Namespace) -> int:
     for note in res["notes"]:
         warn("encode", note)
     if res.get("size_set_by") == "waveform":
-        print("hostd encode: the waveform criterion, not Iobj, set the size", file=sys.stderr)
+        print(f"hostd encode: note: the waveform criterion (SPQI >= {res['spqi_min']:g}), not Iobj, set "
+              f"the size: Iobj {res['Iobj']:.4f} is under --target-iobj {args.target_iobj:g}; a lower "
+              "--spqi-min (or --no-guard, Iobj alone) gives a smaller stream", file=sys.stderr)
     if res["chosen"] is not None:
         print(f"chose {res['chosen']} after {res['encodes']} encodes in "
               f"{res['search_cpu_s'] * 1e3:.0f} ms CPU", file=sys.stderr)
@@ -253,7 +125,12 @@ def cmd_iobj(args: argparse.Namespace) -> int:
         stream_path, ref_spec = args.first, None
     else:
         stream_path, ref_spec = args.stream, args.first
-    s = _read_stream(stream_path)
+    s = _read_iobj_stream(stream_path, ref_spec)
+    for opt, given, header, unit in (("--speed", args.speed, s.speed_mm_s, "mm/s"),
+                                     ("--fmax", args.fmax, s.fmax_hz, "Hz")):
+        if given is not None and not np.isclose(given, header, rtol=1e-9):
+            warn("iobj", f"{opt} {given:g} ignored: the stream was made for {header:g} {unit} (its "
+                 "header's geometry defines the components scored)")
     curve = thresholds.load_csv(args.thresholds) if args.thresholds else None
     ref = None
     if ref_spec is not None:
@@ -292,9 +169,38 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     if args.json:
         _dump(out)
     else:
-        for k, v in out.items():
-            print(f"{k:>14}: {v}")
+        print(format_fields(out))
     return 0
+
+
+def format_fields(out: dict) -> str:
+    """key: value lines, keys aligned, floats to 6 significant digits (JSON keeps full precision)."""
+    width = max(map(len, out))
+
+    def fmt(v) -> str:
+        if isinstance(v, float | np.floating):
+            return f"{float(v):.6g}"
+        return str(v)
+
+    return "\n".join(f"{k:>{width}}: {fmt(v)}" for k, v in out.items())
+
+
+def _read_iobj_stream(stream_path: str, ref_spec: str | None):
+    """The STREAM of `hostd iobj [REFERENCE] STREAM`; a file that is not a stream names itself and
+    the order, and says so when the two arguments look swapped."""
+    from hostd.errors import StreamError
+
+    try:
+        return _read_stream(stream_path)
+    except StreamError as e:
+        hint = "the order is REFERENCE_PROFILE then STREAM (the .vtx last)"
+        if ref_spec is not None:
+            try:
+                _read_stream(ref_spec)
+                hint = f"{ref_spec} is the stream: arguments swapped? {hint}"
+            except StreamError:
+                pass
+        raise StreamError(f"STREAM {stream_path}: {e} ({hint})") from None
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
@@ -343,9 +249,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 def cmd_report_rate_quality(args: argparse.Namespace) -> int:
     from hostd.codec import transform
+    from hostd.extras import need
     from hostd.perception import thresholds
     from hostd.report import rate_quality
 
+    need("matplotlib", "plot", "hostd report rate-quality (its PNG)")  # before the sweep
     prof = read_profile(args.profile, args)
     curve = thresholds.resolve(args.thresholds)
     geom = transform.Geometry(prof.n, prof.length_mm, args.speed, args.fmax)
@@ -409,6 +317,20 @@ def cmd_demo(args: argparse.Namespace) -> int:
                        render_at=args.render)
 
 
+def cmd_completion(args: argparse.Namespace) -> int:
+    from hostd.docgen import completion
+
+    sys.stdout.write(completion(args.shell))
+    return 0
+
+
+def cmd_manpage(args: argparse.Namespace) -> int:
+    from hostd.docgen import man_page
+
+    sys.stdout.write(man_page())
+    return 0
+
+
 # ---------------------------------------------------------------- parser
 
 
@@ -470,12 +392,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_inspect)
 
-    p = sub.add_parser("iobj", parents=[loader_parent(None), idx],
+    p = sub.add_parser("iobj", parents=[loader_parent(None), geometry_parent(from_stream=True), idx],
                        help="Ip, Ia, Iobj of a stream (against a profile or its header)")
     p.add_argument("first", metavar="[REFERENCE_PROFILE] STREAM")
     p.add_argument("stream", nargs="?", default=None, help=argparse.SUPPRESS)
-    p.add_argument("--thresholds", default=None, metavar="CSV",
-                   help="curve the stream was made with, if not embedded or shipped")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_iobj)
 
@@ -522,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("report", help="reports: rate-quality")
     rsub = p.add_subparsers(dest="report", metavar="REPORT")
-    rsub.required = True
+    p.set_defaults(func=needs_subcommand(p, "a report"))
     r = rsub.add_parser("rate-quality", parents=[loader, geom, idx],
                         help="sweep both methods: bytes vs Ip, Ia, Iobj (CSV, Markdown, PNG)")
     r.add_argument("profile", help="profile file or synthetic:wood[:SEED]")
@@ -530,6 +450,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-progress", action="store_true")
     r.add_argument("--json", action="store_true", help="print notes and every row as JSON")
     r.set_defaults(func=cmd_report_rate_quality)
+
+    p = sub.add_parser("completion", help="print the shell completion script (bash, zsh)",
+                       description="Print the completion script; install-service installs both. By "
+                       "hand: hostd completion bash > ~/.local/share/bash-completion/completions/hostd")
+    p.add_argument("shell", choices=["bash", "zsh"])
+    p.set_defaults(func=cmd_completion)
+    p = sub.add_parser("manpage", help="print the man page hostd(8) (roff), generated from this parser",
+                       description="install-service installs it as /usr/local/share/man/man8/hostd.8")
+    p.set_defaults(func=cmd_manpage)
 
     from hostd.bench.cli import add_parser as add_bench
     from hostd.service.cli import add_parsers as add_service

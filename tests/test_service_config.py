@@ -7,6 +7,7 @@ import logging
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -38,8 +39,8 @@ def test_one_default_ab_everywhere(tmp_path, capsys):
     assert main(["quality", "--db", str(tmp_path / "q.sqlite")]) == 0
     out = capsys.readouterr().out
     header, line = out.splitlines()[:2]
-    assert header.split()[-2:] == ["a", "b"]
-    assert line.split()[-2:] == [f"{DEFAULT_AB[0]:.3f}", f"{DEFAULT_AB[1]:.3f}"]
+    assert header.split()[7:9] == ["a", "b"]
+    assert line.split()[8:10] == [f"{DEFAULT_AB[0]:.3f}", f"{DEFAULT_AB[1]:.3f}"]  # date and time: 2 words
 
 
 @pytest.mark.parametrize("spec, good", [
@@ -121,3 +122,37 @@ def test_journald_gets_priority_prefixes_a_terminal_gets_timestamps(tmp_path, mo
             assert [ln[:3] for ln in lines] == ["<3>", "<4>", "<6>"], lines
         else:
             assert all(ln[:4].isdigit() and not ln.startswith("<") for ln in lines), lines
+
+
+def test_clients_and_daemon_read_the_installed_config_by_default(tmp_path, monkeypatch, capsys):
+    """After editing control.socket in /etc/hostd/hostd.toml, `hostd status` (and send, select,
+    list, stop, quality, doctor, run) look where the daemon listens, without --config;
+    $HOSTD_CONFIG and --config override it, in that order."""
+    from hostd.service import config as cfgmod
+
+    def conf(name: str) -> Path:
+        p = tmp_path / f"{name}.toml"
+        p.write_text(f'[control]\nsocket = "{tmp_path}/{name}.sock"\n'
+                     f'[quality]\ndb = "{tmp_path}/{name}.db"\n')
+        return p
+
+    etc, env, given = conf("etc"), conf("env"), conf("given")
+    monkeypatch.delenv("HOSTD_CONFIG", raising=False)
+    monkeypatch.delenv("HOSTD_SOCKET", raising=False)
+    monkeypatch.setattr(cfgmod, "DEFAULT_PATH", str(tmp_path / "absent.toml"))
+    assert cfgmod.resolve_path(None) is None  # nothing installed: the built-in defaults
+    monkeypatch.setattr(cfgmod, "DEFAULT_PATH", str(etc))
+    for argv, want in ((["status"], "etc"), (["list"], "etc"), (["select", "x"], "etc"),
+                       (["stop"], "etc"), (["send", str(etc)], "etc"),
+                       (["status", "--config", str(given)], "given")):
+        assert main(argv) == 2, argv
+        assert f"{tmp_path}/{want}.sock" in capsys.readouterr().err, argv
+    assert main(["quality"]) == 2  # the db named by the installed config (absent here)
+    assert f"{tmp_path}/etc.db" in capsys.readouterr().err
+    monkeypatch.setenv("HOSTD_CONFIG", str(env))
+    assert main(["status"]) == 2 and f"{tmp_path}/env.sock" in capsys.readouterr().err
+    assert main(["status", "--config", str(given)]) == 2 and "given.sock" in capsys.readouterr().err
+    from hostd.cli import build_parser
+    from hostd.service.cli import _config
+
+    assert _config(build_parser().parse_args(["run"])) == str(env)  # the daemon: the same resolution

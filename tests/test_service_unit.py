@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import grp
 import os
+import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -171,3 +173,21 @@ def test_unit_settings():
     assert "systemd-udev-settle" not in UNIT.read_text()
     for key in ("LimitNOFILE", "TasksMax", "MemoryMax"):
         assert key in s, key
+
+
+def test_unit_hardening_and_the_documented_exposure(tmp_path):
+    s = unit_sandbox.unit_settings(UNIT)
+    assert s["PrivateMounts"] == ["yes"] and "SupplementaryGroups" not in s  # the udev rule gives group hostd
+    assert "Documentation=man:hostd(8)" in UNIT.read_text() and "file://" not in UNIT.read_text()
+    assert "tests/test_service_unit.py" in UNIT.read_text() and "test_unit_sandbox" not in UNIT.read_text()
+    if shutil.which("systemd-analyze") is None:
+        pytest.skip("systemd-analyze is not installed (apt-get install systemd)")
+    unit = tmp_path / "hostd.service"  # as documented: ExecStart pointed at an existing binary
+    unit.write_text(UNIT.read_text().replace("/opt/hostd/bin/hostd", "/bin/true"))
+    r = subprocess.run(["systemd-analyze", "security", "--offline=true", str(unit)], capture_output=True,
+                       text=True, cwd=tmp_path)
+    m = re.search(r"Overall exposure level for hostd.service: (\d+\.\d) (\w+)", r.stdout)
+    assert m, r.stdout[-2000:] + r.stderr
+    figure = f"exposure **{m[1]} {m[2]}**"
+    for doc in (ROOT / "docs" / "daemon.md", ROOT / "README.md"):
+        assert figure in doc.read_text(), (doc, figure)

@@ -56,14 +56,18 @@ def test_mistakes_are_one_line_with_a_hint(args, msg):
     assert msg in p.stderr
 
 
-def test_bench_without_subcommand_runs_all(monkeypatch, capsys):
-    from hostd.bench import micro, pipeline
+def test_bench_all_runs_pipeline_codec_and_scoring(monkeypatch, capsys):
+    """`hostd bench all` runs them; `hostd bench` alone shows the help and exits 2 (tests/test_hints.py)."""
+    from hostd.bench import codec2, micro, pipeline
 
     monkeypatch.setattr(pipeline, "run", lambda d: {"bench": "pipeline"})
-    monkeypatch.setattr(micro, "bench_codec", lambda: [])
-    monkeypatch.setattr(micro, "bench_scoring", lambda: [])
-    assert main(["bench"]) == 0
-    assert "bench=pipeline" in capsys.readouterr().out
+    monkeypatch.setattr(micro, "bench_codec", lambda step: [{"bench": "codec"}])
+    monkeypatch.setattr(codec2, "time_rows", lambda: [])
+    monkeypatch.setattr(codec2, "rate_rows", lambda step: [])
+    monkeypatch.setattr(micro, "bench_scoring", lambda: [{"bench": "scoring"}])
+    assert main(["bench", "all"]) == 0
+    out = capsys.readouterr().out
+    assert "bench=pipeline" in out and "bench=codec" in out and "bench=scoring" in out
 
 
 def test_ignored_options_warn_once(tmp_path):

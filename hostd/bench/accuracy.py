@@ -242,7 +242,9 @@ def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = 
 
 def plot(rows: list[dict], path: str) -> None:
     """Error against CPU, one panel per texture, one point per setting (* = default)."""
-    import matplotlib
+    from hostd.extras import need
+
+    matplotlib = need("matplotlib", "plot", "hostd bench accuracy --plot")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -64,7 +64,11 @@ def add_parser(sub, parents) -> None:
                            help="only v2 against the peer codecs (MPEG-I Haptics RM, VC-PWQ) "
                            "built under DIR (or named by HOSTD_PEER_* variables): bytes for "
                            "SPQI >= 0.9; see docs/benchmarks.md 'Peer codecs'")
-    p.set_defaults(func=cmd_bench)
+    from hostd.cliopts import needs_subcommand
+
+    p.set_defaults(func=needs_subcommand(p, "a benchmark (all: pipeline, codec and scoring)"))
+    for b in bsub.choices.values():
+        b.set_defaults(func=cmd_bench)
 
 
 def _print_rows(rows: list[dict]) -> None:
@@ -77,7 +81,7 @@ def _textures(args) -> dict:
 
     tex = {"wood": synth.make("wood", seed=1), "sandpaper": synth.make("sandpaper", seed=1)}
     if args.profile:
-        from hostd.cli import read_profile
+        from hostd.cliopts import read_profile
 
         for path in args.profile:
             prof = read_profile(path, args, length_mm=args.length_mm)
@@ -105,9 +109,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from hostd.bench import accuracy, common, micro, pipeline
     from hostd.errors import HostdError
 
-    what = args.bench or "all"
-    if args.bench is None:  # `hostd bench` alone runs "all": its options take their defaults
-        args.json = getattr(args, "json", False)
+    what = args.bench
     if what == "accuracy":
         if not (0.5 <= args.duration <= 600):
             raise SystemExit("hostd bench: error: --duration must be 0.5..600 s")
@@ -147,8 +149,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from hostd.bench import simbench
 
         rows += simbench.run()
+    show = not args.json and sys.stderr.isatty()
     if what == "load":
-        rows += micro.bench_load(args.lines)
+        with common.progress(5, "bench load", show) as bar:
+            rows += micro.bench_load(args.lines, step=lambda: bar.update(1))
     if what == "offline":
         from hostd.bench import simbench
 
@@ -173,10 +177,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
         rows += codec2.peer_rows(Path(args.peers) if args.peers is not None else None)
     elif what in ("codec", "all"):
         from hostd.bench import codec2
+        from hostd.bench.codec2 import textures
 
-        rows += micro.bench_codec()
-        rows += codec2.time_rows()
-        rows += codec2.rate_rows()
+        with common.progress(4 + 1 + len(textures()), "bench codec", show) as bar:
+            rows += micro.bench_codec(step=lambda: bar.update(1))
+            rows += codec2.time_rows()
+            bar.update(1)
+            rows += codec2.rate_rows(step=lambda: bar.update(1))
     if what in ("scoring", "all"):
         rows += micro.bench_scoring()
     if args.json:

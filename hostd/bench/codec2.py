@@ -115,7 +115,8 @@ def _quality(y: np.ndarray, geom: transform.Geometry, data: bytes) -> dict:
             "spqi_exact": None if ps is None else ps["spqi"]}
 
 
-def rate_rows() -> list[dict]:
+def rate_rows(step=lambda: None) -> list[dict]:
+    """step(): called after each texture (a progress bar's update)."""
     curve = thresholds.default_curve()
     rows = []
     for name, y, geom in textures():
@@ -169,6 +170,7 @@ def rate_rows() -> list[dict]:
                     "v1_noguard_spqi": _quality(y, geom, old.data)["spqi"],
                     "v2_over_v1": round(row["v2_bytes"] / row["v1_bytes"], 3)})
         rows.append(row)
+        step()
     return rows
 
 

@@ -16,7 +16,7 @@ from hostd.perception import indices, thresholds
 from hostd.texture import synth
 
 
-def bench_codec() -> list[dict]:
+def bench_codec(step=lambda: None) -> list[dict]:
     curve = thresholds.default_curve()
     rows = []
     for kind in ("wood", "sandpaper"):
@@ -32,6 +32,7 @@ def bench_codec() -> list[dict]:
             rows.append({"bench": "codec", "texture": kind, "method": kw["method"],
                          "n": prof.n, "bytes": len(data), "encode_ms": enc * 1e3,
                          "decode_coeffs_ms": dec * 1e3, "decode_profile_ms": recon * 1e3})
+            step()
     return rows
 
 
@@ -48,7 +49,7 @@ def bench_scoring() -> list[dict]:
     return rows
 
 
-def bench_load(lines: int = 2_000_000) -> list[dict]:
+def bench_load(lines: int = 2_000_000, step=lambda: None) -> list[dict]:
     """Loading a two-column CSV of `lines` rows (written to a temporary file): the profile
     loader's text reader against np.loadtxt on the same file (goal: within 1.5x), and a
     10 mm patch of it (the reader stops once x has passed the patch)."""
@@ -63,10 +64,15 @@ def bench_load(lines: int = 2_000_000) -> list[dict]:
         f = Path(d) / "big.csv"
         np.savetxt(f, np.column_stack([np.arange(lines) * 0.5, rng.normal(0, 3, lines)]),
                    delimiter=",", fmt="%.6f", header="x_um,height_um")
+        step()
         ref = cpu_median_s(lambda: np.loadtxt(f, delimiter=","), repeat=3)
+        step()
         ours = cpu_median_s(lambda: read_columns(f), repeat=3)
+        step()
         whole = cpu_median_s(lambda: load_profile(f, LoadOptions(length_mm=None)), repeat=3)
+        step()
         patch = cpu_median_s(lambda: load_profile(f, LoadOptions(length_mm=10.0)), repeat=3)
+        step()
         rows.append({"bench": "load", "lines": lines, "mib": f.stat().st_size / 2**20,
                      "np_loadtxt_s": ref, "read_columns_s": ours, "ratio": ours / ref,
                      "load_profile_whole_s": whole, "load_profile_10mm_s": patch})

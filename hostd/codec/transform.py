@@ -61,8 +61,9 @@ class Geometry:
         if k >= self.n:
             raise CodecError(
                 f"fmax {self.fmax_hz:g} Hz asks for N' = {k if k < 10**9 else f'{float(k):.3g}'} "
-                f"components at {self.speed_mm_s:g} mm/s but the patch has only "
-                f"N = {self.n} samples (N' must be < N): lower --fmax, raise --speed or sample more finely"
+                f"components at {self.speed_mm_s:g} mm/s but the patch has only N = {self.n} samples "
+                f"(N' must be < N; spacing {self.spacing_um:.4g} µm): check --x-unit (is x really in "
+                "that unit?), or lower --fmax, raise --speed or sample more finely"
             )
         return k
 

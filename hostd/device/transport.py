@@ -97,4 +97,5 @@ def open_transport(spec: str = "auto", **kw) -> Transport:
         except DeviceNotFound as e:
             seen.append(str(e))
     raise DeviceNotFound(f"no display {pr.USB_VID:04x}:{pr.USB_PID:04x} found on HID, USB or serial "
-                         f"({'; '.join(seen)}); plug it in, or use device = \"sim\" to run without one")
+                         f"({'; '.join(seen)}); plug it in, or set [device] transport = \"sim\" in the "
+                         "config to run without one")

@@ -14,6 +14,7 @@ fits the series (the renderer, the scene simulator, the peer metrics) uses `phas
 from __future__ import annotations
 
 import functools
+import importlib.util
 import threading
 
 import numpy as np
@@ -34,13 +35,16 @@ NUFFT_EPS = 1e-14  # relative tolerance of the nonuniform FFTs (finufft), near f
 def _nufft_sums(theta: np.ndarray, w: np.ndarray, kmax: int) -> np.ndarray:
     """sum_i w_i exp(i k theta_i) for k = 0..kmax: one type-1 nonuniform FFT (finufft, one
     thread: the offline benchmarks charge the calling thread's CPU time), O(S + K log K)."""
-    import finufft
+    from hostd.extras import need
+
+    finufft = need("finufft", "sim", "the scene simulator's series fit")
 
     f = finufft.nufft1d1(theta, np.asarray(w, dtype=np.complex128), 2 * kmax + 1, eps=NUFFT_EPS,
                          isign=1, nthreads=1)  # modes -kmax..kmax
     return f[kmax:]
 
 
+_HAVE_FINUFFT = importlib.util.find_spec("finufft") is not None  # the `sim` extra
 NUFFT_MIN_TERMS = 16384  # evaluate by the cosine matrix below this many (sample, component) terms
 TRIM_MIN_TERMS = 2048  # from this many terms, trailing zero coefficients are trimmed first
 _plans = threading.local()  # type-2 NUFFT plans of this thread, by mode count (reused across calls)
@@ -88,6 +92,13 @@ def evaluate(coeffs: np.ndarray, theta: np.ndarray, k0: int = 1) -> np.ndarray:
     if th.size * c.size < NUFFT_MIN_TERMS or th.dtype == np.float32:
         k = _orders(k0, c.size, th.dtype.char)
         return np.cos(np.multiply.outer(th, k)) @ c.astype(th.dtype, copy=False)
+    if not _HAVE_FINUFFT:  # a daemon-only install (no `sim` extra): the same sum, in blocks
+        k = _orders(k0, c.size, th.dtype.char)
+        flat = np.ravel(th)
+        step = max(1, (1 << 20) // max(c.size, 1))
+        out = np.concatenate([np.cos(np.multiply.outer(flat[i : i + step], k)) @ c
+                              for i in range(0, flat.size, step)]) if flat.size else flat.copy()
+        return out.reshape(th.shape)
     plan, m = _type2_plan(k0 + c.size - 1)
     modes = np.zeros(2 * m + 1, dtype=np.complex128)  # modes -m..m; Re(c_k e^{ik theta}) = c_k cos
     modes[m + k0 : m + k0 + c.size] = c

@@ -14,15 +14,23 @@ from hostd.errors import HostdError
 def _conn_parent() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(add_help=False)
     p.add_argument("--config", default=None, metavar="FILE",
-                   help="daemon config (its control.socket and quality.db); default: built-in defaults")
+                   help="daemon config (its control.socket and quality.db); default: $HOSTD_CONFIG, "
+                   "else /etc/hostd/hostd.toml if it exists, else the built-in defaults (as hostd run)")
     p.add_argument("--socket", default=None, metavar="PATH", help="control socket (overrides --config)")
     return p
+
+
+def _config(args) -> str | None:
+    """The config file this command reads: the daemon's own resolution (config.resolve_path)."""
+    from hostd.service.config import resolve_path
+
+    return resolve_path(args.config)
 
 
 def _sock(args) -> str:
     from hostd.service.client import socket_path
 
-    return args.socket or socket_path(args.config)
+    return args.socket or socket_path(_config(args))
 
 
 def cmd_run(args) -> int:
@@ -30,7 +38,7 @@ def cmd_run(args) -> int:
     from hostd.service.daemon import Daemon
     from hostd.service.logsetup import setup
 
-    cfg = load(args.config)
+    cfg = load(_config(args))
     setup(args.log_level)
     return Daemon(cfg).run()
 
@@ -99,68 +107,103 @@ def cmd_status(args) -> int:
     return 0
 
 
-def _since(text: str | None) -> float | None:
+_UNITS_S = {"s": 1, "m": 60, "min": 60, "h": 3600, "d": 86400, "w": 7 * 86400}
+
+
+def parse_since(text: str | None, now: float | None = None) -> float | None:
+    """--since: a duration back from now as journalctl users type it (90s, 30m, 1h, 2d, 1w,
+    1h30m), an ISO date or time (2026-11-22, 2026-11-22T10:00, with or without a zone; without
+    one, local time), or unix seconds. Returns unix seconds."""
+    import re
+    import time
+
     if text is None:
         return None
+    t = text.strip()
+    parts = re.fullmatch(r"(?:\d+(?:\.\d+)?(?:min|[smhdw]))+", t)
+    if parts:
+        secs = sum(float(n) * _UNITS_S[u] for n, u in re.findall(r"(\d+(?:\.\d+)?)(min|[smhdw])", t))
+        return (time.time() if now is None else now) - secs
     try:
-        return float(text)
+        return float(t)
     except ValueError:
         pass
     try:
-        t = dt.datetime.fromisoformat(text)
+        when = dt.datetime.fromisoformat(t)
     except ValueError:
-        raise HostdError(f"--since {text!r}: give unix seconds or an ISO time (2026-11-22T10:00)") from None
-    if t.tzinfo is None:
-        t = t.astimezone()
-    return t.timestamp()
+        raise HostdError(f"--since {text!r}: give a duration (30m, 1h, 2d), an ISO date or time "
+                         "(2026-11-22, 2026-11-22T10:00) or unix seconds") from None
+    if when.tzinfo is None:
+        when = when.astimezone()  # local time, as journalctl reads it
+    return when.timestamp()
+
+
+def iso_time(unix_s: float | None) -> str | None:
+    """ISO 8601 with the local zone's offset (2026-11-22T10:00:00.123+01:00)."""
+    if unix_s is None:
+        return None
+    return dt.datetime.fromtimestamp(unix_s).astimezone().isoformat(timespec="milliseconds")
 
 
 def cmd_quality(args) -> int:
     from hostd.service import qualitylog
     from hostd.service.config import load
 
-    db = args.db or load(args.config).quality.db
+    db = args.db or load(_config(args)).quality.db
     import sqlite3
 
+    since = parse_since(args.since)
     try:
-        con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
-        rows = qualitylog.query(con, _since(args.since))
+        con = qualitylog.connect_readonly(db)
+        try:
+            rows = qualitylog.query(con, since)
+        finally:
+            con.close()
     except sqlite3.Error as e:
         raise HostdError(f"cannot read the quality log {db}: {e} (is quality.db right?)") from None
+    for r in rows:  # machine-readable output: ISO 8601 times with the zone
+        if args.json or args.csv:
+            r["received_at"], r["scored_at"] = iso_time(r["received_at"]), iso_time(r["scored_at"])
     if args.json:
         json.dump(rows, sys.stdout, indent=1)
         print()
     elif args.csv:
-        w = csv.DictWriter(sys.stdout, fieldnames=list(qualitylog.COLUMNS))
+        w = csv.DictWriter(sys.stdout, fieldnames=list(qualitylog.COLUMNS + qualitylog.DELIVERED))
         w.writeheader()
         w.writerows(rows)
     else:
         print(f"{'received':<20} {'name':<22} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8} "
-              f"{'a':>6} {'b':>6}")
+              f"{'a':>6} {'b':>6} {'played':>8} {'for':>8} {'underruns':>9}")
         for r in rows:
             when = dt.datetime.fromtimestamp(r["received_at"]).strftime("%Y-%m-%d %H:%M:%S")
+            pf = "-" if r["played_fraction"] is None else f"{r['played_fraction']:.2%}"
+            ps = "-" if r["played_s"] is None else f"{r['played_s']:.1f} s"
+            un = "-" if r["underruns"] is None else str(r["underruns"])
             print(f"{when:<20} {r['name']:<22} {r['bytes']:>6} {r['method']:<6} {r['ip']:>8.4f} "
-                  f"{r['ia']:>8.4f} {r['iobj']:>8.4f} {r['a']:>6.3f} {r['b']:>6.3f}")
+                  f"{r['ia']:>8.4f} {r['iobj']:>8.4f} {r['a']:>6.3f} {r['b']:>6.3f} {pf:>8} {ps:>8} {un:>9}")
     return 0
 
 
 def cmd_doctor(args) -> int:
     from hostd.service.doctor import doctor
 
-    return doctor(args.config, json_out=args.json)
+    return doctor(_config(args), json_out=args.json)
 
 
 def cmd_install_service(args) -> int:
     from hostd.service.install import install
 
-    return install(args.prefix, dry_run=args.dry_run)
+    return install(args.prefix, dry_run=args.dry_run, enable=args.enable, exec_path=args.exec_path)
 
 
 def add_parsers(sub) -> None:
     conn = _conn_parent()
     p = sub.add_parser("run", help="run the daemon (foreground; systemd runs it as a service)")
-    p.add_argument("--config", default=None, metavar="FILE", help="config file (see config/hostd.toml)")
-    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="config file (see config/hostd.toml); default: $HOSTD_CONFIG, else "
+                   "/etc/hostd/hostd.toml if it exists, else the built-in defaults")
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
+                   help="least severe message logged (default info; debug adds per-request detail)")
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("send", parents=[conn], help="send a .vtx stream to the daemon's library")
     p.add_argument("file")
@@ -178,7 +221,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--daemon", action="store_true", help="shut the daemon down")
     p.set_defaults(func=cmd_stop)
     p = sub.add_parser("quality", parents=[conn], help="read the quality log (Ip, Ia, Iobj per stream)")
-    p.add_argument("--since", default=None, metavar="T", help="unix seconds or ISO time")
+    p.add_argument("--since", default=None, metavar="T",
+                   help="rows received since: a duration back from now (30m, 1h, 2d, 1w), an ISO date "
+                   "or time (2026-11-22T10:00; local time without a zone) or unix seconds")
     p.add_argument("--db", default=None, help="the SQLite file (default: quality.db of --config)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--csv", action="store_true")
@@ -188,9 +233,15 @@ def add_parsers(sub) -> None:
                        "and a default config (pointing the unit at this installation)")
     p.add_argument("--prefix", default="/", help="install under this root (default /; another root only "
                    "stages the files and prints the commands)")
-    p.add_argument("--dry-run", action="store_true", help="say what would be installed; write nothing")
+    p.add_argument("--dry-run", action="store_true",
+                   help="print exactly what the same call without --dry-run writes and runs; change nothing")
+    p.add_argument("--enable", action="store_true", help="also run systemctl enable --now hostd")
+    p.add_argument("--exec", dest="exec_path", default=None, metavar="PATH",
+                   help="the hostd the unit runs (default: this installation's; for package builds "
+                   "staged with --prefix, e.g. /opt/hostd/bin/hostd)")
     p.set_defaults(func=cmd_install_service)
     p = sub.add_parser("doctor", help="check device, permissions, real-time capability, config, database")
-    p.add_argument("--config", default=None, metavar="FILE")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="default: $HOSTD_CONFIG, else /etc/hostd/hostd.toml if it exists, else the defaults")
     p.add_argument("--json", action="store_true", help="print the checks as one JSON object")
     p.set_defaults(func=cmd_doctor)

@@ -19,11 +19,12 @@ class ClientError(HostdError):
 
 
 def socket_path(config: str | None) -> str:
+    """$HOSTD_SOCKET, else control.socket of `config` (resolved by config.resolve_path)."""
     if os.environ.get("HOSTD_SOCKET"):
         return os.environ["HOSTD_SOCKET"]
     from hostd.service.config import load
 
-    return load(config).control.socket if config else load(None).control.socket
+    return load(config).control.socket
 
 
 SERVICE_USER = "hostd"  # the unit's User=
@@ -66,7 +67,7 @@ def request(path: str, req: dict, payload: bytes = b"", timeout_s: float = 30.0)
         s.connect(path)
     except FileNotFoundError:
         raise ClientError(f"no hostd socket at {path}: is `hostd run` running? (systemctl status hostd; "
-                          "--config or HOSTD_SOCKET name another socket)") from None
+                          "--config, HOSTD_CONFIG or HOSTD_SOCKET name another socket)") from None
     except ConnectionRefusedError:
         raise ClientError(f"hostd is not running on {path} (stale socket): start it "
                           "(systemctl start hostd)") from None

@@ -87,6 +87,11 @@ class RealtimeCfg:
 
 
 @dataclass
+class MetricsCfg:
+    listen: str = ""  # off; "127.0.0.1:9470": the Prometheus endpoint (loopback only)
+
+
+@dataclass
 class Config:
     device: DeviceCfg = field(default_factory=DeviceCfg)
     library: LibraryCfg = field(default_factory=LibraryCfg)
@@ -95,6 +100,7 @@ class Config:
     render: RenderCfg = field(default_factory=RenderCfg)
     output: OutputCfg = field(default_factory=OutputCfg)
     realtime: RealtimeCfg = field(default_factory=RealtimeCfg)
+    metrics: MetricsCfg = field(default_factory=MetricsCfg)
     path: str = "<defaults>"
 
     def render_config(self):
@@ -177,7 +183,27 @@ def _check(path: str, section: str, key: str, value, default):
         if kind not in TRANSPORT_KINDS or (colon and (kind not in ("hid", "serial") or not arg)):
             raise ConfigError(f"{where} must be auto, hid, hid:/dev/hidrawN, usb, serial, serial:PORT or "
                               f"sim, not {value!r}")
+    if (section, key) == ("metrics", "listen"):
+        from hostd.service.metrics import parse_listen
+
+        parse_listen(value, where)
     return value
+
+
+DEFAULT_PATH = "/etc/hostd/hostd.toml"  # what `hostd install-service` installs and the unit names
+ENV_VAR = "HOSTD_CONFIG"
+
+
+def resolve_path(given: str | Path | None) -> str | None:
+    """The config file the daemon and every client read: --config if given, else $HOSTD_CONFIG,
+    else /etc/hostd/hostd.toml when it exists, else None (the built-in defaults). One function,
+    so that `hostd status` after editing control.socket looks where `hostd run` listens."""
+    if given:
+        return str(given)
+    env = os.environ.get(ENV_VAR)
+    if env:
+        return env
+    return DEFAULT_PATH if Path(DEFAULT_PATH).is_file() else None
 
 
 def load(path: str | Path | None) -> Config:

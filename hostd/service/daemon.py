@@ -142,19 +142,22 @@ class Daemon:
         self.selected_sha: str | None = None
         self.quality_pending: deque = deque()  # scored rows not yet written (disk full, I/O error)
         self.stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
-        self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=pump_main, args=(cfg, child, self.stats), name="hostd-pump",
-                                daemon=True)
+        self.conn, self.child_conn = ctx.Pipe()
+        self.proc = ctx.Process(target=pump_main, args=(cfg, self.child_conn, self.stats),
+                                name="hostd-pump", daemon=True)
         self.pump_writer: PumpWriter | None = None
         self._stop_deadline = math.inf  # the quality worker's last retry at shutdown
+        self.signalled = False  # set by the SIGTERM/SIGINT handler, which must take no lock
         self.quality_q: queue.Queue = queue.Queue()
         self.stop_event = threading.Event()
         self.selected: str | None = None
+        self.play: tuple[str, str, float, dict] | None = None  # name, sha256, started, counters
         self.accepted = 0
         self.refused = 0
         self.lock = threading.Lock()
         self.notifier = Notifier()
         self.control: ControlServer | None = None
+        self.metrics = None  # the Prometheus endpoint's server, when metrics.listen is set
         self.workers: dict[str, tuple[Callable[[], None], threading.Thread | None, list[float]]] = {}
         self.dead_workers: set[str] = set()
 
@@ -196,16 +199,50 @@ class Daemon:
             if self.selected == name and self.selected_sha == sha:
                 return {"playing": name}
             s = self.library.decode(data)  # the library's limits, again: it may predate them
+            self.end_play()
             self.pump_writer.send(("select", (name, s.coefficients, s.n, s.length_mm)))
             self.selected, self.selected_sha = name, sha
+            self.play = (name, sha, time.time(), self.counters())
         log.info("playing %s", name)
         return {"playing": name}
 
     def stop_playing(self) -> dict:
         with self.select_lock:
+            self.end_play()
             self.pump_writer.send(("stop",))
             self.selected = self.selected_sha = None
         return {"playing": None}
+
+    def end_play(self) -> None:
+        """Log what the texture being played was delivered, from the device's own counters (the
+        pump's health snapshot) before the next select, stop or shutdown: the time the device
+        played it from its buffer, its played_fraction and the underruns it counted meanwhile."""
+        with self.lock:
+            play, self.play = self.play, None
+        if play is None:
+            return
+        name, sha, started, c0 = play
+        c1 = self.counters()
+        device_s = max(c1["device_time_s"] - c0["device_time_s"], 0.0)
+        fraction = c1["played_fraction"] if device_s > 0 else None
+        if c1["render_at"] == "device":  # the display renders: nothing is played from its buffer,
+            played_s = (fraction or 0.0) * device_s  # the share of device time it reported rendering
+        else:
+            played_s = max(c1["device_samples_played"] - c0["device_samples_played"], 0) / SAMPLE_RATE_HZ
+        row = {"name": name, "sha256": sha, "started_at": started, "ended_at": time.time(),
+               "device_s": device_s, "played_s": played_s, "played_fraction": fraction,
+               "underruns": max(c1["device_underruns"] - c0["device_underruns"], 0)}
+        try:
+            con = qualitylog.connect(self.db_path)
+            try:
+                qualitylog.insert_play(con, row)
+            finally:
+                con.close()
+            log.info("played %s: %.1f s from the buffer, played fraction %s, %d underruns", name,
+                     row["played_s"], "-" if row["played_fraction"] is None else
+                     f"{row['played_fraction']:.2%}", row["underruns"])
+        except sqlite3.Error as e:  # the log must not stop playback
+            log.error("quality log: cannot record the play of %s: %s", name, e)
 
     def counters(self) -> dict:
         """The pump's counters, from shared memory."""
@@ -463,6 +500,21 @@ class Daemon:
             return {"shutting_down": True}
         raise BadRequest(f"unknown command {cmd!r:.40}")
 
+    def latest_quality(self) -> list[dict]:
+        """The latest quality row per texture name, with what was delivered (for the metrics)."""
+        con = qualitylog.connect_readonly(self.db_path)
+        try:
+            return list({r["name"]: r for r in qualitylog.query(con)}.values())
+        finally:
+            con.close()
+
+    def serve_metrics(self) -> None:
+        from hostd.service.metrics import parse_listen, start
+
+        listen = parse_listen(self.cfg.metrics.listen, f"{self.cfg.path}: metrics.listen")
+        if listen is not None:
+            self.metrics = start(listen, self.status, self.latest_quality)
+
     def serve_socket(self) -> None:
         c = self.cfg.control
         self.control = ControlServer(c.socket, c.group, c.max_clients, self.handle_conn,
@@ -500,9 +552,49 @@ class Daemon:
         return not self.dead_workers
 
     # ------------------------------------------------------------ main
+    def on_signal(self, *_) -> None:
+        """SIGTERM/SIGINT: only a flag. The handler runs in the main thread between two bytecodes,
+        possibly while that thread holds stop_event's internal lock (inside Event.wait); calling
+        stop_event.set() here would then wait for itself forever."""
+        self.signalled = True
+
+    def send_to_pump(self, msg: tuple, timeout_s: float = 1.0) -> bool:
+        """Send a command unless the pipe stays full for timeout_s (a pump that stopped reading)."""
+        import select
+
+        try:
+            if select.select([], [self.conn.fileno()], [], timeout_s)[1]:
+                self.conn.send(msg)
+                return True
+        except (OSError, ValueError):
+            pass
+        return False
+
+    def stop_pump(self) -> None:
+        """Bounded: ask the pump to quit (it ramps the output to zero), then SIGTERM, then SIGKILL;
+        the process is reaped in every case, so interpreter exit has no child left to wait for
+        (multiprocessing joins daemonic children without a timeout at exit)."""
+        if self.pump_writer is not None:  # the pipe's one writer sends the last message
+            self.pump_writer.close(("quit",), timeout_s=1.0)
+        else:
+            self.send_to_pump(("quit",))
+        self.proc.join(3.0)
+        if self.proc.is_alive():
+            log.warning("the pump did not stop within 3 s; terminating it")
+            self.proc.terminate()
+            self.proc.join(2.0)
+        if self.proc.is_alive():
+            log.error("the pump ignored SIGTERM; killing it (the firmware ramps to zero on host timeout)")
+            self.proc.kill()
+            self.proc.join(2.0)
+
     def run(self) -> int:
+        self.serve_metrics()  # a wrong or busy metrics.listen stops the start, before the pump runs
         self.proc.start()
         self.pump_writer = PumpWriter(self.conn)
+        # our copy of the pump's end: closed, so a dead pump reads as EOF (a pending recv() or a
+        # send into a full pipe would otherwise wait forever for a peer that no longer exists)
+        self.child_conn.close()
         self.serve_socket()
         log.info("listening on %s", self.cfg.control.socket)
         self.start_worker("control", self.control.accept_loop)
@@ -510,11 +602,11 @@ class Daemon:
         self.start_worker("spool", self.spool_watcher)
         self.rescore_missing()
         for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda *_: self.stop_event.set())
+            signal.signal(sig, self.on_signal)
         ready = False
         last_cycles = -1.0
         try:
-            while not self.stop_event.wait(0.2):
+            while not (self.signalled or self.stop_event.wait(0.2) or self.signalled):
                 try:
                     while self.conn.poll():
                         kind, msg = self.conn.recv()
@@ -544,11 +636,12 @@ class Daemon:
                                      f"stalls={st['stalls']} recoveries={st['recoveries']}")
         finally:
             self.notifier.notify("STOPPING=1")
-            self.pump_writer.close(("quit",))
-            self.proc.join(3.0)
             if self.proc.is_alive():
-                self.proc.terminate()
+                self.end_play()
+            self.stop_pump()
             self.stop_event.set()
+            if self.metrics is not None:
+                self.metrics.shutdown()
             if self.control is not None:
                 self.control.close()
                 Path(self.cfg.control.socket).unlink(missing_ok=True)

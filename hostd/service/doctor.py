@@ -74,7 +74,7 @@ def doctor(config: str | None, json_out: bool = False) -> int:
         else:
             bad(f"device.transport = {transport!r}: no display {pr.USB_VID:04x}:{pr.USB_PID:04x} found"
                 + (f" (found only {', '.join(found)})" if found else ""),
-                "plug it in; or set device.transport = \"sim\" to run without one")
+                "plug it in; or set [device] transport = \"sim\" in the config to run without one")
     for node in sorted(glob.glob("/dev/hidraw*")):
         if not os.access(node, os.R_OK | os.W_OK):
             note(f"{node} is not accessible to this user (only a problem if it is the display)")

@@ -5,7 +5,13 @@ The files come from the package itself (hostd/systemd, hostd/data/hostd.toml), s
 installed into a venv (/opt/hostd on the display PC) carries everything it needs. An existing
 /etc/hostd/hostd.toml is never overwritten. With the default prefix (/) the system is then told
 (systemd-sysusers, systemd-tmpfiles --create, udevadm, systemctl daemon-reload); with another
-prefix (a staging tree, a package build) those commands are printed, not run.
+prefix (a staging tree, a package build) those commands are printed, not run. `--enable` also
+runs `systemctl enable --now hostd`; `--dry-run` prints exactly the files and commands the same
+call without it would write and run.
+
+The unit's ExecStart must be reachable inside the unit's sandbox: a venv under /home or
+/run/user (ProtectHome=yes), /tmp or /var/tmp (PrivateTmp=yes), or a pipx venv (under a home)
+gives a unit that fails with status 203/EXEC, so such a location is refused with the fix.
 """
 
 from __future__ import annotations
@@ -29,6 +35,27 @@ FILES = (
 )
 CONFIG_DEST = "etc/hostd/hostd.toml"
 SHIPPED_EXEC = "/opt/hostd/bin/hostd"
+# hidden from the service by the unit's sandbox (ProtectHome=yes, PrivateTmp=yes)
+HIDDEN_DIRS = ("/home", "/root", "/run/user", "/tmp", "/var/tmp")
+FIX = ("install hostd into a venv under /opt (sudo python3 -m venv /opt/hostd && sudo /opt/hostd/bin/pip "
+       "install 'hostd[device]') and run sudo /opt/hostd/bin/hostd install-service")
+
+
+def exec_problem(exe: Path, interpreter: Path | None = None) -> str | None:
+    """Why the unit could not run `exe` (or the Python it runs on) under its sandbox, or None."""
+    for what, p in (("hostd", exe), ("its Python", interpreter)):
+        if p is None:
+            continue
+        text = str(p)
+        if "/pipx/venvs/" in text or "/.local/pipx/" in text:
+            return (f"{what} is a pipx install ({p}): pipx venvs live in a home directory, which the "
+                    "unit hides")
+        for d in HIDDEN_DIRS:
+            if text == d or text.startswith(d + "/"):
+                why = "PrivateTmp=yes" if d in ("/tmp", "/var/tmp") else "ProtectHome=yes"
+                return (f"{what} is under {d} ({p}), which the unit hides from the service ({why}): "
+                        "it would fail with status 203/EXEC")
+    return None
 
 
 def hostd_executable() -> Path:
@@ -52,11 +79,17 @@ def unit_text(exe: Path) -> str:
 
 
 def plan(prefix: Path, exe: Path) -> list[tuple[Path, bytes, int, bool]]:
-    """(destination, content, mode, overwrite) for every file."""
+    """(destination, content, mode, overwrite) for every file: the unit and its companions, the man
+    page the unit's Documentation= names and the shell completions (generated from the parser)."""
+    from hostd import docgen
+
     out = []
     for src, dest, mode in FILES:
         data = unit_text(exe).encode() if src == "hostd.service" else (paths.systemd_dir() / src).read_bytes()
         out.append((prefix / dest, data, mode, True))
+    out.append((prefix / docgen.MAN_DEST, docgen.man_page().encode(), 0o644, True))
+    for shell, dest in docgen.COMPLETION_DEST.items():
+        out.append((prefix / dest, docgen.completion(shell).encode(), 0o644, True))
     out.append((prefix / CONFIG_DEST, (paths.shipped_dir() / "hostd.toml").read_bytes(), 0o644, False))
     return out
 
@@ -65,16 +98,54 @@ COMMANDS = (
     ["systemd-sysusers"],
     ["systemd-tmpfiles", "--create"],
     ["udevadm", "control", "--reload"],
-    ["udevadm", "trigger", "--subsystem-match=hidraw", "--subsystem-match=usb", "--subsystem-match=tty"],
     ["systemctl", "daemon-reload"],
 )
+ENABLE = ["systemctl", "enable", "--now", "hostd"]
+SYS_USB = Path("/sys/bus/usb/devices")
 
 
-def install(prefix: str = "/", dry_run: bool = False, run_commands: bool | None = None) -> int:
+def display_syspaths(sys_usb: Path | None = None) -> list[str]:
+    """sysfs paths of the plugged-in displays (the VID:PID of the udev rule)."""
+    from hostd.device import protocol as pr
+
+    sys_usb = SYS_USB if sys_usb is None else sys_usb
+    found = []
+    for d in sorted(sys_usb.glob("*")) if sys_usb.is_dir() else []:
+        try:
+            vid, pid = ((d / a).read_text().strip().lower() for a in ("idVendor", "idProduct"))
+        except OSError:
+            continue
+        if (vid, pid) == (f"{pr.USB_VID:04x}", f"{pr.USB_PID:04x}"):
+            found.append(str(d.resolve()))
+    return found
+
+
+def commands(enable: bool, syspaths: list[str] | None = None) -> list[list[str]]:
+    """What install-service runs. The udev rule is applied to a display already plugged in by
+    re-triggering that device and its children (hidraw, tty) only (--parent-match), not every usb
+    and tty device; the hidraw and tty nodes carry no idVendor of their own, so --attr-match on
+    the vendor would miss them."""
+    out = list(COMMANDS)
+    trig = [["udevadm", "trigger", "--action=add", f"--parent-match={p}"] for p in syspaths or []]
+    out[3:3] = trig
+    return [*out, ENABLE] if enable else out
+
+
+def install(prefix: str = "/", dry_run: bool = False, run_commands: bool | None = None,
+            enable: bool = False, exec_path: str | None = None) -> int:
     root = Path(prefix)
-    exe = hostd_executable()
-    steps = plan(root, exe)
     live = root.resolve() == Path("/") if run_commands is None else run_commands
+    if exec_path is not None:  # a package build names where hostd will be (it need not exist yet)
+        exe = Path(exec_path)
+        if not exe.is_absolute():
+            raise HostdError(f"--exec {exec_path}: give an absolute path (e.g. {SHIPPED_EXEC})")
+        why = exec_problem(exe)
+    else:
+        exe = hostd_executable()
+        why = exec_problem(exe, Path(sys.executable).resolve())
+    if why:
+        raise HostdError(f"refusing to install a unit that cannot start: {why}; {FIX}")
+    steps = plan(root, exe)
     say = "would install" if dry_run else "installed"
     for dest, data, mode, overwrite in steps:
         if dest.exists() and not overwrite:
@@ -89,13 +160,22 @@ def install(prefix: str = "/", dry_run: bool = False, run_commands: bool | None 
             write_output(dest, data, mode=mode)
         print(f"{say:<9} {dest}")
     print(f"the unit runs {exe} run --config /etc/hostd/hostd.toml")
-    if dry_run or not live:
-        print("then run:" if not dry_run else "would then run:")
-        for c in COMMANDS:
+    if not live:  # a staging tree: the commands are for whoever installs it
+        print(f"{'would print' if dry_run else 'printed'}, not run ({root} is not /); run them on the "
+              "target:")
+        for c in commands(True, ["/sys/bus/usb/devices/<the display>"]):
             print("  " + " ".join(c))
-        print("  systemctl enable --now hostd")
         return 0
-    for c in COMMANDS:
+    cmds = commands(enable, display_syspaths())
+    if dry_run:
+        for c in cmds:
+            missing = shutil.which(c[0]) is None
+            print(f"{'would skip' if missing else 'would run'} {' '.join(c)}"
+                  + (f" ({c[0]} is not installed)" if missing else ""))
+        if not enable:
+            print("would not start the service (--enable: systemctl enable --now hostd)")
+        return 0
+    for c in cmds:
         if shutil.which(c[0]) is None:
             print(f"skipped   {' '.join(c)} ({c[0]} is not installed)")
             continue
@@ -103,6 +183,9 @@ def install(prefix: str = "/", dry_run: bool = False, run_commands: bool | None 
         if r.returncode != 0:
             raise HostdError(f"`{' '.join(c)}` failed: {(r.stderr or r.stdout).strip()[:300]}")
         print(f"ran       {' '.join(c)}")
-    print("now: edit /etc/hostd/hostd.toml (device, paths), then systemctl enable --now hostd; "
-          "hostd doctor --config /etc/hostd/hostd.toml checks it")
+    if enable:
+        print("hostd is enabled and started: systemctl status hostd; hostd doctor checks the set-up")
+    else:
+        print("now: edit /etc/hostd/hostd.toml (device, paths), then systemctl enable --now hostd "
+              "(or run this again with --enable); hostd doctor checks the set-up")
     return 0

@@ -12,6 +12,8 @@ import sqlite3
 import time
 from pathlib import Path
 
+from hostd.errors import HostdError
+
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS streams (
     id INTEGER PRIMARY KEY,
@@ -38,6 +40,21 @@ CREATE TABLE IF NOT EXISTS streams (
     UNIQUE (name, sha256)   -- one row per stored (name, content); re-sending it adds none
 );
 CREATE INDEX IF NOT EXISTS streams_received ON streams(received_at);
+-- what was delivered: one row per time a texture was played (selected until the next select,
+-- stop or shutdown), from the device's own counters (hostd.device.health via the pump)
+CREATE TABLE IF NOT EXISTS plays (
+    id INTEGER PRIMARY KEY,
+    name TEXT NOT NULL,
+    sha256 TEXT NOT NULL,
+    started_at REAL NOT NULL,       -- unix time, s (host clock)
+    ended_at REAL NOT NULL,
+    device_s REAL NOT NULL,         -- device clock elapsed while selected, s
+    played_s REAL NOT NULL,         -- samples played from the device's buffer / 3 kHz, s (device
+                                    -- mode: played_fraction x device_s, the time it rendered)
+    played_fraction REAL,           -- the pump's played_fraction at the end (NULL: never ran)
+    underruns INTEGER NOT NULL      -- underrun episodes the device counted meanwhile
+);
+CREATE INDEX IF NOT EXISTS plays_stream ON plays(name, sha256);
 """
 
 COLUMNS = ("id", "sha256", "name", "received_at", "scored_at", "bytes", "method", "levels", "b0_db",
@@ -83,11 +100,64 @@ def known(con: sqlite3.Connection) -> set[tuple[str, str]]:
     return {(r[0], r[1]) for r in con.execute("SELECT name, sha256 FROM streams")}
 
 
+PLAY_COLUMNS = ("name", "sha256", "started_at", "ended_at", "device_s", "played_s", "played_fraction",
+                "underruns")
+# per stream, over all its plays: how often, how long, the played fraction weighted by time, underruns
+DELIVERED = ("plays", "played_s", "played_fraction", "underruns")
+
+
+def insert_play(con: sqlite3.Connection, play: dict) -> None:
+    marks = ", ".join("?" * len(PLAY_COLUMNS))
+    con.execute(f"INSERT INTO plays ({', '.join(PLAY_COLUMNS)}) VALUES ({marks})",
+                [play.get(c) for c in PLAY_COLUMNS])
+
+
 def query(con: sqlite3.Connection, since: float | None = None) -> list[dict]:
-    sql = f"SELECT {', '.join(COLUMNS)} FROM streams"
+    """Every stream row (received at or after `since`), with what was delivered when it played."""
+    has_plays = con.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='plays'").fetchone()
+    if has_plays:  # a log written before plays were recorded has no such table (read-only: not added)
+        delivered = ("LEFT JOIN (SELECT name, sha256, COUNT(*) AS plays, SUM(played_s) AS played_s, "
+                     "SUM(played_fraction * device_s) / NULLIF(SUM(CASE WHEN played_fraction IS NULL "
+                     "THEN 0 ELSE device_s END), 0) AS played_fraction, SUM(underruns) AS underruns "
+                     "FROM plays GROUP BY name, sha256) p USING (name, sha256)")
+        extra = "COALESCE(p.plays, 0), p.played_s, p.played_fraction, p.underruns"
+    else:
+        delivered, extra = "", "0, NULL, NULL, NULL"
+    sql = f"SELECT {', '.join('s.' + c for c in COLUMNS)}, {extra} FROM streams s {delivered}"
     args: list = []
     if since is not None:
-        sql += " WHERE received_at >= ?"
+        sql += " WHERE s.received_at >= ?"
         args.append(since)
-    sql += " ORDER BY received_at, id"
-    return [dict(zip(COLUMNS, r, strict=True)) for r in con.execute(sql, args)]
+    sql += " ORDER BY s.received_at, s.id"
+    return [dict(zip(COLUMNS + DELIVERED, r, strict=True)) for r in con.execute(sql, args)]
+
+
+def connect_readonly(path: str | Path) -> sqlite3.Connection:
+    """The log for a reader (`hostd quality`): opened read-only, so a member of group hostd can read
+    the service's database, which it cannot write. With the daemon running (WAL mode), SQLite reads
+    the -wal through the existing -shm. With the daemon stopped there is no -shm, and a read-only
+    connection cannot create one in a directory it cannot write: then, and only when no -wal holds
+    commits not yet in the main file, the file is opened immutable (nothing else is writing it)."""
+    p = Path(path)
+    try:
+        with open(p, "rb"):
+            pass
+    except PermissionError:
+        raise HostdError(f"permission denied on the quality log {p}: add yourself to the daemon's group "
+                         "(sudo usermod -aG hostd $USER, then log in again)") from None
+    except OSError:
+        raise HostdError(f"no quality log at {p} (quality.db of the config; is this the daemon's "
+                         "config? --config or --db name another)") from None
+    uri = p.absolute().as_uri()
+    con = sqlite3.connect(f"{uri}?mode=ro", uri=True)
+    try:
+        con.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        return con
+    except sqlite3.OperationalError as e:
+        con.close()
+        wal = p.with_name(p.name + "-wal")
+        if wal.exists() and wal.stat().st_size > 0:
+            raise HostdError(f"cannot read the quality log {p} read-only ({e}): its -wal holds commits "
+                             "and its -shm is missing or unreadable; start hostd (it checkpoints "
+                             "them), or read it as the daemon's user") from None
+    return sqlite3.connect(f"{uri}?mode=ro&immutable=1", uri=True)

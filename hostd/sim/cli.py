@@ -6,6 +6,13 @@ import json
 import sys
 
 
+def run_label(effects: list[str], width: int = 40) -> str:
+    """The table's label of a run: its effects joined by '+', or 'all N effects' when that does not
+    fit the column (the list follows the table)."""
+    label = "+".join(effects) or "(none)"
+    return label if len(label) <= width else f"all {len(effects)} effects"
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser("sim", help="simulate a scene (only the effects it names); quality per effect")
     p.add_argument("scene", help="scene TOML (config/scenes/*.toml) or a shipped scene's name")
@@ -17,6 +24,12 @@ def add_parser(sub) -> None:
 
 def cmd_sim(args) -> int:
     from pathlib import Path
+
+    from hostd.extras import need
+
+    need("finufft", "sim", "hostd sim")  # before any work: the series fits of every run
+    if args.plot:
+        need("matplotlib", "plot", "hostd sim --plot")
 
     from hostd.paths import find
     from hostd.sim import scene
@@ -38,10 +51,16 @@ def cmd_sim(args) -> int:
           f"codec-only Iobj {out['codec_iobj']:.4f}")
     print(f"  {'effects':<40} {'Ip':>8} {'Ia':>8} {'Iobj':>8} {'RMS err µm':>10} {'Δspec µm':>9} "
           f"{'underruns':>9} {'latency ms':>10}")
+    combined = []
     for r in out["runs"]:
-        print(f"  {'+'.join(r['effects']) or '(none)':<40} {r['ip']:>8.4f} {r['ia']:>8.4f} {r['iobj']:>8.4f} "
+        label = run_label(r["effects"])
+        if label != "+".join(r["effects"]) and r["effects"]:
+            combined.append(f"  {label}: {', '.join(r['effects'])}")
+        print(f"  {label:<40} {r['ip']:>8.4f} {r['ia']:>8.4f} {r['iobj']:>8.4f} "
               f"{r['rms_error_um']:>10.4f} {r['spectrum_change_um']:>9.5f} {r['underruns']:>9} "
               f"{r['latency_ms']:>10.2f}")
+    for line in combined:  # a combined row's effects, below the table so the columns stay aligned
+        print(line)
     for p in plots:
         print(f"  plot: {p}")
     return 0

@@ -364,7 +364,9 @@ def plot(result: dict, out_dir: str | Path) -> list[Path]:
     against f_k in Hz (at the stream's reference speed) for the no-effect run and the run with
     every effect, the detection threshold b(f_k), and where the error crosses it.
     """
-    import matplotlib
+    from hostd.extras import need
+
+    matplotlib = need("matplotlib", "plot", "hostd sim --plot")
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

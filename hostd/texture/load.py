@@ -409,7 +409,8 @@ def cut_patch(y_um: np.ndarray, dx_um: float, opts: LoadOptions, name: str = "")
             raise ProfileError(f"--length-mm must be > 0, got {opts.length_mm}")
         n = min(avail, round(opts.length_mm * 1000.0 / dx_um))
     if n < 2:
-        raise ProfileError(f"{name}: the patch holds fewer than 2 samples")
+        raise ProfileError(f"{name}: the patch holds fewer than 2 samples (sample spacing {dx_um:.4g} µm "
+                           f"with x read in {opts.x_unit}): check --x-unit (is x really in that unit?)")
     from hostd.codec.transform import MAX_SAMPLES
 
     if n > MAX_SAMPLES:

@@ -1,0 +1,182 @@
+"""Options and profile reading shared by every command that reads a profile: `hostd` (cli.py),
+`hostd bench` (bench/cli.py) and `hostd sim` import them from here, so neither CLI module imports
+the other for them (cli.py <-> bench/cli.py was a cycle).
+
+The argparse parser with options anywhere and one-line errors, warnings once per message, the
+profile-loading, geometry and index option groups, and read_profile with its plausibility checks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with options anywhere between the positionals (every command) and one-line errors.
+
+    Options may come before, between or after positionals (`hostd iobj REF --length-mm 10 S`):
+    each leaf command parses with `parse_known_intermixed_args`. Errors are one line on stderr
+    with the hint to `--help`, exit code 2.
+    """
+
+    _intermixing = False
+
+    def parse_known_args(self, args=None, namespace=None):
+        if self._intermixing or any(isinstance(a, argparse._SubParsersAction) for a in self._actions):
+            return super().parse_known_args(args, namespace)
+        self._intermixing = True
+        try:
+            return super().parse_known_intermixed_args(args, namespace)
+        finally:
+            self._intermixing = False
+
+    def error(self, message: str):
+        message = " ".join(message.split())
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+def needs_subcommand(parser: argparse.ArgumentParser, what: str):
+    """The `func` of a command group called without its subcommand (`hostd bench`, `hostd report`):
+    its help on stderr and exit code 2, one behaviour for every group."""
+
+    def func(_args) -> int:
+        sys.stderr.write(parser.format_help())
+        print(f"{parser.prog}: error: choose {what} (see above)", file=sys.stderr)
+        return 2
+
+    return func
+
+
+_WARNED: set[str] = set()
+
+
+def warn(command: str, message: str) -> None:
+    """A warning on stderr, once per message and process."""
+    if message not in _WARNED:
+        _WARNED.add(message)
+        print(f"hostd {command}: warning: {message}", file=sys.stderr)
+
+
+def _positive(v: str) -> float:
+    try:
+        x = float(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {v!r}") from None
+    if not (np.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0: {v!r}")
+    return x
+
+
+def _finite(v: str) -> float:
+    try:
+        x = float(v)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {v!r}") from None
+    if not np.isfinite(x):
+        raise argparse.ArgumentTypeError(f"must be finite: {v!r}")
+    return x
+
+
+def loader_parent(length_default: float | None = 10.0) -> argparse.ArgumentParser:
+    """The profile-loading options shared by every command that reads a profile."""
+    p = Parser(add_help=False)
+    g = p.add_argument_group("profile loading")
+    units = ["m", "mm", "um", "nm"]
+    g.add_argument("--x-unit", default=None, choices=units, help="unit of x / spacing (default um)")
+    g.add_argument("--y-unit", default="um", choices=units, help="unit of heights (default um)")
+    g.add_argument("--spacing", type=_positive, default=None,
+                   help="sample spacing in x-unit (one-column files; or resampling target)")
+    g.add_argument("--length-mm", type=_positive, default=length_default,
+                   help="patch length taken from the profile, mm "
+                   + ("(default 10; the whole profile if shorter)" if length_default
+                      else "(default: the stream's)"))
+    g.add_argument("--offset-mm", type=float, default=0.0, help="patch start, mm (default 0)")
+    g.add_argument("--detrend", default="none", choices=["none", "mean", "linear"])
+    g.add_argument("--columns", default=None, metavar="X,Y",
+                   help="text files: which columns (1-based) hold x and height, e.g. 2,3; or one "
+                   "column Y for heights only (with --spacing). Default: one or two columns")
+    g.add_argument("--decimal-comma", action="store_true",
+                   help="text files: numbers use a decimal comma (1,5); columns split on ; tab or space")
+    return p
+
+
+def geometry_parent(from_stream: bool = False) -> argparse.ArgumentParser:
+    """--speed, --fmax, --thresholds. from_stream: a command that reads a stream, whose header
+    carries v_ref and f_max (default None: the stream's; given, they are checked against it)."""
+    p = Parser(add_help=False)
+    g = p.add_argument_group("geometry and perception")
+    g.add_argument("--speed", type=_positive, default=None if from_stream else 50.0,
+                   help="reference hand speed v_ref, mm/s (default " + ("the stream's)" if from_stream
+                                                                         else "50)"))
+    g.add_argument("--fmax", type=_positive, default=None if from_stream else 400.0,
+                   help="band limit at v_ref, Hz (default " + ("the stream's)" if from_stream else "400)"))
+    g.add_argument("--thresholds", default=None, metavar="CSV",
+                   help="detection-threshold curve (default: the stream's if embedded, else "
+                   "config/thresholds/default.csv)" if from_stream else
+                   "detection-threshold curve (default config/thresholds/default.csv)")
+    return p
+
+
+def index_parent() -> argparse.ArgumentParser:
+    p = Parser(add_help=False)
+    g = p.add_argument_group("quality index")
+    g.add_argument("--preset", default="both", choices=["both", "wood", "sandpaper"],
+                   help="(a, b) fitted in the paper (default both: 0.581, 0.464)")
+    g.add_argument("--a", type=_finite, default=None, help="weight of Ip (overrides --preset)")
+    g.add_argument("--b", type=_finite, default=None, help="weight of Ia (overrides --preset)")
+    return p
+
+
+def _ab(args: argparse.Namespace) -> tuple[float, float]:
+    from hostd.perception.indices import PRESETS
+
+    a, b = PRESETS[args.preset]
+    return (args.a if args.a is not None else a, args.b if args.b is not None else b)
+
+
+def load_opts(args: argparse.Namespace, length_mm: float | None = None):
+    from hostd.texture.load import LoadOptions, parse_columns
+
+    return LoadOptions(
+        x_unit=getattr(args, "x_unit", None) or "um",
+        y_unit=args.y_unit,
+        spacing=args.spacing,
+        length_mm=args.length_mm if args.length_mm is not None else length_mm,
+        offset_mm=args.offset_mm,
+        detrend=args.detrend,
+        columns=parse_columns(getattr(args, "columns", None)),
+        decimal_comma=bool(getattr(args, "decimal_comma", False)),
+        progress=sys.stderr.isatty(),
+    )
+
+
+def read_profile(spec: str, args: argparse.Namespace, length_mm: float | None = None):
+    """A profile file, or 'synthetic:wood[:SEED]' / 'synthetic:sandpaper[:SEED]'."""
+    from hostd.texture import synth
+    from hostd.texture.load import cut_patch, load_profile
+
+    command = getattr(args, "command", "") or ""
+    if synth.is_spec(spec):
+        ignored = [name for name, given in (
+            ("--spacing", getattr(args, "spacing", None) is not None),
+            ("--x-unit", getattr(args, "x_unit", None) is not None),
+            ("--columns", getattr(args, "columns", None) is not None),
+            ("--decimal-comma", getattr(args, "decimal_comma", False)),
+            ("--y-unit", getattr(args, "y_unit", "um") != "um")) if given]
+        if ignored:
+            warn(command, f"{', '.join(ignored)} ignored for {spec} (synthetic profiles are "
+                 "generated in µm at 0.5 µm spacing)")
+        prof = synth.from_spec(spec)
+        return cut_patch(prof.heights_um, prof.spacing_um, load_opts(args, length_mm), spec)
+    prof = load_profile(spec, load_opts(args, length_mm))
+    rms_um = float(np.std(prof.heights_um))
+    if not RMS_PLAUSIBLE_UM[0] <= rms_um <= RMS_PLAUSIBLE_UM[1]:
+        warn(command, f"{spec}: height RMS {rms_um:.3g} µm is implausible for a texture (1 nm to 1 mm): "
+             f"check --y-unit (heights were read as {getattr(args, 'y_unit', 'um')})")
+    return prof
+
+
+RMS_PLAUSIBLE_UM = (1e-3, 1e3)  # a texture's height RMS: 1 nm .. 1 mm; outside, the unit is likely wrong
