@@ -84,10 +84,10 @@ def test_encode_says_when_the_guard_set_the_size(tmp_path, capsys):
     captured = capsys.readouterr()
     res = json.loads(captured.out)
     assert res["Iobj"] < 0.025  # far under the target: the guard decided
-    assert "the waveform guard" in captured.err and "not Iobj, set the size" in captured.err
+    assert "the waveform criterion" in captured.err and "not Iobj, set" in captured.err
     assert main(["encode", "synthetic:wood:1", "-o", str(tmp_path / "w.vtx"), "--target-iobj", "0.05",
                  "--no-guard"]) == 0
-    assert "waveform guard" not in capsys.readouterr().err
+    assert "waveform criterion" not in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("group", ["bench", "report"])
