@@ -264,7 +264,7 @@ class Pump:
         t_play = t0 + np.arange(n) / pr.SAMPLE_RATE_HZ
         codes = self.renderer.render_codes(t_play)
         try:
-            sent = link.send_samples(codes.tolist())
+            sent = link.send_samples(codes)
         except DeviceBusy:
             self.stats.io_dropped += 1
             return 0
