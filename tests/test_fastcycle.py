@@ -6,6 +6,7 @@ inputs (hypothesis), on the protocol's golden vectors and on a recorded hand (th
 
 import os
 import shutil
+import struct
 import subprocess
 import sys
 import sysconfig
@@ -29,12 +30,23 @@ needs_c = pytest.mark.skipif(not HAVE_C, reason="the compiled fast path is not b
 VECTORS = Path(__file__).resolve().parent / "vectors" / "protocol.txt"
 
 
+def _bits(v):
+    """Floats by their bits (a NaN field must decode to the same NaN; NaN != NaN)."""
+    if isinstance(v, float):
+        return ("f64", struct.pack("<d", v).hex())
+    if isinstance(v, tuple):
+        return tuple(_bits(x) for x in v)
+    if isinstance(v, dict):
+        return {k: _bits(x) for k, x in v.items()}
+    return v
+
+
 def _outcome(fn, *args):
     try:
         r = fn(*args)
     except pr.ProtocolError as e:
         return ("error", str(e))
-    return ("ok", r)
+    return ("ok", _bits(r))
 
 
 def test_the_compiled_fast_path_is_built_where_a_c_compiler_is():
@@ -164,3 +176,43 @@ def test_pure_python_can_be_forced_and_renders_the_same_frames():
     import hashlib
 
     assert digest == hashlib.sha256(_metronome_codes().encode()).hexdigest()
+
+
+# ---------------------------------------------------------------- longer host cycles
+@pytest.mark.parametrize("cycle_ms", [1, 2, 4])
+def test_a_longer_host_cycle_sends_one_message_per_wake_up_and_keeps_the_margin(cycle_ms):
+    """[device] host_cycle_ms: one SAMPLES message of cycle_ms x 3 samples per wake-up, the fill
+    target raised by the extra samples, so just before the next wake-up the device still holds
+    target_fill - 3 samples (the 1 ms cycle's margin), and it never runs dry."""
+    from hostd.device.link import DeviceLink
+    from hostd.device.pump import Pump
+    from hostd.device.simdev import SimTransport
+    from tests.test_device import _renderer
+
+    t = SimTransport(realtime=False)
+    link = DeviceLink(t, target_fill=12)
+    t.advance(3)
+    link.handshake(timeout_s=0.1)
+    pump = Pump(link, None, period_s=cycle_ms / 1000)
+    pump.begin(_renderer())
+    assert link.target_fill == 12 + 3 * (cycle_ms - 1) and pump.target_fill == 12
+    lows, sent = [], []
+    for i in range(600 // cycle_ms):
+        t.advance(3 * cycle_ms)
+        if i > 50:
+            lows.append(len(t.device.ring))
+        m0 = link.stats.messages_sent
+        sent.append((pump.step(), link.stats.messages_sent - m0))
+    steady = sent[50:]
+    assert {n for n, _ in steady} == {3 * cycle_ms} and {m for _, m in steady} == {1}
+    assert min(lows) >= 12 - 3 - 1  # the margin a 1 ms cycle has (one sample of rounding)
+    assert t.device.underruns == 0 and pump.stats.recoveries == 0
+
+
+def test_the_host_cycle_is_bounded():
+    from hostd.device.link import DeviceLink
+    from hostd.device.pump import Pump
+    from hostd.device.simdev import SimTransport
+
+    with pytest.raises(ValueError, match=r"1\.\.10 ms"):
+        Pump(DeviceLink(SimTransport(realtime=False)), None, period_s=0.02)
