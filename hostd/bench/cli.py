@@ -26,6 +26,10 @@ def add_parser(sub, parents) -> None:
     q = bsub.add_parser("pipeline", help="time per 1 ms batch at default settings (p50/p99/p99.9)")
     q.add_argument("--json", action="store_true")
     q.add_argument("--duration", type=float, default=60.0, metavar="S", help="simulated seconds (default 60)")
+    q.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS",
+                   help="one batch of MS x 3 samples per wake-up, as the pump's [device] host_cycle_ms "
+                        "(1..10, default 1); reports the accuracy it costs")
+    q.add_argument("--texture", default="wood", help="synthetic texture (default wood)")
     lat = bsub.add_parser("latency", help="encoder change to first DAC sample, through the firmware on a pty")
     lat.add_argument("--json", action="store_true")
     lat.add_argument("--duration", type=float, default=8.0, metavar="S")
@@ -151,7 +155,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         rows += simbench.run_offline()
     if what in ("pipeline", "all"):
-        rows.append(pipeline.run(getattr(args, "duration", 60.0)))
+        cycle = getattr(args, "host_cycle_ms", 1)
+        if not 1 <= cycle <= 10:
+            raise SystemExit("hostd bench pipeline: error: --host-cycle-ms must be 1..10")
+        rows.append(pipeline.run(getattr(args, "duration", 60.0), getattr(args, "texture", "wood"),
+                                 host_cycle_ms=cycle))
     if what == "codec" and args.tune_deadzone:
         from hostd.bench import codec2
 

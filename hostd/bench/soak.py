@@ -98,6 +98,7 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
             pump = _pump_pid(daemon.pid)
             cpu0 = _proc_cpu_s(pump) if pump else 0.0
             dcpu0 = _proc_cpu_s(daemon.pid)
+            cycles0 = request(sock, {"cmd": "status"})["cycles"]
             t0 = time.monotonic()
             bar = None
             if progress:
@@ -138,6 +139,10 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
         "host_cycle_ms": int(host_cycle_ms),
         "pump_cpu_share": round((cpu1 - cpu0) / wall, 4) if pump else None,
         "daemon_cpu_share": round((dcpu1 - dcpu0) / wall, 4),  # the daemon process, its pump excluded
+        # the pump process's CPU per cycle (a loaded machine skips cycles: the share alone hides it)
+        "pump_cpu_us_per_cycle": round((cpu1 - cpu0) / max(1, st["cycles"] - cycles0) * 1e6, 1) if pump
+        else None,
+        "cycles_per_s": round((st["cycles"] - cycles0) / wall, 1),
         "batch_p50_us": round(st["batch_p50_us"], 1), "batch_p99_us": round(st["batch_p99_us"], 1),
         "batch_p999_us": round(st["batch_p999_us"], 1),
     }
