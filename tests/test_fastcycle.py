@@ -216,3 +216,33 @@ def test_the_host_cycle_is_bounded():
 
     with pytest.raises(ValueError, match=r"1\.\.10 ms"):
         Pump(DeviceLink(SimTransport(realtime=False)), None, period_s=0.02)
+
+
+def test_bench_pipeline_reports_what_a_longer_host_cycle_costs(capsys):
+    import json
+
+    from hostd.cli import main
+
+    errs = {}
+    for cycle in (1, 4):
+        assert main(["bench", "pipeline", "--json", "--duration", "1", "--host-cycle-ms", str(cycle)]) == 0
+        (row,) = json.loads(capsys.readouterr().out)["rows"]
+        assert row["host_cycle_ms"] == cycle and row["samples_per_batch"] == 3 * cycle
+        errs[cycle] = row["rms_error_pct"]
+    assert 0 < errs[1] < errs[4]  # predicted further ahead: less accurate
+
+
+def test_bench_cycle_splits_the_pump_cycle_into_its_parts(capsys):
+    import json
+
+    from hostd.cli import main
+
+    try:
+        main(["bench", "cycle", "--json", "--seconds", "1"])
+    except SystemExit as e:
+        pytest.skip(f"the firmware's host port cannot run here: {e}")
+    (row,) = json.loads(capsys.readouterr().out)["rows"]
+    parts = [v for k, v in row.items() if k.endswith("_us") and k not in ("cpu_us_per_cycle",)]
+    assert row["cycles_per_s"] > 100 and row["idle_loop_us_per_wake"] > 0
+    assert all(v >= 0 for v in parts) and row["render_us"] > 0 and row["messages_in_us"] > 0
+    assert row["link"] == fastlink.IMPLEMENTATION and row["render_tail"] == fastrender.IMPLEMENTATION

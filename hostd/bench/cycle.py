@@ -5,7 +5,8 @@ its pty for `seconds`, in this process, with the parts of its cycle wrapped in t
 timers: reading the transport, deframing, handling each message (decode, clock and flow
 control, health, motion), rendering, encoding and writing SAMPLES, and the sleep to the next
 deadline (the kernel's wake-up costs are charged to the thread). Figures are per cycle. The
-wrappers add about 1 µs per call. Played fraction from the firmware's DAC log.
+wrappers add about 1 µs per call. Played fraction from the firmware's DAC log. First, for
+scale, the same deadline loop with nothing in it (idle_loop_us_per_wake).
 """
 
 from __future__ import annotations
@@ -15,6 +16,20 @@ import tempfile
 import time
 from collections import Counter
 from pathlib import Path
+
+
+def idle_loop(seconds: float, period_s: float) -> float:
+    """Thread CPU (µs) per wake-up of the pump's deadline schedule with nothing to do: the
+    floor any Python loop that wakes every period_s pays on this machine."""
+    start, k = time.monotonic(), 0
+    c0 = time.thread_time()
+    while (now := time.monotonic()) - start < seconds:
+        k += 1
+        due = start + k * period_s
+        if due > now:
+            time.sleep(due - now)
+    return (time.thread_time() - c0) / max(1, k) * 1e6
+
 
 PARTS = (("transport read", "read"), ("deframe", "deframe"), ("messages in", "take"),
          ("render", "render"), ("SAMPLES out", "send"), ("sleep", "sleep"))
@@ -45,6 +60,7 @@ def run(seconds: float = 8.0, host_cycle_ms: int = 1, texture: str = "wood") -> 
 
         setattr(obj, name, timed)
 
+    floor_us = idle_loop(min(2.0, seconds), host_cycle_ms / 1000)
     with tempfile.TemporaryDirectory(prefix="hostd-cycle-") as tmp:
         log = Path(tmp) / "dac.bin"
         hp = hostport.HostPort(["--motion", "metronome", "--duration", str(seconds + 30)], log=log)
@@ -88,5 +104,6 @@ def run(seconds: float = 8.0, host_cycle_ms: int = 1, texture: str = "wood") -> 
             "thread_cpu_share": round((c1 - c0) / (w1 - w0), 4), "cpu_us_per_cycle": round(total, 1),
             **{f"{label.replace(' ', '_')}_us": round(v, 1) for label, v in per.items()},
             "other_us": round(total - sum(per.values()), 1),
+            "idle_loop_us_per_wake": round(floor_us, 1),
             "played_fraction": round(fig["played_fraction"], 5),
             "underrun_episodes": fig["underrun_episodes"]}
