@@ -246,3 +246,36 @@ def test_bench_cycle_splits_the_pump_cycle_into_its_parts(capsys):
     assert row["cycles_per_s"] > 100 and row["idle_loop_us_per_wake"] > 0
     assert all(v >= 0 for v in parts) and row["render_us"] > 0 and row["messages_in_us"] > 0
     assert row["link"] == fastlink.IMPLEMENTATION and row["render_tail"] == fastrender.IMPLEMENTATION
+
+
+# ---------------------------------------------------------------- scalar paths of the render front
+ANY_FLOAT = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.one_of(ANY_FLOAT, st.floats(-1e4, 1e4)), max_size=32),
+       st.integers(1, 1 << 20), st.floats(1e-3, 1e4))
+def test_phase_of_a_small_batch_is_bitwise_the_numpy_formula(xs, n, length_mm):
+    """series.phase_rad's scalar path (<= 32 positions) against the numpy formula it replaces."""
+    from hostd.render.series import phase_rad
+
+    x = np.array(xs, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        ref = (np.mod(x, 2.0 * length_mm) / (length_mm / n) + 0.5) * (np.pi / n)
+    assert phase_rad(x, n, length_mm).tobytes() == ref.tobytes()
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.one_of(ANY_FLOAT, st.floats(-1.0, 1.0)), max_size=32),
+       st.tuples(st.floats(-1e3, 1e3), st.floats(-3e3, 3e3), st.floats(-1e5, 1e5), st.floats(-10.0, 10.0)))
+def test_prediction_of_a_small_batch_is_bitwise_the_numpy_formula(ts, fit):
+    """MotionEstimator.predict's scalar path (<= 32 instants) against the numpy formula."""
+    from hostd.render.motion import MotionEstimator
+
+    m = MotionEstimator()
+    m._c0, m._c1, m._c2, m._t_ref = fit
+    t = np.array(ts, dtype=np.float64)
+    lim = m.cfg.max_predict_s
+    dt = (t - m._t_ref).clip(-lim, lim)
+    ref = m._c0 + dt * (m._c1 + dt * m._c2)
+    assert np.asarray(m.predict(t), dtype=np.float64).tobytes() == np.asarray(ref, dtype=np.float64).tobytes()
