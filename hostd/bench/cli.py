@@ -172,8 +172,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         cycle = getattr(args, "host_cycle_ms", 1)
         if not 1 <= cycle <= 10:
             raise SystemExit("hostd bench pipeline: error: --host-cycle-ms must be 1..10")
-        rows.append(pipeline.run(getattr(args, "duration", 60.0), getattr(args, "texture", "wood"),
-                                 host_cycle_ms=cycle))
+        texture = getattr(args, "texture", "wood")
+        extra = {k: v for k, v in (("texture", texture), ("host_cycle_ms", cycle))
+                 if v != {"texture": "wood", "host_cycle_ms": 1}[k]}  # `bench all`: the defaults
+        rows.append(pipeline.run(getattr(args, "duration", 60.0), **extra))
     if what == "codec" and args.tune_deadzone:
         from hostd.bench import codec2
 
