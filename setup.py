@@ -1,9 +1,19 @@
-"""The optional compiled index coder (hostd/codec/_rangecoder.c); everything else is in pyproject.toml.
+"""The optional compiled modules; everything else is in pyproject.toml.
 
-optional=True: without a C compiler the build goes on and hostd uses the pure-Python coder
-(hostd/codec/rangecoder.py, the reference; same bytes, slower).
+optional=True: without a C compiler the build goes on and hostd uses the pure-Python code,
+which is the reference each compiled module is tested against (same bytes, same samples, slower):
+  hostd/codec/_rangecoder.c   the stream-v2 index coder (reference: hostd/codec/rangecoder.py)
+  hostd/device/_fastlink.c    the link's per-message decode/encode (reference: hostd/device/protocol.py)
+  hostd/render/_fastrender.c  equalizer + output stage + codes of a real-time batch (reference:
+                              hostd/render/equalizer.py, output.py)
+-ffp-contract=off: no fused multiply-add, so the compiled renderer rounds exactly as Python does.
 """
 
 from setuptools import Extension, setup
 
-setup(ext_modules=[Extension("hostd.codec._rangecoder", ["hostd/codec/_rangecoder.c"], optional=True)])
+setup(ext_modules=[
+    Extension("hostd.codec._rangecoder", ["hostd/codec/_rangecoder.c"], optional=True),
+    Extension("hostd.device._fastlink", ["hostd/device/_fastlink.c"], optional=True),
+    Extension("hostd.render._fastrender", ["hostd/render/_fastrender.c"], optional=True,
+              extra_compile_args=["-ffp-contract=off"]),
+])

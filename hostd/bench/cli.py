@@ -28,6 +28,10 @@ def add_parser(sub, parents) -> None:
     q = bsub.add_parser("pipeline", help="time per 1 ms batch at default settings (p50/p99/p99.9)")
     q.add_argument("--json", action="store_true")
     q.add_argument("--duration", type=float, default=60.0, metavar="S", help="simulated seconds (default 60)")
+    q.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS",
+                   help="one batch of MS x 3 samples per wake-up, as the pump's [device] host_cycle_ms "
+                        "(1..10, default 1); reports the accuracy it costs")
+    q.add_argument("--texture", default="wood", help="synthetic texture (default wood)")
     lat = bsub.add_parser("latency", help="encoder change to first DAC sample, through the firmware on a pty")
     lat.add_argument("--json", action="store_true")
     lat.add_argument("--duration", type=float, default=8.0, metavar="S")
@@ -38,6 +42,13 @@ def add_parser(sub, parents) -> None:
     so.add_argument("--json", action="store_true")
     so.add_argument("--minutes", type=float, default=10.0, metavar="M", help="how long (default 10)")
     so.add_argument("--load", action="store_true", help="a CPU hog on the other core meanwhile")
+    so.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS",
+                    help="the daemon's [device] host_cycle_ms (1..10, default 1)")
+    cy = bsub.add_parser("cycle", help="the host-rendering pump's CPU time per cycle, part by part, "
+                         "on the firmware's host port")
+    cy.add_argument("--json", action="store_true")
+    cy.add_argument("--seconds", type=float, default=8.0, metavar="S", help="how long (default 8)")
+    cy.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS", help="pump cycle (1..10)")
     sb = bsub.add_parser("sim", help="scene simulation speed vs number of effects and duration")
     sb.add_argument("--json", action="store_true")
     ob = bsub.add_parser("offline", help="goals: shipped scenes at N'=1600 < 5 s, rate-quality "
@@ -142,9 +153,21 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not (0.05 <= args.minutes <= 24 * 60):
             raise SystemExit("hostd bench soak: error: --minutes must be 0.05..1440")
         try:
-            rows.append(soak.run(args.minutes, args.load, progress=not args.json))
+            if not 1 <= args.host_cycle_ms <= 10:
+                raise SystemExit("hostd bench soak: error: --host-cycle-ms must be 1..10")
+            rows.append(soak.run(args.minutes, args.load, progress=not args.json,
+                                 host_cycle_ms=args.host_cycle_ms))
         except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench soak: error: {e}") from None
+    if what == "cycle":
+        from hostd.bench import cycle
+
+        if not (1.0 <= args.seconds <= 3600 and 1 <= args.host_cycle_ms <= 10):
+            raise SystemExit("hostd bench cycle: error: --seconds must be 1..3600 and --host-cycle-ms 1..10")
+        try:
+            rows.append(cycle.run(args.seconds, args.host_cycle_ms))
+        except (RuntimeError, HostdError) as e:
+            raise SystemExit(f"hostd bench cycle: error: {e}") from None
     if what == "sim":
         from hostd.bench import simbench
 
@@ -158,7 +181,13 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         rows += simbench.run_offline()
     if what in ("pipeline", "all"):
-        rows.append(pipeline.run(getattr(args, "duration", 60.0)))
+        cycle = getattr(args, "host_cycle_ms", 1)
+        if not 1 <= cycle <= 10:
+            raise SystemExit("hostd bench pipeline: error: --host-cycle-ms must be 1..10")
+        texture = getattr(args, "texture", "wood")
+        extra = {k: v for k, v in (("texture", texture), ("host_cycle_ms", cycle))
+                 if v != {"texture": "wood", "host_cycle_ms": 1}[k]}  # `bench all`: the defaults
+        rows.append(pipeline.run(getattr(args, "duration", 60.0), **extra))
     if what == "codec" and args.tune_deadzone:
         from hostd.bench import codec2
 

@@ -53,7 +53,8 @@ def _pump_pid(daemon_pid: int) -> int | None:
     return None
 
 
-def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progress: bool = True) -> dict:
+def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progress: bool = True,
+        host_cycle_ms: int = 1) -> dict:
     from hostd.codec import stream as vtx
     from hostd.codec import transform
     from hostd.perception import thresholds
@@ -67,7 +68,8 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
         log = d / "dac.bin"
         hp = hostport.HostPort(["--motion", "metronome", "--duration", str(seconds + 120)], log=log)
         cfg = d / "hostd.toml"
-        cfg.write_text(f'[device]\ntransport = "serial:{hp.pty}"\n[library]\ndir = "lib"\nspool = "spool"\n'
+        cfg.write_text(f'[device]\ntransport = "serial:{hp.pty}"\nhost_cycle_ms = {int(host_cycle_ms)}\n'
+                       '[library]\ndir = "lib"\nspool = "spool"\n'
                        '[control]\nsocket = "hostd.sock"\ngroup = ""\n[quality]\ndb = "q.sqlite"\n')
         sock = str(d / "hostd.sock")
         daemon = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)], cwd=d,
@@ -95,6 +97,8 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
                 hogs.append(subprocess.Popen([sys.executable, "-c", HOG, str(cpu)]))
             pump = _pump_pid(daemon.pid)
             cpu0 = _proc_cpu_s(pump) if pump else 0.0
+            dcpu0 = _proc_cpu_s(daemon.pid)
+            cycles0 = request(sock, {"cmd": "status"})["cycles"]
             t0 = time.monotonic()
             bar = None
             if progress:
@@ -108,6 +112,7 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
                     bar.refresh()
             wall = time.monotonic() - t0
             cpu1 = _proc_cpu_s(pump) if pump else 0.0
+            dcpu1 = _proc_cpu_s(daemon.pid)
             st = request(sock, {"cmd": "status"})
             if bar is not None:
                 bar.close()
@@ -131,7 +136,13 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
         "device_underruns": st["device_underruns"],  # the daemon's health figure, to compare
         "stalls": st["stalls"], "longest_stall_ms": round(st["longest_stall_ms"], 1),
         "host_recoveries": st["recoveries"],  # episodes the host saw (a burst of silences counts once)
+        "host_cycle_ms": int(host_cycle_ms),
         "pump_cpu_share": round((cpu1 - cpu0) / wall, 4) if pump else None,
+        "daemon_cpu_share": round((dcpu1 - dcpu0) / wall, 4),  # the daemon process, its pump excluded
+        # the pump process's CPU per cycle (a loaded machine skips cycles: the share alone hides it)
+        "pump_cpu_us_per_cycle": round((cpu1 - cpu0) / max(1, st["cycles"] - cycles0) * 1e6, 1) if pump
+        else None,
+        "cycles_per_s": round((st["cycles"] - cycles0) / wall, 1),
         "batch_p50_us": round(st["batch_p50_us"], 1), "batch_p99_us": round(st["batch_p99_us"], 1),
         "batch_p999_us": round(st["batch_p999_us"], 1),
     }

@@ -22,6 +22,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
+from hostd.device import fastlink
 from hostd.device import protocol as pr
 from hostd.errors import DeviceBusy, DeviceError, DeviceVersion
 
@@ -159,7 +160,7 @@ class DeviceLink:
     def _take(self, m: bytes, fresh: bool = True) -> str | None:
         """Decode and act on one message from the device; returns its name (None if bad)."""
         try:
-            name, f = pr.decode(m)
+            name, f = fastlink.decode(m)  # protocol.decode, compiled when built
         except pr.ProtocolError:
             self.stats.bad_messages_received += 1
             return None
@@ -232,15 +233,17 @@ class DeviceLink:
         return max(0, round(self.target_fill - self.fill_estimate()))
 
     def send_samples(self, codes) -> int:
-        """Send codes in SAMPLES messages; returns how many went out (a transient error after
-        the first message ends the call early; before it, DeviceBusy is raised)."""
-        codes = list(codes)
+        """Send codes (an int16 array: the fast case; or any sequence of ints) in SAMPLES
+        messages; returns how many went out (a transient error after the first message ends
+        the call early; before it, DeviceBusy is raised)."""
+        if not hasattr(codes, "dtype"):
+            codes = list(codes)
         sent = 0
         for i in range(0, len(codes), pr.MAX_SAMPLES):
             part = codes[i : i + pr.MAX_SAMPLES]
             seq = (self._seq + 1) & 0xFFFF
             try:
-                self._send(pr.encode("SAMPLES", seq=seq, codes=part))
+                self._send(fastlink.encode_samples(seq, part))
             except DeviceBusy:
                 if sent == 0:
                     raise

@@ -85,7 +85,13 @@ class Pump:
     def __init__(self, link: DeviceLink, renderer, period_s: float = 0.001,
                  jitter: JitterConfig | None = None, log=None) -> None:
         self.renderer = renderer
+        if not 0.001 <= period_s <= 0.010 + 1e-12:
+            raise ValueError("pump period must be 1..10 ms")
         self.period_s = period_s
+        # A cycle longer than 1 ms sends that many ms of samples per wake-up; the fill target
+        # rises by the extra samples so the buffer's margin just before the next wake-up (what
+        # covers a late host) stays target_fill - 1 ms, as with a 1 ms cycle.
+        self._extra = round((period_s - 0.001) * pr.SAMPLE_RATE_HZ)
         self.stats = PumpStats()
         self.health = DeviceHealth()
         self.jitter = jitter or JitterConfig(base_fill=link.target_fill,
@@ -117,7 +123,7 @@ class Pump:
             self._retries_base += old.stats.io_retries
         self.link = link
         link.on_status = self._on_status
-        link.target_fill = self._fill
+        link.target_fill = self._link_fill()
         self.health.new_device()
         self._last_samples_played = None
         self._started = False
@@ -149,7 +155,11 @@ class Pump:
 
     def _set_fill(self, n: int) -> None:
         self._fill = max(self.jitter.base_fill, min(self.jitter.max_fill, int(n)))
-        self.link.target_fill = self._fill
+        self.link.target_fill = self._link_fill()
+
+    def _link_fill(self) -> int:
+        """What the link keeps queued: the fill target plus the samples of a cycle beyond 1 ms."""
+        return min(self._fill + self._extra, pr.BUFFER_CAPACITY - pr.MAX_SAMPLES)
 
     # ------------------------------------------------------------------ playback control
     def begin(self, renderer) -> None:
@@ -264,7 +274,7 @@ class Pump:
         t_play = t0 + np.arange(n) / pr.SAMPLE_RATE_HZ
         codes = self.renderer.render_codes(t_play)
         try:
-            sent = link.send_samples(codes.tolist())
+            sent = link.send_samples(codes)
         except DeviceBusy:
             self.stats.io_dropped += 1
             return 0
@@ -305,7 +315,7 @@ class Pump:
             if duration_s is not None and now - start >= duration_s:
                 break
             last = self._last_cycle_start
-            if last is not None and now - last > self._fill / pr.SAMPLE_RATE_HZ:
+            if last is not None and now - last > self._link_fill() / pr.SAMPLE_RATE_HZ:
                 # a host pause longer than the buffer: the device may have run dry
                 if now - last > max(2 * self.period_s, 0.004):
                     st.stalls += 1

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from hostd.render import fastrender
 from hostd.render.equalizer import ActuatorModel, Equalizer, EqualizerConfig
 from hostd.render.height import BandLimitConfig, HeightEvaluator
 from hostd.render.motion import MotionConfig, MotionEstimator
@@ -157,7 +158,9 @@ class Renderer:
         return self.finish_um(self.heights_um(self.plan(t_play_s)))
 
     def render_codes(self, t_play_s: np.ndarray) -> np.ndarray:
-        return self.out.to_codes(self.render_um(t_play_s))
+        """DAC codes for samples played at t_play_s: out.to_codes(render_um(t_play_s)), with
+        the equalizer/output/codes tail compiled for small batches when it is built."""
+        return fastrender.tail(self.eq, self.out, self.heights_um(self.plan(t_play_s)))
 
 
 def frames(codes: np.ndarray, samples_per_batch: int) -> list[np.ndarray]:

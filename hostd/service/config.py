@@ -22,6 +22,7 @@ class DeviceCfg:
     max_fill: int = 90
     host_timeout_ms: int = 50
     reconnect_s: float = 1.0
+    host_cycle_ms: int = 1  # host rendering: one pump wake-up (and SAMPLES message) per this many ms
 
 
 @dataclass
@@ -137,7 +138,7 @@ CHOICES = {
 }
 RANGES = {
     ("device", "target_fill"): (1, 227), ("device", "max_fill"): (1, 227),
-    ("device", "host_timeout_ms"): (5, 60000),
+    ("device", "host_timeout_ms"): (5, 60000), ("device", "host_cycle_ms"): (1, 10),
     ("device", "reconnect_s"): (0.05, 3600), ("library", "max_stream_bytes"): (100, 1 << 30),
     ("render", "samples_per_batch"): (1, 29), ("render", "host_lost_ms"): (100, 60000),
     ("render", "band_end_hz"): (401.0, 1200.0),

@@ -235,7 +235,7 @@ def pump_main(cfg, conn, stats) -> None:
         log(f"device: {transport.describe()} firmware {ident['fw_major']}.{ident['fw_minor']}."
             f"{ident['fw_patch']}, protocol v{ident['protocol_version']}")
         if pump is None:
-            pump = Pump(link, None, jitter=jitter, log=log)
+            pump = Pump(link, None, period_s=cfg.device.host_cycle_ms / 1000, jitter=jitter, log=log)
         else:
             pump.attach(link)
         playing = False
