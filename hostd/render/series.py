@@ -50,7 +50,10 @@ def _nufft_sums(theta: np.ndarray, w: np.ndarray, kmax: int) -> np.ndarray:
     return f[kmax:]
 
 
-_HAVE_FINUFFT = importlib.util.find_spec("finufft") is not None  # the `sim` extra
+try:  # the `sim` extra; a finder that refuses the name counts as absent
+    _HAVE_FINUFFT = importlib.util.find_spec("finufft") is not None
+except ImportError:
+    _HAVE_FINUFFT = False
 NUFFT_MIN_TERMS = 16384  # evaluate by the cosine matrix below this many (sample, component) terms
 TRIM_MIN_TERMS = 2048  # from this many terms, trailing zero coefficients are trimmed first
 _plans = threading.local()  # type-2 NUFFT plans of this thread, by mode count (reused across calls)
