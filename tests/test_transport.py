@@ -450,3 +450,34 @@ def test_unknown_spec_and_sim_through_the_registry():
     t = open_transport("sim")
     assert t.describe() == "sim"
     t.close()
+
+
+def test_doctor_lists_each_display_with_its_spec_and_its_nodes_owner_group_mode(tmp_path, monkeypatch,
+                                                                              capsys):
+    import json
+
+    from hostd.cli import main
+    from hostd.device import transport as tr
+
+    node = tmp_path / "hidraw3"
+    node.write_text("")
+    node.chmod(0o640)
+    monkeypatch.setattr(tr, "find_displays", lambda: [
+        {"spec": f"hid:{node}", "node": str(node), "serial": "0001"},
+        {"spec": "usb:001/007", "node": str(tmp_path / "gone"), "serial": "0001"}])
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[device]\ntransport = "hid"\n')
+    main(["doctor", "--json", "--config", str(cfg)])
+    out = json.loads(capsys.readouterr().out)
+    first, second = out["displays"]
+    assert first["spec"] == f"hid:{node}" and first["node"] == str(node)
+    import grp
+    import pwd
+
+    assert first["mode"] == "0640" and first["owner"] == pwd.getpwuid(os.getuid()).pw_name
+    assert first["group"] == grp.getgrgid(os.getgid()).gr_name
+    assert first["access"] is True
+    assert second["spec"] == "usb:001/007" and "error" in second  # vanished between listing and stat
+    assert out["hotplug"] in ("udev", "poll")
+    msgs = [c["message"] for c in out["checks"] if c["section"] == "device"]
+    assert any(m.startswith("device.transport = 'hid': found hid:") for m in msgs), msgs
