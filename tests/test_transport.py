@@ -481,3 +481,40 @@ def test_doctor_lists_each_display_with_its_spec_and_its_nodes_owner_group_mode(
     assert out["hotplug"] in ("udev", "poll")
     msgs = [c["message"] for c in out["checks"] if c["section"] == "device"]
     assert any(m.startswith("device.transport = 'hid': found hid:") for m in msgs), msgs
+
+
+# ------------------------------------------------------------------ serial, on a real pty
+def test_serial_hangup_mid_read_is_device_gone_at_once():
+    from hostd.device.seriallink import SerialTransport
+
+    master, slave = os.openpty()
+    t = SerialTransport(os.ttyname(slave))
+    os.close(slave)
+    os.write(master, pr.frame(pr.encode("START")))
+    assert t.wait_readable(1.0) and t.recv(0.5) == pr.encode("START")
+    assert t.describe().startswith("serial:/dev/pts/") and t.fileno() >= 0
+    threading.Timer(0.05, os.close, [master]).start()  # the display is unplugged while we wait
+    t0 = time.monotonic()
+    with pytest.raises(DeviceGone, match="hostd reconnects"):
+        t.recv(5.0)
+    assert time.monotonic() - t0 < 2.0
+    t.close()
+
+
+def test_serial_permission_denied_names_the_port_and_the_rule(monkeypatch, tmp_path):
+    import serial
+
+    from hostd.device.seriallink import SerialTransport
+
+    port = tmp_path / "ttyACM0"
+    port.write_text("")
+
+    def denied(*_a, **_k):
+        try:
+            raise PermissionError(errno.EACCES, "Permission denied")
+        except PermissionError as e:
+            raise serial.SerialException(errno.EACCES, f"could not open port {port}: {e}") from e
+
+    monkeypatch.setattr(serial, "Serial", denied)
+    with pytest.raises(DevicePermission, match=rf"{port} \(.*\).*70-hostd\.rules.*'hostd' group"):
+        SerialTransport(str(port))
