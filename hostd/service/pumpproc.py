@@ -101,6 +101,7 @@ def pump_main(cfg, conn, stats) -> None:
     _realtime(cfg.realtime, log)
     # hotplug: udev events where udev runs, else a retry every device.reconnect_s
     hot = watch(cfg.device.transport)
+    spec_kind = cfg.device.transport.partition(":")[0]
     info = {"transport": None, "hotplug": hot.mode, "last_reconnect_s": None, "reconnected": 0}
 
     def tell(**kw) -> None:  # strings and timings for `hostd status` (not per cycle: on change)
@@ -274,20 +275,24 @@ def pump_main(cfg, conn, stats) -> None:
 
         by_event = absent and hot.mode == "udev"
         t_end = time.monotonic() + cfg.device.reconnect_s
+        adds: list = []
         while not quit_:
+            now = time.monotonic()
             if by_event:
                 backlog.extend(hot.events())
-                adds = [ev for ev in backlog if ev.action == "add" and ev.display]
+                adds += [ev for ev in backlog if ev.action == "add" and ev.display]
                 backlog.clear()
-                if adds:
-                    arrival[0] = adds[-1].t
+                # with "auto", a USB device's own event comes before usbhid made its hidraw node:
+                # give that 0.5 s, or auto would take it as raw USB (and detach usbhid)
+                if adds and (spec_kind != "auto" or any(ev.subsystem != "usb" for ev in adds)
+                             or now - adds[0].t >= 0.5):
+                    arrival[0] = adds[0].t
                     return
-            now = time.monotonic()
-            if not by_event and now >= t_end:
+            elif now >= t_end:
                 return
-            # wake at least once a second: the watchdog sees the pump alive while it waits
-            ready = wait([conn, hot_fd] if by_event else [conn], min(1.0, max(0.0, t_end - now))
-                         if not by_event else 1.0)
+            # wake at least every 0.25 s: SIGTERM is seen, and the watchdog sees the pump alive
+            ready = wait([conn, hot_fd] if by_event else [conn],
+                         0.1 if adds else min(0.25, max(0.0, t_end - now)) if not by_event else 0.25)
             wait_ticks += 1
             put("wait_ticks", wait_ticks)
             if conn in ready:
