@@ -150,36 +150,53 @@ def _pump_child(cfg, conn, stats, mon, flag):
     pumpproc.pump_main(cfg, conn, stats)
 
 
-def test_pump_reconnects_on_the_udev_event_at_once_and_drops_on_removal(tmp_path):
-    from hostd.service.config import load
-    from hostd.service.pumpproc import STAT_FIELDS, STAT_INDEX
+class PumpChild:
+    """The pump process on a config with `transport`, the fake monitor as udev; collects its log
+    lines and info messages."""
 
-    p = tmp_path / "c.toml"
-    p.write_text('[device]\ntransport = "hid"\nreconnect_s = 1.0\n')
-    cfg = load(p)
-    ctx = mp.get_context("fork")
-    stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
-    parent, child = ctx.Pipe()
-    mon = FakeMonitor()
-    flag = tmp_path / "plugged"
-    proc = ctx.Process(target=_pump_child, args=(cfg, child, stats, mon, str(flag)), daemon=True)
-    proc.start()
-    lines: list = []
-    info: dict = {}
+    def __init__(self, tmp_path, transport):
+        from hostd.service.config import load
+        from hostd.service.pumpproc import STAT_FIELDS
 
-    def pump_says(pred, timeout_s):
+        p = tmp_path / "c.toml"
+        p.write_text(f'[device]\ntransport = "{transport}"\nreconnect_s = 1.0\n')
+        ctx = mp.get_context("fork")
+        self.stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
+        self.parent, child = ctx.Pipe()
+        self.mon = FakeMonitor()
+        self.flag = tmp_path / "plugged"
+        self.proc = ctx.Process(target=_pump_child, args=(load(p), child, self.stats, self.mon,
+                                                          str(self.flag)), daemon=True)
+        self.proc.start()
+        self.lines: list = []
+        self.info: dict = {}
+
+    def says(self, pred, timeout_s):
         t_end = time.monotonic() + timeout_s
         while time.monotonic() < t_end:
-            if parent.poll(0.02):
-                kind, msg = parent.recv()
+            if self.parent.poll(0.02):
+                kind, msg = self.parent.recv()
                 if kind == "info":
-                    info.update(msg)
+                    self.info.update(msg)
                 else:
-                    lines.append(msg)
+                    self.lines.append(msg)
                 if pred():
                     return True
         return False
 
+    def close(self):
+        self.parent.send(("quit",))
+        self.proc.join(5)
+        if self.proc.is_alive():
+            self.proc.kill()
+
+
+def test_pump_reconnects_on_the_udev_event_at_once_and_drops_on_removal(tmp_path):
+    from hostd.service.pumpproc import STAT_INDEX
+
+    pc = PumpChild(tmp_path, "hid")
+    parent, stats, mon, flag, lines, info, pump_says = (pc.parent, pc.stats, pc.mon, pc.flag, pc.lines,
+                                                        pc.info, pc.says)
     try:
         assert pump_says(lambda: any("no HID display" in m for m in lines), 60), lines
         assert info["hotplug"] == "udev"
@@ -211,7 +228,26 @@ def test_pump_reconnects_on_the_udev_event_at_once_and_drops_on_removal(tmp_path
         assert pump_says(lambda: info.get("transport") is None, 5)
         assert stats[STAT_INDEX["connected"]] == 0
     finally:
-        parent.send(("quit",))
-        proc.join(5)
-        if proc.is_alive():
-            proc.kill()
+        pc.close()
+
+
+def test_auto_waits_for_the_hidraw_node_after_the_usb_event(tmp_path):
+    # with "auto", the USB device's event comes before usbhid made the hidraw node; opening at
+    # once would take the display as raw USB (detaching usbhid) or fail
+    pc = PumpChild(tmp_path, "auto")
+    try:
+        def tries():
+            return sum("no HID display" in m for m in pc.lines)
+
+        assert pc.says(lambda: tries() == 1, 60), pc.lines
+        pc.mon.push(action="add", subsystem="usb", devtype="usb_device", node="/dev/bus/usb/001/009",
+                    props={"PRODUCT": f"{pr.USB_VID:x}/{pr.USB_PID:x}/100"})
+        pc.says(lambda: False, 0.3)
+        assert tries() == 1  # not yet: usbhid has had no time to bind
+        pc.flag.touch()
+        t0 = time.monotonic()
+        pc.mon.push(action="add", subsystem="hidraw", node="/dev/hidraw9", parent_hid=DISPLAY_HID)
+        assert pc.says(lambda: pc.info.get("transport") == "hid:/dev/hidraw9", 5), pc.lines
+        assert time.monotonic() - t0 < 1.0
+    finally:
+        pc.close()
