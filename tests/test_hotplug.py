@@ -126,7 +126,7 @@ def test_a_real_pyudev_monitor_gets_a_kernel_uevent_filtered_by_subsystem():
 
 
 # ------------------------------------------------------------------ the pump process
-def _pump_child(cfg, conn, stats, mon, flag):
+def _pump_child(cfg, conn, stats, mon, flag, listed=None):
     """The daemon's pump, with the fake monitor as udev and a display that exists while `flag`
     does (a simulated device behind a hidraw-looking name)."""
     from hostd.device import transport as tr
@@ -147,6 +147,8 @@ def _pump_child(cfg, conn, stats, mon, flag):
 
     hotplug.watch = lambda spec: hotplug.Hotplug(mon, ("hidraw",))
     tr.open_transport = open_transport
+    # what sysfs lists (nothing is opened): the display while `listed` exists
+    tr.present = lambda spec: [{"spec": "hid:/dev/hidraw9"}] if listed and os.path.exists(listed) else []
     pumpproc.pump_main(cfg, conn, stats)
 
 
@@ -165,8 +167,9 @@ class PumpChild:
         self.parent, child = ctx.Pipe()
         self.mon = FakeMonitor()
         self.flag = tmp_path / "plugged"
+        self.listed = tmp_path / "listed"
         self.proc = ctx.Process(target=_pump_child, args=(load(p), child, self.stats, self.mon,
-                                                          str(self.flag)), daemon=True)
+                                                          str(self.flag), str(self.listed)), daemon=True)
         self.proc.start()
         self.lines: list = []
         self.info: dict = {}
@@ -180,8 +183,8 @@ class PumpChild:
                     self.info.update(msg)
                 else:
                     self.lines.append(msg)
-                if pred():
-                    return True
+            if pred():
+                return True
         return False
 
     def close(self):
@@ -219,7 +222,8 @@ def test_pump_reconnects_on_the_udev_event_at_once_and_drops_on_removal(tmp_path
         assert pump_says(lambda: info.get("last_reconnect_s") is not None, 5), lines
         assert 0 < info["last_reconnect_s"] < 1.0 and info["reconnected"] == 1
         assert any("playing again" in m and "after its udev add event" in m for m in lines), lines
-        assert stats[STAT_INDEX["device_samples_played"]] > 0  # the device's own counter
+        # and it plays: the device's own counter advances
+        assert pump_says(lambda: stats[STAT_INDEX["device_samples_played"]] > 0, 3)
         # unplugged: the udev remove event of our node ends the link at once (the simulated
         # device would have gone on answering: only the event can have done it)
         flag.unlink()
@@ -249,5 +253,20 @@ def test_auto_waits_for_the_hidraw_node_after_the_usb_event(tmp_path):
         pc.mon.push(action="add", subsystem="hidraw", node="/dev/hidraw9", parent_hid=DISPLAY_HID)
         assert pc.says(lambda: pc.info.get("transport") == "hid:/dev/hidraw9", 5), pc.lines
         assert time.monotonic() - t0 < 1.0
+    finally:
+        pc.close()
+
+
+def test_a_missed_udev_event_costs_one_reconnect_interval_not_forever(tmp_path):
+    # the unit's PrivateNetwork=yes (a private network namespace) hides udev's events: the
+    # display's sysfs entry, looked at once per device.reconnect_s, still brings it back
+    pc = PumpChild(tmp_path, "hid")
+    try:
+        assert pc.says(lambda: any("no HID display" in m for m in pc.lines), 60), pc.lines
+        pc.flag.touch()
+        pc.listed.touch()  # plugged, and no event comes
+        assert pc.says(lambda: pc.info.get("transport") == "hid:/dev/hidraw9", 3), pc.lines
+        assert any("no udev event said so" in m and "PrivateNetwork" in m for m in pc.lines)
+        assert pc.info["hotplug_missed"] == 1 and pc.info["last_reconnect_s"] is None  # no event to time
     finally:
         pc.close()

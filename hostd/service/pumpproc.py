@@ -79,7 +79,7 @@ def pump_main(cfg, conn, stats) -> None:
     from hostd.device.hotplug import watch
     from hostd.device.link import DeviceLink
     from hostd.device.pump import JitterConfig, Pump
-    from hostd.device.transport import open_transport
+    from hostd.device.transport import open_transport, present
     from hostd.errors import DeviceError, DeviceGone, DeviceNotFound, DeviceVersion
     from hostd.render import Renderer
 
@@ -269,13 +269,17 @@ def pump_main(cfg, conn, stats) -> None:
 
     def wait_for_display(absent: bool) -> None:
         """Until it is time to try again: the display's udev add event (udev mode, and it was
-        not there), else device.reconnect_s (poll mode, or a display that is there but failed)."""
+        not there), else device.reconnect_s (poll mode, or a display that is there but failed).
+        In udev mode the display's sysfs entry is also looked at every device.reconnect_s
+        (nothing is opened): a missed event (a private network namespace hides udev's events,
+        a netlink overflow drops them) costs that long, not forever."""
         nonlocal wait_ticks
         from multiprocessing.connection import wait
 
         by_event = absent and hot.mode == "udev"
         t_end = time.monotonic() + cfg.device.reconnect_s
         adds: list = []
+        listed_usb = False
         while not quit_:
             now = time.monotonic()
             if by_event:
@@ -288,11 +292,23 @@ def pump_main(cfg, conn, stats) -> None:
                              or now - adds[0].t >= 0.5):
                     arrival[0] = adds[0].t
                     return
+                if not adds and now >= t_end:
+                    t_end = now + cfg.device.reconnect_s
+                    listed = present(cfg.device.transport)
+                    usb_only = all(d["spec"].startswith("usb:") for d in listed)
+                    if listed and (spec_kind != "auto" or not usb_only or listed_usb):
+                        info["missed"] = info.get("missed", 0) + 1
+                        log(f"hotplug: {listed[0]['spec']} is there but no udev event said so: udev's "
+                            "events do not reach hostd (a private network namespace, e.g. the unit's "
+                            "PrivateNetwork=yes, hides them); reconnecting within device.reconnect_s")
+                        tell(hotplug_missed=info["missed"])
+                        return
+                    listed_usb = bool(listed)  # auto: raw USB only if still no hidraw a tick later
             elif now >= t_end:
                 return
             # wake at least every 0.25 s: SIGTERM is seen, and the watchdog sees the pump alive
             ready = wait([conn, hot_fd] if by_event else [conn],
-                         0.1 if adds else min(0.25, max(0.0, t_end - now)) if not by_event else 0.25)
+                         0.1 if adds else min(0.25, max(0.0, t_end - now)))
             wait_ticks += 1
             put("wait_ticks", wait_ticks)
             if conn in ready:
