@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from hostd.device import hidlink, usblink
+from hostd.device import hidlink, hotplug, usblink
 from hostd.device import protocol as pr
 from hostd.device.hidlink import HidapiTransport, HidrawTransport
 from hostd.device.link import DeviceLink
@@ -480,6 +480,8 @@ def test_doctor_lists_each_display_with_its_spec_and_its_nodes_owner_group_mode(
     assert second["spec"] == "usb:001/007" and "error" in second  # vanished between listing and stat
     assert out["hotplug"] in ("udev", "poll")
     msgs = [c["message"] for c in out["checks"] if c["section"] == "device"]
+    hot = [m for m in msgs if m.startswith("hotplug: ")]
+    assert hot == [f"hotplug: {hotplug.watch('hid').describe()}"] and not hot[0].endswith(": ")
     assert any(m.startswith("device.transport = 'hid': found hid:") for m in msgs), msgs
 
 
