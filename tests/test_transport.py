@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from hostd.device import hidlink, hotplug, usblink
+from hostd.device import backend, hidlink, hotplug, usblink
 from hostd.device import protocol as pr
 from hostd.device.hidlink import HidapiTransport, HidrawTransport
 from hostd.device.link import DeviceLink
@@ -169,7 +169,13 @@ def test_hidraw_permission_denied_names_the_node_the_rule_and_the_group(tmp_path
         HidrawTransport(str(node))
     msg = str(e.value)
     assert str(node) in msg and "0600" in msg and "70-hostd.rules" in msg and "'hostd' group" in msg
-    assert "\n" not in msg
+    assert "must exist before the display appears" in msg and "\n" not in msg
+    # the rule worked (group hostd) but this user is not in the group: say that instead
+    monkeypatch.setattr(backend, "node_owner", lambda n: {"node": n, "owner": "root", "group": "hostd",
+                                                          "mode": "0660", "access": False})
+    with pytest.raises(DevicePermission, match=r"\(root:hostd 0660\): the udev rule \(systemd/70-hostd"
+                       r"\.rules\) gave it to group 'hostd': add your user to it \(sudo usermod -aG hostd"):
+        HidrawTransport(str(node))
     monkeypatch.undo()
     with pytest.raises(DeviceNotFound, match="does not exist"):
         HidrawTransport(str(tmp_path / "hidraw5"), sysfs=str(tmp_path))

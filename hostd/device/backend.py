@@ -108,10 +108,19 @@ def node_owner(path: str) -> dict:
 
 
 def permission_error(node: str) -> DevicePermission:
-    """The one-line refusal for a node this user may not open: who may, and how to get there."""
+    """The one-line refusal for a node this user may not open: who may, and how to get there.
+    A node of group hostd means the udev rule worked and this user is not in the group; any other
+    group means the rule did not apply (not installed, or the group did not exist yet when the
+    display appeared)."""
     o = node_owner(node)
     have = f" ({o['owner']}:{o['group']} {o['mode']})" if "mode" in o else ""
-    return DevicePermission(f"permission denied opening {node}{have}: {UDEV_FIX}")
+    if o.get("group") == GROUP:
+        fix = (f"the udev rule ({UDEV_RULE}) gave it to group '{GROUP}': add your user to it "
+               f"(sudo usermod -aG {GROUP} $USER, then log in again) or run hostd as the service")
+    else:
+        fix = (f"{UDEV_FIX}; the '{GROUP}' group must exist before the display appears "
+               "(sudo hostd install-service does both)")
+    return DevicePermission(f"permission denied opening {node}{have}: {fix}")
 
 
 def os_error(e: OSError, what: str, node: str | None = None) -> DeviceError:
