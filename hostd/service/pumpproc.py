@@ -63,6 +63,8 @@ def _die_with_parent() -> None:
 
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, 15)  # PR_SET_PDEATHSIG, SIGTERM
+        # PR_SET_NAME: `ps` and a refused raw-USB claim ("busy: pid N (hostd-pump) ...") name it
+        libc.prctl(15, ctypes.c_char_p(b"hostd-pump"))
         if os.getppid() == 1:  # the parent died before prctl took effect
             os.kill(os.getpid(), 15)
     except (OSError, AttributeError):
