@@ -152,6 +152,9 @@ def test_hidraw_found_by_vid_pid_in_sysfs_and_a_named_node_is_used(tmp_path, mon
     t.close()
     a.close()
     b.close()
+    with pytest.raises(DeviceNotFound, match=r"/dev/hidraw0 is 046d:c077, not the display"):
+        hidlink.open_hid("/dev/hidraw0", sysfs=sysfs)  # a mouse: nothing is written to it
+    assert len(opened) == 2
     with pytest.raises(DeviceNotFound, match=r"hidraw devices seen: 046d:c077"):
         hidlink.open_hid(None, sysfs=_sysfs(tmp_path / "other", {"hidraw0": MOUSE}))
 

@@ -94,6 +94,8 @@ class HidrawTransport(Transport):
         if fd is None:
             if node is None:
                 node = self._find(sysfs)
+            else:
+                self._check_ids(node, sysfs)
             try:
                 fd = os.open(node, os.O_RDWR | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOCTTY)
             except FileNotFoundError:
@@ -117,6 +119,17 @@ class HidrawTransport(Transport):
             raise DeviceNotFound(f"no HID display {pr.USB_VID:04x}:{pr.USB_PID:04x} "
                                  f"(hidraw devices seen: {', '.join(seen) or 'none'})")
         return mine[0]["node"]
+
+    @staticmethod
+    def _check_ids(node: str, sysfs: str) -> None:
+        """A named node that sysfs says is another device is refused before a byte is written
+        to it (a mouse's or a keyboard's hidraw node)."""
+        name = os.path.basename(os.path.realpath(node))
+        uevent = _uevent(Path(sysfs, "class", "hidraw", name, "device", "uevent"))
+        ids = parse_hid_id(uevent.get("HID_ID", ""))
+        if ids is not None and (ids[1], ids[2]) != (pr.USB_VID, pr.USB_PID):
+            raise DeviceNotFound(f"{node} is {ids[1]:04x}:{ids[2]:04x}, not the display "
+                                 f"{pr.USB_VID:04x}:{pr.USB_PID:04x}; hostd doctor lists the displays")
 
     def _err(self, e: OSError):
         return os_error(e, f"HID {self.node}", self.node if self.node.startswith("/") else None)
