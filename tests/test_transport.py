@@ -13,6 +13,7 @@ from __future__ import annotations
 import errno
 import os
 import socket
+import sys
 import threading
 import time
 from pathlib import Path
@@ -155,6 +156,9 @@ def test_hidraw_found_by_vid_pid_in_sysfs_and_a_named_node_is_used(tmp_path, mon
     with pytest.raises(DeviceNotFound, match=r"/dev/hidraw0 is 046d:c077, not the display"):
         hidlink.open_hid("/dev/hidraw0", sysfs=sysfs)  # a mouse: nothing is written to it
     assert len(opened) == 2
+    if sys.platform == "linux":  # before the HID modules load there is no /sys/class/hidraw: still hidraw
+        with pytest.raises(DeviceNotFound, match=r"hidraw devices seen: none"):
+            hidlink.open_hid(None, sysfs=str(tmp_path / "no-sysfs"))
     with pytest.raises(DeviceNotFound, match=r"hidraw devices seen: 046d:c077"):
         hidlink.open_hid(None, sysfs=_sysfs(tmp_path / "other", {"hidraw0": MOUSE}))
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import os
 import select
+import sys
 import time
 from pathlib import Path
 
@@ -36,7 +37,9 @@ READ_SIZE = 4096  # larger than any report: a read never truncates one silently
 
 # ------------------------------------------------------------------ Linux: hidraw
 def hidraw_present(sysfs: str = SYSFS) -> bool:
-    return Path(sysfs, "class", "hidraw").is_dir()
+    """Linux: hidraw is the way, even before /sys/class/hidraw exists (the HID modules load
+    with the first HID device); elsewhere (macOS, Windows) hidapi."""
+    return sys.platform == "linux" or Path(sysfs, "class", "hidraw").is_dir()
 
 
 def _uevent(path: Path) -> dict[str, str]:
