@@ -301,7 +301,9 @@ class FakeUsbDev:
     def get_active_configuration(self):
         if not self.configured:
             raise USBError(None, "Configuration not set")
-        return object()
+        return self.config
+
+    config = None  # {(interface, alt): [endpoints]} when a test gives one
 
     def set_configuration(self):
         self.calls.append("set_configuration")
@@ -362,6 +364,19 @@ def test_usb_writes_exact_packets_to_the_out_endpoint():
     assert t.recv(0.001) is None  # a zero-length packet, then a timeout: "nothing yet", not an error
     assert t.recv(0.001) is None
     assert t.describe() == "usb:001/007"
+
+
+def test_usb_endpoints_come_from_the_interface_descriptor():
+    # the Linux gadget numbered its endpoints itself (0x81 IN, 0x02 OUT): 0x01 was "Invalid
+    # endpoint address" on the real kernel
+    from types import SimpleNamespace as Ep
+
+    dev = FakeUsbDev()
+    dev.config = {(0, 0): [Ep(bEndpointAddress=0x81, bmAttributes=3),
+                           Ep(bEndpointAddress=0x02, bmAttributes=3)]}
+    t = usb(dev)
+    t.send(pr.encode("START"))
+    assert dev.writes == [(0x02, pr.pad_report(vec("start")))] and t.ep_in == 0x81
 
 
 def test_usb_claims_politely_and_gives_the_interface_back_to_usbhid():

@@ -1,6 +1,7 @@
 """Raw USB backend through pyusb, with libusb-package's bundled libusb (no system libusb).
 
-Interrupt OUT endpoint 0x01 and IN endpoint 0x81 (protocol.toml), 64-byte packets, interface 0.
+Interface 0's interrupt OUT and IN endpoints as its descriptor gives them (the board port's are 0x01
+and 0x81, protocol.toml; a Linux gadget numbers its own), 64-byte packets.
 
 Polite claim: the kernel's HID driver (usbhid) normally has the interface, and a program may
 be using the display through it (/dev/hidrawN, e.g. the daemon on `hid`). Detaching usbhid
@@ -172,6 +173,24 @@ class UsbTransport(Transport):
             dev.set_configuration()
         self._util.claim_interface(dev, INTERFACE)
         self._claimed = True
+        self.ep_out, self.ep_in = self._endpoints(dev)
+
+    @staticmethod
+    def _endpoints(dev) -> tuple[int, int]:
+        """The interface's interrupt OUT and IN endpoints, as its descriptor says (a Linux gadget
+        numbers them itself, e.g. 0x02 OUT); the board port's (protocol.toml) if it says none."""
+        ep_out, ep_in = pr.P["usb_ep_out"], pr.P["usb_ep_in"]
+        try:
+            intf = dev.get_active_configuration()[(INTERFACE, 0)]
+            for e in intf:
+                if e.bmAttributes & 0x3 == 0x3:  # interrupt
+                    if e.bEndpointAddress & 0x80:
+                        ep_in = e.bEndpointAddress
+                    else:
+                        ep_out = e.bEndpointAddress
+        except Exception:  # no descriptor to read: keep the board port's
+            pass
+        return ep_out, ep_in
 
     def _map(self, e: Exception) -> DeviceError:
         code = getattr(e, "errno", None)
@@ -190,13 +209,13 @@ class UsbTransport(Transport):
 
     def send(self, msg: bytes) -> None:
         try:
-            self.dev.write(pr.P["usb_ep_out"], pr.pad_report(msg), 100)
+            self.dev.write(self.ep_out, pr.pad_report(msg), 100)
         except Exception as e:
             raise self._map(e) from None
 
     def _read(self, timeout_s: float) -> bytes | None:
         try:
-            data = self.dev.read(pr.P["usb_ep_in"], pr.REPORT_SIZE, max(1, int(timeout_s * 1000)))
+            data = self.dev.read(self.ep_in, pr.REPORT_SIZE, max(1, int(timeout_s * 1000)))
         except Exception as e:
             if getattr(e, "errno", None) == errno.ETIMEDOUT or type(e).__name__ == "USBTimeoutError":
                 return None
