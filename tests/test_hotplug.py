@@ -140,7 +140,16 @@ def _pump_child(cfg, conn, stats, mon, flag, listed=None):
         def describe(self):
             return "hid:/dev/hidraw9"
 
+    class Silent(Plugged):  # opens, never answers (a display without our firmware)
+        def recv(self, timeout_s=0.0):
+            time.sleep(timeout_s)
+
+        def close(self):
+            Path(flag + ".closed").touch()
+
     def open_transport(spec):
+        if os.path.exists(flag + ".silent"):
+            return Silent()
         if not os.path.exists(flag):
             raise DeviceNotFound("no HID display 1209:7470 (hidraw devices seen: none)")
         return Plugged()
@@ -268,5 +277,16 @@ def test_a_missed_udev_event_costs_one_reconnect_interval_not_forever(tmp_path):
         assert pc.says(lambda: pc.info.get("transport") == "hid:/dev/hidraw9", 3), pc.lines
         assert any("no udev event said so" in m and "PrivateNetwork" in m for m in pc.lines)
         assert pc.info["hotplug_missed"] == 1 and pc.info["last_reconnect_s"] is None  # no event to time
+    finally:
+        pc.close()
+
+
+def test_a_display_that_opens_but_does_not_answer_is_closed_before_the_retry(tmp_path):
+    # the fd (hidraw) or the interface claim with usbhid detached (raw USB) must not leak per retry
+    pc = PumpChild(tmp_path, "hid")
+    try:
+        Path(str(pc.flag) + ".silent").touch()
+        assert pc.says(lambda: any("no answer to IDENTIFY" in m for m in pc.lines), 60), pc.lines
+        assert Path(str(pc.flag) + ".closed").exists()
     finally:
         pc.close()

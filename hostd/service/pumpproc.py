@@ -319,6 +319,7 @@ def pump_main(cfg, conn, stats) -> None:
 
     while not quit_:
         # ---- connect
+        transport = None
         try:
             transport = open_transport(cfg.device.transport)
             link = DeviceLink(transport, target_fill=cfg.device.target_fill)
@@ -326,6 +327,8 @@ def pump_main(cfg, conn, stats) -> None:
             link.set_limits(min(limit_code, ident["limit_code"]), min(max_step, ident["max_step_code"]))
             link.set_timeout(cfg.device.host_timeout_ms)
         except DeviceError as e:
+            if transport is not None:  # opened, then no answer: release it (the fd, the USB claim)
+                transport.close()
             put("connected", 0)
             put("state", STATE_CODES["waiting"])
             log(f"device: {e}")
