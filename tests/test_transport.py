@@ -85,10 +85,16 @@ def test_hidraw_short_reports_are_passed_on_and_the_link_counts_truncated_ones(h
 
 def test_hidraw_handshake_and_blocking_wait(hidraw):
     t, dev = hidraw
-    assert t.wait_readable(0.01) is False
+    assert t.wait(0.01) is False
+    r, w = os.pipe()
+    os.write(w, b"x")  # a command for the pump: the wait ends at once, False (nothing from the device)
+    t0 = time.monotonic()
+    assert t.wait(5.0, fds=[r]) is False and time.monotonic() - t0 < 1.0
+    os.close(r)
+    os.close(w)
     threading.Timer(0.05, lambda: dev.send(pr.pad_report(vec("ident")))).start()
     t0 = time.monotonic()
-    assert t.wait_readable(2.0) is True
+    assert t.wait(2.0) is True
     assert time.monotonic() - t0 < 1.5
     assert DeviceLink(t).handshake(timeout_s=0.5)["limit_code"] == 16383
 
@@ -439,11 +445,23 @@ def test_usb_permission_denied_names_the_node_and_the_udev_rule():
         usb(FakeUsbDev(), where="002/003")
 
 
+def test_usb_wait_reads_ahead_and_watches_other_descriptors():
+    dev = FakeUsbDev(replies=[pr.pad_report(vec("status"))])
+    t = usb(dev)
+    assert t.wait(0.01) is True and t.pending()  # the packet read while waiting is kept for recv
+    assert t.recv(0.0) == pr.pad_report(vec("status")) and not t.pending()
+    r, w = os.pipe()
+    os.write(w, b"x")
+    assert t.wait(5.0, fds=[r]) is False  # libusb has no descriptor: it reads in slices meanwhile
+    os.close(r)
+    os.close(w)
+
+
 def test_usb_removed_mid_read_is_device_gone():
     dev = FakeUsbDev(fail=USBError(errno.ENODEV, "No such device (it may have been disconnected)"))
     t = usb(dev)
     with pytest.raises(DeviceGone, match="usb:001/007 went away"):
-        t.wait_readable(0.01)
+        t.wait(0.01)
 
 
 def test_usb_enumeration_from_sysfs(tmp_path):
@@ -521,7 +539,7 @@ def test_serial_hangup_mid_read_is_device_gone_at_once():
     t = SerialTransport(os.ttyname(slave))
     os.close(slave)
     os.write(master, pr.frame(pr.encode("START")))
-    assert t.wait_readable(1.0) and t.recv(0.5) == pr.encode("START")
+    assert t.wait(1.0) and t.recv(0.5) == pr.encode("START")
     assert t.describe().startswith("serial:/dev/pts/") and t.fileno() >= 0
     threading.Timer(0.05, os.close, [master]).start()  # the display is unplugged while we wait
     t0 = time.monotonic()

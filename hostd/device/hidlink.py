@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 from hostd.device import protocol as pr
-from hostd.device.backend import Transport, os_error, permission_error, wait_fd
+from hostd.device.backend import Transport, os_error, permission_error
 from hostd.errors import DeviceBusy, DeviceGone, DeviceNotFound
 
 SYSFS = "/sys"
@@ -173,9 +173,6 @@ class HidrawTransport(Transport):
 
     def fileno(self) -> int:
         return self.fd
-
-    def wait_readable(self, timeout_s: float) -> bool:
-        return wait_fd(self.fd, timeout_s)
 
     def close(self) -> None:
         fd, self.fd = self.fd, -1

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import errno
 import os
+import time
 from pathlib import Path
 
 from hostd.device import protocol as pr
@@ -142,7 +143,7 @@ class UsbTransport(Transport):
             import usb.util as util
         self._util = util
         self._detached = self._claimed = False
-        self._pending: bytes | None = None  # a packet read by wait_readable, for recv
+        self._pending: bytes | None = None  # a packet read by wait(), for recv
         try:
             self._claim()
         except DeviceError:
@@ -228,11 +229,26 @@ class UsbTransport(Transport):
             return data
         return self._read(timeout_s)
 
-    def wait_readable(self, timeout_s: float) -> bool:
-        """libusb gives no descriptor per endpoint: wait by reading, and keep the packet."""
-        if self._pending is None:
-            self._pending = self._read(timeout_s)
+    def pending(self) -> bool:
         return self._pending is not None
+
+    def wait(self, timeout_s: float, fds=()) -> bool:
+        """libusb gives no descriptor per endpoint: wait by reading (the packet is kept for
+        recv), in slices of POLL_S when `fds` must be watched too."""
+        import select
+
+        if self._pending is not None:
+            return True
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            self._pending = self._read(min(left, self.POLL_S) if fds else left)
+            if self._pending is not None:
+                return True
+            if fds and select.select(list(fds), [], [], 0)[0]:
+                return False
+            if deadline - time.monotonic() <= 0:
+                return False
 
     def close(self) -> None:
         dev = getattr(self, "dev", None)
