@@ -91,7 +91,7 @@ def pump_main(cfg, conn, stats) -> None:
     def log(msg: str) -> None:
         # device loss, refusals and recoveries are warnings; set-up lines are information
         warn = msg.startswith(("device lost", "device:", "playback recovered", "device mode: the display",
-                               "pump: ")) and ", protocol v" not in msg
+                               "pump: ")) and ", protocol v" not in msg and " playing again " not in msg
         try:
             conn.send(("warn" if warn else "log", msg))
         except (OSError, EOFError):
