@@ -18,8 +18,8 @@ from collections import deque
 import numpy as np
 
 from hostd.device import protocol as pr
+from hostd.device.backend import Transport
 from hostd.device.fwmodel import EDGE_HZ, RenderModel, hand_edges
-from hostd.device.transport import Transport
 
 S = pr.STATES
 F = pr.FAULTS

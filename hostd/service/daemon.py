@@ -154,6 +154,8 @@ class Daemon:
         self.play: tuple[str, str, float, dict] | None = None  # name, sha256, started, counters
         self.accepted = 0
         self.refused = 0
+        # from the pump, on change: transport in use, hotplug mode, last reconnection time
+        self.pump_info: dict = {"transport": None, "hotplug": None, "last_reconnect_s": None}
         self.lock = threading.Lock()
         self.notifier = Notifier()
         self.control: ControlServer | None = None
@@ -267,6 +269,7 @@ class Daemon:
                    "accepted": self.accepted, "refused": self.refused, "library": len(self.library.names()),
                    "quality_pending": self.quality_q.qsize() + len(self.quality_pending),
                    "device": self.cfg.device.transport})
+        st.update(self.pump_info)
         return st
 
     # ------------------------------------------------------------ workers
@@ -551,6 +554,20 @@ class Daemon:
             self.start_worker(name, target)
         return not self.dead_workers
 
+    def pump_messages(self) -> None:
+        """Log the pump's lines and take its info (transport, hotplug, reconnection time)."""
+        try:
+            while self.conn.poll():
+                kind, msg = self.conn.recv()
+                if kind == "info":
+                    self.pump_info = msg
+                    continue
+                # the pump's lines carry their level: device loss and recoveries are
+                # warnings (journald priority 4), the rest information
+                log.log(logging.WARNING if kind == "warn" else logging.INFO, "%s", msg)
+        except (EOFError, OSError):
+            pass  # the pump is gone: the main loop says so
+
     # ------------------------------------------------------------ main
     def on_signal(self, *_) -> None:
         """SIGTERM/SIGINT: only a flag. The handler runs in the main thread between two bytecodes,
@@ -607,14 +624,7 @@ class Daemon:
         last_cycles = -1.0
         try:
             while not (self.signalled or self.stop_event.wait(0.2) or self.signalled):
-                try:
-                    while self.conn.poll():
-                        kind, msg = self.conn.recv()
-                        # the pump's lines carry their level: device loss and recoveries are
-                        # warnings (journald priority 4), the rest information
-                        log.log(logging.WARNING if kind == "warn" else logging.INFO, "%s", msg)
-                except (EOFError, OSError):
-                    pass  # the pump is gone: said just below
+                self.pump_messages()
                 if not self.proc.is_alive():
                     log.error("the real-time pump exited (code %s); stopping", self.proc.exitcode)
                     return 1
@@ -625,9 +635,9 @@ class Daemon:
                     self.notifier.notify("READY=1")
                     ready = True
                 # the watchdog is fed only when the real-time loop made progress (cycles, or
-                # reconnection attempts while it waits for a device) and every worker thread is
+                # reconnection attempts or wake-ups while it waits for a device) and every worker thread is
                 # alive, never by a timer alone
-                progress = st["cycles"] + st["reconnects"]
+                progress = st["cycles"] + st["reconnects"] + st["wait_ticks"]
                 if progress != last_cycles and healthy:
                     self.notifier.notify("WATCHDOG=1")
                 last_cycles = progress
@@ -639,6 +649,7 @@ class Daemon:
             if self.proc.is_alive():
                 self.end_play()
             self.stop_pump()
+            self.pump_messages()  # its last lines (a recovery just before the stop) reach the log
             self.stop_event.set()
             if self.metrics is not None:
                 self.metrics.shutdown()
