@@ -65,7 +65,7 @@ def _firmware_host_port() -> Path | None:
 
 
 def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
-                force_sim: bool = False, render_at: str = "host") -> int:
+                force_sim: bool = False, render_at: str = "auto") -> int:
     """The README's main job: the daemon on the embedded default device, end to end."""
     import subprocess
     import sys
@@ -166,10 +166,12 @@ def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
 
         rec = hostport.read_log(out / "dac.bin")
         rend = np.flatnonzero(rec["flags"] & hostport.RENDERING)
-        if render_at == "device" and rend.size:
-            span = rec["flags"][rend[0] : rend[-1] + 1] & hostport.RENDERING
-            print(f"  firmware DAC log: the display rendered the texture itself on {np.mean(span != 0):.2%} "
-                  f"of the ticks from the first rendered one to the last (device mode: nothing streamed)")
+        if st.get("render_at") == "device" and rend.size:
+            span = rec["flags"][rend[0] : rend[-1] + 1]
+            print(f"  firmware DAC log: the display rendered the texture itself on "
+                  f"{np.mean((span & hostport.RENDERING) != 0):.2%} of the ticks from the first rendered one "
+                  f"to the last, at full gain on {np.mean((span & hostport.FULL_GAIN) != 0):.2%} "
+                  f"(device mode: nothing streamed; {st['render_reason']})")
         else:
             fig = hostport.playback_figures(rec, to_last_played=True)
             print(f"  firmware DAC log: played from the buffer {fig['played_fraction']:.2%} of the ticks "

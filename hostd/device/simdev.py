@@ -263,6 +263,25 @@ class SimTransport(Transport):
         self._catch_up()
         self.device.on_message(msg)
 
+    def pending(self) -> bool:
+        self._catch_up()
+        return bool(self.device.outbox)
+
+    def wait(self, timeout_s: float, fds=()) -> bool:
+        """Sleep until the simulated display's next message is due (it has no descriptor), one
+        of `fds` is readable, or timeout_s; a manual clock advances by the time waited."""
+        import select
+
+        if self.pending():
+            return True
+        due_s = self.device.ticks_to_next_message() / (pr.SAMPLE_RATE_HZ * (1 + self.device.clock_ppm * 1e-6))
+        if not self.realtime:
+            ticks = round(min(timeout_s, due_s) * pr.SAMPLE_RATE_HZ)
+            self.advance(max(1, ticks))
+            return bool(self.device.outbox)
+        ready, _, _ = select.select(list(fds), [], [], max(0.0, min(timeout_s, due_s)))
+        return not ready and self.pending()
+
     def recv(self, timeout_s: float = 0.0) -> bytes | None:
         deadline = time.monotonic() + timeout_s
         while True:

@@ -31,6 +31,38 @@ class Transport:
     def close(self) -> None:
         pass
 
+    # Blocking with a timeout, so that a host with nothing to do sleeps (device mode) instead of
+    # polling every millisecond. A backend with a descriptor that turns readable when the device
+    # has sent something (a pty or serial port, hidraw) returns it from fileno(); one that has
+    # already read and queued messages says so in pending(). Others get the polling fallback.
+    POLL_S = 0.001  # the fallback's poll period (a backend without a descriptor)
+
+    def fileno(self) -> int | None:
+        """A descriptor that becomes readable when the device has sent something, or None."""
+        return None
+
+    def pending(self) -> bool:
+        """Messages already read from the device and waiting in this object."""
+        return False
+
+    def wait(self, timeout_s: float, fds=()) -> bool:
+        """Block until the device may have sent a message, one of `fds` is readable, or
+        timeout_s has passed. True when recv() may have something. Without a descriptor:
+        the fallback wakes every POLL_S and reports True (recv finds out)."""
+        import select
+
+        if self.pending():
+            return True
+        fd = self.fileno()
+        if fd is None:
+            ready, _, _ = select.select(list(fds), [], [], max(0.0, min(timeout_s, self.POLL_S)))
+            return not ready
+        try:
+            ready, _, _ = select.select([fd, *fds], [], [], max(0.0, timeout_s))
+        except (OSError, ValueError):  # the descriptor closed under us: let recv() report it
+            return True
+        return fd in ready
+
     def now(self) -> float:
         """The host clock the link measures against (a simulation on a manual clock gives its
         own, so that the device's clock and the host's advance together)."""

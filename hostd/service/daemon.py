@@ -32,7 +32,7 @@ from hostd.service import qualitylog
 from hostd.service.config import Config, check_paths
 from hostd.service.control import ControlServer
 from hostd.service.library import Library, check_name
-from hostd.service.pumpproc import FLOAT_FIELDS, STAT_FIELDS, STATE_NAMES, pump_main
+from hostd.service.pumpproc import FLOAT_FIELDS, RENDER_REASONS, STAT_FIELDS, STATE_NAMES, pump_main
 
 log = logging.getLogger("hostd")
 MAX_HEADER = 4096
@@ -176,6 +176,8 @@ class Daemon:
         st["device_faults"] = fault_names(st.pop("device_fault_bits"))
         st["underruns"] = st["device_underruns"]  # the name older clients read
         st["render_at"] = "device" if st["render_at"] else "host"  # who renders the texture now
+        st["render_reason"] = RENDER_REASONS[st["render_reason"]] if 0 <= st["render_reason"] < len(
+            RENDER_REASONS) else "?"  # and why there ([render] where, the display's version and CAPS)
         st["target_fill_ms"] = round(st["target_fill"] / SAMPLE_RATE_HZ * 1e3, 2)
         return st
 
