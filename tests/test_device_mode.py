@@ -94,3 +94,69 @@ def test_device_mode_daemon_survives_a_2s_sigstop_and_swaps_without_a_jump(tmp_p
     model, _dev = devrender.run_model(devrender.read_scenario(scen))
     n = min(model.size, codes.size)
     assert n >= codes.size - 2 and np.abs(model[:n] - codes[:n]).max() <= 1
+
+
+def test_default_config_renders_on_the_device_and_played_fraction_is_the_displays_own(tmp_path):
+    """Issue 22: with a default config (no [render] where) the daemon renders on a v2 display
+    and says why; it sleeps between the display's reports (no wake-up per millisecond); and the
+    device-mode played fraction is the display's own count of ticks rendered at full gain over
+    ticks due: when the host is lost and the hand rests, the display fades out and idles, the
+    fraction drops, and it equals what the firmware's DAC log shows (its full-gain flag)."""
+    try:
+        hostport.build()
+    except RuntimeError as e:
+        pytest.fail(str(e))
+    assert main(["encode", "synthetic:wood:1", "-o", str(tmp_path / "wood.vtx"), "--method", "quant",
+                 "--levels", "14"]) == 0
+    log = tmp_path / "dac.bin"
+    period = 4.0  # the hand jumps 0.4 mm every 4 s and rests in between
+    hp = hostport.HostPort(["--motion", f"steps:{period}:0.4", "--duration", "120"], log=log,
+                           clock=tmp_path / "clock.bin")
+    cfg = tmp_path / "hostd.toml"
+    cfg.write_text(f'[device]\ntransport = "serial:{hp.pty}"\n[library]\ndir = "lib"\nspool = "spool"\n'
+                   '[control]\nsocket = "hostd.sock"\ngroup = ""\n[quality]\ndb = "q.sqlite"\n')
+    sock = str(tmp_path / "hostd.sock")
+    daemon = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)], cwd=tmp_path,
+                              stderr=open(tmp_path / "hostd.log", "w"), start_new_session=True)
+    try:
+        wait_for(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 90, "the device")
+        send_file(sock, str(tmp_path / "wood.vtx"), "wood")
+        request(sock, {"cmd": "select", "name": "wood"})
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_state"] == "rendering", 30, "rendering")
+        a = request(sock, {"cmd": "status"})
+        t_a = time.monotonic()
+        # stop the daemon just after a jump, for 2.5 s: lost after 1 s, the hand has rested
+        # 0.5 s by then, so the display fades out and idles until the daemon is back
+        t_jump = hp.t0 + (int((time.monotonic() - hp.t0) / period) + 1) * period
+        time.sleep(max(0.0, t_jump + 0.1 - time.monotonic()))
+        os.killpg(daemon.pid, signal.SIGSTOP)
+        time.sleep(2.5)
+        os.killpg(daemon.pid, signal.SIGCONT)
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_reuploads"] == 1, 10, "a re-upload")
+        time.sleep(1.0)
+        b = request(sock, {"cmd": "status"})
+        t_b = time.monotonic()
+    finally:
+        hp.close()
+        if daemon.poll() is None:
+            os.killpg(daemon.pid, signal.SIGCONT)
+            daemon.send_signal(signal.SIGTERM)
+            daemon.wait(20)
+    journal = (tmp_path / "hostd.log").read_text()
+    assert a["render_at"] == "device" and "CAPS" in a["render_reason"], (a, journal[-1500:])
+    assert a["played_fraction"] > 0.99
+    # asleep between reports: a wake-up per report (50 ms) plus commands, not one per ms
+    assert (b["wakeups"] - a["wakeups"]) / (t_b - t_a - 2.5) < 60, (a["wakeups"], b["wakeups"])
+    assert b["device_host_lost"] == 1 and b["device_reuploads"] == 1 and b["device_state"] == "rendering"
+    assert b["device_faded_s"] > 0.09 and b["device_idle_s"] > 0.5  # the fade-out and the idle time
+    # the DAC log: from the first report at full gain to the report the status was taken from
+    rec = hostport.read_log(log)
+    full = (rec["flags"] & hostport.FULL_GAIN) != 0
+    tick = rec["tick"].astype(np.int64)
+    period_ticks = pr.R["status_period_ticks"]
+    k0 = int(tick[np.flatnonzero(full & (tick % period_ticks == 0))[0]])
+    k1 = round(b["device_time_s"] * pr.SAMPLE_RATE_HZ) + 1  # STATUS of tick k carries (k - 1) / 3 kHz
+    sel = (tick > k0) & (tick <= k1)
+    truth = full[sel].mean()
+    assert 0.5 < truth < 0.9  # the idle second and a half is not "played"
+    assert abs(b["played_fraction"] - truth) < 2e-3, (b["played_fraction"], truth)

@@ -36,6 +36,9 @@ def add_parser(sub, parents) -> None:
     so.add_argument("--json", action="store_true")
     so.add_argument("--minutes", type=float, default=10.0, metavar="M", help="how long (default 10)")
     so.add_argument("--load", action="store_true", help="a CPU hog on the other core meanwhile")
+    so.add_argument("--render", choices=["host", "device", "auto"], default="auto",
+                    help="who renders: [render] where for the run (default auto: the display, protocol v2)")
+    so.add_argument("--runs", type=int, default=1, metavar="N", help="repeat N times, report medians")
     sb = bsub.add_parser("sim", help="scene simulation speed vs number of effects and duration")
     sb.add_argument("--json", action="store_true")
     ob = bsub.add_parser("offline", help="goals: shipped scenes at N'=1600 < 5 s, rate-quality "
@@ -132,7 +135,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not (0.05 <= args.minutes <= 24 * 60):
             raise SystemExit("hostd bench soak: error: --minutes must be 0.05..1440")
         try:
-            rows.append(soak.run(args.minutes, args.load, progress=not args.json))
+            if not 1 <= args.runs <= 100:
+                raise SystemExit("hostd bench soak: error: --runs must be 1..100")
+            rows.append(soak.run_many(args.runs, minutes=args.minutes, load=args.load,
+                                      progress=not args.json, render=args.render))
         except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench soak: error: {e}") from None
     if what == "sim":

@@ -110,12 +110,12 @@ class SerialTransport(Transport):
         while not self._queue:
             try:  # the non-blocking fd itself (pyserial's read() adds a select() per call)
                 data = os.read(self.ser.fd, 4096)
+                if not data and self._hung_up():
+                    raise self._gone(OSError("end of file"))
             except BlockingIOError:
                 data = b""
             except OSError as e:
                 raise self._gone(e) from None
-            if data == b"" and self._hung_up():
-                raise self._gone(OSError("end of file"))
             if data:
                 self._queue += self.deframer.feed(data)
                 continue

@@ -193,7 +193,7 @@ class Daemon:
         con = qualitylog.connect(self.db_path)
         while not self.stop_event.is_set() or not self.quality_q.empty():
             try:
-                name, data, sha, t = self.quality_q.get(timeout=0.2)
+                name, data, sha, t = self.quality_q.get(timeout=1.0)  # idle: one wake-up a second
             except queue.Empty:
                 continue
             try:
@@ -411,7 +411,15 @@ class Daemon:
         ready = False
         last_cycles = -1.0
         try:
-            while not self.stop_event.wait(0.2):
+            while not self.stop_event.is_set():
+                # asleep until the pump writes a log line, or 0.5 s (watchdog, STATUS=): a daemon
+                # playing a texture wakes a few times a second (docs/daemon.md, bench soak)
+                try:
+                    self.conn.poll(0.5)
+                except (EOFError, OSError):
+                    pass
+                if self.stop_event.is_set():
+                    break
                 try:
                     while self.conn.poll():
                         kind, msg = self.conn.recv()
@@ -419,7 +427,7 @@ class Daemon:
                         # warnings (journald priority 4), the rest information
                         log.log(logging.WARNING if kind == "warn" else logging.INFO, "%s", msg)
                 except (EOFError, OSError):
-                    pass  # the pump is gone: said just below
+                    self.stop_event.wait(0.2)  # the pump is gone (said just below): no busy loop
                 if not self.proc.is_alive():
                     log.error("the real-time pump exited (code %s); stopping", self.proc.exitcode)
                     return 1
