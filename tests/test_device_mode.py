@@ -160,3 +160,36 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
     truth = full[sel].mean()
     assert 0.5 < truth < 0.9  # the idle second and a half is not "played"
     assert abs(b["played_fraction"] - truth) < 2e-3, (b["played_fraction"], truth)
+
+
+def test_device_mode_health_counts_full_gain_ticks_across_wraps_and_resets():
+    """played_fraction in device mode: ticks rendered at full gain over ticks due, from the
+    display's RENDER_STATUS counters, counted from the first report at full gain; u32 counters
+    wrap; a display whose counters go back (a reset) starts a new baseline, never a negative
+    count; host-lost episodes are totalled."""
+    from hostd.device.health import DeviceHealth
+
+    on, fade_in = pr.RENDER_STATES["ON"], pr.RENDER_STATES["FADE_IN"]
+    base = 0xFFFFFF00  # near the u32 wrap
+
+    def rs(ticks, rendered, faded, idle=0, state=on, lost=0):
+        return {"render_state": state, "device_time_us": (base + ticks * 1000 // 3) & 0xFFFFFFFF,
+                "rendered_ticks": (base + rendered) & 0xFFFFFFFF, "faded_ticks": faded,
+                "idle_ticks": idle, "host_lost_count": (0xFFFF + lost) & 0xFFFF}
+
+    h = DeviceHealth()
+    h.select(True, device=True)
+    h.update_render(rs(150, 0, 150, state=fade_in))  # the selection's own fade-in: not due
+    h.update_render(rs(300, 150, 150))  # first report at full gain: counting starts here
+    assert h.played_fraction == 1.0
+    h.update_render(rs(3300, 3150, 150))  # 3000 ticks, all at full gain, across the wrap
+    assert h.played_fraction == 1.0
+    # the host was lost, the hand rested: the display faded out (150) and idled (1500)
+    h.update_render(rs(6300, 4500, 300, idle=1500, lost=1))
+    assert abs(h.played_fraction - 4350 / 6000) < 1e-9
+    assert h.host_lost == 1 and h.idle_ticks == 1500 and h.faded_ticks == 150  # since the first report
+    h.update_render(rs(100, 0, 0))  # a reset: counters went back
+    assert h.resets == 1 and abs(h.played_fraction - 4350 / 6000) < 1e-9
+    h.select(True, device=False)  # a host-rendered selection: RENDER_STATUS does not count
+    h.update_render(rs(400, 300, 0))
+    assert h._sel_due == 0.0
