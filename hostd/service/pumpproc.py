@@ -263,9 +263,21 @@ def pump_main(cfg, conn, stats) -> None:
             dev.tick()
         publish()
 
+    last_pub = [0.0]
+
     def each_wake() -> None:  # device mode: a wake-up of the sleeping loop
         pump.stats.cycles += 1  # progress the daemon's watchdog sees
-        each_cycle()
+        while conn.poll():
+            command(conn.recv())
+        if dev is not None and pump.renderer is None:
+            dev.tick()
+        # the counters are read at most a few times a second (status, sd_notify at 2 Hz): publish
+        # at 10 Hz, not at every report, unless the display's state changed
+        now = time.monotonic()
+        s = link.stats.last_status
+        if now - last_pub[0] >= 0.1 or (s and s["state"] != stats[STAT_INDEX["device_state"]]):
+            last_pub[0] = now
+            publish()
 
     def device_loop() -> bool:
         """The display renders (or nothing is selected): sleep, no periodic loop."""
