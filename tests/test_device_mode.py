@@ -149,7 +149,8 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
     assert (b["wakeups"] - a["wakeups"]) / (t_b - t_a - 2.5) < 60, (a["wakeups"], b["wakeups"])
     assert b["device_host_lost"] == 1 and b["device_reuploads"] == 1 and b["device_state"] == "rendering"
     assert b["device_faded_s"] > 0.09 and b["device_idle_s"] > 0.5  # the fade-out and the idle time
-    # the DAC log: from the first report at full gain to the report the status was taken from
+    # the DAC log: from the display's first report at full gain (the host counts from there) to
+    # the report the status was taken from
     rec = hostport.read_log(log)
     full = (rec["flags"] & hostport.FULL_GAIN) != 0
     tick = rec["tick"].astype(np.int64)

@@ -109,7 +109,9 @@ class DeviceHealth:
         """A RENDER_STATUS (device mode): the display's own tick counters."""
         last = self._last_rs
         self._last_rs = rs
-        if last is None:
+        if last is None:  # a new baseline; counting may start from it
+            if self._sel_device and not self._sel_started:
+                self._sel_started = rs["render_state"] in FULL_GAIN_STATES
             return
         dt_us = (rs["device_time_us"] - last["device_time_us"]) & M32
         d_rend = (rs["rendered_ticks"] - last["rendered_ticks"]) & M32

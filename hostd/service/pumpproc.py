@@ -165,6 +165,9 @@ def pump_main(cfg, conn, stats) -> None:
             return False
         if pump.renderer is not None:
             pump.end()  # it streamed the previous texture: stop streaming first
+        # the selection counts from the display's first report at full gain after START_RENDER
+        # (reports arrive during the upload's acknowledgements already)
+        pump.health.select(True, device=True)
         try:
             dev.begin(texture)  # upload; the display renders (crossfades on a swap)
         except (DeviceGone, DeviceBusy):
@@ -173,7 +176,6 @@ def pump_main(cfg, conn, stats) -> None:
             dev.end()
             choose(False, 6, f"device mode: {e}")
             return False
-        pump.health.select(True, device=True)
         choose(True, 0)
         return True
 
