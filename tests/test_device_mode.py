@@ -194,3 +194,69 @@ def test_device_mode_health_counts_full_gain_ticks_across_wraps_and_resets():
     h.select(True, device=False)  # a host-rendered selection: RENDER_STATUS does not count
     h.update_render(rs(400, 300, 0))
     assert h._sel_due == 0.0
+
+
+def _pump_on_sim(protocol_version: int, n_coeffs: int = 40, seconds: float = 0.5) -> dict:
+    """The daemon's pump process (pump_main, forked) on a simulated display of the given
+    protocol version, default config, one texture selected: its published counters."""
+    import multiprocessing as mp
+
+    from hostd.device import simdev, transport
+    from hostd.service.config import Config
+    from hostd.service.pumpproc import STAT_FIELDS, pump_main
+
+    ctx = mp.get_context("fork")
+    stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
+    parent, child = ctx.Pipe()
+    cfg = Config()
+    cfg.device.transport = "sim"
+    orig = transport.open_transport
+
+    def fake_open(spec="auto", **kw):  # runs in the forked pump
+        if spec == "sim":
+            return simdev.SimTransport(device=simdev.SimDevice(protocol_version=protocol_version))
+        return orig(spec, **kw)
+
+    transport.open_transport = fake_open
+    try:
+        proc = ctx.Process(target=pump_main, args=(cfg, child, stats))
+        proc.start()
+    finally:
+        transport.open_transport = orig
+    try:
+        rng = np.random.default_rng(1)
+        parent.send(("select", ("t", (rng.normal(0, 0.1, n_coeffs)).tolist(), 2 * n_coeffs + 2, 10.0)))
+        i = STAT_FIELDS.index("texture_serial")
+        t_end = time.monotonic() + 30  # the forked pump connects and plays (a loaded machine: slowly)
+        while stats[i] < 1 and time.monotonic() < t_end:
+            time.sleep(0.05)
+        time.sleep(seconds)
+        st = dict(zip(STAT_FIELDS, stats[:], strict=True))
+        lines = []
+        while parent.poll():
+            lines.append(parent.recv()[1])
+        parent.send(("quit",))
+        proc.join(10)
+    finally:
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(5)
+    st["lines"] = lines
+    return st
+
+
+def test_auto_renders_on_the_host_for_a_v1_display_or_a_texture_too_large_and_says_why():
+    """[render] where = "auto" (the default): a v1 display, or a texture with more components
+    than the display's CAPS hold, is rendered on the host, with the reason published (status
+    `render_reason`) and logged once; a v2 display that can hold it renders it itself."""
+    from hostd.service.pumpproc import RENDER_REASONS
+
+    v2 = _pump_on_sim(2)
+    assert v2["render_at"] == 1 and v2["render_reason"] == 0, v2["lines"]
+    v1 = _pump_on_sim(1)
+    assert v1["render_at"] == 0 and "protocol v1" in RENDER_REASONS[int(v1["render_reason"])]
+    assert v1["samples"] > 0  # streamed by the host
+    assert sum("rendering on the host" in m for m in v1["lines"]) == 1, v1["lines"]
+    big = _pump_on_sim(2, n_coeffs=pr.R["max_components"] + 1)
+    assert big["render_at"] == 0 and "more components" in RENDER_REASONS[int(big["render_reason"])]
+    assert any(f"at most {pr.R['max_components']} components" in m for m in big["lines"]), big["lines"]

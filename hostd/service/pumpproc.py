@@ -143,7 +143,7 @@ def pump_main(cfg, conn, stats) -> None:
         """Publish where the texture renders and why; log it once per change."""
         put("render_at", 1 if at_device else 0)
         put("render_reason", reason)
-        if logged_choice[0] == (at_device, reason):
+        if logged_choice[0] == (at_device, reason) or reason == 7:  # 7: nothing to render yet
             return
         logged_choice[0] = (at_device, reason)
         if at_device:
