@@ -157,10 +157,16 @@ def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
             fw.terminate()
             fw.wait(10)
     print("summary")
-    print(f"  the device played {st['device_samples_played']} samples from its buffer, "
-          f"{st['device_underruns']} underrun episode(s) (its own counters); host stalls {st['stalls']} "
-          f"(longest {st['longest_stall_ms']:.0f} ms), recoveries {st['recoveries']}, deadline misses "
-          f"{st['deadline_misses']}; streams accepted {st['accepted']}, refused {st['refused']}")
+    if st.get("render_at") == "device":  # the display's RENDER_STATUS counters
+        print(f"  the display rendered {st['device_rendered_s']:.1f} s at full gain, "
+              f"{st['device_faded_s']:.2f} s fading, {st['device_idle_s']:.2f} s idle; host lost {st['device_host_lost']}x, re-uploads "
+              f"{st['device_reuploads']} (its own counters); pump wake-ups {st['wakeups']}; streams accepted "
+              f"{st['accepted']}, refused {st['refused']}")
+    else:
+        print(f"  the device played {st['device_samples_played']} samples from its buffer, "
+              f"{st['device_underruns']} underrun episode(s) (its own counters); host stalls {st['stalls']} "
+              f"(longest {st['longest_stall_ms']:.0f} ms), recoveries {st['recoveries']}, deadline misses "
+              f"{st['deadline_misses']}; streams accepted {st['accepted']}, refused {st['refused']}")
     if fw is not None and (out / "dac.bin").exists():
         from hostd.device import hostport
 
