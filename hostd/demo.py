@@ -159,7 +159,8 @@ def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
     print("summary")
     if st.get("render_at") == "device":  # the display's RENDER_STATUS counters
         print(f"  the display rendered {st['device_rendered_s']:.1f} s at full gain, "
-              f"{st['device_faded_s']:.2f} s fading, {st['device_idle_s']:.2f} s idle; host lost {st['device_host_lost']}x, re-uploads "
+              f"{st['device_faded_s']:.2f} s fading, {st['device_idle_s']:.2f} s idle; "
+              f"host lost {st['device_host_lost']}x, re-uploads "
               f"{st['device_reuploads']} (its own counters); pump wake-ups {st['wakeups']}; streams accepted "
               f"{st['accepted']}, refused {st['refused']}")
     else:
