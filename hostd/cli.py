@@ -418,9 +418,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="the main job: the daemon on the embedded default device, end to end")
     p.add_argument("--out", default=None, help="directory for the demo's files")
     p.add_argument("--sim", action="store_true", help="use the simulated display, not the firmware host port")
-    p.add_argument("--render", choices=["host", "device"], default="host",
-                   help="who renders: host (stream 3 kHz samples, the default) or device (the display "
-                   "renders from its own encoder, protocol v2)")
+    p.add_argument("--render", choices=["auto", "host", "device"], default="auto",
+                   help="who renders: auto (the display when it can, protocol v2; the default, as "
+                   "[render] where), host (stream 3 kHz samples) or device")
     p.add_argument("--seconds", type=_positive, default=3.5, help="play time per texture (default 3.5)")
     p.add_argument("--codec-only", action="store_true", help="only the codec table (no daemon)")
     p.set_defaults(func=cmd_demo)

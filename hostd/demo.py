@@ -92,7 +92,7 @@ def _firmware_host_port() -> Path | None:
 
 
 def daemon_demo(out_dir: str | None = None, seconds_per_texture: float = 3.5,
-                force_sim: bool = False, render_at: str = "host") -> int:
+                force_sim: bool = False, render_at: str = "auto") -> int:
     """The README's main job: the daemon on the embedded default device, end to end."""
     return _in_dir(out_dir, lambda out: _daemon_demo(out, seconds_per_texture, force_sim, render_at))
 
@@ -186,19 +186,28 @@ def _daemon_demo(out: Path, seconds_per_texture: float, force_sim: bool, render_
             fw.terminate()
             fw.wait(10)
     print("summary")
-    print(f"  the device played {st['device_samples_played']} samples from its buffer, "
-          f"{st['device_underruns']} underrun episode(s) (its own counters); host stalls {st['stalls']} "
-          f"(longest {st['longest_stall_ms']:.0f} ms), recoveries {st['recoveries']}, deadline misses "
-          f"{st['deadline_misses']}; streams accepted {st['accepted']}, refused {st['refused']}")
+    if st.get("render_at") == "device":  # the display's RENDER_STATUS counters
+        print(f"  the display rendered {st['device_rendered_s']:.1f} s at full gain, "
+              f"{st['device_faded_s']:.2f} s fading, {st['device_idle_s']:.2f} s idle; "
+              f"host lost {st['device_host_lost']}x, re-uploads "
+              f"{st['device_reuploads']} (its own counters); pump wake-ups {st['wakeups']}; streams accepted "
+              f"{st['accepted']}, refused {st['refused']}")
+    else:
+        print(f"  the device played {st['device_samples_played']} samples from its buffer, "
+              f"{st['device_underruns']} underrun episode(s) (its own counters); host stalls {st['stalls']} "
+              f"(longest {st['longest_stall_ms']:.0f} ms), recoveries {st['recoveries']}, deadline misses "
+              f"{st['deadline_misses']}; streams accepted {st['accepted']}, refused {st['refused']}")
     if fw is not None and (out / "dac.bin").exists():
         from hostd.device import hostport
 
         rec = hostport.read_log(out / "dac.bin")
         rend = np.flatnonzero(rec["flags"] & hostport.RENDERING)
-        if render_at == "device" and rend.size:
-            span = rec["flags"][rend[0] : rend[-1] + 1] & hostport.RENDERING
-            print(f"  firmware DAC log: the display rendered the texture itself on {np.mean(span != 0):.2%} "
-                  f"of the ticks from the first rendered one to the last (device mode: nothing streamed)")
+        if st.get("render_at") == "device" and rend.size:
+            span = rec["flags"][rend[0] : rend[-1] + 1]
+            print(f"  firmware DAC log: the display rendered the texture itself on "
+                  f"{np.mean((span & hostport.RENDERING) != 0):.2%} of the ticks from the first rendered one "
+                  f"to the last, at full gain on {np.mean((span & hostport.FULL_GAIN) != 0):.2%} "
+                  f"(device mode: nothing streamed; {st['render_reason']})")
         else:
             fig = hostport.playback_figures(rec, to_last_played=True)
             print(f"  firmware DAC log: played from the buffer {fig['played_fraction']:.2%} of the ticks "

@@ -27,7 +27,9 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def write_cfg(d: Path, extra: str = "") -> Path:
     p = d / "hostd.toml"
-    p.write_text('[device]\ntransport = "sim"\n[library]\ndir = "lib"\nspool = "spool"\n'
+    # host rendering: these tests watch the streamed samples (device mode: test_device_mode.py)
+    p.write_text('[device]\ntransport = "sim"\n[render]\nwhere = "host"\n'
+                 '[library]\ndir = "lib"\nspool = "spool"\n'
                  'max_stream_bytes = 4096\n[control]\nsocket = "hostd.sock"\ngroup = ""\n'
                  '[quality]\ndb = "q.sqlite"\n' + extra)
     return p

@@ -94,3 +94,169 @@ def test_device_mode_daemon_survives_a_2s_sigstop_and_swaps_without_a_jump(tmp_p
     model, _dev = devrender.run_model(devrender.read_scenario(scen))
     n = min(model.size, codes.size)
     assert n >= codes.size - 2 and np.abs(model[:n] - codes[:n]).max() <= 1
+
+
+def test_default_config_renders_on_the_device_and_played_fraction_is_the_displays_own(tmp_path):
+    """Issue 22: with a default config (no [render] where) the daemon renders on a v2 display
+    and says why; it sleeps between the display's reports (no wake-up per millisecond); and the
+    device-mode played fraction is the display's own count of ticks rendered at full gain over
+    ticks due: when the host is lost and the hand rests, the display fades out and idles, the
+    fraction drops, and it equals what the firmware's DAC log shows (its full-gain flag)."""
+    try:
+        hostport.build()
+    except RuntimeError as e:
+        pytest.fail(str(e))
+    assert main(["encode", "synthetic:wood:1", "-o", str(tmp_path / "wood.vtx"), "--method", "quant",
+                 "--levels", "14"]) == 0
+    log = tmp_path / "dac.bin"
+    period = 4.0  # the hand jumps 0.4 mm every 4 s and rests in between
+    hp = hostport.HostPort(["--motion", f"steps:{period}:0.4", "--duration", "120"], log=log,
+                           clock=tmp_path / "clock.bin")
+    cfg = tmp_path / "hostd.toml"
+    cfg.write_text(f'[device]\ntransport = "serial:{hp.pty}"\n[library]\ndir = "lib"\nspool = "spool"\n'
+                   '[control]\nsocket = "hostd.sock"\ngroup = ""\n[quality]\ndb = "q.sqlite"\n')
+    sock = str(tmp_path / "hostd.sock")
+    daemon = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)], cwd=tmp_path,
+                              stderr=open(tmp_path / "hostd.log", "w"), start_new_session=True)
+    try:
+        wait_for(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 90, "the device")
+        send_file(sock, str(tmp_path / "wood.vtx"), "wood")
+        request(sock, {"cmd": "select", "name": "wood"})
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_state"] == "rendering", 30, "rendering")
+        a = request(sock, {"cmd": "status"})
+        t_a = time.monotonic()
+        # stop the daemon just after a jump, for 2.5 s: lost after 1 s, the hand has rested
+        # 0.5 s by then, so the display fades out and idles until the daemon is back
+        t_jump = hp.t0 + (int((time.monotonic() - hp.t0) / period) + 1) * period
+        time.sleep(max(0.0, t_jump + 0.1 - time.monotonic()))
+        os.killpg(daemon.pid, signal.SIGSTOP)
+        time.sleep(2.5)
+        os.killpg(daemon.pid, signal.SIGCONT)
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_reuploads"] == 1, 10, "a re-upload")
+        time.sleep(1.0)
+        b = request(sock, {"cmd": "status"})
+        t_b = time.monotonic()
+    finally:
+        hp.close()
+        if daemon.poll() is None:
+            os.killpg(daemon.pid, signal.SIGCONT)
+            daemon.send_signal(signal.SIGTERM)
+            daemon.wait(20)
+    journal = (tmp_path / "hostd.log").read_text()
+    assert a["render_at"] == "device" and "CAPS" in a["render_reason"], (a, journal[-1500:])
+    assert a["played_fraction"] > 0.99
+    # asleep between reports: a wake-up per report (50 ms) plus commands, not one per ms
+    assert (b["wakeups"] - a["wakeups"]) / (t_b - t_a - 2.5) < 60, (a["wakeups"], b["wakeups"])
+    assert b["device_host_lost"] == 1 and b["device_reuploads"] == 1 and b["device_state"] == "rendering"
+    assert b["device_faded_s"] > 0.09 and b["device_idle_s"] > 0.5  # the fade-out and the idle time
+    # the DAC log: from the display's first report at full gain (the host counts from there) to
+    # the report the status was taken from
+    rec = hostport.read_log(log)
+    full = (rec["flags"] & hostport.FULL_GAIN) != 0
+    tick = rec["tick"].astype(np.int64)
+    period_ticks = pr.R["status_period_ticks"]
+    k0 = int(tick[np.flatnonzero(full & (tick % period_ticks == 0))[0]])
+    k1 = round(b["device_time_s"] * pr.SAMPLE_RATE_HZ) + 1  # STATUS of tick k carries (k - 1) / 3 kHz
+    sel = (tick > k0) & (tick <= k1)
+    truth = full[sel].mean()
+    assert 0.5 < truth < 0.9  # the idle second and a half is not "played"
+    assert abs(b["played_fraction"] - truth) < 2e-3, (b["played_fraction"], truth)
+
+
+def test_device_mode_health_counts_full_gain_ticks_across_wraps_and_resets():
+    """played_fraction in device mode: ticks rendered at full gain over ticks due, from the
+    display's RENDER_STATUS counters, counted from the first report at full gain; u32 counters
+    wrap; a display whose counters go back (a reset) starts a new baseline, never a negative
+    count; host-lost episodes are totalled."""
+    from hostd.device.health import DeviceHealth
+
+    on, fade_in = pr.RENDER_STATES["ON"], pr.RENDER_STATES["FADE_IN"]
+    base = 0xFFFFFF00  # near the u32 wrap
+
+    def rs(ticks, rendered, faded, idle=0, state=on, lost=0):
+        return {"render_state": state, "device_time_us": (base + ticks * 1000 // 3) & 0xFFFFFFFF,
+                "rendered_ticks": (base + rendered) & 0xFFFFFFFF, "faded_ticks": faded,
+                "idle_ticks": idle, "host_lost_count": (0xFFFF + lost) & 0xFFFF}
+
+    h = DeviceHealth()
+    h.select(True, device=True)
+    h.update_render(rs(150, 0, 150, state=fade_in))  # the selection's own fade-in: not due
+    h.update_render(rs(300, 150, 150))  # first report at full gain: counting starts here
+    assert h.played_fraction == 1.0
+    h.update_render(rs(3300, 3150, 150))  # 3000 ticks, all at full gain, across the wrap
+    assert h.played_fraction == 1.0
+    # the host was lost, the hand rested: the display faded out (150) and idled (1500)
+    h.update_render(rs(6300, 4500, 300, idle=1500, lost=1))
+    assert abs(h.played_fraction - 4350 / 6000) < 1e-9
+    assert h.host_lost == 1 and h.idle_ticks == 1500 and h.faded_ticks == 150  # since the first report
+    h.update_render(rs(100, 0, 0))  # a reset: counters went back
+    assert h.resets == 1 and abs(h.played_fraction - 4350 / 6000) < 1e-9
+    h.select(True, device=False)  # a host-rendered selection: RENDER_STATUS does not count
+    h.update_render(rs(400, 300, 0))
+    assert h._sel_due == 0.0
+
+
+def _pump_on_sim(protocol_version: int, n_coeffs: int = 40, seconds: float = 0.5) -> dict:
+    """The daemon's pump process (pump_main, forked) on a simulated display of the given
+    protocol version, default config, one texture selected: its published counters."""
+    import multiprocessing as mp
+
+    from hostd.device import simdev, transport
+    from hostd.service.config import Config
+    from hostd.service.pumpproc import STAT_FIELDS, pump_main
+
+    ctx = mp.get_context("fork")
+    stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
+    parent, child = ctx.Pipe()
+    cfg = Config()
+    cfg.device.transport = "sim"
+    orig = transport.open_transport
+
+    def fake_open(spec="auto", **kw):  # runs in the forked pump
+        if spec == "sim":
+            return simdev.SimTransport(device=simdev.SimDevice(protocol_version=protocol_version))
+        return orig(spec, **kw)
+
+    transport.open_transport = fake_open
+    try:
+        proc = ctx.Process(target=pump_main, args=(cfg, child, stats))
+        proc.start()
+    finally:
+        transport.open_transport = orig
+    try:
+        rng = np.random.default_rng(1)
+        parent.send(("select", ("t", (rng.normal(0, 0.1, n_coeffs)).tolist(), 2 * n_coeffs + 2, 10.0)))
+        i = STAT_FIELDS.index("texture_serial")
+        t_end = time.monotonic() + 30  # the forked pump connects and plays (a loaded machine: slowly)
+        while stats[i] < 1 and time.monotonic() < t_end:
+            time.sleep(0.05)
+        time.sleep(seconds)
+        st = dict(zip(STAT_FIELDS, stats[:], strict=True))
+        lines = []
+        while parent.poll():
+            lines.append(parent.recv()[1])
+        parent.send(("quit",))
+        proc.join(10)
+    finally:
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(5)
+    st["lines"] = lines
+    return st
+
+
+def test_auto_renders_on_the_host_for_a_v1_display_or_a_texture_too_large_and_says_why():
+    """[render] where = "auto" (the default): a v1 display, or a texture with more components
+    than the display's CAPS hold, is rendered on the host, with the reason published (status
+    `render_reason`) and logged once; a v2 display that can hold it renders it itself."""
+    from hostd.service.pumpproc import RENDER_REASONS
+
+    v2 = _pump_on_sim(2)
+    assert v2["render_at"] == 1 and v2["render_reason"] == 0, v2["lines"]
+    v1 = _pump_on_sim(1)
+    assert v1["render_at"] == 0 and "protocol v1" in RENDER_REASONS[int(v1["render_reason"])]
+    assert v1["samples"] > 0  # streamed by the host
+    assert sum("rendering on the host" in m for m in v1["lines"]) == 1, v1["lines"]
+    big = _pump_on_sim(2, n_coeffs=pr.R["max_components"] + 1)
+    assert big["render_at"] == 0 and "more components" in RENDER_REASONS[int(big["render_reason"])]
+    assert any(f"at most {pr.R['max_components']} components" in m for m in big["lines"]), big["lines"]

@@ -3,6 +3,8 @@ model against the C firmware on shared vectors, refused uploads, and the safety 
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -213,19 +215,22 @@ def test_device_mode_through_the_firmware_host_port_survives_a_silent_host(tmp_p
     assert np.array_equal(replayed[:n], codes[:n])  # the scenario is complete: C replays it exactly
 
 
-def test_send_and_confirm_uploads_swaps_and_names_a_refusal():
+def test_send_and_confirm_uploads_swaps_and_names_a_refusal(monkeypatch):
     """The host helper on the simulated display: setup and START_RENDER confirmed, a
     swap during a crossfade waits (BUSY, resent), a corrupt upload raises saying what happened."""
     from hostd.device import devrender
     from hostd.device.simdev import SimTransport
     from hostd.errors import DeviceError
 
-    class Polled(SimTransport):  # the display's clock advances 1 ms per poll: fast and exact
+    class Polled(SimTransport):  # the display's clock advances 1 ms per empty poll: fast and exact
         def recv(self, timeout_s=0.0):
-            self.advance(3)
+            if not self.device.outbox:
+                self.advance(3)
             return super().recv(0.0)
 
     t = Polled(realtime=False)
+    # the host's pause before resending a BUSY swap passes on the display's clock too
+    monkeypatch.setattr(time, "sleep", lambda s: t.advance(round(s * pr.SAMPLE_RATE_HZ)))
     setup, _ = _setup("wood")
     acks = devrender.send_and_confirm(t, [*setup, pr.encode("START_RENDER")])
     assert [a["for_id"] for a in acks][-2:] == [pr.IDS["LOAD_END"], pr.IDS["START_RENDER"]]

@@ -42,7 +42,8 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     hp = port_factory(["--motion", "constant:20", "--duration", "120"], log=log,
                       clock=tmp_path / "clock.bin")
     cfg = tmp_path / "hostd.toml"
-    cfg.write_text(f'[device]\ntransport = "serial:{hp.pty}"\n[library]\ndir = "lib"\nspool = "spool"\n'
+    cfg.write_text(f'[device]\ntransport = "serial:{hp.pty}"\n[render]\nwhere = "host"\n'
+                   '[library]\ndir = "lib"\nspool = "spool"\n'
                    '[control]\nsocket = "hostd.sock"\ngroup = ""\n[quality]\ndb = "q.sqlite"\n')
     sock = str(tmp_path / "hostd.sock")
     daemon = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)], cwd=tmp_path,

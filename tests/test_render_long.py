@@ -183,6 +183,8 @@ def test_bench_accuracy_json_contract(capsys, tmp_path):
     assert {"height_method", "dtype", "prediction", "equalizer", "samples_per_batch", "render_at"} <= knobs
     for k in knobs - {"table_oversample"}:
         assert sum(r["default"] for r in rows if r["knob"] == k) == 1, k
+    # the daemon's default ([render] where = "auto") renders on a v2 display: the default row
+    assert [r["setting"] for r in rows if r["knob"] == "render_at" and r["default"]] == ["device"]
     assert len(rows[0]["per_texture"]) == 3  # wood, sandpaper and the bundled real profile
     assert png.stat().st_size > 10_000
 

@@ -31,7 +31,8 @@ import unit_sandbox  # noqa: E402
 def _cfg(d: Path) -> Path:
     group = grp.getgrgid(os.getegid()).gr_name  # the socket's chown runs (needs @chown)
     p = d / "hostd.toml"
-    p.write_text(f'[device]\ntransport = "sim"\n[library]\ndir = "lib"\nspool = "spool"\n'
+    p.write_text(f'[device]\ntransport = "sim"\n[render]\nwhere = "host"\n'
+                 '[library]\ndir = "lib"\nspool = "spool"\n'
                  f'[control]\nsocket = "hostd.sock"\ngroup = "{group}"\n[quality]\ndb = "q.sqlite"\n')
     return p
 

@@ -9,6 +9,7 @@
 #include <stdint.h>
 
 #include "hostd_proto.h"
+#include "fw_encoder.h"
 #include "fw_render.h"
 
 /* The sample queue between message handling (the producer: the USB interrupt on a chip) and
@@ -45,16 +46,6 @@ void fw_ring_request_clear(fw_ring_t *r); /* drop what is queued now; applied by
 /* Consumer: apply a pending clear now (every tick, so that a STOP frees the buffer within one
  * tick even while the device is idle and pops nothing: the host re-primes right after STOP). */
 void fw_ring_service(fw_ring_t *r);
-
-typedef struct {
-    uint8_t ab;      /* last A/B state, bit1 = A, bit0 = B */
-    uint32_t count;  /* 32-bit, wraps */
-    uint16_t errors; /* illegal transitions (both pins changed at once) */
-    bool primed;
-} fw_quad_t;
-
-void fw_quad_init(fw_quad_t *q, uint8_t ab);
-void fw_quad_update(fw_quad_t *q, uint8_t ab);
 
 /* Serial framing: COBS(msg + CRC16/CCITT-FALSE LE) + 0x00 */
 uint16_t fw_crc16(const uint8_t *p, size_t n);
@@ -95,6 +86,7 @@ struct fw {
     uint16_t last_seq;
     uint16_t underruns;
     uint16_t malformed;
+    uint32_t idle_ticks; /* ticks neither playing nor rendering (RENDER_STATUS) */
     bool in_underrun;
     bool played; /* the last tick's code came from the buffer (for logs and tests) */
     fw_render_t render; /* protocol v2: device-side rendering (render.c) */

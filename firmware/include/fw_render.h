@@ -32,11 +32,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "fw_encoder.h"
 #include "hostd_proto.h"
-
-#define FW_EDGE_PER_TICK (HP_RENDER_EDGE_CLOCK_HZ / HP_SAMPLE_RATE_HZ) /* 4000 */
-#define FW_EDGE_RING 64u
-#define FW_SPEED_WINDOW (HP_RENDER_EDGE_CLOCK_HZ / 1000) /* 1 ms of edge clock */
 
 typedef struct {
     float c[HP_RENDER_MAX_COMPONENTS]; /* C'_k x scale, µm */
@@ -78,18 +75,16 @@ typedef struct {
     uint16_t xfade;   /* 0 = no crossfade, else ticks into it */
     bool host_lost;
     /* encoder */
-    int64_t pos;      /* unwrapped count */
-    uint32_t last_count;
-    int64_t eb[FW_EDGE_RING]; /* boundary positions of the edges, in half counts */
-    uint32_t et[FW_EDGE_RING];
-    uint8_t e_head;   /* newest edge */
-    uint8_t e_n;      /* edges stored */
+    fw_edges_t edges;
     int64_t still_anchor;
     uint32_t still_since_us;
     /* reported */
     float speed_mm_s;
     float last_um;    /* the equalized, enveloped displacement of the last tick */
     uint16_t refused, loads;
+    uint16_t host_lost_count; /* episodes of a lost host while rendering (wraps) */
+    uint32_t rendered_ticks;  /* ticks rendering the texture at full gain (wraps) */
+    uint32_t faded_ticks;     /* ticks rendering below full gain: fading in or out (wraps) */
 } fw_render_t;
 
 struct fw;

@@ -21,7 +21,7 @@
 #define HP_USB_EP_OUT 0x1
 #define HP_USB_EP_IN 0x81
 #define HP_FW_VERSION_MAJOR 0
-#define HP_FW_VERSION_MINOR 2
+#define HP_FW_VERSION_MINOR 3
 #define HP_FW_VERSION_PATCH 0
 
 #define HP_RENDER_MAX_COMPONENTS 512
@@ -29,7 +29,7 @@
 #define HP_RENDER_CHUNK_COEFFS 14
 #define HP_RENDER_EDGE_CLOCK_HZ 12000000
 #define HP_RENDER_XFADE_TICKS 150
-#define HP_RENDER_STATUS_PERIOD_TICKS 30
+#define HP_RENDER_STATUS_PERIOD_TICKS 150
 #define HP_RENDER_DEFAULT_HOST_LOST_MS 1000
 #define HP_RENDER_STILL_MS 500
 #define HP_RENDER_MAX_LENGTH_NM 2000000000
@@ -250,8 +250,13 @@
 #define HP_RENDER_STATUS_OFF_REFUSED 8
 #define HP_RENDER_STATUS_OFF_LOADS 10
 #define HP_RENDER_STATUS_OFF_HOST_SILENT_MS 12
-#define HP_RENDER_STATUS_SIZE 14
+#define HP_RENDER_STATUS_OFF_HOST_LOST_COUNT 14
+#define HP_RENDER_STATUS_OFF_DEVICE_TIME_US 16
+#define HP_RENDER_STATUS_OFF_RENDERED_TICKS 20
+#define HP_RENDER_STATUS_OFF_FADED_TICKS 24
+#define HP_RENDER_STATUS_OFF_IDLE_TICKS 28
+#define HP_RENDER_STATUS_SIZE 32
 /* X(name, offset, size, kind) per fixed field; kind 0 unsigned, 1 signed, 2 f32 */
-#define HP_RENDER_STATUS_FIELDS(X) X(id, 0, 1, 0) X(render_state, 1, 1, 0) X(active_slot, 2, 1, 0) X(host_lost, 3, 1, 0) X(speed_mm_s, 4, 4, 2) X(refused, 8, 2, 0) X(loads, 10, 2, 0) X(host_silent_ms, 12, 2, 0)
+#define HP_RENDER_STATUS_FIELDS(X) X(id, 0, 1, 0) X(render_state, 1, 1, 0) X(active_slot, 2, 1, 0) X(host_lost, 3, 1, 0) X(speed_mm_s, 4, 4, 2) X(refused, 8, 2, 0) X(loads, 10, 2, 0) X(host_silent_ms, 12, 2, 0) X(host_lost_count, 14, 2, 0) X(device_time_us, 16, 4, 0) X(rendered_ticks, 20, 4, 0) X(faded_ticks, 24, 4, 0) X(idle_ticks, 28, 4, 0)
 
 #endif

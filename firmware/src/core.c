@@ -205,11 +205,13 @@ void fw_tick(fw_t *f) {
         target = fw_render_tick(f);
     } else if (f->state == HP_STATE_RAMP_DOWN) {
         target = toward_zero(f->out);
+        f->idle_ticks++;
         if (target == 0) {
             f->state = HP_STATE_IDLE;
         }
     } else {
         target = toward_zero(f->out); /* idle: hold zero (slowly back to it if not there) */
+        f->idle_ticks++;
     }
     /* safety stage: displacement limit, then slew limit */
     const int32_t lim = f->limit_code, step = f->max_step_code;
@@ -230,7 +232,10 @@ void fw_tick(fw_t *f) {
     }
     f->out = (int16_t)target;
     hal_dac_write(f->out);
-    if (f->ticks % HP_STATUS_PERIOD_TICKS == 0) {
+    /* while the device renders itself the host only supervises: a STATUS with each
+     * RENDER_STATUS is enough, and lets the host sleep (docs/protocol.md) */
+    const uint32_t period = f->state == HP_STATE_RENDERING ? HP_RENDER_STATUS_PERIOD_TICKS : HP_STATUS_PERIOD_TICKS;
+    if (f->ticks % period == 0) {
         uint8_t msg[HP_STATUS_SIZE];
         hal_send(msg, fw_build_status(f, msg));
         f->faults &= (uint16_t)~rd16(msg + HP_STATUS_OFF_FAULT_FLAGS); /* atomic: keeps new bits */

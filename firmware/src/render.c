@@ -11,7 +11,6 @@
 #include "hal.h"
 
 #define XF_TICKS HP_RENDER_XFADE_TICKS
-#define STALE_EDGE ((uint32_t)HP_RENDER_EDGE_CLOCK_HZ / 10u) /* 100 ms without an edge: at rest */
 /* speed: half counts per edge-clock tick -> mm/s */
 #define MM_S_PER_HALF ((float)(HP_UM_PER_COUNT_NM * 1e-6 / 2.0 * HP_RENDER_EDGE_CLOCK_HZ))
 #define TWO_PI_F 6.28318530717958647692f
@@ -75,7 +74,7 @@ void fw_render_init(fw_t *f) {
     r->f_pass_hz = 0.8f * 400.0f;
     r->codes_per_um = (float)HP_LIMIT_CODE / 40.0f; /* +-40 um at the hard limit */
     r->host_lost_ms = HP_RENDER_DEFAULT_HOST_LOST_MS;
-    r->last_count = f->quad.count;
+    fw_edges_init(&r->edges, f->quad.count);
     r->still_since_us = hal_time_us();
 }
 
@@ -94,59 +93,12 @@ void fw_render_send_caps(const fw_t *f) {
 }
 
 /* ------------------------------------------------------------------ encoder */
-static void track(fw_t *f, uint32_t t) {
-    fw_render_t *r = &f->render;
-    int32_t d = (int32_t)(f->quad.count - r->last_count);
-    if (d == 0) return;
-    r->last_count = f->quad.count;
-    r->pos += d;
-    r->e_head = (uint8_t)((r->e_head + 1u) % FW_EDGE_RING);
-    r->eb[r->e_head] = 2 * r->pos - (d > 0 ? 1 : -1); /* the boundary crossed, in half counts */
-    r->et[r->e_head] = t;
-    if (r->e_n < FW_EDGE_RING) r->e_n++;
-}
+/* edges the port gave without a time (fw_encoder_pins) are seen at time t */
+static void track(fw_t *f, uint32_t t) { fw_edges_track(&f->render.edges, f->quad.count, t); }
 
 void fw_encoder_edge(fw_t *f, uint8_t ab, uint32_t t_edge) {
     fw_encoder_pins(f, ab);
     track(f, t_edge);
-}
-
-/* Position (boundary b0 in half counts + offset p in half counts at the tick) and speed v
- * (half counts per edge-clock tick). */
-static void estimate(fw_render_t *r, uint32_t now, int64_t *b0, float *p, float *v) {
-    *v = 0.0f;
-    *p = 0.0f;
-    if (r->e_n == 0) {
-        *b0 = 2 * r->pos;
-        return;
-    }
-    const uint8_t h = r->e_head;
-    *b0 = r->eb[h];
-    const int64_t center = 2 * r->pos; /* the current count's cell centre */
-    const float dir = center > *b0 ? 1.0f : -1.0f;
-    const uint32_t since = now - r->et[h];
-    if (since > STALE_EDGE && since < 0x80000000u) { /* at rest: the cell's centre */
-        *p = dir;
-        r->e_n = 1;
-        return;
-    }
-    if (r->e_n >= 2) {
-        const uint32_t t0 = r->et[h];
-        unsigned k = 1;
-        while (k + 1u < r->e_n && (uint32_t)(t0 - r->et[(h + FW_EDGE_RING - (k + 1u)) % FW_EDGE_RING]) <= FW_SPEED_WINDOW) {
-            k++;
-        }
-        const unsigned i = (h + FW_EDGE_RING - k) % FW_EDGE_RING;
-        const uint32_t dt = t0 - r->et[i];
-        if (dt > 0 && dt < 0x80000000u) *v = (float)(*b0 - r->eb[i]) / (float)dt;
-    }
-    const float s = since < 0x80000000u ? (float)since : 0.0f; /* an edge stamped after the tick: 0 */
-    if (fabsf(*v) * s > 2.0f) *v = (*v > 0.0f ? 2.0f : -2.0f) / s; /* < 1 count since the edge */
-    float q = *v * s;
-    /* stay inside the cell: between the boundary crossed and the next one ahead */
-    if (dir > 0.0f) q = q < 0.0f ? 0.0f : (q > 2.0f ? 2.0f : q);
-    else q = q > 0.0f ? 0.0f : (q < -2.0f ? -2.0f : q);
-    *p = q;
 }
 
 /* ------------------------------------------------------------------ series */
@@ -236,12 +188,14 @@ int32_t fw_render_tick(fw_t *f) {
     const uint32_t now_us = hal_time_us();
     track(f, now); /* edges the port gave without a time (fw_encoder_pins) */
     /* a lost host: keep rendering while the hand moves; fade out once it is also still */
-    int64_t moved = r->pos - r->still_anchor;
+    int64_t moved = r->edges.pos - r->still_anchor;
     if (moved > 2 || moved < -2) {
-        r->still_anchor = r->pos;
+        r->still_anchor = r->edges.pos;
         r->still_since_us = now_us;
     }
-    r->host_lost = (uint32_t)(now_us - f->last_rx_us) > (uint32_t)r->host_lost_ms * 1000u;
+    const bool lost = (uint32_t)(now_us - f->last_rx_us) > (uint32_t)r->host_lost_ms * 1000u;
+    if (lost && !r->host_lost) r->host_lost_count++; /* a new episode */
+    r->host_lost = lost;
     if (r->host_lost) {
         f->faults |= HP_FAULT_HOST_LOST;
         if ((uint32_t)(now_us - r->still_since_us) >= (uint32_t)HP_RENDER_STILL_MS * 1000u && r->env_target > 0.0f) {
@@ -251,7 +205,7 @@ int32_t fw_render_tick(fw_t *f) {
     }
     int64_t b0;
     float p, v;
-    estimate(r, now, &b0, &p, &v);
+    fw_edges_estimate(&r->edges, now, &b0, &p, &v);
     const float pf = p + v * r->delay_edge; /* felt position: ahead by the chain's delay */
     const float vabs = fabsf(v) * MM_S_PER_HALF;
     r->speed_mm_s = v * MM_S_PER_HALF;
@@ -274,6 +228,11 @@ int32_t fw_render_tick(fw_t *f) {
         r->env = fmaxf(r->env - 1.0f / (float)HP_RAMP_TICKS, r->env_target);
     }
     y *= r->env;
+    if (r->env >= 1.0f) { /* the device's own account of what it rendered (RENDER_STATUS) */
+        r->rendered_ticks++;
+    } else {
+        r->faded_ticks++;
+    }
     if (f->ticks % HP_RENDER_STATUS_PERIOD_TICKS == 0) {
         uint8_t o[HP_RENDER_STATUS_SIZE];
         memset(o, 0, sizeof o);
@@ -288,6 +247,11 @@ int32_t fw_render_tick(fw_t *f) {
         wr16(o + HP_RENDER_STATUS_OFF_LOADS, r->loads);
         uint32_t silent_ms = (now_us - f->last_rx_us) / 1000u;
         wr16(o + HP_RENDER_STATUS_OFF_HOST_SILENT_MS, (uint16_t)(silent_ms > 0xFFFFu ? 0xFFFFu : silent_ms));
+        wr16(o + HP_RENDER_STATUS_OFF_HOST_LOST_COUNT, r->host_lost_count);
+        wr32(o + HP_RENDER_STATUS_OFF_DEVICE_TIME_US, now_us);
+        wr32(o + HP_RENDER_STATUS_OFF_RENDERED_TICKS, r->rendered_ticks);
+        wr32(o + HP_RENDER_STATUS_OFF_FADED_TICKS, r->faded_ticks);
+        wr32(o + HP_RENDER_STATUS_OFF_IDLE_TICKS, f->idle_ticks);
         hal_send(o, sizeof o);
     }
     if (r->env == 0.0f && r->env_target == 0.0f) { /* faded out: idle */

@@ -45,8 +45,8 @@ static void rig_init(rig_t *g, double x0, double v) {
     g->count = llround(x0 / Q_MM);
     fw_init(&g->f, GRAY[(uint64_t)g->count & 3u]);
     g->f.quad.count = (uint32_t)g->count;
-    g->f.render.pos = g->count;
-    g->f.render.last_count = g->f.quad.count;
+    g->f.render.edges.pos = g->count;
+    g->f.render.edges.last_count = g->f.quad.count;
 }
 
 /* one tick: edges up to its instant, then fw_tick; returns the DAC code */
@@ -265,6 +265,63 @@ static void test_lost_host_keeps_rendering_while_the_hand_moves(void) {
     CHECK_EQ(last_dac, 0);
 }
 
+static uint32_t rd32le(const uint8_t *p) {
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);
+}
+
+/* While rendering, STATUS and RENDER_STATUS come once per HP_RENDER_STATUS_PERIOD_TICKS (the
+ * host sleeps between them), and RENDER_STATUS counts every tick exactly once: rendered at full
+ * gain, faded (fade in / out) or idle; a lost host is one episode; the counters account for a
+ * lost host whose hand stops (the display fades out and goes idle) tick for tick. */
+static void test_render_status_counters_and_cadence(void) {
+    static rig_t g;
+    rig_init(&g, 0.0, 20.0);
+    one_component(tex1, 100, 10, 3.0f);
+    CHECK_EQ(upload(&g.f, 1, tex1, 100, NS, LEN_NM, CORRUPT_NONE), HP_RESULT_OK);
+    for (int i = 0; i < 30; i++) rig_tick(&g); /* 30 idle ticks first */
+    CHECK_EQ(start_render(&g.f, 200), HP_RESULT_OK);
+    const uint32_t k0 = g.f.ticks;
+    size_t statuses = 0, rstatuses = 0;
+    uint8_t last_rs[80] = {0};
+    const int n = 6 * 3000;
+    for (int i = 0; i < n; i++) {
+        size_t before = sent_n;
+        if (i == 3000) { /* after 1 s the hand stops; the host is silent all along (lost after 200 ms) */
+            g.x0_mm = (double)g.count * Q_MM;
+            g.v_mm_s = 0.0;
+            /* rig_tick's hand is x0 + v t: a stopped hand */
+        }
+        rig_tick(&g);
+        for (size_t j = before; j < sent_n; j++) {
+            const uint8_t *m = sent[j & 255];
+            if (m[0] == HP_ID_STATUS && g.f.ticks - k0 < 3000) statuses++;
+            if (m[0] == HP_ID_RENDER_STATUS) {
+                rstatuses++;
+                memcpy(last_rs, m, sizeof last_rs);
+            }
+        }
+    }
+    /* the first second: rendering throughout, one STATUS per render period (not one per ms) */
+    CHECK(statuses <= 3000 / HP_RENDER_STATUS_PERIOD_TICKS + 1);
+    CHECK(rstatuses >= 1000 / (HP_RENDER_STATUS_PERIOD_TICKS / 3) - 1);
+    CHECK_EQ(g.f.state, HP_STATE_IDLE); /* lost host, still hand: faded out */
+    fw_render_t *r = &g.f.render;
+    /* every tick since START_RENDER is in exactly one counter (idle ones after the fade-out) */
+    CHECK_EQ(r->rendered_ticks + r->faded_ticks + (g.f.idle_ticks - 30), g.f.ticks - k0);
+    /* the fade in and the fade out (float steps of 1/150: one tick either way) */
+    CHECK(r->faded_ticks >= 2u * HP_RAMP_TICKS - 2 && r->faded_ticks <= 2u * HP_RAMP_TICKS + 2);
+    CHECK_EQ(r->host_lost_count, 1);
+    /* the last RENDER_STATUS carries the counters as they were at its tick */
+    CHECK_EQ(last_rs[HP_RENDER_STATUS_OFF_HOST_LOST_COUNT], 1);
+    CHECK(rd32le(last_rs + HP_RENDER_STATUS_OFF_RENDERED_TICKS) <= r->rendered_ticks);
+    CHECK(rd32le(last_rs + HP_RENDER_STATUS_OFF_RENDERED_TICKS) > 3000);
+    CHECK_EQ(rd32le(last_rs + HP_RENDER_STATUS_OFF_IDLE_TICKS), 30);
+    /* idle: STATUS every HP_STATUS_PERIOD_TICKS again */
+    size_t before = sent_n;
+    for (int i = 0; i < 300; i++) rig_tick(&g);
+    CHECK_EQ(sent_n - before, 300 / HP_STATUS_PERIOD_TICKS);
+}
+
 static void test_equalizer_sections_and_v1_stop(void) {
     static rig_t a, b;
     rig_init(&a, 0.0, 10.0);
@@ -428,6 +485,7 @@ int main(void) {
     test_corrupt_uploads_are_refused_and_change_nothing();
     test_texture_swap_without_a_click();
     test_lost_host_keeps_rendering_while_the_hand_moves();
+    test_render_status_counters_and_cadence();
     test_equalizer_sections_and_v1_stop();
     test_random_render_messages_never_break_safety();
     printf("render: %d checks, %d failures\n", g_checks, g_failures);

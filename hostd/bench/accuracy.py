@@ -86,8 +86,10 @@ def settings() -> list[Setting]:
     for b in (3, 6, 15, 30):
         s.append(Setting("samples_per_batch", f"{b} ({b / 3:g} ms)",
                          lambda c, b=b: replace(c, samples_per_batch=b), b == d.samples_per_batch))
-    s.append(Setting("render_at", "host", _same, True))
-    s.append(Setting("render_at", "device", _same, where="device"))
+    # the daemon's default ([render] where = "auto") renders on a v2 display: that row is the
+    # default; the host row is what a v1 display (or a texture it cannot hold) gets
+    s.append(Setting("render_at", "host", _same))
+    s.append(Setting("render_at", "device", _same, True, where="device"))
     return s
 
 

@@ -49,6 +49,9 @@ def add_parser(sub, parents) -> None:
     cy.add_argument("--json", action="store_true")
     cy.add_argument("--seconds", type=float, default=8.0, metavar="S", help="how long (default 8)")
     cy.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS", help="pump cycle (1..10)")
+    so.add_argument("--render", choices=["host", "device", "auto"], default="auto",
+                    help="who renders: [render] where for the run (default auto: the display, protocol v2)")
+    so.add_argument("--runs", type=int, default=1, metavar="N", help="repeat N times, report medians")
     sb = bsub.add_parser("sim", help="scene simulation speed vs number of effects and duration")
     sb.add_argument("--json", action="store_true")
     ob = bsub.add_parser("offline", help="goals: shipped scenes at N'=1600 < 5 s, rate-quality "
@@ -155,8 +158,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         try:
             if not 1 <= args.host_cycle_ms <= 10:
                 raise SystemExit("hostd bench soak: error: --host-cycle-ms must be 1..10")
-            rows.append(soak.run(args.minutes, args.load, progress=not args.json,
-                                 host_cycle_ms=args.host_cycle_ms))
+            if not 1 <= args.runs <= 100:
+                raise SystemExit("hostd bench soak: error: --runs must be 1..100")
+            rows.append(soak.run_many(args.runs, minutes=args.minutes, load=args.load,
+                                      progress=not args.json, render=args.render,
+                                      host_cycle_ms=args.host_cycle_ms))
         except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench soak: error: {e}") from None
     if what == "cycle":

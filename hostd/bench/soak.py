@@ -1,12 +1,15 @@
 """`hostd bench soak`: the real daemon playing one texture on the firmware's host port for
-minutes, optionally with a CPU hog on the other core.
+minutes, optionally with a CPU hog on the other core, rendering on the host, on the device or
+where `[render] where = "auto"` puts it; `--runs N` repeats it and reports the medians.
 
 Every playback figure comes from the firmware's DAC log (what the device actually played,
 tick by tick) and the device's own counters, never from the host's bookkeeping: played
-fraction, underrun episodes, silences (their count is the recoveries the device saw), the
-longest silence. The host side adds what only it can know: the stalls it measured on itself
-(pauses longer than the buffer), the pump process's CPU share, and the CPU time of one pump
-cycle (p50/p99/p99.9, thread CPU time).
+fraction (host rendering: ticks played from the buffer; device rendering: ticks rendered at
+full gain, the log's FULL_GAIN flag), underrun episodes (device rendering: its host-lost
+episodes and the silences), the longest silence. The host side adds what only it can know: the
+stalls it measured on itself, the daemon's and the pump process's CPU share (utime + stime from
+/proc over the run), their wake-ups per second (voluntary context switches of every thread,
+/proc/PID/task/*/status), and the CPU time of one host-rendering cycle (p50/p99/p99.9).
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 from hostd.device import hostport
 from hostd.errors import HostdError
@@ -42,6 +47,19 @@ def child_pids(pid: int) -> list[int]:
     return out
 
 
+def _wakeups(pid: int) -> int:
+    """Voluntary context switches of every thread of a process: the times it went to sleep."""
+    n = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            for line in (task / "status").read_text().splitlines():
+                if line.startswith("voluntary_ctxt_switches:"):
+                    n += int(line.split()[1])
+        except OSError:
+            pass
+    return n
+
+
 def _pump_pid(daemon_pid: int) -> int | None:
     """The daemon's pump process (a multiprocessing 'spawn' child)."""
     for c in child_pids(daemon_pid):
@@ -54,7 +72,8 @@ def _pump_pid(daemon_pid: int) -> int | None:
 
 
 def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progress: bool = True,
-        host_cycle_ms: int = 1) -> dict:
+        render: str = "host", host_cycle_ms: int = 1) -> dict:
+    """One run. render: host | device | auto ([render] where); host_cycle_ms: [device] host_cycle_ms."""
     from hostd.codec import stream as vtx
     from hostd.codec import transform
     from hostd.perception import thresholds
@@ -69,6 +88,7 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
         hp = hostport.HostPort(["--motion", "metronome", "--duration", str(seconds + 120)], log=log)
         cfg = d / "hostd.toml"
         cfg.write_text(f'[device]\ntransport = "serial:{hp.pty}"\nhost_cycle_ms = {int(host_cycle_ms)}\n'
+                       f'[render]\nwhere = "{render}"\n'
                        '[library]\ndir = "lib"\nspool = "spool"\n'
                        '[control]\nsocket = "hostd.sock"\ngroup = ""\n[quality]\ndb = "q.sqlite"\n')
         sock = str(d / "hostd.sock")
@@ -95,24 +115,26 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
             if load:
                 cpu = max(os.sched_getaffinity(0))
                 hogs.append(subprocess.Popen([sys.executable, "-c", HOG, str(cpu)]))
+            time.sleep(1.0)  # the upload or the priming is not the steady state
             pump = _pump_pid(daemon.pid)
-            cpu0 = _proc_cpu_s(pump) if pump else 0.0
-            dcpu0 = _proc_cpu_s(daemon.pid)
-            cycles0 = request(sock, {"cmd": "status"})["cycles"]
+            pids = {"pump": pump, "daemon": daemon.pid}
+            cpu0 = {k: _proc_cpu_s(v) for k, v in pids.items() if v}
+            wake0 = {k: _wakeups(v) for k, v in pids.items() if v}
+            st0 = request(sock, {"cmd": "status"})
             t0 = time.monotonic()
             bar = None
             if progress:
                 from tqdm import tqdm
 
-                bar = tqdm(total=int(seconds), unit="s", desc="soak", leave=False)
+                bar = tqdm(total=int(seconds), unit="s", desc=f"soak ({render})", leave=False)
             while (el := time.monotonic() - t0) < seconds:
                 time.sleep(min(1.0, seconds - el))
                 if bar is not None:
                     bar.n = int(time.monotonic() - t0)
                     bar.refresh()
             wall = time.monotonic() - t0
-            cpu1 = _proc_cpu_s(pump) if pump else 0.0
-            dcpu1 = _proc_cpu_s(daemon.pid)
+            cpu1 = {k: _proc_cpu_s(v) for k, v in pids.items() if v}
+            wake1 = {k: _wakeups(v) for k, v in pids.items() if v}
             st = request(sock, {"cmd": "status"})
             if bar is not None:
                 bar.close()
@@ -124,25 +146,64 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
             if daemon.poll() is None:
                 daemon.terminate()
                 daemon.wait(20)
-        fig = hostport.playback_figures(hostport.read_log(log))
-    return {
-        "minutes": minutes, "load": load,
-        "played_fraction": round(fig["played_fraction"], 6),
-        "underrun_episodes": fig["underrun_episodes"],
-        "silences": len(fig["silences"]),
-        # silences followed by playback again: the recoveries the device saw
-        "recoveries": fig["recovered_silences"],
-        "longest_silence_ms": round(fig["longest_silence_ms"], 1),
-        "device_underruns": st["device_underruns"],  # the daemon's health figure, to compare
-        "stalls": st["stalls"], "longest_stall_ms": round(st["longest_stall_ms"], 1),
-        "host_recoveries": st["recoveries"],  # episodes the host saw (a burst of silences counts once)
+        rec = hostport.read_log(log)
+        fig = hostport.playback_figures(rec)
+    share = {k: round((cpu1[k] - cpu0[k]) / wall, 5) for k in cpu1}
+    wakes = {k: round((wake1[k] - wake0[k]) / wall, 1) for k in wake1}
+    cycles = st["cycles"] - st0["cycles"]
+    row = {
+        "render": render, "render_at": st["render_at"], "minutes": minutes, "load": load,
         "host_cycle_ms": int(host_cycle_ms),
-        "pump_cpu_share": round((cpu1 - cpu0) / wall, 4) if pump else None,
-        "daemon_cpu_share": round((dcpu1 - dcpu0) / wall, 4),  # the daemon process, its pump excluded
+        "daemon_cpu_share": share.get("daemon"), "pump_cpu_share": share.get("pump"),
+        "cpu_share": round(sum(share.values()), 5),
+        "daemon_wakeups_s": wakes.get("daemon"), "pump_wakeups_s": wakes.get("pump"),
         # the pump process's CPU per cycle (a loaded machine skips cycles: the share alone hides it)
-        "pump_cpu_us_per_cycle": round((cpu1 - cpu0) / max(1, st["cycles"] - cycles0) * 1e6, 1) if pump
-        else None,
-        "cycles_per_s": round((st["cycles"] - cycles0) / wall, 1),
-        "batch_p50_us": round(st["batch_p50_us"], 1), "batch_p99_us": round(st["batch_p99_us"], 1),
-        "batch_p999_us": round(st["batch_p999_us"], 1),
+        "pump_cpu_us_per_cycle": round((cpu1["pump"] - cpu0["pump"]) / max(1, cycles) * 1e6, 1)
+        if "pump" in cpu1 else None,
+        "cycles_per_s": round(cycles / wall, 1),
+        "stalls": st["stalls"] - st0["stalls"], "longest_stall_ms": round(st["longest_stall_ms"], 1),
+        "played_fraction_status": round(st["played_fraction"], 6),  # the daemon's figure, to compare
     }
+    if st["render_at"] == "device":
+        # the display renders: its DAC log's full-gain flag from the first full-gain tick
+        full = (rec["flags"] & hostport.FULL_GAIN) != 0
+        first = int(np.argmax(full)) if full.any() else full.size
+        quiet = hostport.runs(~full[first:])
+        row.update({
+            "played_fraction": round(float(full[first:].mean()) if full[first:].size else 0.0, 6),
+            "underrun_episodes": len(quiet),  # stretches below full gain (fades, idle)
+            "longest_silence_ms": round(max((b - a for a, b in quiet), default=0) / 3.0, 1),
+            "device_host_lost": st["device_host_lost"] - st0["device_host_lost"],
+            "device_reuploads": st["device_reuploads"] - st0["device_reuploads"],
+        })
+    else:
+        row.update({
+            "played_fraction": round(fig["played_fraction"], 6),
+            "underrun_episodes": fig["underrun_episodes"],
+            "silences": len(fig["silences"]),
+            # silences followed by playback again: the recoveries the device saw
+            "recoveries": fig["recovered_silences"],
+            "longest_silence_ms": round(fig["longest_silence_ms"], 1),
+            "device_underruns": st["device_underruns"],  # the daemon's health figure, to compare
+            "host_recoveries": st["recoveries"],  # episodes the host saw (a burst of silences counts once)
+            "batch_p50_us": round(st["batch_p50_us"], 1), "batch_p99_us": round(st["batch_p99_us"], 1),
+            "batch_p999_us": round(st["batch_p999_us"], 1),
+        })
+    return row
+
+
+def run_many(runs: int = 1, **kw) -> dict:
+    """`runs` runs; the median of every numeric figure (the runs themselves under "runs")."""
+    rows = [run(**kw) for _ in range(runs)]
+    if runs == 1:
+        return rows[0]
+    med: dict = {}
+    for k, v in rows[0].items():
+        vals = [r.get(k) for r in rows]
+        if isinstance(v, bool) or not isinstance(v, int | float) or any(x is None for x in vals):
+            med[k] = v
+        else:
+            med[k] = float(np.median(vals))
+    med["runs"] = rows
+    med["median_of"] = runs
+    return med

@@ -11,6 +11,12 @@ renderer uses), starts rendering, and then:
   - swaps textures by uploading into the other slot: the display crossfades (no click).
 A host stall does not interrupt the texture: the display keeps rendering; after host_lost_ms
 it flags the host as lost and still renders while the hand moves (docs/protocol.md).
+
+The host sleeps meanwhile (`run`): no periodic loop, it blocks on the transport until the
+display reports (STATUS and RENDER_STATUS every 50 ms while it renders), a command arrives
+(the daemon's pipe, a hotplug monitor: any descriptor in `fds`) or the next keep-alive is due.
+A keep-alive that falls due before the next report goes out with the report's wake-up, so the
+keep-alive adds no wake-up of its own.
 """
 
 from __future__ import annotations
@@ -27,6 +33,8 @@ RENDERING = pr.STATES["RENDERING"]
 
 
 class DeviceMode:
+    IDLE_WAIT_S = 0.05  # nothing to render: read the display's 1 ms statuses in batches
+
     def __init__(self, link: DeviceLink, cfg, log, host_lost_ms: int = 1000,
                  timeout_ms: int = 50) -> None:
         self.link = link
@@ -39,9 +47,13 @@ class DeviceMode:
         self.slot = 1
         self.recoveries = 0
         self.uploads = 0
-        # any valid message at least this often: within both the host timeout and host_lost_ms
-        self._keepalive_s = min(self.host_lost_ms, self.timeout_ms) / 2000.0
+        # any valid message at least this often: well within host_lost_ms (the v1 host timeout
+        # applies only while streaming, never while the display renders or idles)
+        self._keepalive_s = self.host_lost_ms / 4000.0
+        # a keep-alive due within this much of a wake-up goes out with it (the report period)
+        self._early_s = min(pr.R["status_period_ticks"] / pr.SAMPLE_RATE_HZ, self._keepalive_s / 2)
         self._last_keepalive = time.monotonic()
+        self.wakeups = 0
         self._started_at = 0.0
 
     def check(self, coeffs) -> None:
@@ -78,7 +90,7 @@ class DeviceMode:
         """Once per pump cycle: keep alive, and bring the texture back if the display is not
         rendering it."""
         now = time.monotonic()
-        if now - self._last_keepalive >= self._keepalive_s:
+        if now - self._last_keepalive >= self._keepalive_s - self._early_s:
             self.link.set_timeout(self.timeout_ms)
             self._last_keepalive = now
         s = self.link.stats.last_status
@@ -90,3 +102,23 @@ class DeviceMode:
             self.rendering = False
             self.recoveries += 1
             self.begin(self.texture)
+
+    def run(self, stop, each_wake, fds=()) -> None:
+        """Device mode's loop, until stop() is true: sleep until the display reports, a
+        descriptor in `fds` is readable (commands, hotplug) or the keep-alive is due; then take
+        in what arrived and call each_wake() (commands, tick(), publishing counters). With no
+        texture to render the display's 1 ms statuses are read in batches every IDLE_WAIT_S."""
+        link = self.link
+        t = link.t
+        while not stop():
+            timeout = max(0.0, self._last_keepalive + self._keepalive_s - time.monotonic())
+            s = link.stats.last_status
+            if self.texture is None and s and s["state"] != RENDERING:
+                import select  # nothing to supervise: only commands wake us before the batch
+
+                select.select(list(fds), [], [], min(timeout, self.IDLE_WAIT_S))
+            else:
+                t.wait(timeout, fds)
+            link.poll()
+            self.wakeups += 1
+            each_wake()

@@ -104,6 +104,9 @@ class RenderModel:
         self.last_um = F32(0)
         self.refused = 0
         self.loads = 0
+        self.host_lost_count = 0  # episodes (RENDER_STATUS, u16)
+        self.rendered_ticks = 0  # ticks at full gain (u32)
+        self.faded_ticks = 0  # ticks below full gain: fading in or out (u32)
 
     # ------------------------------------------------------------ encoder
     def edge(self, count: int, t_edge: int) -> None:
@@ -230,7 +233,10 @@ class RenderModel:
         if abs(self.pos - self.still_anchor) > 2:
             self.still_anchor = self.pos
             self.still_since_us = now_us
-        self.host_lost = ((now_us - dev.last_rx_us) & M32) > self.host_lost_ms * 1000
+        lost = ((now_us - dev.last_rx_us) & M32) > self.host_lost_ms * 1000
+        if lost and not self.host_lost:
+            self.host_lost_count += 1
+        self.host_lost = lost
         if self.host_lost:
             dev.faults |= F["HOST_LOST"]
             if ((now_us - self.still_since_us) & M32) >= R["still_ms"] * 1000 and self.env_target > 0:
@@ -260,6 +266,10 @@ class RenderModel:
                 self.env = max(self.env - step, self.env_target)
             y = y * self.env
             code = y * self.codes_per_um
+        if self.env >= 1:
+            self.rendered_ticks += 1
+        else:
+            self.faded_ticks += 1
         if dev.ticks % R["status_period_ticks"] == 0:
             dev.outbox.append(self.status(dev, now_us))
         if self.env == 0 and self.env_target == 0:
@@ -280,7 +290,10 @@ class RenderModel:
         return pr.encode("RENDER_STATUS", render_state=state, active_slot=self.tex[self.active].slot,
                          host_lost=int(self.host_lost), speed_mm_s=float(self.speed_mm_s),
                          refused=self.refused & 0xFFFF, loads=self.loads & 0xFFFF,
-                         host_silent_ms=min(((now_us - dev.last_rx_us) & M32) // 1000, 0xFFFF))
+                         host_silent_ms=min(((now_us - dev.last_rx_us) & M32) // 1000, 0xFFFF),
+                         host_lost_count=self.host_lost_count & 0xFFFF, device_time_us=now_us,
+                         rendered_ticks=self.rendered_ticks & M32, faded_ticks=self.faded_ticks & M32,
+                         idle_ticks=dev.idle_ticks & M32)
 
     # ------------------------------------------------------------ messages
     def _reply(self, dev, name: str, slot: int, result: str, detail: int = 0) -> None:

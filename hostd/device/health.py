@@ -6,10 +6,17 @@ clock (u32 µs). `DeviceHealth` unwraps them into totals since the daemon starte
 the played fraction of the current selection: samples the device played from its buffer
 over the samples due (device time elapsed x 3 kHz) since the texture was selected.
 
-Counters are accumulated as wrap-aware deltas between consecutive STATUS messages, so a lost
-STATUS (a host stall overflows the link's buffer) loses nothing, and a new device or a device
-reset (its counters go back, or its clock does) starts a new baseline instead of a negative
-count. Nothing here allocates per STATUS beyond a few Python floats.
+In device mode (protocol v2, the display renders itself) nothing is played from the buffer:
+the display's RENDER_STATUS counts its own ticks, rendered at full gain, faded (fading in or
+out) and idle, and the episodes of a lost host. The played fraction of a selection rendered on
+the device is then rendered-at-full-gain ticks over ticks due (device time x 3 kHz) since the
+texture first reached full gain: a display that faded out (its host lost and the hand still)
+or went idle does not count as playing.
+
+Counters are accumulated as wrap-aware deltas between consecutive STATUS (RENDER_STATUS)
+messages, so a lost message (a host stall overflows the link's buffer) loses nothing, and a
+new device or a device reset (its counters go back, or its clock does) starts a new baseline
+instead of a negative count. Nothing here allocates per STATUS beyond a few Python floats.
 """
 
 from __future__ import annotations
@@ -25,6 +32,8 @@ HOST_TIMEOUT_BIT = pr.FAULTS["HOST_TIMEOUT"]
 # a gap in device time between two STATUS messages longer than this is not a gap: the
 # device clock went back or jumped (a reset, another device); the counters re-baseline
 MAX_GAP_US = 600_000_000
+M32 = 0xFFFFFFFF
+FULL_GAIN_STATES = (pr.RENDER_STATES["ON"], pr.RENDER_STATES["CROSSFADE"])
 
 
 def fault_names(flags: int) -> list[str]:
@@ -48,15 +57,25 @@ class DeviceHealth:
         self._sel_due = 0.0  # ticks due since selection (device time x rate)
         self._sel_played = 0
         self._sel_started = False
+        self._sel_device = False  # the selection renders on the device: RENDER_STATUS counts
+        # device mode, from RENDER_STATUS (totals since the daemon started, wrap-aware)
+        self.rendered_ticks = 0  # ticks the display rendered the texture at full gain
+        self.faded_ticks = 0  # ticks it rendered below full gain (fading in or out)
+        self.idle_ticks = 0  # ticks it neither rendered nor played
+        self.host_lost = 0  # episodes in which the display counted its host as lost
+        self._last_rs: dict | None = None
 
     # ------------------------------------------------------------ input
     def new_device(self) -> None:
         """A (re)connected device: its counters start a new baseline."""
         self._last = None
+        self._last_rs = None
 
-    def select(self, active: bool) -> None:
-        """A texture was selected (True) or playback stopped (False): restart the fraction."""
+    def select(self, active: bool, device: bool = False) -> None:
+        """A texture was selected (True) or playback stopped (False): restart the fraction.
+        device: the display renders it (the fraction comes from RENDER_STATUS)."""
         self._sel_active = active
+        self._sel_device = device and active
         self._sel_due = 0.0
         self._sel_played = 0
         self._sel_started = False
@@ -79,16 +98,41 @@ class DeviceHealth:
         self.underruns += d_under
         for bit in (b for _, b in FAULT_NAMES if f["fault_flags"] & b):
             self._recent_flags[bit] = self._time_s
-        if f["state"] == RENDERING and last["state"] == RENDERING:
-            # device mode: nothing is played from the buffer; every tick between two STATUS
-            # messages that both say "rendering" was rendered
-            d_played = dt_us * pr.SAMPLE_RATE_HZ // 1_000_000
-        if self._sel_active:
-            if not self._sel_started and f["state"] in (RUNNING, RENDERING):
+        if self._sel_active and not self._sel_device:
+            if not self._sel_started and f["state"] == RUNNING:
                 self._sel_started = True  # count from the first STATUS that shows it playing
             if self._sel_started:
                 self._sel_due += dt_us * 1e-6 * pr.SAMPLE_RATE_HZ
                 self._sel_played += d_played
+
+    def update_render(self, rs: dict) -> None:
+        """A RENDER_STATUS (device mode): the display's own tick counters."""
+        last = self._last_rs
+        self._last_rs = rs
+        if last is None:  # a new baseline; counting may start from it
+            if self._sel_device and not self._sel_started:
+                self._sel_started = rs["render_state"] in FULL_GAIN_STATES
+            return
+        dt_us = (rs["device_time_us"] - last["device_time_us"]) & M32
+        d_rend = (rs["rendered_ticks"] - last["rendered_ticks"]) & M32
+        d_fade = (rs["faded_ticks"] - last["faded_ticks"]) & M32
+        d_idle = (rs["idle_ticks"] - last["idle_ticks"]) & M32
+        if dt_us > MAX_GAP_US or d_rend + d_fade + d_idle > dt_us * pr.SAMPLE_RATE_HZ // 1_000_000 + 3:
+            self.resets += 1  # the clock or a counter went back: a reset, a new baseline
+            return
+        self.rendered_ticks += d_rend
+        self.faded_ticks += d_fade
+        self.idle_ticks += d_idle
+        self.host_lost += (rs["host_lost_count"] - last["host_lost_count"]) & 0xFFFF
+        if not self._sel_device:
+            return
+        if not self._sel_started:
+            # count from the first report that shows the texture at full gain (the selection's
+            # own fade-in is not due, as a host-rendered selection counts from its first run)
+            self._sel_started = rs["render_state"] in FULL_GAIN_STATES
+            return
+        self._sel_due += dt_us * 1e-6 * pr.SAMPLE_RATE_HZ
+        self._sel_played += d_rend
 
     # ------------------------------------------------------------ output
     @property
@@ -105,8 +149,9 @@ class DeviceHealth:
 
     @property
     def played_fraction(self) -> float:
-        """Samples played from the buffer over samples due since the selection (1.0 until
-        the device has run for a full STATUS period; NaN-free)."""
+        """Samples played from the buffer (device mode: ticks rendered at full gain) over
+        samples due since the selection first played (1.0 until the device has run for a full
+        STATUS period; NaN-free)."""
         if self._sel_due < 1.0:
             return 1.0 if self._sel_active else 0.0
         return min(1.0, self._sel_played / self._sel_due)

@@ -12,8 +12,9 @@ FIRMWARE = Path(__file__).resolve().parents[2] / "firmware"
 EXE = FIRMWARE / "build" / "hostd-fw-host"
 # one record per 3 kHz tick (port/host/main.c, log_tick); flags bit 0: the code came from the
 # buffer, bit 1: underrun, bit 2: the tick ran > 1 ms late (the host port itself was held up by
-# the OS: an artefact of the simulation), bit 3: the device was RUNNING, bit 4: RENDERING itself
-PLAYED, UNDERRUN, LATE_TICK, RUNNING, RENDERING = 1, 2, 4, 8, 16
+# the OS: an artefact of the simulation), bit 3: the device was RUNNING, bit 4: RENDERING itself,
+# bit 5: rendering the texture at full gain (no fade: what RENDER_STATUS counts as rendered)
+PLAYED, UNDERRUN, LATE_TICK, RUNNING, RENDERING, FULL_GAIN = 1, 2, 4, 8, 16, 32
 CLOCK_DTYPE = np.dtype([("tick", "<u4"), ("t", "<f8")])  # --clock: when each tick really ran
 LOG_DTYPE = np.dtype([("tick", "<u4"), ("code", "<i2"), ("enc", "<u4"), ("flags", "<u2")])
 

@@ -60,6 +60,7 @@ class DeviceLink:
         # one in the same poll makes stale (a backlog read after a host stall): counters and
         # faults still count, but nothing needs its encoder reading
         self.on_status = None
+        self.on_render_status = None  # callback(RENDER_STATUS dict): device mode's counters
         self.retry_budget_s = 0.0005  # how long one message may be retried within a cycle
 
     # ---------------------------------------------------------------- control
@@ -172,6 +173,8 @@ class DeviceLink:
             self.caps = f  # protocol v2: what the display can render (after IDENT)
         elif name == "RENDER_STATUS":
             self.render_status = f
+            if self.on_render_status is not None:
+                self.on_render_status(f)
         return name
 
     FRESH = 32  # statuses of one poll whose encoder readings are used (the motion window's 16, +)

@@ -222,22 +222,38 @@ def render_capable(ident: dict, caps: dict | None) -> bool:
     return ident.get("protocol_version", 0) >= 2 and caps is not None and bool(caps.get("render", 0) & 1)
 
 
+# why a display cannot render a texture (render_refusal's first element), in a fixed order:
+# the daemon publishes the index (hostd status `render_reason`)
+RENDER_REFUSALS = ("v1", "no_caps", "components", "sections")
+
+
+def render_refusal(ident: dict, caps: dict | None, n_coeffs: int = 1, n_sections: int = 0,
+                   who: str = "the display") -> tuple[str, str] | None:
+    """None if the device can render this texture, else (one of RENDER_REFUSALS, a message
+    saying what to do)."""
+    v = ident.get("protocol_version", 0)
+    if v < 2:
+        return "v1", (f"{who} runs protocol v{v} firmware, which cannot render on the device: "
+                      "update its firmware to protocol v2, or set [render] where = \"host\"")
+    if not render_capable(ident, caps):
+        return "no_caps", (f"{who} did not report render capability (no CAPS with the render bit): "
+                           "set [render] where = \"host\", or update its firmware")
+    if n_coeffs > caps["max_components"]:
+        return "components", (f"{who} renders at most {caps['max_components']} components, the texture "
+                              f"has {n_coeffs}: lower the texture's band (fewer components) or render on "
+                              "the host")
+    if n_sections > caps["max_sections"]:
+        return "sections", (f"{who} runs at most {caps['max_sections']} equalizer sections, the equalizer "
+                            f"has {n_sections}: lower equalizer.reg_order or render on the host")
+    return None
+
+
 def require_render(ident: dict, caps: dict | None, n_coeffs: int = 1, n_sections: int = 0,
                    who: str = "the display") -> None:
     """Raise DeviceVersion, saying what to do, unless the device can render this texture."""
-    v = ident.get("protocol_version", 0)
-    if v < 2:
-        raise DeviceVersion(f"{who} runs protocol v{v} firmware, which cannot render on the device: "
-                            "update its firmware to protocol v2, or set [render] where = \"host\"")
-    if not render_capable(ident, caps):
-        raise DeviceVersion(f"{who} did not report render capability (no CAPS with the render bit): "
-                            "set [render] where = \"host\", or update its firmware")
-    if n_coeffs > caps["max_components"]:
-        raise DeviceVersion(f"{who} renders at most {caps['max_components']} components, the texture has "
-                            f"{n_coeffs}: lower the texture's band (fewer components) or render on the host")
-    if n_sections > caps["max_sections"]:
-        raise DeviceVersion(f"{who} runs at most {caps['max_sections']} equalizer sections, the equalizer "
-                            f"has {n_sections}: lower equalizer.reg_order or render on the host")
+    why = render_refusal(ident, caps, n_coeffs, n_sections, who)
+    if why is not None:
+        raise DeviceVersion(why[1])
 
 
 def f32(values) -> list[float]:

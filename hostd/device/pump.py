@@ -123,6 +123,7 @@ class Pump:
             self._retries_base += old.stats.io_retries
         self.link = link
         link.on_status = self._on_status
+        link.on_render_status = self.health.update_render
         link.target_fill = self._link_fill()
         self.health.new_device()
         self._last_samples_played = None

@@ -102,15 +102,31 @@ class SerialTransport(Transport):
         if self._pending:
             self._pending = self._pending[self._write(self._pending):]
 
-    def recv(self, timeout_s: float = 0.0) -> bytes | None:
-        import serial
+    def _hung_up(self) -> bool:
+        """os.read() returned b"" (not EAGAIN): the other end hung up, unless nothing was there."""
+        import select
 
+        p = select.poll()
+        p.register(self.ser.fd, select.POLLIN)
+        return any(ev & (select.POLLHUP | select.POLLERR) for _, ev in p.poll(0))
+
+    def fileno(self) -> int | None:
+        return self.ser.fd
+
+    def pending(self) -> bool:
+        return bool(self._queue)
+
+    def recv(self, timeout_s: float = 0.0) -> bytes | None:
         self.flush_pending()
         deadline = time.monotonic() + timeout_s
         while not self._queue:
-            try:
-                data = self.ser.read(4096)
-            except (OSError, serial.SerialException) as e:
+            try:  # the non-blocking fd itself (pyserial's read() adds a select() per call)
+                data = os.read(self.ser.fd, 4096)
+                if not data and self._hung_up():
+                    raise self._gone(OSError("end of file"))
+            except BlockingIOError:
+                data = b""
+            except OSError as e:
                 raise self._gone(e) from None
             if data:
                 self._queue += self.deframer.feed(data)
@@ -120,12 +136,6 @@ class SerialTransport(Transport):
                 return None
             self.wait(left)  # sleeps in select() until bytes arrive, not in a polling loop
         return self._queue.pop(0)
-
-    def fileno(self) -> int:
-        return self.ser.fd
-
-    def pending(self) -> bool:
-        return bool(self._queue)
 
     def close(self) -> None:
         try:

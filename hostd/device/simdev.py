@@ -45,6 +45,7 @@ class SimDevice:
         self.underruns = 0
         self.malformed = 0
         self.encoder_errors = 0
+        self.idle_ticks = 0  # neither playing nor rendering (RENDER_STATUS)
         self.in_underrun = False
         self.hand = hand
         self.clock_ppm = clock_ppm
@@ -184,6 +185,7 @@ class SimDevice:
             target = self.render.tick(self)
         else:
             target = self._toward_zero(self.out)
+            self.idle_ticks += 1
             if self.state == S["RAMP_DOWN"] and target == 0:
                 self.state = S["IDLE"]
         lim, step = self.limit_code, self.max_step_code
@@ -195,9 +197,20 @@ class SimDevice:
             target = self.out + (step if d > 0 else -step)
             self.faults |= F["SLEWED"]
         self.out = target
-        if self.ticks % pr.P["status_period_ticks"] == 0:
+        if self.ticks % self.status_period() == 0:
             self.outbox.append(self.status())
             self.faults = 0
+
+    def status_period(self) -> int:
+        """Ticks between STATUS messages: every 1 ms, every 50 ms while rendering (core.c)."""
+        return pr.R["status_period_ticks"] if self.state == S["RENDERING"] else pr.P["status_period_ticks"]
+
+    def ticks_to_next_message(self) -> int:
+        """Ticks until the device sends its next STATUS (0: something is waiting now)."""
+        if self.outbox:
+            return 0
+        p = self.status_period()
+        return p - self.ticks % p
 
     def status(self) -> bytes:
         return pr.encode("STATUS", state=self.state, fault_flags=self.faults, device_time_us=self.time_us(),
@@ -249,6 +262,25 @@ class SimTransport(Transport):
             raise DeviceGone("simulated display closed")
         self._catch_up()
         self.device.on_message(msg)
+
+    def pending(self) -> bool:
+        self._catch_up()
+        return bool(self.device.outbox)
+
+    def wait(self, timeout_s: float, fds=()) -> bool:
+        """Sleep until the simulated display's next message is due (it has no descriptor), one
+        of `fds` is readable, or timeout_s; a manual clock advances by the time waited."""
+        import select
+
+        if self.pending():
+            return True
+        due_s = self.device.ticks_to_next_message() / (pr.SAMPLE_RATE_HZ * (1 + self.device.clock_ppm * 1e-6))
+        if not self.realtime:
+            ticks = round(min(timeout_s, due_s) * pr.SAMPLE_RATE_HZ)
+            self.advance(max(1, ticks))
+            return bool(self.device.outbox)
+        ready, _, _ = select.select(list(fds), [], [], max(0.0, min(timeout_s, due_s)))
+        return not ready and self.pending()
 
     def recv(self, timeout_s: float = 0.0) -> bytes | None:
         deadline = time.monotonic() + timeout_s

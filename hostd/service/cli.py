@@ -104,6 +104,10 @@ def cmd_status(args) -> int:
         print(f"device {st['device']} ({'connected' if st['connected'] else 'not connected'}), "
               f"library {st['library']} textures, accepted {st['accepted']}, refused {st['refused']}, "
               f"quality pending {st['quality_pending']}")
+        if "render_reason" in st:
+            print(f"rendered on the {st['render_at']}: {st['render_reason']}"
+                  + (f"; host lost {st['device_host_lost']}x, re-uploads {st['device_reuploads']}"
+                     if st["render_at"] == "device" else ""))
     return 0
 
 

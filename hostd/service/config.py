@@ -56,7 +56,10 @@ class QualityCfg:
 
 @dataclass
 class RenderCfg:
-    where: str = "host"  # host: the daemon renders and streams samples; device: the display renders
+    # auto: the display renders when its CAPS say it can hold the texture and its parameters,
+    # else the host; host: the daemon always renders and streams samples; device: as auto, but
+    # a fallback to the host is a warning
+    where: str = "auto"
     host_lost_ms: int = 1000  # device mode: host silence after which the display counts it lost
     height_method: str = "series"
     band_end_hz: float = 1000.0  # the speed-aware fade runs from 400 Hz (f_max at v_ref) to here
@@ -132,7 +135,7 @@ class Config:
 
 
 CHOICES = {
-    ("render", "where"): ("host", "device"),
+    ("render", "where"): ("auto", "device", "host"),
     ("render", "height_method"): ("series", "table-cubic", "table-linear", "nearest"),
     ("render", "dtype"): ("float32", "float64"),
 }

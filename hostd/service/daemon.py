@@ -34,7 +34,7 @@ from hostd.service.config import Config, check_paths
 from hostd.service.control import REQUEST_DEADLINE_S, ClientConn, ControlServer
 from hostd.service.library import Library, check_name
 from hostd.service.logsetup import CONTROL_CHARS
-from hostd.service.pumpproc import FLOAT_FIELDS, STAT_FIELDS, STATE_NAMES, pump_main
+from hostd.service.pumpproc import FLOAT_FIELDS, RENDER_REASONS, STAT_FIELDS, STATE_NAMES, pump_main
 
 log = logging.getLogger("hostd")
 MAX_HEADER = 4096
@@ -260,6 +260,8 @@ class Daemon:
         st["device_faults"] = fault_names(st.pop("device_fault_bits"))
         st["underruns"] = st["device_underruns"]  # the name older clients read
         st["render_at"] = "device" if st["render_at"] else "host"  # who renders the texture now
+        st["render_reason"] = RENDER_REASONS[st["render_reason"]] if 0 <= st["render_reason"] < len(
+            RENDER_REASONS) else "?"  # and why there ([render] where, the display's version and CAPS)
         st["target_fill_ms"] = round(st["target_fill"] / SAMPLE_RATE_HZ * 1e3, 2)
         return st
 
@@ -286,7 +288,8 @@ class Daemon:
         while True:
             stopping = self.stop_event.is_set()
             try:
-                item = self.quality_q.get(timeout=0.05 if self.quality_pending else 0.2)
+                # idle: one wake-up a second; a pending row is retried sooner
+                item = self.quality_q.get(timeout=0.05 if self.quality_pending else 1.0)
             except queue.Empty:
                 item = None
             if item is not None:
@@ -623,7 +626,15 @@ class Daemon:
         ready = False
         last_cycles = -1.0
         try:
-            while not (self.signalled or self.stop_event.wait(0.2) or self.signalled):
+            while not (self.signalled or self.stop_event.is_set()):
+                # asleep until the pump writes a line, or 0.5 s (watchdog, STATUS=): a daemon
+                # playing a texture wakes a few times a second (docs/daemon.md, bench soak)
+                try:
+                    self.conn.poll(0.5)
+                except (EOFError, OSError):
+                    self.stop_event.wait(0.2)  # the pump is gone (said just below): no busy loop
+                if self.signalled or self.stop_event.is_set():
+                    break
                 self.pump_messages()
                 if not self.proc.is_alive():
                     log.error("the real-time pump exited (code %s); stopping", self.proc.exitcode)

@@ -165,13 +165,15 @@ def doctor(config: str | None, json_out: bool = False) -> int:
                f"played {st['played_fraction']:.2%} of the current texture, device underruns "
                f"{st['device_underruns']}, host stalls {st['stalls']} (longest "
                f"{st['longest_stall_ms']:.0f} ms), recoveries {st['recoveries']}")
+            if "render_reason" in st:
+                ok(f"rendered on the {st['render_at']}: {st['render_reason']}")
             if st["texture"] and st["played_fraction"] < 0.99:
                 note("the display played less than 99 % of the time: see `hostd status`; host stalls "
                      "are what it recovers from (docs/daemon.md, real-time settings)")
         except HostdError as e:
             bad(str(e), "systemctl restart hostd")
     else:
-        note(f"not running (no socket at {sock})")
+        note(f"not running (no socket at {sock}); [render] where = \"{cfg.render.where}\"")
     if json_out:
         import json
 

@@ -22,10 +22,23 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "device_samples_played", "played_fraction", "device_resets", "stalls",
                "longest_stall_ms", "recoveries", "target_fill", "implausible_speed", "relocks",
                "io_retries", "io_dropped", "batch_p50_us", "batch_p99_us", "batch_p999_us",
-               "device_time_s", "render_at", "device_uploads", "wait_ticks")
+               "device_time_s", "render_at", "device_uploads", "wait_ticks", "render_reason",
+               "device_host_lost", "device_reuploads", "device_rendered_s", "device_faded_s",
+               "device_idle_s", "wakeups")
 STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
-                "batch_p50_us", "batch_p99_us", "batch_p999_us"}
+                "batch_p50_us", "batch_p99_us", "batch_p999_us", "device_rendered_s", "device_faded_s",
+                "device_idle_s"}
+# why the texture renders where it does (`render_reason`, published as the index)
+RENDER_REASONS = ("the display renders it (protocol v2, its CAPS hold the texture)",
+                  "configured: [render] where = \"host\"",
+                  "the display runs protocol v1 firmware (no device rendering)",
+                  "the display reported no render capability (CAPS)",
+                  "the texture has more components than the display holds (CAPS max_components)",
+                  "the equalizer has more sections than the display runs (CAPS max_sections)",
+                  "the display refused the upload (see the log)",
+                  "no texture selected")
+_REASON_OF_REFUSAL = {"v1": 2, "no_caps": 3, "components": 4, "sections": 5}
 STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 4, "recovering": 5}
 STATE_NAMES = {v: k for k, v in STATE_CODES.items()}
 
@@ -77,21 +90,24 @@ def pump_main(cfg, conn, stats) -> None:
 
     import numpy as np
 
+    from hostd.device import devrender
     from hostd.device import protocol as pr
+    from hostd.device.devmode import RENDERING, DeviceMode
     from hostd.device.hotplug import watch
     from hostd.device.link import DeviceLink
     from hostd.device.pump import JitterConfig, Pump
     from hostd.device.transport import open_transport, present
-    from hostd.errors import DeviceError, DeviceGone, DeviceNotFound, DeviceVersion
+    from hostd.errors import DeviceBusy, DeviceError, DeviceGone, DeviceNotFound
     from hostd.render import Renderer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
     _die_with_parent()
 
-    def log(msg: str) -> None:
+    def log(msg: str, warn: bool | None = None) -> None:
         # device loss, refusals and recoveries are warnings; set-up lines are information
-        warn = msg.startswith(("device lost", "device:", "playback recovered", "device mode: the display",
-                               "pump: ")) and ", protocol v" not in msg and " playing again " not in msg
+        if warn is None:
+            warn = msg.startswith(("device lost", "device:", "playback recovered", "device mode: the display",
+                                   "pump: ")) and ", protocol v" not in msg and " playing again " not in msg
         try:
             conn.send(("warn" if warn else "log", msg))
         except (OSError, EOFError):
@@ -146,29 +162,58 @@ def pump_main(cfg, conn, stats) -> None:
     jitter = JitterConfig(base_fill=cfg.device.target_fill,
                           max_fill=max(cfg.device.target_fill, cfg.device.max_fill))
 
-    want_device = cfg.render.where == "device"
-    dev = None  # DeviceMode while the display renders itself
+    where = cfg.render.where  # auto (the default), device or host
+    dev = None  # DeviceMode while the display can render (protocol v2 with CAPS)
+    logged_choice: list = [None]  # (render_at, reason) last logged: each choice is logged once
+
+    def choose(at_device: bool, reason: int, detail: str = "") -> None:
+        """Publish where the texture renders and why; log it once per change."""
+        put("render_at", 1 if at_device else 0)
+        put("render_reason", reason)
+        if logged_choice[0] == (at_device, reason) or reason == 7:  # 7: nothing to render yet
+            return
+        logged_choice[0] = (at_device, reason)
+        if at_device:
+            log(f"device mode: {link.t.describe()} renders the texture from its own encoder")
+        else:
+            log(f"rendering on the host: {detail or RENDER_REASONS[reason]}",
+                warn=where == "device" and reason != 7)
+
+    def start_device(coeffs) -> bool:
+        """Upload to the display and render there when it can hold the texture; False (and
+        the reason published) when the host must render it."""
+        sos = devrender.device_params(rcfg)["sos"]
+        why = pr.render_refusal(link.ident or {}, link.caps, len(coeffs), 0 if sos is None else len(sos),
+                                who=link.t.describe())
+        if why is not None:
+            if dev.rendering:
+                dev.end()
+            choose(False, _REASON_OF_REFUSAL[why[0]], why[1])
+            return False
+        if pump.renderer is not None:
+            pump.end()  # it streamed the previous texture: stop streaming first
+        # the selection counts from the display's first report at full gain after START_RENDER
+        # (reports arrive during the upload's acknowledgements already)
+        pump.health.select(True, device=True)
+        try:
+            dev.begin(texture)  # upload; the display renders (crossfades on a swap)
+        except (DeviceGone, DeviceBusy):
+            raise
+        except DeviceError as e:  # refused (the upload was not applied): the host renders it
+            dev.end()
+            choose(False, 6, f"device mode: {e}")
+            return False
+        choose(True, 0)
+        return True
 
     def begin() -> None:
         nonlocal playing
         _, coeffs, n, length = texture
         link.poll(0.01)
-        if dev is not None:
-            try:
-                dev.begin(texture)  # upload; the display renders (crossfades on a swap)
-                pump.health.select(True)
-                put("render_at", 1)
-                playing = True
-                put("state", STATE_CODES["playing"])
-                put("texture_serial", stats[STAT_INDEX["texture_serial"]] + 1)
-                return
-            except DeviceVersion as e:  # this texture cannot render there: stream it instead
-                log(f"device mode: {e}; rendering {texture[0]} on the host instead")
-                dev.end()
-        r = Renderer(np.asarray(coeffs), n, length, rcfg)
-        r.start()
-        put("render_at", 0)
-        pump.begin(r)  # pre-fill, then start the device (soft start)
+        if dev is None or not start_device(coeffs):
+            r = Renderer(np.asarray(coeffs), n, length, rcfg)
+            r.start()
+            pump.begin(r)  # pre-fill, then start the device (soft start)
         playing = True
         put("state", STATE_CODES["playing"])
         put("texture_serial", stats[STAT_INDEX["texture_serial"]] + 1)
@@ -185,10 +230,11 @@ def pump_main(cfg, conn, stats) -> None:
         elif cmd[0] == "stop":
             texture = None
             if connected:
-                if dev is not None:
+                if dev is not None and dev.rendering:
                     dev.end()
                     pump.health.select(False)
-                pump.end()
+                if pump.renderer is not None:
+                    pump.end()
                 playing = False
                 put("state", STATE_CODES["idle"])
 
@@ -207,10 +253,16 @@ def pump_main(cfg, conn, stats) -> None:
         put("device_samples_played", h.samples_played)
         put("played_fraction", h.played_fraction)
         put("device_resets", h.resets)
+        put("device_host_lost", h.host_lost)
+        rate = pr.SAMPLE_RATE_HZ
+        put("device_rendered_s", h.rendered_ticks / rate)
+        put("device_faded_s", h.faded_ticks / rate)
+        put("device_idle_s", h.idle_ticks / rate)
         if dev is not None and dev.rendering:
             rs = link.render_status
             if rs is not None:  # the display's own measure, from its encoder's edge times
                 put("speed_mm_s", rs["speed_mm_s"])
+            put("state", STATE_CODES["recovering" if s and s["state"] != RENDERING else "playing"])
         elif pump.renderer is not None:
             put("speed_mm_s", pump.renderer.motion.velocity_mm_s)
             put("state", STATE_CODES["recovering" if pump.recovering else "playing"])
@@ -221,9 +273,12 @@ def pump_main(cfg, conn, stats) -> None:
         put("recoveries", st.recoveries + (dev.recoveries if dev is not None else 0))
         if dev is not None:
             put("device_uploads", dev.uploads)
+            put("device_reuploads", dev.recoveries)
+            put("wakeups", dev.wakeups)
         put("target_fill", pump.target_fill)
         now = time.monotonic()
-        if now - last_pct[0] >= 1.0:  # percentiles once a second, off the per-cycle budget
+        if pump.renderer is not None and now - last_pct[0] >= 1.0:
+            # percentiles of the host-rendering cycle once a second, off the per-cycle budget
             last_pct[0] = now
             p50, p99, p999 = pump.step_percentiles_us()
             put("batch_p50_us", p50)
@@ -262,7 +317,7 @@ def pump_main(cfg, conn, stats) -> None:
     def each_cycle() -> None:
         while conn.poll():
             command(conn.recv())
-        if dev is not None:
+        if dev is not None and pump.renderer is None:
             dev.tick()
         hotplug_cycle()
         publish()
@@ -317,6 +372,27 @@ def pump_main(cfg, conn, stats) -> None:
                 while conn.poll():
                     command(conn.recv())
 
+    last_pub = [0.0]
+
+    def each_wake() -> None:  # device mode: a wake-up of the sleeping loop
+        pump.stats.cycles += 1  # progress the daemon's watchdog sees
+        while conn.poll():
+            command(conn.recv())
+        if dev is not None and pump.renderer is None:
+            dev.tick()
+        hotplug_cycle()
+        # the counters are read at most a few times a second (status, sd_notify at 2 Hz): publish
+        # at 10 Hz, not at every report, unless the display's state changed
+        now = time.monotonic()
+        s = link.stats.last_status
+        if now - last_pub[0] >= 0.1 or (s and s["state"] != stats[STAT_INDEX["device_state"]]):
+            last_pub[0] = now
+            publish()
+
+    def device_loop() -> bool:
+        """The display renders (or nothing is selected): sleep, no periodic loop."""
+        return dev is not None and pump.renderer is None
+
     while not quit_:
         # ---- connect
         transport = None
@@ -351,24 +427,31 @@ def pump_main(cfg, conn, stats) -> None:
             pump.attach(link)
         playing = False
         dev = None
-        if want_device:
-            from hostd.device.devmode import DeviceMode
-
+        if where == "host":
+            choose(False, 1)
+        else:
             link.poll(0.05)  # a v2 display sends CAPS right after IDENT
-            dev = DeviceMode(link, rcfg, log, host_lost_ms=cfg.render.host_lost_ms,
-                             timeout_ms=cfg.device.host_timeout_ms)
-            try:
-                pr.require_render(link.ident, link.caps, 1, 0, who=transport.describe())
-                log(f"device mode: {transport.describe()} renders the texture from its own encoder")
-            except DeviceVersion as e:
-                log(f"device mode: {e}; rendering on the host")
-                dev = None
+            why = pr.render_refusal(link.ident, link.caps, 1, 0, who=transport.describe())
+            if why is None:
+                dev = DeviceMode(link, rcfg, log, host_lost_ms=cfg.render.host_lost_ms,
+                                 timeout_ms=cfg.device.host_timeout_ms)
+                if texture is None:
+                    choose(True, 7)
+            else:
+                choose(False, _REASON_OF_REFUSAL[why[0]], why[1])
         try:
             if texture is not None:
                 begin()
             else:
                 put("state", STATE_CODES["idle"])
-            pump.run(stop=lambda: quit_, each_cycle=each_cycle)
+            # commands and udev events wake the sleeping loop at once
+            fds = [conn.fileno()] + ([hot_fd] if hot_fd is not None else [])
+            while not quit_:
+                if device_loop():
+                    dev.run(stop=lambda: quit_ or not device_loop(), each_wake=each_wake, fds=fds)
+                else:
+                    pump._last_cycle_start = None  # the sleeping loop's gaps are not stalls
+                    pump.run(stop=lambda: quit_ or device_loop(), each_cycle=each_cycle)
         except DeviceError as e:
             log(f"device lost while {'playing' if playing else 'idle'}: {e}; output stopped, waiting")
             put("connected", 0)

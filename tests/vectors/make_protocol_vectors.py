@@ -53,7 +53,9 @@ MSGS = [
     ("caps", "CAPS", dict(render=1, max_components=512, max_sections=4, chunk_coeffs=14,
                           edge_clock_hz=12_000_000, xfade_ticks=150)),
     ("render_status", "RENDER_STATUS", dict(render_state=2, active_slot=3, host_lost=0, speed_mm_s=-52.5,
-                                            refused=2, loads=5, host_silent_ms=1)),
+                                            refused=2, loads=5, host_silent_ms=1, host_lost_count=1,
+                                            device_time_us=4_000_000_123, rendered_ticks=0xFFFFFF00,
+                                            faded_ticks=450, idle_ticks=123456)),
 ]
 
 BAD = [

@@ -127,7 +127,8 @@ static void step_encoder(fw_t *f, double t, double x_mm) {
  * u16 flags (bit 0: the code came from the buffer; bit 1: underrun; bit 2: this tick ran more
  * than 1 ms after its due time: the simulated device itself was held up by the host OS, an
  * artefact of the host port that a real device does not have; bit 3: the device was RUNNING;
- * bit 4: the device was RENDERING itself, protocol v2 device mode) */
+ * bit 4: the device was RENDERING itself, protocol v2 device mode; bit 5: it rendered the
+ * texture at full gain, no fade: the tick RENDER_STATUS counts in rendered_ticks) */
 static void log_tick(uint32_t tick, int16_t code, uint32_t enc, uint16_t flags) {
     if (!g_log) return;
     uint8_t r[12] = {0};
@@ -294,7 +295,8 @@ int main(int argc, char **argv) {
         log_tick((uint32_t)g_ticks, g_last_dac, f.quad.count,
                  (uint16_t)((f.played ? 1u : 0u) | (f.in_underrun ? 2u : 0u) | (late ? 4u : 0u) |
                             (f.state == HP_STATE_RUNNING ? 8u : 0u) |
-                            (f.state == HP_STATE_RENDERING ? 16u : 0u)));
+                            (f.state == HP_STATE_RENDERING ? 16u : 0u) |
+                            (f.state == HP_STATE_RENDERING && f.render.env >= 1.0f ? 32u : 0u)));
     }
     if (g_log) fclose(g_log);
     if (g_clock) fclose(g_clock);
