@@ -193,7 +193,8 @@ def encode_heights(y_um: np.ndarray, length_mm: float, *, method: str | None, fm
                    b0_db: float | None, value_bits: int | None, coder: str, speed_mm_s: float,
                    fmax_hz: float, thresholds: str | None, ab: tuple[float, float]) -> dict:
     """`encode` and `hostd encode`'s one code path (errors name the CLI's options)."""
-    from hostd.codec import ratecontrol, stream, stream2, transform
+    from hostd.codec import ratecontrol, stream, transform
+    from hostd.codec.stream import v2 as stream2
     from hostd.errors import CodecError
     from hostd.perception import guard, peer
     from hostd.perception import thresholds as th

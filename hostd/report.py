@@ -143,7 +143,7 @@ def v2_jobs(top_db: float = 0.0) -> list[tuple[str, dict]]:
 def _encode(label: str, kw: dict, c: np.ndarray, geometry: transform.Geometry,
             curve: ThresholdCurve) -> bytes:
     if label in V2_SERIES:
-        from hostd.codec import stream2
+        from hostd.codec.stream import v2 as stream2
 
         ig = stream2.int_geometry(geometry)
         if ig.n_keep != c.size:

@@ -12,8 +12,9 @@ import pytest
 
 from hostd import api
 from hostd.cli import main
-from hostd.codec import ratecontrol, stream2, transform
+from hostd.codec import ratecontrol, transform
 from hostd.codec import stream as vtx
+from hostd.codec.stream import v2 as stream2
 from hostd.errors import CodecError
 from hostd.perception import thresholds
 from hostd.quality import score_stream

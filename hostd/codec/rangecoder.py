@@ -23,10 +23,9 @@ Context model for q_1..q_N' (signed integers):
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
+from hostd.compiled import load as load_compiled
 from hostd.errors import StreamError
 
 PROB_BITS = 11
@@ -240,18 +239,7 @@ def decode_indices_py(data: bytes, n_keep: int) -> np.ndarray:
 # ---------------------------------------------------------------- the compiled coder
 
 
-def _load_compiled():
-    """hostd.codec._rangecoder when built, of the expected revision, and not disabled."""
-    if os.environ.get("HOSTD_PURE_PYTHON", "") not in ("", "0"):
-        return None
-    try:
-        from hostd.codec import _rangecoder
-    except ImportError:
-        return None
-    return _rangecoder if getattr(_rangecoder, "REVISION", None) == C_REVISION else None
-
-
-_C = _load_compiled()
+_C = load_compiled("hostd.codec._rangecoder", C_REVISION)
 
 
 def encode_indices_c(q: np.ndarray) -> bytes:

@@ -35,8 +35,9 @@ import numpy as np
 
 from hostd.codec import methods as qmethods
 from hostd.codec import stream as vtx
-from hostd.codec import stream2, transform
+from hostd.codec import transform
 from hostd.codec.methods import db_to_ratio
+from hostd.codec.stream import v2 as stream2
 from hostd.errors import CodecError, HostdError, QualityError
 from hostd.perception import guard, indices, spqi
 from hostd.perception.thresholds import ThresholdCurve

@@ -10,8 +10,7 @@ HOSTD_PURE_PYTHON=1 (any value but 0) selects the reference, as for the range co
 
 from __future__ import annotations
 
-import os
-
+from hostd.compiled import load as load_compiled
 from hostd.device import protocol as pr
 
 C_REVISION = 1  # _fastlink.c's REVISION this module is written for
@@ -19,13 +18,8 @@ _CODES = set("BHIbhif")
 
 
 def _load_compiled():
-    if os.environ.get("HOSTD_PURE_PYTHON", "") not in ("", "0"):
-        return None
-    try:
-        from hostd.device import _fastlink
-    except ImportError:
-        return None
-    if getattr(_fastlink, "REVISION", None) != C_REVISION:
+    _fastlink = load_compiled("hostd.device._fastlink", C_REVISION)
+    if _fastlink is None:
         return None
     s = pr.LAYOUTS["SAMPLES"]
     if [c for _, c in s.fields] != ["B", "B", "H", "B"] or s.var_code != "h" or \

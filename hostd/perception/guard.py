@@ -50,7 +50,7 @@ from functools import lru_cache
 import numpy as np
 
 from hostd.errors import QualityError
-from hostd.perception.indices import exact_sum, weights
+from hostd.perception.indices import exact_sum, pow2_scale, weights
 
 DEFAULT_GUARD_DB = 25.0  # wSNR (threshold b(f)) proxy floor (rate control's fallback)
 DEFAULT_SSNR_DB = 27.0  # sSNR (the SPQI model's threshold curve) proxy floor (fallback)
@@ -61,13 +61,6 @@ SPQI_CURVE = {"x_scaler": 62.0, "y_scaler": 1.0 / 550.0, "x_offset": 1.0 - 250.0
               "y_offset_db": 77.0}
 
 
-def _pow2_scale(x: np.ndarray) -> float:
-    """2^-e with e the binary exponent of max |x| (1 for an all-zero x): multiplying by it is
-    exact (a power of two), and brings the largest value into [0.5, 1)."""
-    top = float(np.max(np.abs(x))) if x.size else 0.0
-    return math.ldexp(1.0, -math.frexp(top)[1]) if top > 0.0 else 1.0
-
-
 def _threshold_weights(threshold_um: np.ndarray) -> np.ndarray:
     """1/b^2 up to one power of two: computed from b scaled into [0.5, 1) at its largest, so
     thresholds of 1e200 or 5e-324 µm do not underflow or overflow the weights (an SNR is a
@@ -75,7 +68,7 @@ def _threshold_weights(threshold_um: np.ndarray) -> np.ndarray:
     b = np.asarray(threshold_um, dtype=np.float64)
     with np.errstate(over="ignore"):  # only its refusal of non-finite or non-positive b is used
         weights(b)
-    inv = np.divide(1.0, np.multiply(b, _pow2_scale(b)))
+    inv = np.divide(1.0, np.multiply(b, pow2_scale(b)))
     return np.multiply(inv, inv)
 
 
@@ -124,9 +117,9 @@ def _power_sums(c: np.ndarray, d: np.ndarray, w2: np.ndarray) -> tuple[float, fl
         raise QualityError(f"{c.size} reference but {d.size} decoded coefficients")
     if not (np.all(np.isfinite(c)) and np.all(np.isfinite(d))):
         raise QualityError("coefficients contain NaN or Inf")
-    k = min(_pow2_scale(c), _pow2_scale(d))
+    k = min(pow2_scale(c), pow2_scale(d))
     c, d = np.multiply(c, k), np.multiply(d, k)
-    w2 = np.multiply(w2, _pow2_scale(w2))
+    w2 = np.multiply(w2, pow2_scale(w2))
     err = np.subtract(c, d)
     return (float(exact_sum(np.multiply(np.multiply(c, c), w2))),
             float(exact_sum(np.multiply(np.multiply(err, err), w2))))

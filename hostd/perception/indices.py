@@ -74,6 +74,13 @@ def _log2_exponent(x: float) -> int:
     return math.frexp(x)[1]
 
 
+def pow2_scale(x: np.ndarray) -> float:
+    """2^-e with e the binary exponent of max |x| (1 for an all-zero or empty x): multiplying by
+    it is exact (a power of two) and brings the largest value into [0.5, 1)."""
+    top = float(np.max(np.abs(x))) if np.size(x) else 0.0
+    return math.ldexp(1.0, -_log2_exponent(top)) if top > 0.0 else 1.0
+
+
 @dataclass(frozen=True)
 class WeightedSums:
     """P = ldexp(p, 2 exp) and A = ldexp(a, exp), each mantissa sum correctly rounded."""

@@ -42,6 +42,7 @@ import numpy as np
 import scipy.fft
 
 from hostd.errors import QualityError
+from hostd.perception.indices import pow2_scale
 
 BLOCK = 512
 FS_HZ = 8000.0
@@ -95,9 +96,7 @@ class Reference:
         self.signal = ref
         self.eta, self.theta = float(eta), float(theta)
         self.n_blocks = ref.size // BLOCK
-        peak = float(np.max(np.abs(ref))) if ref.size else 0.0
-        # one power of two (exact) bringing the reference's peak into [0.5, 1)
-        self.scale = math.ldexp(1.0, -math.frexp(peak)[1]) if peak > 0.0 else 1.0
+        self.scale = pow2_scale(ref)  # exact: the reference's peak into [0.5, 1)
         self._w = _weights(BLOCK, FS_HZ)
         self._p = _block_powers(ref, self.scale, self.n_blocks, self._w)
         self._den = self._p.sum(axis=1) + EPS  # ε at the normalized scale (see the docstring)

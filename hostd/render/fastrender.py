@@ -10,10 +10,9 @@ HOSTD_PURE_PYTHON=1 (any value but 0) selects the reference, as for the range co
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
+from hostd.compiled import load as load_compiled
 from hostd.render.equalizer import SMALL_BATCH, Equalizer
 from hostd.render.output import OutputStage
 
@@ -21,17 +20,7 @@ C_REVISION = 1  # _fastrender.c's REVISION this module is written for
 _NO_SECTIONS = np.zeros((0, 6))
 
 
-def _load_compiled():
-    if os.environ.get("HOSTD_PURE_PYTHON", "") not in ("", "0"):
-        return None
-    try:
-        from hostd.render import _fastrender
-    except ImportError:
-        return None
-    return _fastrender if getattr(_fastrender, "REVISION", None) == C_REVISION else None
-
-
-_C = _load_compiled()
+_C = load_compiled("hostd.render._fastrender", C_REVISION)
 IMPLEMENTATION = "c" if _C is not None else "python"
 
 
