@@ -162,6 +162,7 @@ def test_spool_intake_and_quality_log(daemon, capsys):
     for key in ("device_underruns", "device_samples_played", "stalls", "recoveries"):
         assert isinstance(st[key], int) and st[key] >= 0
     assert 0.0 <= st["played_fraction"] <= 1.0
+    assert st["transport"] == "sim" and st["hotplug"] == "none"  # the open transport (hid:/dev/hidraw0...)
 
 
 def test_quality_log_survives_kill_9_and_nothing_acknowledged_is_lost(tmp_path):

@@ -1,9 +1,8 @@
-"""The device link: protocol vectors (shared with the C tests), transports against fakes that
-check exact bytes, the simulated device, and the real firmware over a pseudo-terminal."""
+"""The device link: protocol vectors (shared with the C tests), the simulated device, and the real
+firmware over a pseudo-terminal. The HID and raw-USB transports against fakes: test_transport.py."""
 
 from __future__ import annotations
 
-import errno
 import subprocess
 from pathlib import Path
 
@@ -14,12 +13,10 @@ from hypothesis import strategies as st
 
 from hostd.device import gen_header, hostport
 from hostd.device import protocol as pr
-from hostd.device.hidlink import HidTransport
 from hostd.device.link import DeviceLink
 from hostd.device.pump import Pump
 from hostd.device.simdev import SimDevice, SimTransport
-from hostd.device.usblink import UsbTransport
-from hostd.errors import DeviceGone, DeviceNotFound, DevicePermission, DeviceVersion
+from hostd.errors import DeviceNotFound
 
 ROOT = Path(__file__).resolve().parent.parent
 VECTORS = Path(__file__).resolve().parent / "vectors" / "protocol.txt"
@@ -93,139 +90,6 @@ def test_simulated_device_safety_holds_for_any_bytes(chunks, ticks):
             assert abs(dev.out) <= pr.LIMIT_CODE
             assert abs(dev.out - prev) <= pr.MAX_STEP_CODE
             prev = dev.out
-
-
-# ------------------------------------------------------------------ HID, against a fake hidapi
-class FakeHidDevice:
-    def __init__(self, replies):
-        self.writes: list[bytes] = []
-        self.replies = list(replies)
-        self.opened = None
-        self.fail_read = None
-
-    def open_path(self, path):
-        self.opened = path
-
-    def set_nonblocking(self, flag):
-        pass
-
-    def write(self, data):
-        self.writes.append(bytes(data))
-        return len(data)
-
-    def read(self, size, timeout_ms=0):
-        if self.fail_read:
-            raise self.fail_read
-        return list(self.replies.pop(0)) if self.replies else []
-
-    def close(self):
-        pass
-
-
-class FakeHid:
-    def __init__(self, present=True, replies=()):
-        self.present = present
-        self.dev = FakeHidDevice(replies)
-
-    def enumerate(self, vid=0, pid=0):
-        mine = {"path": b"/dev/hidraw3", "vendor_id": pr.USB_VID, "product_id": pr.USB_PID}
-        other = {"path": b"/dev/hidraw0", "vendor_id": 0x046D, "product_id": 0xC077}
-        devs = [mine, other] if self.present else [other]
-        return [d for d in devs if (vid, pid) in ((0, 0), (d["vendor_id"], d["product_id"]))]
-
-    def device(self):
-        return self.dev
-
-
-def vec(name: str) -> bytes:
-    return next(bytes.fromhex(r[2]) for r in vectors("msg") if r[1] == name)
-
-
-def test_hid_writes_exact_reports_and_reads_recorded_ones():
-    fake = FakeHid(replies=[pr.pad_report(vec("ident")), pr.pad_report(vec("status"))])
-    t = HidTransport(hid_module=fake)
-    assert fake.dev.opened == b"/dev/hidraw3"
-    link = DeviceLink(t)
-    ident = link.handshake(timeout_s=0.2)
-    assert fake.dev.writes[0] == b"\x00" + pr.pad_report(vec("identify"))
-    assert len(fake.dev.writes[0]) == 65  # report ID 0 + 64 bytes
-    assert ident["limit_code"] == 16383
-    link.send_samples([100, -200, 16383])
-    assert fake.dev.writes[-1][1:6] == bytes([0x01, 0x00, 0x01, 0x00, 0x03])
-    assert fake.dev.writes[-1][6:12] == bytes.fromhex("640038ffff3f")
-    assert link.poll() == 1 and link.stats.last_status["encoder_count"] == 0xFFFFFFF0
-
-
-def test_hid_not_found_lists_what_was_seen_and_unplug_is_device_gone():
-    with pytest.raises(DeviceNotFound, match="046d:c077"):
-        HidTransport(hid_module=FakeHid(present=False))
-    fake = FakeHid()
-    t = HidTransport(hid_module=fake)
-    fake.dev.fail_read = OSError(errno.EIO, "Input/output error")
-    with pytest.raises(DeviceGone, match="re-plug"):
-        t.recv(0.01)
-
-
-def test_version_mismatch_is_refused_with_what_to_do():
-    bad = pr.encode("IDENT", protocol_version=9, sample_rate_hz=3000, dac_bits=16, max_samples=29)
-    t = HidTransport(hid_module=FakeHid(replies=[pr.pad_report(bad)]))
-    with pytest.raises(DeviceVersion, match="update the firmware"):
-        DeviceLink(t).handshake(timeout_s=0.2)
-
-
-# ------------------------------------------------------------------ raw USB, against a fake pyusb
-class FakeUsbDev:
-    idVendor, idProduct, bus, address = pr.USB_VID, pr.USB_PID, 1, 7
-
-    def __init__(self, replies=(), fail=None):
-        self.writes: list[tuple[int, bytes]] = []
-        self.replies = list(replies)
-        self.fail = fail
-
-    def is_kernel_driver_active(self, i):
-        return False
-
-    def set_configuration(self):
-        if self.fail:
-            raise self.fail
-
-    def write(self, ep, data, timeout):
-        self.writes.append((ep, bytes(data)))
-        return len(data)
-
-    def read(self, ep, size, timeout):
-        if not self.replies:
-            e = Exception("Operation timed out")
-            e.errno = errno.ETIMEDOUT
-            raise e
-        return self.replies.pop(0)
-
-
-def fake_find(dev):
-    def find(find_all=False, idVendor=None, idProduct=None):
-        if find_all:
-            return [dev] if dev else []
-        return dev if dev and (idVendor, idProduct) == (dev.idVendor, dev.idProduct) else None
-    return find
-
-
-def test_usb_writes_exact_packets_to_the_out_endpoint():
-    dev = FakeUsbDev(replies=[pr.pad_report(vec("ident"))])
-    t = UsbTransport(find=fake_find(dev))
-    link = DeviceLink(t)
-    link.handshake(timeout_s=0.2)
-    assert dev.writes[0] == (0x01, pr.pad_report(vec("identify")))
-    link.start()
-    assert dev.writes[-1] == (0x01, pr.pad_report(vec("start")))
-    assert t.recv(0.001) is None  # a timeout is "nothing yet", not an error
-
-
-def test_usb_permission_denied_names_the_udev_rule():
-    err = OSError(errno.EACCES, "Access denied (insufficient permissions)")
-    with pytest.raises(DevicePermission, match=r"70-hostd\.rules"):
-        UsbTransport(find=fake_find(FakeUsbDev(fail=err)))
-    with pytest.raises(DeviceNotFound, match="USB devices seen: none"):
-        UsbTransport(find=fake_find(None))
 
 
 def test_serial_port_that_does_not_exist_is_not_found():

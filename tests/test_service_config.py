@@ -44,7 +44,7 @@ def test_one_default_ab_everywhere(tmp_path, capsys):
 
 @pytest.mark.parametrize("spec, good", [
     ("auto", True), ("sim", True), ("hid", True), ("hid:/dev/hidraw3", True), ("usb", True),
-    ("serial", True), ("serial:/dev/ttyACM0", True),
+    ("serial", True), ("serial:/dev/ttyACM0", True), ("usb:001/002", True), ("usb:1/x", False),
     ("bogus", False), ("hid:", False), ("usb:/dev/x", False), ("sim:1", False), ("", False),
 ])
 def test_device_transport_is_validated_at_load(tmp_path, spec, good):

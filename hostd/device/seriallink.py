@@ -1,4 +1,8 @@
-"""Serial-bridge backend through pyserial: COBS frames with a CRC-16 (protocol.frame)."""
+"""Serial-bridge backend through pyserial: COBS frames with a CRC-16 (protocol.frame).
+
+Reads wait in poll() on the port's descriptor (`wait_readable`, `fileno`), so the pump can block
+on it; a port that hangs up (a CDC-ACM display unplugged) reads as gone.
+"""
 
 from __future__ import annotations
 
@@ -6,15 +10,20 @@ import os
 import time
 
 from hostd.device import protocol as pr
-from hostd.device.transport import Transport, os_error
-from hostd.errors import DeviceBusy, DeviceGone, DeviceNotFound
+from hostd.device.backend import Transport, os_error, permission_error, wait_fd
+from hostd.errors import DeviceBusy, DeviceGone, DeviceNotFound, DevicePermission
+
+
+def enumerate_displays() -> list[dict]:
+    """Serial ports of displays (by the USB VID:PID pyserial reads from sysfs)."""
+    from serial.tools import list_ports
+
+    return [{"spec": f"serial:{p.device}", "node": p.device, "serial": p.serial_number or ""}
+            for p in list_ports.comports() if p.vid == pr.USB_VID and p.pid == pr.USB_PID]
 
 
 def enumerate_specs() -> list[str]:
-    from serial.tools import list_ports
-
-    return [f"serial:{p.device}" for p in list_ports.comports()
-            if p.vid == pr.USB_VID and p.pid == pr.USB_PID]
+    return [d["spec"] for d in enumerate_displays()]
 
 
 class SerialTransport(Transport):
@@ -34,6 +43,7 @@ class SerialTransport(Transport):
                                      "name one with serial:/dev/ttyACM0")
             port = specs[0].split(":", 1)[1]
         self.port = port
+        self.node = port
         try:
             self.ser = serial.Serial(port, baudrate=baudrate, timeout=0, write_timeout=0)
         except serial.SerialException as e:
@@ -44,6 +54,8 @@ class SerialTransport(Transport):
                 err = os_error(inner, f"serial port {port}")
                 if isinstance(err, DeviceGone):  # ENOENT at open: not there
                     raise DeviceNotFound(f"serial port {port} does not exist") from None
+                if isinstance(err, DevicePermission):
+                    raise permission_error(port) from None
                 raise err from None
             raise DeviceNotFound(f"cannot open serial port {port} ({e})") from None
         self.deframer = pr.Deframer()
@@ -103,10 +115,17 @@ class SerialTransport(Transport):
             if data:
                 self._queue += self.deframer.feed(data)
                 continue
-            if time.monotonic() >= deadline:
+            left = deadline - time.monotonic()
+            if left <= 0:
                 return None
-            time.sleep(0.0002)
+            wait_fd(self.ser.fd, left)
         return self._queue.pop(0)
+
+    def fileno(self) -> int:
+        return self.ser.fd
+
+    def wait_readable(self, timeout_s: float) -> bool:
+        return bool(self._queue) or wait_fd(self.ser.fd, timeout_s)
 
     def close(self) -> None:
         try:

@@ -18,8 +18,8 @@ from collections import deque
 import numpy as np
 
 from hostd.device import protocol as pr
+from hostd.device.backend import Transport
 from hostd.device.fwmodel import EDGE_HZ, RenderModel, hand_edges
-from hostd.device.transport import Transport
 
 S = pr.STATES
 F = pr.FAULTS
@@ -259,6 +259,18 @@ class SimTransport(Transport):
             if time.monotonic() >= deadline:
                 return None
             time.sleep(0.0002)
+
+    def wait_readable(self, timeout_s: float) -> bool:
+        """Sleep until the simulated device has a message (a STATUS every millisecond)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._catch_up()
+            if self.device.outbox:
+                return True
+            left = deadline - time.monotonic()
+            if left <= 0 or not self.realtime:
+                return False
+            time.sleep(min(left, 0.0005))
 
     def close(self) -> None:
         self.closed = True

@@ -1,100 +1,72 @@
-"""One interface, four backends. A transport moves whole protocol messages.
+"""Open a transport from its spec, and list the displays plugged in: the backend registry.
 
-Backends: "hid" (hidapi), "usb" (pyusb + libusb-package), "serial[:PORT]" (pyserial, COBS
-frames), "sim" (an in-process simulated device). "auto" tries hid, usb, serial, in that order.
+Specs: "hid[:PATH]" (Linux: /dev/hidrawN directly; elsewhere hidapi), "usb[:BUS/ADDR]" (pyusb +
+libusb-package), "serial[:PORT]" (pyserial, COBS frames), "sim" (an in-process simulated
+device). "auto" tries hid, usb, serial, in that order.
+
+The registry maps each name to "module:attribute" and imports the backend only when it is
+used: the backends import hostd.device.backend (the interface), never this module, so there is
+no import circle, and a missing optional library (hidapi, pyusb) costs only its own backend.
 """
 
 from __future__ import annotations
 
-import errno
-import time
+import importlib
 
 from hostd.device import protocol as pr
-from hostd.errors import DeviceBusy, DeviceError, DeviceGone, DeviceNotFound, DevicePermission
+from hostd.device.backend import UDEV_FIX, UDEV_RULE, Transport, os_error  # noqa: F401  (re-exported)
+from hostd.errors import DeviceError, DeviceNotFound, DevicePermission
 
-UDEV_RULE = "systemd/70-hostd.rules"
-UDEV_FIX = (f"install the udev rule: sudo cp {UDEV_RULE} /etc/udev/rules.d/ && "
-            "sudo udevadm control --reload && sudo udevadm trigger, then re-plug the display "
-            "(or add your user to the 'hostd' group)")
-
-
-class Transport:
-    name = "transport"
-
-    def send(self, msg: bytes) -> None:
-        raise NotImplementedError
-
-    def recv(self, timeout_s: float = 0.0) -> bytes | None:
-        """One message, or None if none arrived within timeout_s. Raises DeviceGone."""
-        raise NotImplementedError
-
-    def close(self) -> None:
-        pass
-
-    def now(self) -> float:
-        """The host clock the link measures against (a simulation on a manual clock gives its
-        own, so that the device's clock and the host's advance together)."""
-        return time.monotonic()
-
-    def describe(self) -> str:
-        return self.name
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
+# name -> (module, opener, enumerator); the opener takes the spec's argument (None if absent)
+BACKENDS: dict[str, tuple[str, str, str | None]] = {
+    "hid": ("hostd.device.hidlink", "open_hid", "enumerate_displays"),
+    "usb": ("hostd.device.usblink", "UsbTransport", "enumerate_displays"),
+    "serial": ("hostd.device.seriallink", "SerialTransport", "enumerate_displays"),
+    "sim": ("hostd.device.simdev", "SimTransport", None),
+}
+AUTO_ORDER = ("hid", "usb", "serial")
 
 
-TRANSIENT_ERRNOS = (errno.EAGAIN, errno.EWOULDBLOCK, errno.ETIMEDOUT, errno.EINTR, errno.ENOBUFS)
+def _attr(kind: str, which: int):
+    mod = importlib.import_module(BACKENDS[kind][0])
+    return getattr(mod, BACKENDS[kind][which])
 
 
-def os_error(e: OSError, what: str) -> DeviceError:
-    """Map an OS error on open/read/write to the error that says what to do."""
-    if e.errno in (errno.EACCES, errno.EPERM):
-        return DevicePermission(f"permission denied opening {what}: {UDEV_FIX}")
-    if e.errno in TRANSIENT_ERRNOS:
-        return DeviceBusy(f"{what}: {e.strerror or e} (transient; retried)")
-    if e.errno in (errno.EIO, errno.ENODEV, errno.ENXIO, errno.EPIPE, errno.ENOENT):
-        return DeviceGone(f"{what} went away ({e.strerror or e}); re-plug it, hostd reconnects")
-    return DeviceError(f"{what}: {e}")
-
-
-def find_devices() -> list[str]:
-    """Everything that looks like a display, as transport specs (for `hostd doctor`)."""
-    from hostd.device import hidlink, seriallink, usblink
-
-    found: list[str] = []
-    for mod in (hidlink, usblink, seriallink):
+def find_displays() -> list[dict]:
+    """Every display plugged in, as {"spec", "node", ...} (for `hostd doctor` and auto)."""
+    found: list[dict] = []
+    for kind in AUTO_ORDER:
         try:
-            found += mod.enumerate_specs()
-        except DeviceError:
+            found += _attr(kind, 2)()
+        except (DeviceError, ImportError):
             pass
     return found
 
 
-def open_transport(spec: str = "auto", **kw) -> Transport:
-    """Open a transport from a spec: auto | hid[:PATH] | usb | serial[:PORT] | sim."""
-    from hostd.device import hidlink, seriallink, simdev, usblink
+def find_devices() -> list[str]:
+    """The transport specs of every display plugged in."""
+    return [d["spec"] for d in find_displays()]
 
+
+def open_transport(spec: str = "auto", **kw) -> Transport:
+    """Open a transport from a spec: auto | hid[:PATH] | usb[:BUS/ADDR] | serial[:PORT] | sim."""
     kind, _, arg = spec.partition(":")
     if kind == "sim":
-        return simdev.SimTransport(**kw)
-    if kind == "hid":
-        return hidlink.HidTransport(arg or None)
-    if kind == "usb":
-        return usblink.UsbTransport()
-    if kind == "serial":
-        return seriallink.SerialTransport(arg or None)
+        return _attr("sim", 1)(**kw)
+    if kind in BACKENDS:
+        return _attr(kind, 1)(arg or None)
     if kind != "auto":
-        raise DeviceError(f"unknown device {spec!r}: use auto, hid[:PATH], usb, serial[:PORT] or sim")
+        raise DeviceError(f"unknown device {spec!r}: use auto, hid[:PATH], usb[:BUS/ADDR], serial[:PORT] "
+                          "or sim")
     seen: list[str] = []
-    for opener in (hidlink.HidTransport, usblink.UsbTransport, seriallink.SerialTransport):
+    for name in AUTO_ORDER:
         try:
-            return opener()
+            return _attr(name, 1)(None)
         except DevicePermission:
             raise
         except DeviceNotFound as e:
             seen.append(str(e))
+        except ImportError as e:
+            seen.append(f"{name}: {e}")
     raise DeviceNotFound(f"no display {pr.USB_VID:04x}:{pr.USB_PID:04x} found on HID, USB or serial "
                          f"({'; '.join(seen)}); plug it in, or use device = \"sim\" to run without one")

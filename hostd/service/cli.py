@@ -80,7 +80,7 @@ def format_status(st: dict) -> str:
     return (f"{st['state']:<10} {st['texture'] or '-':<16} device {st['device_state']:<9} {faults:<8} "
             f"played {st['played_fraction']:7.2%}  underruns {st['device_underruns']}  "
             f"v={st['speed_mm_s']:6.1f} mm/s  stalls {st['stalls']}  recoveries {st['recoveries']}  "
-            f"buffer {st['target_fill_ms']:g} ms")
+            f"buffer {st['target_fill_ms']:g} ms  {st.get('transport') or 'no display'}")
 
 
 def cmd_status(args) -> int:

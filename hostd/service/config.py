@@ -174,9 +174,11 @@ def _check(path: str, section: str, key: str, value, default):
         raise ConfigError(f"{where} must not be empty")
     if (section, key) == ("device", "transport"):
         kind, colon, arg = value.partition(":")
-        if kind not in TRANSPORT_KINDS or (colon and (kind not in ("hid", "serial") or not arg)):
-            raise ConfigError(f"{where} must be auto, hid, hid:/dev/hidrawN, usb, serial, serial:PORT or "
-                              f"sim, not {value!r}")
+        usb_at = kind == "usb" and arg.count("/") == 1 and all(x.isdigit() for x in arg.split("/"))
+        path_ok = bool(arg) and (kind in ("hid", "serial") or usb_at)
+        if kind not in TRANSPORT_KINDS or (colon and not path_ok):
+            raise ConfigError(f"{where} must be auto, hid, hid:/dev/hidrawN, usb, usb:BUS/ADDR, serial, "
+                              f"serial:PORT or sim, not {value!r}")
     return value
 
 

@@ -125,6 +125,8 @@ class Daemon:
         self.selected: str | None = None
         self.accepted = 0
         self.refused = 0
+        # from the pump, on change: transport in use, hotplug mode, last reconnection time
+        self.pump_info: dict = {"transport": None, "hotplug": None, "last_reconnect_s": None}
         self.lock = threading.Lock()
         self.notifier = Notifier()
         self.control: ControlServer | None = None
@@ -184,6 +186,7 @@ class Daemon:
         st.update({"texture": self.selected, "pid": os.getpid(), "pump_alive": self.proc.is_alive(),
                    "accepted": self.accepted, "refused": self.refused, "library": len(self.library.names()),
                    "quality_pending": self.quality_q.qsize(), "device": self.cfg.device.transport})
+        st.update(self.pump_info)
         return st
 
     # ------------------------------------------------------------ workers
@@ -413,6 +416,9 @@ class Daemon:
                 try:
                     while self.conn.poll():
                         kind, msg = self.conn.recv()
+                        if kind == "info":  # transport / hotplug / reconnection time
+                            self.pump_info = msg
+                            continue
                         # the pump's lines carry their level: device loss and recoveries are
                         # warnings (journald priority 4), the rest information
                         log.log(logging.WARNING if kind == "warn" else logging.INFO, "%s", msg)
@@ -428,9 +434,9 @@ class Daemon:
                     self.notifier.notify("READY=1")
                     ready = True
                 # the watchdog is fed only when the real-time loop made progress (cycles, or
-                # reconnection attempts while it waits for a device) and every worker thread is
+                # reconnection attempts or wake-ups while it waits for a device) and every worker thread is
                 # alive, never by a timer alone
-                progress = st["cycles"] + st["reconnects"]
+                progress = st["cycles"] + st["reconnects"] + st["wait_ticks"]
                 if progress != last_cycles and healthy:
                     self.notifier.notify("WATCHDOG=1")
                 last_cycles = progress

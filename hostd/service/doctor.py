@@ -51,32 +51,56 @@ def doctor(config: str | None, json_out: bool = False) -> int:
         bad(str(e), "correct the key named above (config/hostd.toml documents every key)")
         cfg = load(None)
     head("device")
+    from hostd.device.backend import node_owner
+    from hostd.device.hotplug import watch
+    from hostd.device.transport import find_displays
+
     transport = cfg.device.transport
     kind, _, node = transport.partition(":")
+    # every display plugged in, with its transport spec and who may open its node
+    displays = []
+    for d in find_displays():
+        entry = {"spec": d["spec"], "node": d.get("node"), "serial": d.get("serial", "")}
+        if d.get("node"):
+            entry.update({k: v for k, v in node_owner(d["node"]).items() if k != "node"})
+        displays.append(entry)
+        where = (f" ({entry['node']} {entry['owner']}:{entry['group']} {entry['mode']}"
+                 f"{'' if entry['access'] else ', NOT accessible to this user'})" if "mode" in entry else "")
+        note(f"display {entry['spec']}{where}")
     if kind == "sim":
         ok("transport = sim (simulated display)")
-    elif node:  # hid:/dev/hidrawN or serial:PORT: check exactly that node
+    elif node and kind != "usb":  # hid:/dev/hidrawN or serial:PORT: check exactly that node
         if not os.path.exists(node):
             bad(f"device.transport = {transport!r}: {node} does not exist",
                 "plug the display in, or correct device.transport (hostd doctor lists what it finds)")
         elif not os.access(node, os.R_OK | os.W_OK):
-            bad(f"device.transport = {transport!r}: {node} is not readable and writable by this user",
-                "sudo hostd install-service (installs the udev rule), then replug the display")
+            o = node_owner(node)
+            bad(f"device.transport = {transport!r}: {node} ({o['owner']}:{o['group']} {o['mode']}) is not "
+                "readable and writable by this user",
+                "sudo hostd install-service (installs the udev rule), add the user to group 'hostd', "
+                "then replug the display")
         else:
             ok(f"device.transport = {transport!r}: {node} is accessible")
     else:
-        from hostd.device.transport import find_devices
-
-        found = find_devices()
-        wanted = [f for f in found if kind == "auto" or f.startswith(kind)]
+        found = [d["spec"] for d in displays]
+        wanted = [f for f in found
+                  if kind == "auto" or f == transport or (f.startswith(kind + ":") and not node)]
         if wanted:
             ok(f"device.transport = {transport!r}: found {', '.join(wanted)}")
+            for d in displays:
+                if d["spec"] in wanted and d.get("access") is False:
+                    bad(f"{d['node']} ({d['owner']}:{d['group']} {d['mode']}) is not readable and writable "
+                        "by this user", "sudo hostd install-service (installs the udev rule), add the user "
+                        "to group 'hostd', then replug the display")
         else:
             bad(f"device.transport = {transport!r}: no display {pr.USB_VID:04x}:{pr.USB_PID:04x} found"
                 + (f" (found only {', '.join(found)})" if found else ""),
                 "plug it in; or set device.transport = \"sim\" to run without one")
+    hot = watch(transport)
+    hot.close()
+    note(f"hotplug: {hot.describe()}")
     for node in sorted(glob.glob("/dev/hidraw*")):
-        if not os.access(node, os.R_OK | os.W_OK):
+        if not os.access(node, os.R_OK | os.W_OK) and node not in {d.get("node") for d in displays}:
             note(f"{node} is not accessible to this user (only a problem if it is the display)")
     rule = Path("/etc/udev/rules.d/70-hostd.rules")
     if rule.exists():
@@ -134,7 +158,8 @@ def doctor(config: str | None, json_out: bool = False) -> int:
             from hostd.service.client import request
 
             st = request(str(sock), {"cmd": "status"}, timeout_s=2.0)
-            ok(f"running (pid {st['pid']}), {st['state']}; device {st['device_state']}"
+            ok(f"running (pid {st['pid']}), {st['state']} on {st.get('transport') or 'no display'} (hotplug: "
+               f"{st.get('hotplug')}); device {st['device_state']}"
                f"{' ' + ','.join(st['device_faults']) if st['device_faults'] else ''}, "
                f"played {st['played_fraction']:.2%} of the current texture, device underruns "
                f"{st['device_underruns']}, host stalls {st['stalls']} (longest "
@@ -149,7 +174,8 @@ def doctor(config: str | None, json_out: bool = False) -> int:
     if json_out:
         import json
 
-        print(json.dumps({"problems": problems, "checks": checks}))
+        print(json.dumps({"problems": problems, "checks": checks, "displays": displays,
+                          "hotplug": hot.mode}))
     else:
         print(f"{problems} problem(s)")
     return 1 if problems else 0

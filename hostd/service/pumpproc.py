@@ -22,7 +22,7 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "device_samples_played", "played_fraction", "device_resets", "stalls",
                "longest_stall_ms", "recoveries", "target_fill", "implausible_speed", "relocks",
                "io_retries", "io_dropped", "batch_p50_us", "batch_p99_us", "batch_p999_us",
-               "device_time_s", "render_at", "device_uploads")
+               "device_time_s", "render_at", "device_uploads", "wait_ticks")
 STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
                 "batch_p50_us", "batch_p99_us", "batch_p999_us"}
@@ -76,10 +76,11 @@ def pump_main(cfg, conn, stats) -> None:
     import numpy as np
 
     from hostd.device import protocol as pr
+    from hostd.device.hotplug import watch
     from hostd.device.link import DeviceLink
     from hostd.device.pump import JitterConfig, Pump
     from hostd.device.transport import open_transport
-    from hostd.errors import DeviceError, DeviceVersion
+    from hostd.errors import DeviceError, DeviceGone, DeviceNotFound, DeviceVersion
     from hostd.render import Renderer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
@@ -98,6 +99,28 @@ def pump_main(cfg, conn, stats) -> None:
         stats[STAT_INDEX[name]] = value
 
     _realtime(cfg.realtime, log)
+    # hotplug: udev events where udev runs, else a retry every device.reconnect_s
+    hot = watch(cfg.device.transport)
+    info = {"transport": None, "hotplug": hot.mode, "last_reconnect_s": None, "reconnected": 0}
+
+    def tell(**kw) -> None:  # strings and timings for `hostd status` (not per cycle: on change)
+        info.update(kw)
+        try:
+            conn.send(("info", dict(info)))
+        except (OSError, EOFError):
+            pass
+
+    tell()
+    log(f"hotplug: {hot.describe()}")
+    backlog: list = []  # udev events read but not yet acted on
+    hot_fd = hot.fileno()
+    hot_poll = None
+    if hot_fd is not None:
+        import select
+
+        hot_poll = select.poll()
+        hot_poll.register(hot_fd, select.POLLIN)
+    arrival = [None, None]  # (CLOCK_MONOTONIC of the udev add event, of the link up) until playing
     rcfg = cfg.render_config()
     out = rcfg.output
     limit_code = out.limit_code
@@ -204,12 +227,72 @@ def pump_main(cfg, conn, stats) -> None:
             put("batch_p99_us", p99)
             put("batch_p999_us", p999)
 
+    def hotplug_cycle() -> None:
+        """Connected: a udev removal of our node ends the link at once; time the reconnection
+        from the udev add event to the display playing again (or, with nothing selected, to the
+        link being up)."""
+        if hot_poll is not None and hot_poll.poll(0):
+            for ev in hot.events():
+                if ev.action == "remove" and ev.node and ev.node == transport.node:
+                    raise DeviceGone(f"{transport.describe()} removed (udev event)")
+                if ev.action == "add" and ev.display:
+                    backlog.append(ev)  # (another display, or ours back before we saw it go)
+        if arrival[0] is None:
+            return
+        s = link.stats.last_status
+        if texture is not None:
+            if not s or not playing:
+                return
+            if dev is not None and dev.rendering:
+                if s["state"] != pr.STATES["RENDERING"]:
+                    return
+            elif pump.renderer is None or pump.recovering:
+                return
+        t_event, t_up = arrival
+        arrival[0] = arrival[1] = None
+        now = time.monotonic()
+        what = "playing again" if texture is not None else "connected (nothing selected)"
+        log(f"device: {transport.describe()} {what} {now - t_event:.3f} s after its udev add event "
+            f"(link up at +{t_up - t_event:.3f} s)")
+        tell(last_reconnect_s=round(now - t_event, 4), reconnected=info["reconnected"] + 1)
+
     def each_cycle() -> None:
         while conn.poll():
             command(conn.recv())
         if dev is not None:
             dev.tick()
+        hotplug_cycle()
         publish()
+
+    wait_ticks = 0
+
+    def wait_for_display(absent: bool) -> None:
+        """Until it is time to try again: the display's udev add event (udev mode, and it was
+        not there), else device.reconnect_s (poll mode, or a display that is there but failed)."""
+        nonlocal wait_ticks
+        from multiprocessing.connection import wait
+
+        by_event = absent and hot.mode == "udev"
+        t_end = time.monotonic() + cfg.device.reconnect_s
+        while not quit_:
+            if by_event:
+                backlog.extend(hot.events())
+                adds = [ev for ev in backlog if ev.action == "add" and ev.display]
+                backlog.clear()
+                if adds:
+                    arrival[0] = adds[-1].t
+                    return
+            now = time.monotonic()
+            if not by_event and now >= t_end:
+                return
+            # wake at least once a second: the watchdog sees the pump alive while it waits
+            ready = wait([conn, hot_fd] if by_event else [conn], min(1.0, max(0.0, t_end - now))
+                         if not by_event else 1.0)
+            wait_ticks += 1
+            put("wait_ticks", wait_ticks)
+            if conn in ready:
+                while conn.poll():
+                    command(conn.recv())
 
     while not quit_:
         # ---- connect
@@ -223,15 +306,17 @@ def pump_main(cfg, conn, stats) -> None:
             put("connected", 0)
             put("state", STATE_CODES["waiting"])
             log(f"device: {e}")
-            t_end = time.monotonic() + cfg.device.reconnect_s
-            while time.monotonic() < t_end and not quit_:
-                if conn.poll(0.05):
-                    command(conn.recv())
+            arrival[0] = None
+            wait_for_display(absent=isinstance(e, DeviceNotFound))
             reconnects += 1
             put("reconnects", reconnects)
             continue
         connected = True
         put("connected", 1)
+        if arrival[0] is not None:
+            arrival[1] = time.monotonic()
+        backlog.clear()
+        tell(transport=transport.describe())
         log(f"device: {transport.describe()} firmware {ident['fw_major']}.{ident['fw_minor']}."
             f"{ident['fw_patch']}, protocol v{ident['protocol_version']}")
         if pump is None:
@@ -261,6 +346,7 @@ def pump_main(cfg, conn, stats) -> None:
         except DeviceError as e:
             log(f"device lost while {'playing' if playing else 'idle'}: {e}; output stopped, waiting")
             put("connected", 0)
+            tell(transport=None)
             put("state", STATE_CODES["waiting"])
         finally:
             connected = False

@@ -1,0 +1,217 @@
+"""Hotplug from udev events: the monitor's events (a fake monitor, and a real pyudev monitor on the
+kernel's own uevents where this machine lets us make one), the poll fallback and why, and the
+pump process reacting to an arrival and a removal at once (a fake monitor fed through a pipe;
+the real USB gadget unplugged and replugged under udev is tests/hil)."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import select
+import sys
+import time
+from collections import deque
+from pathlib import Path
+
+import pytest
+
+from hostd.device import hotplug
+from hostd.device import protocol as pr
+
+DISPLAY_HID = f"0003:{pr.USB_VID:08X}:{pr.USB_PID:08X}"
+
+
+class FakeDevice:
+    def __init__(self, action, subsystem, node=None, devtype=None, props=None, parents=()):
+        self.action, self.subsystem, self.device_node, self.device_type = action, subsystem, node, devtype
+        self.properties = props or {}
+        self._parents = parents
+
+    @property
+    def ancestors(self):
+        if self.action == "remove":
+            raise OSError("no sysfs for a removed device")
+        return iter(self._parents)
+
+
+class FakeMonitor:
+    """pyudev.Monitor's surface: fileno() and poll(timeout=0); events come from a pipe (JSON lines)
+    so another process can feed them."""
+
+    def __init__(self):
+        self.r, self.w = os.pipe()
+        os.set_blocking(self.r, False)
+        self.queue: deque = deque()
+        self.buf = b""
+
+    def fileno(self):
+        return self.r
+
+    def push(self, **ev):
+        os.write(self.w, json.dumps(ev).encode() + b"\n")
+
+    def poll(self, timeout=None):
+        if not self.queue:
+            try:
+                self.buf += os.read(self.r, 65536)
+            except BlockingIOError:
+                pass
+            *lines, self.buf = self.buf.split(b"\n")
+            for line in lines:
+                e = json.loads(line)
+                parents = [FakeDevice("add", "hid", props={"HID_ID": e.pop("parent_hid")})] \
+                    if "parent_hid" in e else []
+                self.queue.append(FakeDevice(parents=parents, **e))
+        return self.queue.popleft() if self.queue else None
+
+
+def test_events_match_the_display_by_its_ids_and_skip_the_rest():
+    mon = FakeMonitor()
+    h = hotplug.Hotplug(mon, ("hidraw", "usb", "tty"))
+    assert h.mode == "udev" and h.fileno() == mon.fileno()
+    now = time.monotonic()
+    mon.push(action="add", subsystem="hidraw", node="/dev/hidraw2", parent_hid=DISPLAY_HID,
+             props={"USEC_INITIALIZED": str(int((now - 0.25) * 1e6))})
+    mon.push(action="add", subsystem="hidraw", node="/dev/hidraw1", parent_hid="0003:0000046D:0000C077")
+    mon.push(action="add", subsystem="usb", devtype="usb_interface", props={"PRODUCT": "1209/7470/100"})
+    mon.push(action="add", subsystem="usb", node="/dev/bus/usb/001/004", devtype="usb_device",
+             props={"PRODUCT": "1209/7470/100"})
+    mon.push(action="change", subsystem="tty", node="/dev/ttyACM0")
+    mon.push(action="remove", subsystem="hidraw", node="/dev/hidraw2")
+    evs = h.events()
+    assert [(e.action, e.node, e.display) for e in evs] == [
+        ("add", "/dev/hidraw2", True), ("add", "/dev/hidraw1", False),
+        ("add", "/dev/bus/usb/001/004", True), ("remove", "/dev/hidraw2", False)]
+    assert abs(evs[0].t - (now - 0.25)) < 1e-3  # udev's own stamp of the arrival
+    assert h.events() == []
+
+
+def test_poll_fallback_says_why(tmp_path, monkeypatch):
+    h = hotplug.watch("hid", control=str(tmp_path / "no-udev-control"))
+    assert h.mode == "poll" and "udev is not running" in h.describe() and h.fileno() is None
+    assert hotplug.watch("serial:/dev/pts/3").mode == "poll"
+    assert hotplug.watch("sim").mode == "none"
+    ctl = tmp_path / "control"
+    ctl.touch()
+    monkeypatch.setitem(sys.modules, "pyudev", None)  # not installed
+    h = hotplug.watch("usb", control=str(ctl))
+    assert h.mode == "poll" and "pip install 'hostd[device]'" in h.describe()
+
+
+def _kernel_monitor(spec):
+    pytest.importorskip("pyudev")
+    h = hotplug.watch(spec, source="kernel")
+    if h.mode != "udev":
+        pytest.skip(f"no netlink uevent socket here: {h.describe()}")
+    return h
+
+
+def test_a_real_pyudev_monitor_gets_a_kernel_uevent_filtered_by_subsystem():
+    trigger = Path("/sys/class/tty/ttyS0/uevent")
+    if not os.access(trigger, os.W_OK):
+        pytest.skip("cannot make the kernel send a uevent here (no writable /sys/class/tty/ttyS0/uevent)")
+    tty = _kernel_monitor("serial")
+    hid = _kernel_monitor("hid")
+    trigger.write_text("add")  # a synthetic uevent: the kernel sends it, nothing changes
+    got = []
+    t_end = time.monotonic() + 2.0
+    while not got and time.monotonic() < t_end:
+        select.select([tty.fileno()], [], [], 0.1)
+        got = [e for e in tty.events() if e.node == "/dev/ttyS0"]
+    if not got:
+        pytest.skip("the kernel's uevents do not reach this network namespace")
+    assert got[0].action == "add" and got[0].subsystem == "tty" and not got[0].display
+    assert [e for e in hid.events() if e.node == "/dev/ttyS0"] == []  # filtered in the kernel
+
+
+# ------------------------------------------------------------------ the pump process
+def _pump_child(cfg, conn, stats, mon, flag):
+    """The daemon's pump, with the fake monitor as udev and a display that exists while `flag`
+    does (a simulated device behind a hidraw-looking name)."""
+    from hostd.device import transport as tr
+    from hostd.device.simdev import SimTransport
+    from hostd.errors import DeviceNotFound
+    from hostd.service import pumpproc
+
+    class Plugged(SimTransport):
+        node = "/dev/hidraw9"
+
+        def describe(self):
+            return "hid:/dev/hidraw9"
+
+    def open_transport(spec):
+        if not os.path.exists(flag):
+            raise DeviceNotFound("no HID display 1209:7470 (hidraw devices seen: none)")
+        return Plugged()
+
+    hotplug.watch = lambda spec: hotplug.Hotplug(mon, ("hidraw",))
+    tr.open_transport = open_transport
+    pumpproc.pump_main(cfg, conn, stats)
+
+
+def test_pump_reconnects_on_the_udev_event_at_once_and_drops_on_removal(tmp_path):
+    from hostd.service.config import load
+    from hostd.service.pumpproc import STAT_FIELDS, STAT_INDEX
+
+    p = tmp_path / "c.toml"
+    p.write_text('[device]\ntransport = "hid"\nreconnect_s = 1.0\n')
+    cfg = load(p)
+    ctx = mp.get_context("fork")
+    stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
+    parent, child = ctx.Pipe()
+    mon = FakeMonitor()
+    flag = tmp_path / "plugged"
+    proc = ctx.Process(target=_pump_child, args=(cfg, child, stats, mon, str(flag)), daemon=True)
+    proc.start()
+    lines: list = []
+    info: dict = {}
+
+    def pump_says(pred, timeout_s):
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            if parent.poll(0.02):
+                kind, msg = parent.recv()
+                if kind == "info":
+                    info.update(msg)
+                else:
+                    lines.append(msg)
+                if pred():
+                    return True
+        return False
+
+    try:
+        assert pump_says(lambda: any("no HID display" in m for m in lines), 60), lines
+        assert info["hotplug"] == "udev"
+        from hostd.bench.accuracy import texture_coeffs
+        from hostd.texture import synth
+
+        c, n, length = texture_coeffs(synth.make("wood", seed=1))
+        parent.send(("select", ("wood", list(c), n, length)))  # kept until a display is there
+        # absent: no retry by the clock (the 1 s poll is only the fallback), only wake-ups
+        attempts = stats[STAT_INDEX["reconnects"]]
+        time.sleep(2.5)
+        assert stats[STAT_INDEX["reconnects"]] == attempts
+        assert stats[STAT_INDEX["wait_ticks"]] >= 2  # the watchdog still sees the pump alive
+        # plugged: the udev add event, and the pump is connected within a fraction of a second
+        flag.touch()
+        t0 = time.monotonic()
+        mon.push(action="add", subsystem="hidraw", node="/dev/hidraw9", parent_hid=DISPLAY_HID)
+        assert pump_says(lambda: info.get("transport") == "hid:/dev/hidraw9", 5), lines
+        assert time.monotonic() - t0 < 1.0
+        assert pump_says(lambda: info.get("last_reconnect_s") is not None, 5), lines
+        assert 0 < info["last_reconnect_s"] < 1.0 and info["reconnected"] == 1
+        assert any("playing again" in m and "after its udev add event" in m for m in lines), lines
+        assert stats[STAT_INDEX["device_samples_played"]] > 0  # the device's own counter
+        # unplugged: the udev remove event of our node ends the link at once (the simulated
+        # device would have gone on answering: only the event can have done it)
+        flag.unlink()
+        mon.push(action="remove", subsystem="hidraw", node="/dev/hidraw9")
+        assert pump_says(lambda: any("removed (udev event)" in m for m in lines), 5), lines
+        assert pump_says(lambda: info.get("transport") is None, 5)
+        assert stats[STAT_INDEX["connected"]] == 0
+    finally:
+        parent.send(("quit",))
+        proc.join(5)
+        if proc.is_alive():
+            proc.kill()
