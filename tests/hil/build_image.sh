@@ -5,8 +5,8 @@
 # is NOT in the image: the test builds its wheel from the tree under test and the guest installs
 # it into /opt/hostd, as a user would (so the image stays valid across code changes).
 #
-# usage: build_image.sh OUTDIR     (writes OUTDIR/{rootfs.img,vmlinuz,initrd.img}; run as root)
-# The caller (tests/hil/rig.py) keys OUTDIR by a hash of this file and pyproject.toml.
+# usage: build_image.sh OUTDIR REQUIREMENTS   (writes OUTDIR/{rootfs.img,vmlinuz,initrd.img}; run as root)
+# The caller (tests/hil/rig.py) keys OUTDIR by a hash of this recipe and REQUIREMENTS.
 set -euo pipefail
 out=$1
 here=$(cd "$(dirname "$0")" && pwd)
@@ -14,14 +14,9 @@ repo=$(cd "$here/../.." && pwd)
 work=$(mktemp -d "${TMPDIR:-/tmp}/hostd-hil-build.XXXXXX")
 trap 'rm -rf "$work"' EXIT
 
-# runtime dependencies of hostd (pyproject [project].dependencies and the [device] extra), plus
-# pyudev for hotplug: as wheels for the guest's CPython 3.11 / manylinux x86_64
-python3 - "$repo/pyproject.toml" > "$work/requirements.txt" <<'PY'
-import sys, tomllib
-p = tomllib.load(open(sys.argv[1], "rb"))["project"]
-deps = list(p["dependencies"]) + list(p["optional-dependencies"].get("device", [])) + ["pyudev>=0.24"]
-print("\n".join(deps))
-PY
+# REQUIREMENTS: hostd's runtime dependencies and its [device] extra (rig.py writes it from
+# pyproject.toml), as wheels for the guest's CPython 3.11 / x86_64
+cp "$2" "$work/requirements.txt"
 mkdir -p "$work/wheels"
 # `pip wheel`: binary wheels as published, pure-Python sdists (sdnotify) built here into wheels
 python3 -m pip wheel --quiet --prefer-binary --wheel-dir "$work/wheels" -r "$work/requirements.txt" pip setuptools

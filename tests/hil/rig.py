@@ -24,12 +24,12 @@ import shutil
 import subprocess
 import sys
 import time
+import tomllib
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
-RECIPE = [HERE / "build_image.sh", HERE / "guest" / "hil-boot", HERE / "guest" / "hil-run.service",
-          REPO / "pyproject.toml"]
+RECIPE = [HERE / "build_image.sh", HERE / "guest" / "hil-boot", HERE / "guest" / "hil-run.service"]
 QEMU = "qemu-system-x86_64"
 TOOLS = {"qemu-system-x86_64": "qemu-system-x86", "mmdebstrap": "mmdebstrap", "mkfs.ext4": "e2fsprogs"}
 
@@ -38,10 +38,22 @@ def cache_root() -> Path:
     return Path(os.environ.get("HOSTD_HIL_CACHE", "/var/cache/hostd-hil"))
 
 
+def requirements() -> str:
+    """What the image's /opt/hostd venv holds: hostd's runtime dependencies and its [device] extra
+    (pyudev included), one per line. Part of the image's key: a new dependency rebuilds it, an
+    unrelated edit of pyproject.toml does not."""
+    p = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    deps = list(p["dependencies"]) + list(p["optional-dependencies"].get("device", []))
+    if not any(d.startswith("pyudev") for d in deps):
+        deps.append("pyudev>=0.24")
+    return "\n".join(deps) + "\n"
+
+
 def recipe_key() -> str:
     h = hashlib.sha256()
     for p in RECIPE:
         h.update(p.name.encode() + b"\0" + p.read_bytes() + b"\0")
+    h.update(requirements().encode())
     return h.hexdigest()[:16]
 
 
@@ -61,7 +73,8 @@ def why_not() -> str | None:
         return "the HIL rig needs an x86_64 Linux host"
     missing = missing_tools()
     if missing:
-        return f"the HIL rig needs {' '.join(missing)} (as root: apt-get install {' '.join(missing)}; ./run test does)"
+        pkgs = " ".join(missing)
+        return f"the HIL rig needs {pkgs} (as root: apt-get install {pkgs}; ./run test does)"
     d = image_dir()
     if not (d / "rootfs.img").exists() and os.geteuid() != 0:
         return f"the HIL image is not built ({d}) and building it needs root (mmdebstrap)"
@@ -76,8 +89,11 @@ def ensure_image(log=sys.stderr) -> Path:
     tmp = d.with_name(d.name + f".tmp{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     t = time.monotonic()
-    r = subprocess.run(["bash", str(HERE / "build_image.sh"), str(tmp)], stdout=subprocess.PIPE,
+    req = d.parent / f"requirements-{os.getpid()}.txt"
+    req.write_text(requirements())
+    r = subprocess.run(["bash", str(HERE / "build_image.sh"), str(tmp), str(req)], stdout=subprocess.PIPE,
                        stderr=subprocess.STDOUT, text=True)
+    req.unlink()
     if r.returncode != 0:
         shutil.rmtree(tmp, ignore_errors=True)
         raise RuntimeError(f"building the HIL image failed:\n{r.stdout[-4000:]}")

@@ -19,6 +19,8 @@
  * --name   the gadget's configfs directory (default hostd)
  * --serial the serial number (default: the first 24 hex digits of /etc/machine-id)
  * --unplug-at S:D  unbinds the gadget at S seconds for D seconds (repeatable): the unplug
+ * IN reports go out as on the board (usb_fs.c): a STATUS finding the endpoint busy is dropped,
+ * other replies wait.
  * Prints "GADGET <udc>" once bound, and "UNPLUG <t>" / "REPLUG <t>" (CLOCK_MONOTONIC seconds) as
  * it unbinds and binds again. SIGTERM/SIGINT ramp the output to zero (the core's STOP) and
  * remove the gadget.
@@ -63,16 +65,39 @@ static double mono_s(void) {
     return (double)t.tv_sec + (double)t.tv_nsec * 1e-9;
 }
 
-/* One IN report: the message zero-padded to HP_REPORT_SIZE (docs/protocol.md). A report the
- * host has not taken yet is dropped, as a board's NAKed IN endpoint drops its STATUS. */
+/* IN reports, as the board's usb_fs.c sends them: one in flight; a STATUS the host has not made
+ * room for is dropped (a newer one follows within 1 ms), any other reply (IDENT, RENDER_STATUS)
+ * waits in a small queue and goes out first when the endpoint is free again. */
+#define PENDING_MAX 8
+static uint8_t g_pending[PENDING_MAX][HP_REPORT_SIZE];
+static unsigned g_pending_head, g_pending_count;
+static unsigned long g_reply_dropped;
+
+static bool write_report(const uint8_t rep[HP_REPORT_SIZE]) {
+    return g_hidg >= 0 && write(g_hidg, rep, HP_REPORT_SIZE) == (ssize_t)HP_REPORT_SIZE;
+}
+
+static void flush_pending(void) {
+    while (g_pending_count && write_report(g_pending[g_pending_head])) {
+        g_pending_head = (g_pending_head + 1) % PENDING_MAX;
+        g_pending_count--;
+    }
+}
+
 void hal_send(const uint8_t *msg, size_t len) {
     uint8_t rep[HP_REPORT_SIZE] = {0};
-    if (g_hidg < 0 || len > sizeof rep) {
-        g_send_dropped++;
-        return;
-    }
+    if (len == 0 || len > sizeof rep) return;
     memcpy(rep, msg, len);
-    if (write(g_hidg, rep, sizeof rep) != (ssize_t)sizeof rep) g_send_dropped++;
+    flush_pending();
+    if (!g_pending_count && write_report(rep)) return;
+    if (msg[0] == HP_ID_STATUS) {
+        g_send_dropped++;
+    } else if (g_pending_count < PENDING_MAX) {
+        memcpy(g_pending[(g_pending_head + g_pending_count) % PENDING_MAX], rep, sizeof rep);
+        g_pending_count++;
+    } else {
+        g_reply_dropped++;
+    }
 }
 
 static int put(const char *rel, const void *data, size_t n) {
@@ -274,11 +299,13 @@ static void poll_gadget(fw_t *f, double t_s) {
         fflush(stdout);
     } else if (g_replug_at < 0 && g_next_unplug < g_n_unplugs && t_s >= g_unplug_at[g_next_unplug]) {
         if (g_hidg >= 0) close(g_hidg), g_hidg = -1;
+        g_pending_count = 0;
         bind_udc(false);
         printf("UNPLUG %.6f\n", mono_s());
         fflush(stdout);
         g_replug_at = t_s + g_unplug_s[g_next_unplug++];
     }
+    flush_pending();
     uint8_t rep[HP_REPORT_SIZE + 1];
     while (g_hidg >= 0) {
         ssize_t n = read(g_hidg, rep, sizeof rep);
@@ -310,6 +337,7 @@ int main(int argc, char **argv) {
     fflush(stdout);
     sim_run(&f, &port, t0);
     sim_finish(&f, &port, g_send_dropped);
+    if (g_reply_dropped) fprintf(stderr, PROG ": %lu replies dropped (queue full)\n", g_reply_dropped);
     teardown();
     return 0;
 }
