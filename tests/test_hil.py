@@ -9,7 +9,8 @@ these tests assert on it. Every figure comes from the gadget's DAC log and the d
 STATUS counters (as `hostd status` reports them).
 
 Skipped, saying why, where qemu-system-x86_64/mmdebstrap are missing (./run test installs them
-as root) or the host is not x86_64 Linux. HOSTD_HIL=0 skips it on purpose.
+as root) or the host is not x86_64 Linux. HOSTD_HIL=0 skips it on purpose; HOSTD_HIL=full adds
+the raw-USB transport (two more daemon starts, minutes under TCG).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -27,7 +29,7 @@ from tests.hil import rig
 
 REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.timeout(1800)  # the first run builds the image (~5 min) before booting
-BOOT_TIMEOUT_S = float(os.environ.get("HOSTD_HIL_TIMEOUT_S", "900"))
+BOOT_TIMEOUT_S = float(os.environ.get("HOSTD_HIL_TIMEOUT_S", "1500"))
 
 
 def _skip_reason() -> str | None:
@@ -37,12 +39,21 @@ def _skip_reason() -> str | None:
 
 
 @pytest.fixture(scope="module")
-def hil(tmp_path_factory):
+def hil():
     why = _skip_reason()
     if why:
         pytest.skip(f"HIL rig: {why}")
     subprocess.run(["make", "-s", "-C", str(REPO / "firmware"), "gadget", "board-desc"], check=True)
-    share = tmp_path_factory.mktemp("hil")
+    # not pytest's tmp_path: on a machine running several pytest sessions, its rotation of old
+    # base directories may remove the share while the guest still writes to it
+    share = Path(tempfile.mkdtemp(prefix="hostd-hil-"))
+    try:
+        yield _run(share)
+    finally:
+        shutil.rmtree(share, ignore_errors=True)
+
+
+def _run(share: Path) -> dict:
     shutil.copy(REPO / "firmware/build/gadget/hostd-fw-gadget", share)
     shutil.copy(REPO / "tests/hil/guest/hil_suite.py", share)
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation",
@@ -52,6 +63,9 @@ def hil(tmp_path_factory):
                    check=True, capture_output=True)
     (share / "cmd").write_text("#!/bin/sh\nexec /opt/hostd/bin/python /mnt/hil/hil_suite.py\n")
     (share / "cmd").chmod(0o755)
+    full = os.environ.get("HOSTD_HIL") == "full"
+    if full:
+        (share / "full").touch()
     rig.ensure_image()
     timing = rig.boot(share, timeout_s=BOOT_TIMEOUT_S)
     res_path = share / "results.json"
@@ -59,6 +73,7 @@ def hil(tmp_path_factory):
     assert res_path.exists(), f"the guest wrote no results; console:\n{console.read_text()[-3000:]}"
     res = json.loads(res_path.read_text())
     res["host"] = timing
+    res["full"] = full
     dump = subprocess.run([str(REPO / "firmware/build/board-desc")], capture_output=True, text=True,
                           check=True)
     board = dict(line.split() for line in dump.stdout.splitlines())
@@ -68,7 +83,8 @@ def hil(tmp_path_factory):
         keep.write_text(json.dumps(res, indent=1))
     except OSError:
         pass
-    print(f"HIL results: {keep}; cmd.out:\n{(share / 'cmd.out').read_text()[-2000:]}")
+    out = share / "cmd.out"
+    print(f"HIL results: {keep}; cmd.out:\n{out.read_text()[-2000:] if out.exists() else ''}")
     return res
 
 
@@ -131,18 +147,33 @@ def test_enumeration_descriptors_are_the_board_ports(hil):
         assert period_ms == be[6]
 
 
+def _play(hil, transport, where):
+    """(status, DAC figures) of the daemon playing on `transport` with `where` rendering."""
+    if (transport, where) == ("hid", "host"):
+        s = _ok(hil, "replug")["play"]
+        return s["status"], s["dac"]
+    if (transport, where) == ("hid", "device"):
+        s = _ok(hil, "systemd")
+        return s["alice_status"], s["dac_playing"]
+    if f"play_{transport}_{where}" not in hil["steps"] and not hil.get("full"):
+        pytest.skip("the raw-USB transport runs with HOSTD_HIL=full (two more daemon starts)")
+    s = _ok(hil, f"play_{transport}_{where}")
+    return s["status"], s["dac"]
+
+
 @pytest.mark.parametrize("where", ["host", "device"])
 @pytest.mark.parametrize("transport", ["hid", "usb"])
 def test_daemon_plays(hil, transport, where):
-    """The daemon plays a texture: the gadget's DAC log and the device's counters say so."""
-    s = _ok(hil, f"play_{transport}_{where}")
-    st, dac = s["status"], s["dac"]
+    """The daemon plays a texture: the gadget's DAC log and the device's counters say so.
+    hid/host is the replug step's first seconds, hid/device the service's (systemd step)."""
+    st, dac = _play(hil, transport, where)
     assert st["transport"] and st["transport"].startswith(f"{transport}:"), st
     if transport == "hid":
         assert st["transport"].startswith("hid:/dev/hidraw"), st
     active = dac["ticks_running"] if where == "host" else dac["ticks_rendering"]
     assert active > 3000, dac  # > 1 s of playing, from the display's own log
     assert dac["nonzero_codes"] > 1000, dac
+    assert st["render_at"] == where, st
     assert st["played_fraction"] > 0.5, st
 
 
@@ -169,9 +200,26 @@ def test_service_under_systemd(hil):
     assert any(n.startswith("/dev/hidraw") for n in s["open_device_nodes"]), s["open_device_nodes"]
     assert s["alice_status"]["texture"] == "wood"
     assert s["alice_status"]["transport"].startswith("hid:/dev/hidraw")
-    assert s["dac_playing"]["ticks_running"] > 3000
+    assert s["dac_playing"]["ticks_rendering"] > 3000  # the service renders on the device
     assert s["restart_after_kill_s"] is not None
     assert s["dac_final_code"] == 0
     ramp = s.get("stop_ramp")
     assert ramp is None or ramp["final_code"] == 0
     assert s["security_exposure"] is not None and s["security_exposure"] < 2.0
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--unplug-at", "5"], "--unplug-at wants SECONDS:DURATION"),
+    (["--unplug-at", "5:1", "--unplug-at", "4:1"], "in time order"),
+    (["--serial", "abc"], "--serial wants 24 upper-case hex digits"),
+    (["--name", "a/b"], "--name wants a directory name"),
+    (["--motion", "zigzag"], "--motion none|constant"),
+    (["--bogus"], "unknown argument --bogus"),
+])
+def test_gadget_port_refuses_bad_options(args, says):
+    """Bad options: one line saying what to do, exit code 2, before any gadget is made (so this
+    runs on any machine; the options shared with the host port are parsed by the same code)."""
+    subprocess.run(["make", "-s", "-C", str(REPO / "firmware"), "gadget"], check=True)
+    r = subprocess.run([str(REPO / "firmware/build/gadget/hostd-fw-gadget"), *args], capture_output=True,
+                       text=True, timeout=10)
+    assert r.returncode == 2 and says in r.stderr and r.stderr.count("\n") == 1, r.stderr
