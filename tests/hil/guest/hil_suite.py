@@ -375,7 +375,7 @@ def replug(rec, transport: str):
             (adds if dev.action == "add" else removes).append(time.monotonic())
     mon.start()
     threading.Thread(target=watch, daemon=True).start()
-    plan = [(25 + 8 * i, 1.5) for i in range(5)]
+    plan = [(12 + 8 * i, 1.5) for i in range(5)]
     base = WORK / "d-replug"
     base.mkdir(parents=True, exist_ok=True)
     cfg = base / "hostd.toml"
@@ -389,11 +389,19 @@ def replug(rec, transport: str):
         wait_daemon(sock, p)
         sh([HOSTD, "send", str(SHARE / "wood.vtx"), "--socket", sock])
         sh([HOSTD, "select", "wood", "--socket", sock])
+        # a display plugged in after the daemon started; under TCG the pump's first start takes
+        # most of a minute, so this wait is long and the figure is this one's, not a replug's
+        g0 = Gadget("late")
+        try:
+            wait_playing(g0, 300)
+            rec["plugged_in_late_to_playing_s"] = round(time.monotonic() - g0.t0, 1)
+            n0 = g0.n_records()
+            time.sleep(4)
+            rec["play"] = {"status": pick(status(sock)), "dac": dac_figures(g0.records(n0))}
+        finally:
+            g0.stop()  # SIGTERM: ramp to zero and remove the gadget (an unplug too)
         g = Gadget("replug", *[a for s, d in plan for a in ("--unplug-at", f"{s}:{d}")])
-        wait_playing(g, plan[0][0] - 6)
-        n0 = g.n_records()
-        time.sleep(4)
-        rec["play"] = {"status": pick(status(sock)), "dac": dac_figures(g.records(n0))}
+        time.sleep(plan[0][0] - 1)
         fds0 = fd_count(p.pid)
         end = g.t0 + plan[-1][0] + plan[-1][1] + 6
         while time.monotonic() < end:
@@ -422,8 +430,7 @@ def replug(rec, transport: str):
     recs = g.records()
     replugs = [t for k, t in g.events if k == "REPLUG"]
     first_play = next((times[r[0]] for r in recs if r[3] & 1 and r[0] in times), None)
-    # the display plugged in after the daemon started: from the gadget's bind to playing
-    rec["plugged_in_late_to_playing_s"] = round(first_play - g.t0, 3) if first_play else None
+    rec["plugged_in_to_playing_s"] = round(first_play - g.t0, 3) if first_play else None
     recov = []
     for t_re in replugs:
         add = next((a for a in adds if a >= t_re - 0.5), None)
@@ -453,13 +460,16 @@ def systemd_service(rec):
     text = re.sub(r'(?m)^where = "\w+"', 'where = "device"', text)  # replug covers host rendering
     cfg.write_text(text)
     rec["config"] = [ln for ln in text.splitlines() if ln.startswith(("transport", "where"))]
-    # emulation allowance (TCG on a loaded host starts Python many times slower): a longer start
-    # timeout, recorded; the unit's own settings (watchdog, sandbox) are as installed
+    # emulation allowance, recorded: under TCG on a loaded host hostd takes about a minute from
+    # exec to its first sd_notify, and systemd arms WatchdogSec=5 at the start, so the unit as
+    # installed fails with "failed to send watchdog ping" (HIL_FINDINGS.md). The sandbox and the
+    # rest of the unit are as installed; that the watchdog is fed is checked below from
+    # WatchdogTimestampMonotonic advancing.
     dropin = Path("/etc/systemd/system/hostd.service.d")
     dropin.mkdir(parents=True, exist_ok=True)
-    (dropin / "hil.conf").write_text("[Service]\nTimeoutStartSec=300\n")
+    (dropin / "hil.conf").write_text("[Service]\nTimeoutStartSec=300\nWatchdogSec=120\n")
     sh(["systemctl", "daemon-reload"])
-    rec["dropin"] = "TimeoutStartSec=300"
+    rec["dropin"] = "TimeoutStartSec=300 WatchdogSec=120"
     t = time.monotonic()
     sh(["systemctl", "enable", "--now", "hostd"], timeout=400)
     rec["enable_now_s"] = round(time.monotonic() - t, 1)
@@ -468,10 +478,12 @@ def systemd_service(rec):
     # a display plugged in after the service started
     g = Gadget("svc")
     rec["gadget_plugged_after_start"] = True
-    time.sleep(7)  # beyond WatchdogSec=5: still up means the watchdog is being fed
+    w0 = svc_show("WatchdogTimestampMonotonic")["WatchdogTimestampMonotonic"]
+    time.sleep(7)
     show = svc_show("ActiveState", "SubState", "MainPID", "NRestarts", "WatchdogTimestampMonotonic",
                     "WatchdogUSec")
     rec["after_watchdog_period"] = show
+    rec["watchdog_pings_seen"] = show["WatchdogTimestampMonotonic"] != w0 and w0 not in ("", "0")
     pid = int(show["MainPID"])
     rec["main_user"] = sh(["ps", "-o", "user=", "-p", str(pid)]).stdout.strip()
     fds = []
