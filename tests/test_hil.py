@@ -208,6 +208,9 @@ def test_service_under_systemd(hil):
     ramp = s.get("stop_ramp")
     assert ramp is None or ramp["final_code"] == 0
     assert s["security_exposure"] is not None and s["security_exposure"] < 2.0
+    if not s["late_plug_picked_up"]:
+        pytest.xfail("known (HIL_FINDINGS.md): the service under its sandbox does not pick up a display "
+                     f"plugged in after it started; status then: {s.get('late_plug_status')}")
 
 
 @pytest.mark.parametrize("args, says", [
