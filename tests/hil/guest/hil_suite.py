@@ -501,14 +501,6 @@ def _service_checks(rec) -> Gadget:
     rec["watchdog_pings_seen"] = show["WatchdogTimestampMonotonic"] != w0 and w0 not in ("", "0")
     pid = int(show["MainPID"])
     rec["main_user"] = sh(["ps", "-o", "user=", "-p", str(pid)]).stdout.strip()
-    fds = []
-    for pp in [pid, *[int(x) for x in sh(["pgrep", "-P", str(pid)], check=False).stdout.split()]]:
-        for f in glob.glob(f"/proc/{pp}/fd/*"):
-            try:
-                fds.append(os.readlink(f))
-            except OSError:
-                pass
-    rec["open_device_nodes"] = sorted({f for f in fds if f.startswith(("/dev/hidraw", "/dev/bus"))})
     sock = "/run/hostd/hostd.sock"
     tex = "/home/alice/wood.vtx"
     sh(["cp", str(SHARE / "wood.vtx"), tex])
@@ -531,6 +523,15 @@ def _service_checks(rec) -> Gadget:
         t = time.monotonic()
         wait_playing(g, 300)
     rec["select_to_playing_s"] = round(time.monotonic() - t, 1)
+    pid = int(svc_show("MainPID")["MainPID"])
+    fds = []
+    for pp in [pid, *[int(x) for x in sh(["pgrep", "-P", str(pid)], check=False).stdout.split()]]:
+        for f in glob.glob(f"/proc/{pp}/fd/*"):
+            try:
+                fds.append(os.readlink(f))
+            except OSError:
+                pass
+    rec["open_device_nodes"] = sorted({f for f in fds if f.startswith(("/dev/hidraw", "/dev/bus"))})
     n0 = g.n_records()
     time.sleep(4)
     st = status(sock, user="alice")
@@ -562,6 +563,7 @@ def _service_checks(rec) -> Gadget:
         rec["stop_ramp"] = {"ticks": len(ramp), "max_step": max(steps, default=0),
                             "first_code": ramp[0][1], "final_code": recs[-1][1]}
     rec["dac_final_code"] = recs[-1][1] if recs else None
+    rec["dac_after_stop_tail"] = recs[-3:]  # (tick, code, encoder, flags): bit 4 = still RENDERING
     rec["after_stop"] = svc_show("ActiveState", "Result")
     return g
 
