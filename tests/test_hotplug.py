@@ -126,7 +126,7 @@ def test_a_real_pyudev_monitor_gets_a_kernel_uevent_filtered_by_subsystem():
 
 
 # ------------------------------------------------------------------ the pump process
-def _pump_child(cfg, conn, stats, mon, flag):
+def _pump_child(cfg, conn, stats, mon, flag, listed=None):
     """The daemon's pump, with the fake monitor as udev and a display that exists while `flag`
     does (a simulated device behind a hidraw-looking name)."""
     from hostd.device import transport as tr
@@ -140,46 +140,75 @@ def _pump_child(cfg, conn, stats, mon, flag):
         def describe(self):
             return "hid:/dev/hidraw9"
 
+    class Silent(Plugged):  # opens, never answers (a display without our firmware)
+        def recv(self, timeout_s=0.0):
+            time.sleep(timeout_s)
+
+        def close(self):
+            Path(flag + ".closed").touch()
+
     def open_transport(spec):
+        if os.path.exists(flag + ".silent"):
+            return Silent()
         if not os.path.exists(flag):
             raise DeviceNotFound("no HID display 1209:7470 (hidraw devices seen: none)")
         return Plugged()
 
     hotplug.watch = lambda spec: hotplug.Hotplug(mon, ("hidraw",))
     tr.open_transport = open_transport
+    # what sysfs lists (nothing is opened): the display while `listed` exists
+    tr.present = lambda spec: [{"spec": "hid:/dev/hidraw9"}] if listed and os.path.exists(listed) else []
     pumpproc.pump_main(cfg, conn, stats)
 
 
-def test_pump_reconnects_on_the_udev_event_at_once_and_drops_on_removal(tmp_path):
-    from hostd.service.config import load
-    from hostd.service.pumpproc import STAT_FIELDS, STAT_INDEX
+class PumpChild:
+    """The pump process on a config with `transport`, the fake monitor as udev; collects its log
+    lines and info messages."""
 
-    p = tmp_path / "c.toml"
-    p.write_text('[device]\ntransport = "hid"\nreconnect_s = 1.0\n')
-    cfg = load(p)
-    ctx = mp.get_context("fork")
-    stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
-    parent, child = ctx.Pipe()
-    mon = FakeMonitor()
-    flag = tmp_path / "plugged"
-    proc = ctx.Process(target=_pump_child, args=(cfg, child, stats, mon, str(flag)), daemon=True)
-    proc.start()
-    lines: list = []
-    info: dict = {}
+    def __init__(self, tmp_path, transport):
+        from hostd.service.config import load
+        from hostd.service.pumpproc import STAT_FIELDS
 
-    def pump_says(pred, timeout_s):
+        p = tmp_path / "c.toml"
+        p.write_text(f'[device]\ntransport = "{transport}"\nreconnect_s = 1.0\n')
+        ctx = mp.get_context("fork")
+        self.stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
+        self.parent, child = ctx.Pipe()
+        self.mon = FakeMonitor()
+        self.flag = tmp_path / "plugged"
+        self.listed = tmp_path / "listed"
+        self.proc = ctx.Process(target=_pump_child, args=(load(p), child, self.stats, self.mon,
+                                                          str(self.flag), str(self.listed)), daemon=True)
+        self.proc.start()
+        self.lines: list = []
+        self.info: dict = {}
+
+    def says(self, pred, timeout_s):
         t_end = time.monotonic() + timeout_s
         while time.monotonic() < t_end:
-            if parent.poll(0.02):
-                kind, msg = parent.recv()
+            if self.parent.poll(0.02):
+                kind, msg = self.parent.recv()
                 if kind == "info":
-                    info.update(msg)
+                    self.info.update(msg)
                 else:
-                    lines.append(msg)
-                if pred():
-                    return True
+                    self.lines.append(msg)
+            if pred():
+                return True
         return False
 
+    def close(self):
+        self.parent.send(("quit",))
+        self.proc.join(5)
+        if self.proc.is_alive():
+            self.proc.kill()
+
+
+def test_pump_reconnects_on_the_udev_event_at_once_and_drops_on_removal(tmp_path):
+    from hostd.service.pumpproc import STAT_INDEX
+
+    pc = PumpChild(tmp_path, "hid")
+    parent, stats, mon, flag, lines, info, pump_says = (pc.parent, pc.stats, pc.mon, pc.flag, pc.lines,
+                                                        pc.info, pc.says)
     try:
         assert pump_says(lambda: any("no HID display" in m for m in lines), 60), lines
         assert info["hotplug"] == "udev"
@@ -202,7 +231,8 @@ def test_pump_reconnects_on_the_udev_event_at_once_and_drops_on_removal(tmp_path
         assert pump_says(lambda: info.get("last_reconnect_s") is not None, 5), lines
         assert 0 < info["last_reconnect_s"] < 1.0 and info["reconnected"] == 1
         assert any("playing again" in m and "after its udev add event" in m for m in lines), lines
-        assert stats[STAT_INDEX["device_samples_played"]] > 0  # the device's own counter
+        # and it plays: the device's own counter advances
+        assert pump_says(lambda: stats[STAT_INDEX["device_samples_played"]] > 0, 3)
         # unplugged: the udev remove event of our node ends the link at once (the simulated
         # device would have gone on answering: only the event can have done it)
         flag.unlink()
@@ -211,7 +241,52 @@ def test_pump_reconnects_on_the_udev_event_at_once_and_drops_on_removal(tmp_path
         assert pump_says(lambda: info.get("transport") is None, 5)
         assert stats[STAT_INDEX["connected"]] == 0
     finally:
-        parent.send(("quit",))
-        proc.join(5)
-        if proc.is_alive():
-            proc.kill()
+        pc.close()
+
+
+def test_auto_waits_for_the_hidraw_node_after_the_usb_event(tmp_path):
+    # with "auto", the USB device's event comes before usbhid made the hidraw node; opening at
+    # once would take the display as raw USB (detaching usbhid) or fail
+    pc = PumpChild(tmp_path, "auto")
+    try:
+        def tries():
+            return sum("no HID display" in m for m in pc.lines)
+
+        assert pc.says(lambda: tries() == 1, 60), pc.lines
+        pc.mon.push(action="add", subsystem="usb", devtype="usb_device", node="/dev/bus/usb/001/009",
+                    props={"PRODUCT": f"{pr.USB_VID:x}/{pr.USB_PID:x}/100"})
+        pc.says(lambda: False, 0.3)
+        assert tries() == 1  # not yet: usbhid has had no time to bind
+        pc.flag.touch()
+        t0 = time.monotonic()
+        pc.mon.push(action="add", subsystem="hidraw", node="/dev/hidraw9", parent_hid=DISPLAY_HID)
+        assert pc.says(lambda: pc.info.get("transport") == "hid:/dev/hidraw9", 5), pc.lines
+        assert time.monotonic() - t0 < 1.0
+    finally:
+        pc.close()
+
+
+def test_a_missed_udev_event_costs_one_reconnect_interval_not_forever(tmp_path):
+    # the unit's PrivateNetwork=yes (a private network namespace) hides udev's events: the
+    # display's sysfs entry, looked at once per device.reconnect_s, still brings it back
+    pc = PumpChild(tmp_path, "hid")
+    try:
+        assert pc.says(lambda: any("no HID display" in m for m in pc.lines), 60), pc.lines
+        pc.flag.touch()
+        pc.listed.touch()  # plugged, and no event comes
+        assert pc.says(lambda: pc.info.get("transport") == "hid:/dev/hidraw9", 3), pc.lines
+        assert any("no udev event said so" in m and "PrivateNetwork" in m for m in pc.lines)
+        assert pc.info["hotplug_missed"] == 1 and pc.info["last_reconnect_s"] is None  # no event to time
+    finally:
+        pc.close()
+
+
+def test_a_display_that_opens_but_does_not_answer_is_closed_before_the_retry(tmp_path):
+    # the fd (hidraw) or the interface claim with usbhid detached (raw USB) must not leak per retry
+    pc = PumpChild(tmp_path, "hid")
+    try:
+        Path(str(pc.flag) + ".silent").touch()
+        assert pc.says(lambda: any("no answer to IDENTIFY" in m for m in pc.lines), 60), pc.lines
+        assert Path(str(pc.flag) + ".closed").exists()
+    finally:
+        pc.close()

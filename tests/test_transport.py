@@ -13,13 +13,14 @@ from __future__ import annotations
 import errno
 import os
 import socket
+import sys
 import threading
 import time
 from pathlib import Path
 
 import pytest
 
-from hostd.device import hidlink, usblink
+from hostd.device import backend, hidlink, hotplug, usblink
 from hostd.device import protocol as pr
 from hostd.device.hidlink import HidapiTransport, HidrawTransport
 from hostd.device.link import DeviceLink
@@ -84,10 +85,16 @@ def test_hidraw_short_reports_are_passed_on_and_the_link_counts_truncated_ones(h
 
 def test_hidraw_handshake_and_blocking_wait(hidraw):
     t, dev = hidraw
-    assert t.wait_readable(0.01) is False
+    assert t.wait(0.01) is False
+    r, w = os.pipe()
+    os.write(w, b"x")  # a command for the pump: the wait ends at once, False (nothing from the device)
+    t0 = time.monotonic()
+    assert t.wait(5.0, fds=[r]) is False and time.monotonic() - t0 < 1.0
+    os.close(r)
+    os.close(w)
     threading.Timer(0.05, lambda: dev.send(pr.pad_report(vec("ident")))).start()
     t0 = time.monotonic()
-    assert t.wait_readable(2.0) is True
+    assert t.wait(2.0) is True
     assert time.monotonic() - t0 < 1.5
     assert DeviceLink(t).handshake(timeout_s=0.5)["limit_code"] == 16383
 
@@ -152,6 +159,12 @@ def test_hidraw_found_by_vid_pid_in_sysfs_and_a_named_node_is_used(tmp_path, mon
     t.close()
     a.close()
     b.close()
+    with pytest.raises(DeviceNotFound, match=r"/dev/hidraw0 is 046d:c077, not the display"):
+        hidlink.open_hid("/dev/hidraw0", sysfs=sysfs)  # a mouse: nothing is written to it
+    assert len(opened) == 2
+    if sys.platform == "linux":  # before the HID modules load there is no /sys/class/hidraw: still hidraw
+        with pytest.raises(DeviceNotFound, match=r"hidraw devices seen: none"):
+            hidlink.open_hid(None, sysfs=str(tmp_path / "no-sysfs"))
     with pytest.raises(DeviceNotFound, match=r"hidraw devices seen: 046d:c077"):
         hidlink.open_hid(None, sysfs=_sysfs(tmp_path / "other", {"hidraw0": MOUSE}))
 
@@ -169,7 +182,13 @@ def test_hidraw_permission_denied_names_the_node_the_rule_and_the_group(tmp_path
         HidrawTransport(str(node))
     msg = str(e.value)
     assert str(node) in msg and "0600" in msg and "70-hostd.rules" in msg and "'hostd' group" in msg
-    assert "\n" not in msg
+    assert "must exist before the display appears" in msg and "\n" not in msg
+    # the rule worked (group hostd) but this user is not in the group: say that instead
+    monkeypatch.setattr(backend, "node_owner", lambda n: {"node": n, "owner": "root", "group": "hostd",
+                                                          "mode": "0660", "access": False})
+    with pytest.raises(DevicePermission, match=r"\(root:hostd 0660\): the udev rule \(systemd/70-hostd"
+                       r"\.rules\) gave it to group 'hostd': add your user to it \(sudo usermod -aG hostd"):
+        HidrawTransport(str(node))
     monkeypatch.undo()
     with pytest.raises(DeviceNotFound, match="does not exist"):
         HidrawTransport(str(tmp_path / "hidraw5"), sysfs=str(tmp_path))
@@ -288,7 +307,9 @@ class FakeUsbDev:
     def get_active_configuration(self):
         if not self.configured:
             raise USBError(None, "Configuration not set")
-        return object()
+        return self.config
+
+    config = None  # {(interface, alt): [endpoints]} when a test gives one
 
     def set_configuration(self):
         self.calls.append("set_configuration")
@@ -351,6 +372,19 @@ def test_usb_writes_exact_packets_to_the_out_endpoint():
     assert t.describe() == "usb:001/007"
 
 
+def test_usb_endpoints_come_from_the_interface_descriptor():
+    # the Linux gadget numbered its endpoints itself (0x81 IN, 0x02 OUT): 0x01 was "Invalid
+    # endpoint address" on the real kernel
+    from types import SimpleNamespace as Ep
+
+    dev = FakeUsbDev()
+    dev.config = {(0, 0): [Ep(bEndpointAddress=0x81, bmAttributes=3),
+                           Ep(bEndpointAddress=0x02, bmAttributes=3)]}
+    t = usb(dev)
+    t.send(pr.encode("START"))
+    assert dev.writes == [(0x02, pr.pad_report(vec("start")))] and t.ep_in == 0x81
+
+
 def test_usb_claims_politely_and_gives_the_interface_back_to_usbhid():
     dev = FakeUsbDev(driver=True)
     t = usb(dev)
@@ -411,11 +445,23 @@ def test_usb_permission_denied_names_the_node_and_the_udev_rule():
         usb(FakeUsbDev(), where="002/003")
 
 
+def test_usb_wait_reads_ahead_and_watches_other_descriptors():
+    dev = FakeUsbDev(replies=[pr.pad_report(vec("status"))])
+    t = usb(dev)
+    assert t.wait(0.01) is True and t.pending()  # the packet read while waiting is kept for recv
+    assert t.recv(0.0) == pr.pad_report(vec("status")) and not t.pending()
+    r, w = os.pipe()
+    os.write(w, b"x")
+    assert t.wait(5.0, fds=[r]) is False  # libusb has no descriptor: it reads in slices meanwhile
+    os.close(r)
+    os.close(w)
+
+
 def test_usb_removed_mid_read_is_device_gone():
     dev = FakeUsbDev(fail=USBError(errno.ENODEV, "No such device (it may have been disconnected)"))
     t = usb(dev)
     with pytest.raises(DeviceGone, match="usb:001/007 went away"):
-        t.wait_readable(0.01)
+        t.wait(0.01)
 
 
 def test_usb_enumeration_from_sysfs(tmp_path):
@@ -480,6 +526,8 @@ def test_doctor_lists_each_display_with_its_spec_and_its_nodes_owner_group_mode(
     assert second["spec"] == "usb:001/007" and "error" in second  # vanished between listing and stat
     assert out["hotplug"] in ("udev", "poll")
     msgs = [c["message"] for c in out["checks"] if c["section"] == "device"]
+    hot = [m for m in msgs if m.startswith("hotplug: ")]
+    assert hot == [f"hotplug: {hotplug.watch('hid').describe()}"] and not hot[0].endswith(": ")
     assert any(m.startswith("device.transport = 'hid': found hid:") for m in msgs), msgs
 
 
@@ -491,7 +539,7 @@ def test_serial_hangup_mid_read_is_device_gone_at_once():
     t = SerialTransport(os.ttyname(slave))
     os.close(slave)
     os.write(master, pr.frame(pr.encode("START")))
-    assert t.wait_readable(1.0) and t.recv(0.5) == pr.encode("START")
+    assert t.wait(1.0) and t.recv(0.5) == pr.encode("START")
     assert t.describe().startswith("serial:/dev/pts/") and t.fileno() >= 0
     threading.Timer(0.05, os.close, [master]).start()  # the display is unplugged while we wait
     t0 = time.monotonic()

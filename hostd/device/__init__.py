@@ -1,6 +1,6 @@
 """The device link: protocol, transports (HID, raw USB, serial, simulated) and flow control.
 
-    transport = open_transport("auto")      # or "hid", "usb", "serial:/dev/ttyACM0", "sim"
+    transport = open_transport("auto")  # or "hid", "hid:/dev/hidraw0", "usb", "serial:/dev/ttyACM0", "sim"
     link = DeviceLink(transport); link.handshake(); link.start()
 """
 

@@ -5,10 +5,10 @@ factory; the factory (hostd.device.transport) maps names to backends lazily, so 
 imports back and a backend's optional library (hidapi, pyusb, pyserial) loads only when used.
 
 A transport moves whole protocol messages. Besides send/recv it gives the pump something to
-block on: `wait_readable(timeout_s)` returns as soon as a message may be waiting (or the
-device went away), and `fileno()` is the descriptor it waits on where there is one (hidraw,
-serial), so the pump can sleep in select/poll with other descriptors (the command pipe, the
-udev monitor) instead of spinning.
+block on (the interface i22's sleeping device-mode loop uses): `wait(timeout_s, fds)` returns as
+soon as a message may be waiting (or the device went away), or one of `fds` (the command pipe)
+is readable; `fileno()` is the descriptor it waits on where there is one (hidraw, serial), and
+`pending()` says a message was already read and is queued in the object.
 """
 
 from __future__ import annotations
@@ -41,19 +41,32 @@ class Transport:
         """One message, or None if none arrived within timeout_s. Raises DeviceGone."""
         raise NotImplementedError
 
+    POLL_S = 0.001  # the fallback's poll period (a backend without a descriptor)
+
     def fileno(self) -> int | None:
-        """The descriptor that becomes readable when a message arrives (None: there is none,
-        use wait_readable)."""
+        """A descriptor that becomes readable when the device has sent something, or None."""
         return None
 
-    def wait_readable(self, timeout_s: float) -> bool:
-        """Block until a message may be waiting (True) or timeout_s passed (False). A device
-        that went away counts as readable: the next recv() raises DeviceGone."""
+    def pending(self) -> bool:
+        """Messages already read from the device and waiting in this object."""
+        return False
+
+    def wait(self, timeout_s: float, fds=()) -> bool:
+        """Block until the device may have sent a message, one of `fds` is readable, or
+        timeout_s has passed. True when recv() may have something (a device that went away
+        counts: the next recv() raises DeviceGone). Without a descriptor: the fallback wakes
+        every POLL_S and reports True (recv finds out)."""
+        if self.pending():
+            return True
         fd = self.fileno()
         if fd is None:
-            time.sleep(max(0.0, timeout_s))
+            ready, _, _ = select.select(list(fds), [], [], max(0.0, min(timeout_s, self.POLL_S)))
+            return not ready
+        try:
+            ready, _, _ = select.select([fd, *fds], [], [], max(0.0, timeout_s))
+        except (OSError, ValueError):  # the descriptor closed under us: let recv() report it
             return True
-        return wait_fd(fd, timeout_s)
+        return fd in ready
 
     def close(self) -> None:
         pass
@@ -72,17 +85,6 @@ class Transport:
 
     def __exit__(self, *exc):
         self.close()
-
-
-def wait_fd(fd: int, timeout_s: float) -> bool:
-    """poll() one descriptor for input (or hang-up/error, which the next read reports)."""
-    p = select.poll()
-    p.register(fd, select.POLLIN | select.POLLPRI)
-    while True:
-        try:
-            return bool(p.poll(max(0, int(timeout_s * 1000 + 0.999))))
-        except InterruptedError:  # pragma: no cover - PEP 475 retries already
-            continue
 
 
 TRANSIENT_ERRNOS = (errno.EAGAIN, errno.EWOULDBLOCK, errno.ETIMEDOUT, errno.EINTR, errno.ENOBUFS)
@@ -108,10 +110,19 @@ def node_owner(path: str) -> dict:
 
 
 def permission_error(node: str) -> DevicePermission:
-    """The one-line refusal for a node this user may not open: who may, and how to get there."""
+    """The one-line refusal for a node this user may not open: who may, and how to get there.
+    A node of group hostd means the udev rule worked and this user is not in the group; any other
+    group means the rule did not apply (not installed, or the group did not exist yet when the
+    display appeared)."""
     o = node_owner(node)
     have = f" ({o['owner']}:{o['group']} {o['mode']})" if "mode" in o else ""
-    return DevicePermission(f"permission denied opening {node}{have}: {UDEV_FIX}")
+    if o.get("group") == GROUP:
+        fix = (f"the udev rule ({UDEV_RULE}) gave it to group '{GROUP}': add your user to it "
+               f"(sudo usermod -aG {GROUP} $USER, then log in again) or run hostd as the service")
+    else:
+        fix = (f"{UDEV_FIX}; the '{GROUP}' group must exist before the display appears "
+               "(sudo hostd install-service does both)")
+    return DevicePermission(f"permission denied opening {node}{have}: {fix}")
 
 
 def os_error(e: OSError, what: str, node: str | None = None) -> DeviceError:

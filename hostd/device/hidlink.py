@@ -22,11 +22,12 @@ from __future__ import annotations
 
 import os
 import select
+import sys
 import time
 from pathlib import Path
 
 from hostd.device import protocol as pr
-from hostd.device.backend import Transport, os_error, permission_error, wait_fd
+from hostd.device.backend import Transport, os_error, permission_error
 from hostd.errors import DeviceBusy, DeviceGone, DeviceNotFound
 
 SYSFS = "/sys"
@@ -36,7 +37,9 @@ READ_SIZE = 4096  # larger than any report: a read never truncates one silently
 
 # ------------------------------------------------------------------ Linux: hidraw
 def hidraw_present(sysfs: str = SYSFS) -> bool:
-    return Path(sysfs, "class", "hidraw").is_dir()
+    """Linux: hidraw is the way, even before /sys/class/hidraw exists (the HID modules load
+    with the first HID device); elsewhere (macOS, Windows) hidapi."""
+    return sys.platform == "linux" or Path(sysfs, "class", "hidraw").is_dir()
 
 
 def _uevent(path: Path) -> dict[str, str]:
@@ -94,6 +97,8 @@ class HidrawTransport(Transport):
         if fd is None:
             if node is None:
                 node = self._find(sysfs)
+            else:
+                self._check_ids(node, sysfs)
             try:
                 fd = os.open(node, os.O_RDWR | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOCTTY)
             except FileNotFoundError:
@@ -117,6 +122,17 @@ class HidrawTransport(Transport):
             raise DeviceNotFound(f"no HID display {pr.USB_VID:04x}:{pr.USB_PID:04x} "
                                  f"(hidraw devices seen: {', '.join(seen) or 'none'})")
         return mine[0]["node"]
+
+    @staticmethod
+    def _check_ids(node: str, sysfs: str) -> None:
+        """A named node that sysfs says is another device is refused before a byte is written
+        to it (a mouse's or a keyboard's hidraw node)."""
+        name = os.path.basename(os.path.realpath(node))
+        uevent = _uevent(Path(sysfs, "class", "hidraw", name, "device", "uevent"))
+        ids = parse_hid_id(uevent.get("HID_ID", ""))
+        if ids is not None and (ids[1], ids[2]) != (pr.USB_VID, pr.USB_PID):
+            raise DeviceNotFound(f"{node} is {ids[1]:04x}:{ids[2]:04x}, not the display "
+                                 f"{pr.USB_VID:04x}:{pr.USB_PID:04x}; hostd doctor lists the displays")
 
     def _err(self, e: OSError):
         return os_error(e, f"HID {self.node}", self.node if self.node.startswith("/") else None)
@@ -157,9 +173,6 @@ class HidrawTransport(Transport):
 
     def fileno(self) -> int:
         return self.fd
-
-    def wait_readable(self, timeout_s: float) -> bool:
-        return wait_fd(self.fd, timeout_s)
 
     def close(self) -> None:
         fd, self.fd = self.fd, -1

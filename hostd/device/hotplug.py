@@ -161,8 +161,8 @@ def watch(spec: str, source: str = "udev", control: str = UDEV_CONTROL) -> Hotpl
         return Hotplug(why_poll="pyudev is not installed (pip install 'hostd[device]')")
     try:
         monitor = pyudev.Monitor.from_netlink(pyudev.Context(), source=source)
-        for s in subs:
-            monitor.filter_by(s)
+        for s in subs:  # (filtered in the kernel: other devices' events never wake us)
+            monitor.filter_by(s, "usb_device" if s == "usb" else None)
         monitor.start()
     except Exception as e:  # no libudev, no netlink socket (a sandbox)
         return Hotplug(why_poll=f"no udev monitor ({e})")

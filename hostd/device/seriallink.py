@@ -1,6 +1,6 @@
 """Serial-bridge backend through pyserial: COBS frames with a CRC-16 (protocol.frame).
 
-Reads wait in poll() on the port's descriptor (`wait_readable`, `fileno`), so the pump can block
+Reads wait in select() on the port's descriptor (`wait`, `fileno`), so the pump can block
 on it; a port that hangs up (a CDC-ACM display unplugged) reads as gone.
 """
 
@@ -10,7 +10,7 @@ import os
 import time
 
 from hostd.device import protocol as pr
-from hostd.device.backend import Transport, os_error, permission_error, wait_fd
+from hostd.device.backend import Transport, os_error, permission_error
 from hostd.errors import DeviceBusy, DeviceGone, DeviceNotFound, DevicePermission
 
 
@@ -118,14 +118,14 @@ class SerialTransport(Transport):
             left = deadline - time.monotonic()
             if left <= 0:
                 return None
-            wait_fd(self.ser.fd, left)
+            self.wait(left)  # sleeps in select() until bytes arrive, not in a polling loop
         return self._queue.pop(0)
 
     def fileno(self) -> int:
         return self.ser.fd
 
-    def wait_readable(self, timeout_s: float) -> bool:
-        return bool(self._queue) or wait_fd(self.ser.fd, timeout_s)
+    def pending(self) -> bool:
+        return bool(self._queue)
 
     def close(self) -> None:
         try:

@@ -260,17 +260,5 @@ class SimTransport(Transport):
                 return None
             time.sleep(0.0002)
 
-    def wait_readable(self, timeout_s: float) -> bool:
-        """Sleep until the simulated device has a message (a STATUS every millisecond)."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            self._catch_up()
-            if self.device.outbox:
-                return True
-            left = deadline - time.monotonic()
-            if left <= 0 or not self.realtime:
-                return False
-            time.sleep(min(left, 0.0005))
-
     def close(self) -> None:
         self.closed = True

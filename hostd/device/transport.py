@@ -43,6 +43,25 @@ def find_displays() -> list[dict]:
     return found
 
 
+def present(spec: str) -> list[dict]:
+    """The displays a spec could open, listed without opening anything (sysfs on Linux): the
+    daemon's check, once per device.reconnect_s while it waits, that no udev event was missed."""
+    import os
+
+    kind, _, arg = spec.partition(":")
+    if kind == "sim":
+        return []
+    if arg and kind in ("hid", "serial"):
+        return [{"spec": spec, "node": arg}] if os.path.exists(arg) else []
+    found = []
+    for name in AUTO_ORDER if kind == "auto" else (kind,):
+        try:
+            found += _attr(name, 2)()
+        except (DeviceError, ImportError, OSError):
+            pass
+    return [d for d in found if not arg or d["spec"] == spec]
+
+
 def find_devices() -> list[str]:
     """The transport specs of every display plugged in."""
     return [d["spec"] for d in find_displays()]

@@ -1,6 +1,7 @@
 """Raw USB backend through pyusb, with libusb-package's bundled libusb (no system libusb).
 
-Interrupt OUT endpoint 0x01 and IN endpoint 0x81 (protocol.toml), 64-byte packets, interface 0.
+Interface 0's interrupt OUT and IN endpoints as its descriptor gives them (the board port's are 0x01
+and 0x81, protocol.toml; a Linux gadget numbers its own), 64-byte packets.
 
 Polite claim: the kernel's HID driver (usbhid) normally has the interface, and a program may
 be using the display through it (/dev/hidrawN, e.g. the daemon on `hid`). Detaching usbhid
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import errno
 import os
+import time
 from pathlib import Path
 
 from hostd.device import protocol as pr
@@ -141,7 +143,7 @@ class UsbTransport(Transport):
             import usb.util as util
         self._util = util
         self._detached = self._claimed = False
-        self._pending: bytes | None = None  # a packet read by wait_readable, for recv
+        self._pending: bytes | None = None  # a packet read by wait(), for recv
         try:
             self._claim()
         except DeviceError:
@@ -172,6 +174,24 @@ class UsbTransport(Transport):
             dev.set_configuration()
         self._util.claim_interface(dev, INTERFACE)
         self._claimed = True
+        self.ep_out, self.ep_in = self._endpoints(dev)
+
+    @staticmethod
+    def _endpoints(dev) -> tuple[int, int]:
+        """The interface's interrupt OUT and IN endpoints, as its descriptor says (a Linux gadget
+        numbers them itself, e.g. 0x02 OUT); the board port's (protocol.toml) if it says none."""
+        ep_out, ep_in = pr.P["usb_ep_out"], pr.P["usb_ep_in"]
+        try:
+            intf = dev.get_active_configuration()[(INTERFACE, 0)]
+            for e in intf:
+                if e.bmAttributes & 0x3 == 0x3:  # interrupt
+                    if e.bEndpointAddress & 0x80:
+                        ep_in = e.bEndpointAddress
+                    else:
+                        ep_out = e.bEndpointAddress
+        except Exception:  # no descriptor to read: keep the board port's
+            pass
+        return ep_out, ep_in
 
     def _map(self, e: Exception) -> DeviceError:
         code = getattr(e, "errno", None)
@@ -190,13 +210,13 @@ class UsbTransport(Transport):
 
     def send(self, msg: bytes) -> None:
         try:
-            self.dev.write(pr.P["usb_ep_out"], pr.pad_report(msg), 100)
+            self.dev.write(self.ep_out, pr.pad_report(msg), 100)
         except Exception as e:
             raise self._map(e) from None
 
     def _read(self, timeout_s: float) -> bytes | None:
         try:
-            data = self.dev.read(pr.P["usb_ep_in"], pr.REPORT_SIZE, max(1, int(timeout_s * 1000)))
+            data = self.dev.read(self.ep_in, pr.REPORT_SIZE, max(1, int(timeout_s * 1000)))
         except Exception as e:
             if getattr(e, "errno", None) == errno.ETIMEDOUT or type(e).__name__ == "USBTimeoutError":
                 return None
@@ -209,11 +229,26 @@ class UsbTransport(Transport):
             return data
         return self._read(timeout_s)
 
-    def wait_readable(self, timeout_s: float) -> bool:
-        """libusb gives no descriptor per endpoint: wait by reading, and keep the packet."""
-        if self._pending is None:
-            self._pending = self._read(timeout_s)
+    def pending(self) -> bool:
         return self._pending is not None
+
+    def wait(self, timeout_s: float, fds=()) -> bool:
+        """libusb gives no descriptor per endpoint: wait by reading (the packet is kept for
+        recv), in slices of POLL_S when `fds` must be watched too."""
+        import select
+
+        if self._pending is not None:
+            return True
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            self._pending = self._read(min(left, self.POLL_S) if fds else left)
+            if self._pending is not None:
+                return True
+            if fds and select.select(list(fds), [], [], 0)[0]:
+                return False
+            if deadline - time.monotonic() <= 0:
+                return False
 
     def close(self) -> None:
         dev = getattr(self, "dev", None)

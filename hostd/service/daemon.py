@@ -398,6 +398,20 @@ class Daemon:
             self.start_worker(name, target)
         return not self.dead_workers
 
+    def pump_messages(self) -> None:
+        """Log the pump's lines and take its info (transport, hotplug, reconnection time)."""
+        try:
+            while self.conn.poll():
+                kind, msg = self.conn.recv()
+                if kind == "info":
+                    self.pump_info = msg
+                    continue
+                # the pump's lines carry their level: device loss and recoveries are
+                # warnings (journald priority 4), the rest information
+                log.log(logging.WARNING if kind == "warn" else logging.INFO, "%s", msg)
+        except (EOFError, OSError):
+            pass  # the pump is gone: the main loop says so
+
     # ------------------------------------------------------------ main
     def run(self) -> int:
         self.proc.start()
@@ -413,17 +427,7 @@ class Daemon:
         last_cycles = -1.0
         try:
             while not self.stop_event.wait(0.2):
-                try:
-                    while self.conn.poll():
-                        kind, msg = self.conn.recv()
-                        if kind == "info":  # transport / hotplug / reconnection time
-                            self.pump_info = msg
-                            continue
-                        # the pump's lines carry their level: device loss and recoveries are
-                        # warnings (journald priority 4), the rest information
-                        log.log(logging.WARNING if kind == "warn" else logging.INFO, "%s", msg)
-                except (EOFError, OSError):
-                    pass  # the pump is gone: said just below
+                self.pump_messages()
                 if not self.proc.is_alive():
                     log.error("the real-time pump exited (code %s); stopping", self.proc.exitcode)
                     return 1
@@ -452,6 +456,7 @@ class Daemon:
             self.proc.join(3.0)
             if self.proc.is_alive():
                 self.proc.terminate()
+            self.pump_messages()  # its last lines (a recovery just before the stop) reach the log
             self.stop_event.set()
             if self.control is not None:
                 self.control.close()

@@ -97,8 +97,9 @@ def doctor(config: str | None, json_out: bool = False) -> int:
                 + (f" (found only {', '.join(found)})" if found else ""),
                 "plug it in; or set device.transport = \"sim\" to run without one")
     hot = watch(transport)
-    hot.close()
+    hotplug_mode = hot.mode
     note(f"hotplug: {hot.describe()}")
+    hot.close()
     for node in sorted(glob.glob("/dev/hidraw*")):
         if not os.access(node, os.R_OK | os.W_OK) and node not in {d.get("node") for d in displays}:
             note(f"{node} is not accessible to this user (only a problem if it is the display)")
@@ -175,7 +176,7 @@ def doctor(config: str | None, json_out: bool = False) -> int:
         import json
 
         print(json.dumps({"problems": problems, "checks": checks, "displays": displays,
-                          "hotplug": hot.mode}))
+                          "hotplug": hotplug_mode}))
     else:
         print(f"{problems} problem(s)")
     return 1 if problems else 0

@@ -63,6 +63,8 @@ def _die_with_parent() -> None:
 
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, 15)  # PR_SET_PDEATHSIG, SIGTERM
+        # PR_SET_NAME: `ps` and a refused raw-USB claim ("busy: pid N (hostd-pump) ...") name it
+        libc.prctl(15, ctypes.c_char_p(b"hostd-pump"))
         if os.getppid() == 1:  # the parent died before prctl took effect
             os.kill(os.getpid(), 15)
     except (OSError, AttributeError):
@@ -79,7 +81,7 @@ def pump_main(cfg, conn, stats) -> None:
     from hostd.device.hotplug import watch
     from hostd.device.link import DeviceLink
     from hostd.device.pump import JitterConfig, Pump
-    from hostd.device.transport import open_transport
+    from hostd.device.transport import open_transport, present
     from hostd.errors import DeviceError, DeviceGone, DeviceNotFound, DeviceVersion
     from hostd.render import Renderer
 
@@ -89,7 +91,7 @@ def pump_main(cfg, conn, stats) -> None:
     def log(msg: str) -> None:
         # device loss, refusals and recoveries are warnings; set-up lines are information
         warn = msg.startswith(("device lost", "device:", "playback recovered", "device mode: the display",
-                               "pump: ")) and ", protocol v" not in msg
+                               "pump: ")) and ", protocol v" not in msg and " playing again " not in msg
         try:
             conn.send(("warn" if warn else "log", msg))
         except (OSError, EOFError):
@@ -101,6 +103,7 @@ def pump_main(cfg, conn, stats) -> None:
     _realtime(cfg.realtime, log)
     # hotplug: udev events where udev runs, else a retry every device.reconnect_s
     hot = watch(cfg.device.transport)
+    spec_kind = cfg.device.transport.partition(":")[0]
     info = {"transport": None, "hotplug": hot.mode, "last_reconnect_s": None, "reconnected": 0}
 
     def tell(**kw) -> None:  # strings and timings for `hostd status` (not per cycle: on change)
@@ -268,26 +271,46 @@ def pump_main(cfg, conn, stats) -> None:
 
     def wait_for_display(absent: bool) -> None:
         """Until it is time to try again: the display's udev add event (udev mode, and it was
-        not there), else device.reconnect_s (poll mode, or a display that is there but failed)."""
+        not there), else device.reconnect_s (poll mode, or a display that is there but failed).
+        In udev mode the display's sysfs entry is also looked at every device.reconnect_s
+        (nothing is opened): a missed event (a private network namespace hides udev's events,
+        a netlink overflow drops them) costs that long, not forever."""
         nonlocal wait_ticks
         from multiprocessing.connection import wait
 
         by_event = absent and hot.mode == "udev"
         t_end = time.monotonic() + cfg.device.reconnect_s
+        adds: list = []
+        listed_usb = False
         while not quit_:
+            now = time.monotonic()
             if by_event:
                 backlog.extend(hot.events())
-                adds = [ev for ev in backlog if ev.action == "add" and ev.display]
+                adds += [ev for ev in backlog if ev.action == "add" and ev.display]
                 backlog.clear()
-                if adds:
-                    arrival[0] = adds[-1].t
+                # with "auto", a USB device's own event comes before usbhid made its hidraw node:
+                # give that 0.5 s, or auto would take it as raw USB (and detach usbhid)
+                if adds and (spec_kind != "auto" or any(ev.subsystem != "usb" for ev in adds)
+                             or now - adds[0].t >= 0.5):
+                    arrival[0] = adds[0].t
                     return
-            now = time.monotonic()
-            if not by_event and now >= t_end:
+                if not adds and now >= t_end:
+                    t_end = now + cfg.device.reconnect_s
+                    listed = present(cfg.device.transport)
+                    usb_only = all(d["spec"].startswith("usb:") for d in listed)
+                    if listed and (spec_kind != "auto" or not usb_only or listed_usb):
+                        info["missed"] = info.get("missed", 0) + 1
+                        log(f"hotplug: {listed[0]['spec']} is there but no udev event said so: udev's "
+                            "events do not reach hostd (a private network namespace, e.g. the unit's "
+                            "PrivateNetwork=yes, hides them); reconnecting within device.reconnect_s")
+                        tell(hotplug_missed=info["missed"])
+                        return
+                    listed_usb = bool(listed)  # auto: raw USB only if still no hidraw a tick later
+            elif now >= t_end:
                 return
-            # wake at least once a second: the watchdog sees the pump alive while it waits
-            ready = wait([conn, hot_fd] if by_event else [conn], min(1.0, max(0.0, t_end - now))
-                         if not by_event else 1.0)
+            # wake at least every 0.25 s: SIGTERM is seen, and the watchdog sees the pump alive
+            ready = wait([conn, hot_fd] if by_event else [conn],
+                         0.1 if adds else min(0.25, max(0.0, t_end - now)))
             wait_ticks += 1
             put("wait_ticks", wait_ticks)
             if conn in ready:
@@ -296,6 +319,7 @@ def pump_main(cfg, conn, stats) -> None:
 
     while not quit_:
         # ---- connect
+        transport = None
         try:
             transport = open_transport(cfg.device.transport)
             link = DeviceLink(transport, target_fill=cfg.device.target_fill)
@@ -303,6 +327,8 @@ def pump_main(cfg, conn, stats) -> None:
             link.set_limits(min(limit_code, ident["limit_code"]), min(max_step, ident["max_step_code"]))
             link.set_timeout(cfg.device.host_timeout_ms)
         except DeviceError as e:
+            if transport is not None:  # opened, then no answer: release it (the fd, the USB claim)
+                transport.close()
             put("connected", 0)
             put("state", STATE_CODES["waiting"])
             log(f"device: {e}")
