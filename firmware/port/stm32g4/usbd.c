@@ -6,7 +6,7 @@
 
 #define LO(x) ((uint8_t)((x) & 0xFFu))
 #define HI(x) ((uint8_t)(((x) >> 8) & 0xFFu))
-#define BCD_DEVICE ((HP_FW_VERSION_MAJOR << 8) | (HP_FW_VERSION_MINOR << 4) | HP_FW_VERSION_PATCH)
+#define BCD_DEVICE HOSTD_USB_BCD_DEVICE
 
 _Static_assert(HP_REPORT_SIZE <= 64 && HP_REPORT_SIZE > 0, "a full-speed interrupt packet holds <= 64 bytes");
 _Static_assert((HP_USB_EP_IN & 0x80) && (HP_USB_EP_OUT & 0x80) == 0 && (HP_USB_EP_IN & 0x0F) == 1 &&
@@ -25,39 +25,25 @@ const uint8_t usbd_device_desc[18] = {
     1,                                /* bNumConfigurations */
 };
 
-/* Vendor-defined page, no report IDs: one HP_REPORT_SIZE-byte input and output report. */
-const uint8_t usbd_hid_report_desc[] = {
-    0x06, 0x00, 0xFF,       /* Usage Page (Vendor Defined 0xFF00) */
-    0x09, 0x01,             /* Usage (1) */
-    0xA1, 0x01,             /* Collection (Application) */
-    0x15, 0x00,             /*   Logical Minimum (0) */
-    0x26, 0xFF, 0x00,       /*   Logical Maximum (255) */
-    0x75, 0x08,             /*   Report Size (8) */
-    0x95, HP_REPORT_SIZE,   /*   Report Count (HP_REPORT_SIZE) */
-    0x09, 0x02,             /*   Usage (2) */
-    0x81, 0x02,             /*   Input (Data, Variable, Absolute) */
-    0x95, HP_REPORT_SIZE,   /*   Report Count (HP_REPORT_SIZE) */
-    0x09, 0x03,             /*   Usage (3) */
-    0x91, 0x02,             /*   Output (Data, Variable, Absolute) */
-    0xC0,                   /* End Collection */
-};
+/* The HID report descriptor and the strings: hostd_usb.h, shared with the Linux gadget port. */
+const uint8_t usbd_hid_report_desc[] = HOSTD_USB_HID_REPORT_DESC;
 const uint16_t usbd_hid_report_desc_len = sizeof usbd_hid_report_desc;
-#define REPORT_DESC_LEN 27u
+#define REPORT_DESC_LEN HOSTD_USB_HID_REPORT_DESC_LEN
 _Static_assert(sizeof usbd_hid_report_desc == REPORT_DESC_LEN, "keep REPORT_DESC_LEN in step");
 
 const uint8_t usbd_config_desc[USBD_CONFIG_DESC_LEN] = {
     9, 2, LO(USBD_CONFIG_DESC_LEN), HI(USBD_CONFIG_DESC_LEN), /* CONFIGURATION, wTotalLength */
     1, 1, 0,                          /* bNumInterfaces, bConfigurationValue, iConfiguration */
-    0x80, 50,                         /* bus powered, 100 mA */
-    9, 4, 0, 0, 2, 3, 0, 0, 0,        /* INTERFACE 0, alt 0, 2 endpoints, HID, no boot, no string */
+    0x80, HOSTD_USB_MAX_POWER_MA / 2,  /* bus powered */
+    9, 4, 0, 0, 2, 3, HOSTD_USB_HID_SUBCLASS, HOSTD_USB_HID_PROTOCOL, 0, /* INTERFACE 0, 2 endpoints, HID */
     9, 0x21, 0x11, 0x01, 0, 1, 0x22, LO(REPORT_DESC_LEN), HI(REPORT_DESC_LEN), /* HID 1.11 */
-    7, 5, HP_USB_EP_IN, 3, LO(HP_REPORT_SIZE), HI(HP_REPORT_SIZE), 1,  /* interrupt IN, 1 ms */
-    7, 5, HP_USB_EP_OUT, 3, LO(HP_REPORT_SIZE), HI(HP_REPORT_SIZE), 1, /* interrupt OUT, 1 ms */
+    7, 5, HP_USB_EP_IN, 3, LO(HP_REPORT_SIZE), HI(HP_REPORT_SIZE), HOSTD_USB_INTERVAL_MS, /* interrupt IN */
+    7, 5, HP_USB_EP_OUT, 3, LO(HP_REPORT_SIZE), HI(HP_REPORT_SIZE), HOSTD_USB_INTERVAL_MS, /* interrupt OUT */
 };
 #define HID_DESC_OFFSET 18u
 
 static const uint8_t lang_desc[4] = {4, 3, 0x09, 0x04}; /* English (United States) */
-static const char *const strings[] = {"hostd", "hostd vibrotactile display"};
+static const char *const strings[] = {HOSTD_USB_MANUFACTURER, HOSTD_USB_PRODUCT};
 
 static uint16_t rd16(const uint8_t *p) { return (uint16_t)(p[0] | (p[1] << 8)); }
 

@@ -12,11 +12,13 @@
 #include <stdint.h>
 
 #include "hostd_proto.h"
+#include "hostd_usb.h"
 
 #define USBD_EP0_SIZE 64u
 #define USBD_CONFIG_DESC_LEN 41u
 #define USBD_UID_WORDS 3u
 #define USBD_SERIAL_CHARS (8u * USBD_UID_WORDS) /* 96-bit unique ID as 24 hex digits */
+_Static_assert(USBD_SERIAL_CHARS == HOSTD_USB_SERIAL_CHARS, "hostd_usb.h: the serial is the 96-bit UID");
 
 extern const uint8_t usbd_device_desc[18];
 extern const uint8_t usbd_config_desc[USBD_CONFIG_DESC_LEN];
