@@ -72,6 +72,7 @@ def test_hostd_run_starts_and_plays_under_the_units_seccomp_filter(tmp_path):
     notify.settimeout(0.2)
     env = _unit_env()
     env["NOTIFY_SOCKET"] = str(tmp_path / "notify")
+    env["WATCHDOG_USEC"] = "5000000"  # as systemd sets it for the unit's WatchdogSec=5
     nofile = int(unit_sandbox.unit_settings(UNIT)["LimitNOFILE"][-1])
     umask = int(unit_sandbox.unit_settings(UNIT)["UMask"][-1], 8)
 
@@ -107,6 +108,11 @@ def test_hostd_run_starts_and_plays_under_the_units_seccomp_filter(tmp_path):
                             + log.read_text()[-3000:])
             time.sleep(0.05)
         assert "READY=1" in msgs, log.read_text()[-3000:]
+        # systemd arms the watchdog at exec: the start asks for its allowance before anything
+        # slow, and READY=1 gives the unit's WatchdogSec= back (hostd.service.notify)
+        assert msgs[0] == "WATCHDOG_USEC=120000000", msgs[:4]
+        ready = msgs.index("READY=1")
+        assert msgs[ready + 1] == "WATCHDOG_USEC=5000000", msgs[ready:ready + 3]
         sock = str(tmp_path / "hostd.sock")
         _wait_socket(sock, proc, log)
         out = tmp_path / "w.vtx"

@@ -34,13 +34,17 @@ def _sock(args) -> str:
 
 
 def cmd_run(args) -> int:
+    from hostd.service.notify import Notifier
+
+    notifier = Notifier()
+    notifier.starting()  # before the imports and the pump's start: systemd's watchdog runs already
     from hostd.service.config import load
     from hostd.service.daemon import Daemon
     from hostd.service.logsetup import setup
 
     cfg = load(_config(args))
     setup(args.log_level)
-    return Daemon(cfg).run()
+    return Daemon(cfg, notifier).run()
 
 
 def cmd_send(args) -> int:

@@ -34,6 +34,7 @@ from hostd.service.config import Config, check_paths
 from hostd.service.control import REQUEST_DEADLINE_S, ClientConn, ControlServer
 from hostd.service.library import Library, check_name
 from hostd.service.logsetup import CONTROL_CHARS
+from hostd.service.notify import Notifier
 from hostd.service.pumpproc import FLOAT_FIELDS, RENDER_REASONS, STAT_FIELDS, STATE_NAMES, pump_main
 
 log = logging.getLogger("hostd")
@@ -95,28 +96,8 @@ class PumpWriter:
         self.thread.join(timeout_s)
 
 
-class Notifier:
-    """systemd sd_notify, a no-op outside systemd (no NOTIFY_SOCKET)."""
-
-    def __init__(self) -> None:
-        self.n = None
-        if os.environ.get("NOTIFY_SOCKET"):
-            try:
-                import sdnotify
-
-                self.n = sdnotify.SystemdNotifier()
-                if self.n.socket is not None:  # never block the main loop on a full notify queue
-                    self.n.socket.setblocking(False)
-            except ImportError:
-                log.warning("sdnotify is not installed: systemd readiness and watchdog disabled")
-
-    def notify(self, msg: str) -> None:
-        if self.n is not None:
-            self.n.notify(msg)
-
-
 class Daemon:
-    def __init__(self, cfg: Config) -> None:
+    def __init__(self, cfg: Config, notifier: Notifier | None = None) -> None:
         self.cfg = cfg
         check_paths(cfg)
         self.spool = Path(cfg.library.spool)
@@ -157,7 +138,7 @@ class Daemon:
         # from the pump, on change: transport in use, hotplug mode, last reconnection time
         self.pump_info: dict = {"transport": None, "hotplug": None, "last_reconnect_s": None}
         self.lock = threading.Lock()
-        self.notifier = Notifier()
+        self.notifier = notifier if notifier is not None else Notifier()
         self.control: ControlServer | None = None
         self.metrics = None  # the Prometheus endpoint's server, when metrics.listen is set
         self.workers: dict[str, tuple[Callable[[], None], threading.Thread | None, list[float]]] = {}
@@ -643,7 +624,7 @@ class Daemon:
                 st = self.counters()
                 state = st["state"]
                 if not ready and state in ("waiting", "idle", "playing"):
-                    self.notifier.notify("READY=1")
+                    self.notifier.ready()
                     ready = True
                 # the watchdog is fed only when the real-time loop made progress (cycles, or
                 # reconnection attempts or wake-ups while it waits for a device) and every worker thread is
