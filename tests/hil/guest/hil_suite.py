@@ -151,7 +151,9 @@ def status(sock: str, user=None) -> dict:
     """The daemon's status: as `user` through the CLI (what a user runs), else in-process through
     hostd's client (a CLI start costs seconds of the emulated CPU the daemon needs)."""
     if user:
-        return json.loads(sh([HOSTD, "status", "--json", "--socket", sock], user=user, timeout=60).stdout)
+        # a user runs the clients as the README says: no --config, no --socket (issue 24: they
+        # read /etc/hostd/hostd.toml, which install-service put there)
+        return json.loads(sh([HOSTD, "status", "--json"], user=user, timeout=60).stdout)
     from hostd.service.client import request
     st = request(sock, {"cmd": "status"})
     st.pop("ok", None)
@@ -505,8 +507,8 @@ def _service_checks(rec) -> Gadget:
     tex = "/home/alice/wood.vtx"
     sh(["cp", str(SHARE / "wood.vtx"), tex])
     sh(["chown", "alice", tex])
-    rec["alice_send"] = sh([HOSTD, "send", tex, "--socket", sock], user="alice").stdout.strip()[-300:]
-    rec["alice_select"] = sh([HOSTD, "select", "wood", "--socket", sock], user="alice").stdout.strip()[-300:]
+    rec["alice_send"] = sh([HOSTD, "send", tex], user="alice").stdout.strip()[-300:]
+    rec["alice_select"] = sh([HOSTD, "select", "wood"], user="alice").stdout.strip()[-300:]
     t = time.monotonic()
     try:
         wait_playing(g, 150)
@@ -519,7 +521,7 @@ def _service_checks(rec) -> Gadget:
                                       check=False).stdout[-2500:]
         sh(["systemctl", "restart", "hostd"], timeout=400)
         wait_daemon(sock)
-        sh([HOSTD, "select", "wood", "--socket", sock], user="alice")
+        sh([HOSTD, "select", "wood"], user="alice")
         t = time.monotonic()
         wait_playing(g, 300)
     rec["select_to_playing_s"] = round(time.monotonic() - t, 1)
@@ -545,7 +547,7 @@ def _service_checks(rec) -> Gadget:
          svc_show("ActiveState")["ActiveState"] == "active", 90, "hostd restarted after SIGKILL")
     rec["restart_after_kill_s"] = round(time.monotonic() - t, 1)
     wait_daemon(sock)
-    sh([HOSTD, "select", "wood", "--socket", sock], user="alice")
+    sh([HOSTD, "select", "wood"], user="alice")
     wait_playing(g, 300)
     # systemctl stop: the DAC log ramps to zero
     n1 = g.n_records()
