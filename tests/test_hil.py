@@ -171,7 +171,7 @@ def test_daemon_plays(hil, transport, where):
     if transport == "hid":
         assert st["transport"].startswith("hid:/dev/hidraw"), st
     if (transport, where) == ("usb", "device") and st["render_at"] == "host":
-        pytest.xfail("known, HIL_FINDINGS.md 8: on usb: the daemon sees no CAPS after IDENT and renders "
+        pytest.xfail("known, docs/hil-findings.md 8: on usb: the daemon sees no CAPS after IDENT and renders "
                      f"on the host: {st}")
     assert st["render_at"] == where, st
     # under TCG the emulated CPU, not USB, is the limit (most of the gadget's own ticks run late,
@@ -214,15 +214,11 @@ def test_service_under_systemd(hil):
     assert s["dac_playing"]["ticks_rendering"] > 3000  # the service renders on the device
     assert s["restart_after_kill_s"] is not None
     assert s["security_exposure"] is not None and s["security_exposure"] < 2.0
-    known = []
-    if s["dac_final_code"] != 0:
-        known.append("after `systemctl stop` in device rendering the display keeps rendering: last DAC "
-                     f"records {s.get('dac_after_stop_tail')}")
-    if not s["late_plug_picked_up"]:
-        known.append("the service under its sandbox does not pick up a display plugged in after it "
-                     f"started; status then: {s.get('late_plug_status')}")
-    if known:
-        pytest.xfail("known, HIL_FINDINGS.md: " + "; ".join(known))
+    # both were known problems (docs/hil-findings.md 4 and 5), fixed: asserted now
+    assert s["dac_final_code"] == 0, ("after `systemctl stop` in device rendering the display keeps "
+                                      f"rendering: last DAC records {s.get('dac_after_stop_tail')}")
+    assert s["late_plug_picked_up"], ("the service does not pick up a display plugged in after it "
+                                      f"started; status then: {s.get('late_plug_status')}")
 
 
 @pytest.mark.parametrize("args, says", [

@@ -514,7 +514,7 @@ def _service_checks(rec) -> Gadget:
         wait_playing(g, 150)
         rec["late_plug_picked_up"] = True
     except TimeoutError:
-        # recorded (HIL_FINDINGS.md), then the cold-plug case: a restart finds the display
+        # recorded (docs/hil-findings.md), then the cold-plug case: a restart finds the display
         rec["late_plug_picked_up"] = False
         rec["late_plug_status"] = pick(status(sock, user="alice"))
         rec["late_plug_journal"] = sh(["journalctl", "-u", "hostd", "--no-pager", "-n", "25"],
