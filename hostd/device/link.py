@@ -85,6 +85,22 @@ class DeviceLink:
                 raise DeviceVersion(f"{self.t.describe()} reports {key}={f[key]}, hostd expects {want}")
         return f
 
+    def await_caps(self, timeout_s: float = 2.0) -> dict | None:
+        """A v2 display's CAPS, which it sends right after IDENT: waited for up to timeout_s, and
+        asked for once more (IDENTIFY again) halfway, since a report can be lost (a slow or
+        emulated host missed it and then rendered on the host for the whole connection, VM rig).
+        None for a v1 display or when none came."""
+        if self.caps is not None or (self.ident or {}).get("protocol_version", 0) < 2:
+            return self.caps
+        t0 = time.monotonic()
+        asked = False
+        while self.caps is None and (now := time.monotonic()) < t0 + timeout_s:
+            if not asked and now >= t0 + timeout_s / 2:
+                self._send(pr.encode("IDENTIFY"), must=True)
+                asked = True
+            self.poll(0.05)
+        return self.caps
+
     def _send(self, msg: bytes, must: bool = False) -> None:
         """Send one message; a transient error is retried for retry_budget_s (a control
         message that must arrive: up to 50 ms), then DeviceBusy is raised."""

@@ -183,6 +183,7 @@ def pump_main(cfg, conn, stats) -> None:
         """Upload to the display and render there when it can hold the texture; False (and
         the reason published) when the host must render it."""
         sos = devrender.device_params(rcfg)["sos"]
+        link.await_caps(1.0)  # (asked again if it was lost at the connection)
         why = pr.render_refusal(link.ident or {}, link.caps, len(coeffs), 0 if sos is None else len(sos),
                                 who=link.t.describe())
         if why is not None:
@@ -430,12 +431,7 @@ def pump_main(cfg, conn, stats) -> None:
         if where == "host":
             choose(False, 1)
         else:
-            # a v2 display sends CAPS right after IDENT: wait for it (up to 1 s: a slow host or
-            # an emulated one took longer than the 50 ms once waited here, and then rendered on
-            # the host for the whole connection; VM rig, tests/hil)
-            t_caps = time.monotonic() + (1.0 if link.ident.get("protocol_version", 1) >= 2 else 0.05)
-            while link.caps is None and time.monotonic() < t_caps:
-                link.poll(0.05)
+            link.await_caps()  # a v2 display sends CAPS right after IDENT
             why = pr.render_refusal(link.ident, link.caps, 1, 0, who=transport.describe())
             if why is None:
                 dev = DeviceMode(link, rcfg, log, host_lost_ms=cfg.render.host_lost_ms,
