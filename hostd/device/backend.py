@@ -41,6 +41,20 @@ class Transport:
         """One message, or None if none arrived within timeout_s. Raises DeviceGone."""
         raise NotImplementedError
 
+    def drain(self) -> list[bytes]:
+        """Every message waiting now (none: an empty list). Raises DeviceGone. A backend that
+        reads a byte stream overrides this to take them all with one read."""
+        out = []
+        while (m := self.recv(0.0)) is not None:
+            out.append(m)
+        return out
+
+    def wake_after(self, sizes) -> None:
+        """Until the next wake_after(None): make fileno() readable only once messages of these
+        byte sizes (as the device sends them) have arrived, not at the first byte; None: at the
+        first byte (the default, for everything else that reads). A backend that cannot (one
+        report per read: HID, raw USB) ignores it and wakes per message."""
+
     POLL_S = 0.001  # the fallback's poll period (a backend without a descriptor)
 
     def fileno(self) -> int | None:

@@ -15,12 +15,17 @@ it flags the host as lost and still renders while the hand moves (docs/protocol.
 The host sleeps meanwhile (`run`): no periodic loop, it blocks on the transport until the
 display reports (STATUS and RENDER_STATUS every 50 ms while it renders), a command arrives
 (the daemon's pipe, a hotplug monitor: any descriptor in `fds`) or the next keep-alive is due.
-A keep-alive that falls due before the next report goes out with the report's wake-up, so the
-keep-alive adds no wake-up of its own.
+Over serial it wakes once per three report pairs (150 ms: the line discipline's VMIN counts
+their bytes, Transport.wake_after), reads them with one read and decodes them all (the
+counters are cumulative, every STATUS's fault bits count); a display that stops rendering
+sends its 1 ms STATUS again, which reaches that count within a few ms. A keep-alive that falls
+due before the next wake-up goes out with it, so the keep-alive adds no wake-up of its own.
 """
 
 from __future__ import annotations
 
+import math
+import select
 import time
 
 import numpy as np
@@ -34,6 +39,7 @@ RENDERING = pr.STATES["RENDERING"]
 
 class DeviceMode:
     IDLE_WAIT_S = 0.05  # nothing to render: read the display's 1 ms statuses in batches
+    REPORTS_PER_WAKE = 3  # report pairs per wake-up while rendering (150 ms; 3 x 66 bytes < VMIN's 255)
 
     def __init__(self, link: DeviceLink, cfg, log, host_lost_ms: int = 1000,
                  timeout_ms: int = 50) -> None:
@@ -49,10 +55,17 @@ class DeviceMode:
         self.uploads = 0
         # any valid message at least this often: well within host_lost_ms (the v1 host timeout
         # applies only while streaming, never while the display renders or idles)
-        self._keepalive_s = self.host_lost_ms / 4000.0
-        # a keep-alive due within this much of a wake-up goes out with it (the report period)
-        self._early_s = min(pr.R["status_period_ticks"] / pr.SAMPLE_RATE_HZ, self._keepalive_s / 2)
+        self._keepalive_s = self.host_lost_ms / 3000.0
+        # wake once per REPORTS_PER_WAKE report pairs (STATUS + RENDER_STATUS) where the
+        # transport can count bytes for us (serial); a display that stops rendering sends its
+        # 1 ms STATUS, which fills the same count within a few ms: supervision stays prompt
+        pair = (pr.LAYOUTS["STATUS"].size, pr.LAYOUTS["RENDER_STATUS"].size)
+        self._wake_sizes = pair * self.REPORTS_PER_WAKE
+        # a keep-alive due within this much of a wake-up goes out with it (the wake-up period)
+        self._early_s = min(self.REPORTS_PER_WAKE * pr.R["status_period_ticks"] / pr.SAMPLE_RATE_HZ,
+                            self._keepalive_s / 2)
         self._last_keepalive = time.monotonic()
+        self._keepalive_msg = pr.encode("SET_TIMEOUT", timeout_ms=self.timeout_ms)  # a same-value one
         self.wakeups = 0
         self._started_at = 0.0
 
@@ -91,7 +104,7 @@ class DeviceMode:
         rendering it."""
         now = time.monotonic()
         if now - self._last_keepalive >= self._keepalive_s - self._early_s:
-            self.link.set_timeout(self.timeout_ms)
+            self.link._send(self._keepalive_msg, must=True)  # set_timeout's message, encoded once
             self._last_keepalive = now
         s = self.link.stats.last_status
         if self.texture is None or not s or now - self._started_at < 0.1:
@@ -106,19 +119,48 @@ class DeviceMode:
     def run(self, stop, each_wake, fds=()) -> None:
         """Device mode's loop, until stop() is true: sleep until the display reports, a
         descriptor in `fds` is readable (commands, hotplug) or the keep-alive is due; then take
-        in what arrived and call each_wake() (commands, tick(), publishing counters). With no
-        texture to render the display's 1 ms statuses are read in batches every IDLE_WAIT_S."""
+        in what arrived and call each_wake(ready): `ready` is the set of descriptors in `fds`
+        that woke it (None when the transport cannot say: check them all). With no texture to
+        render the display's 1 ms statuses are read in batches every IDLE_WAIT_S.
+
+        One poll() on the transport's descriptor and `fds` per wake-up, set up once: the
+        transport is read only when its descriptor is readable (once: Transport.drain), the
+        commands only when theirs is."""
         link = self.link
         t = link.t
+        tfd = t.fileno()
+        cmd_poll = select.poll()
+        for fd in fds:
+            cmd_poll.register(fd, select.POLLIN)
+        all_poll = None
+        if tfd is not None:
+            all_poll = select.poll()
+            for fd in (tfd, *fds):
+                all_poll.register(fd, select.POLLIN)
         while not stop():
             timeout = max(0.0, self._last_keepalive + self._keepalive_s - time.monotonic())
             s = link.stats.last_status
             if self.texture is None and s and s["state"] != RENDERING:
-                import select  # nothing to supervise: only commands wake us before the batch
-
-                select.select(list(fds), [], [], min(timeout, self.IDLE_WAIT_S))
-            else:
+                # nothing to supervise: only commands wake us before the batch
+                ready = {fd for fd, _ in cmd_poll.poll(_ms(min(timeout, self.IDLE_WAIT_S)))}
+                link.poll()
+            elif all_poll is not None and not t.pending():
+                t.wake_after(self._wake_sizes)  # (serial: the kernel counts the bytes for us)
+                try:
+                    ready = {fd for fd, _ in all_poll.poll(_ms(timeout))}
+                finally:
+                    t.wake_after(None)
+                if tfd in ready:  # (a hang-up too: the read raises DeviceGone)
+                    ready.discard(tfd)
+                    link.poll()
+            else:  # a transport without a descriptor (or with messages already queued)
                 t.wait(timeout, fds)
-            link.poll()
+                link.poll()
+                ready = None
             self.wakeups += 1
-            each_wake()
+            each_wake(ready)
+
+
+def _ms(timeout_s: float) -> int:
+    """poll()'s timeout: whole milliseconds, rounded up (never a busy early wake-up)."""
+    return math.ceil(timeout_s * 1000.0)

@@ -198,10 +198,12 @@ class DeviceLink:
     def poll(self, timeout_s: float = 0.0) -> int:
         """Take in every message waiting; returns how many STATUS arrived."""
         msgs = []
-        timeout = timeout_s
-        while (m := self.t.recv(timeout)) is not None:
-            timeout = 0.0
+        if timeout_s > 0:
+            m = self.t.recv(timeout_s)
+            if m is None:
+                return 0
             msgs.append(m)
+        msgs += self.t.drain()  # one read of a byte stream, not one per message plus an empty one
         stale = len(msgs) - self.FRESH
         n = 0
         for i, m in enumerate(msgs):

@@ -67,6 +67,14 @@ class SerialTransport(Transport):
 
         fcntl.fcntl(self.ser.fd, fcntl.F_SETFL, fcntl.fcntl(self.ser.fd, fcntl.F_GETFL) | os.O_NONBLOCK)
         self._pending = b""
+        import select
+
+        # pyserial sets VMIN = VTIME = 0: a read with nothing waiting returns b"" like a hang-up
+        # does, so every empty read asks this (made once, not per read)
+        self._hup_poll = select.poll()
+        self._hup_poll.register(self.ser.fd, select.POLLIN)
+        self._vmin = 0  # the line discipline's VMIN (wake_after)
+        self._attrs = None
 
     def _gone(self, e: Exception) -> DeviceGone:
         return DeviceGone(f"serial port {self.port} went away ({e}); hostd reconnects when it returns")
@@ -106,9 +114,7 @@ class SerialTransport(Transport):
         """os.read() returned b"" (not EAGAIN): the other end hung up, unless nothing was there."""
         import select
 
-        p = select.poll()
-        p.register(self.ser.fd, select.POLLIN)
-        return any(ev & (select.POLLHUP | select.POLLERR) for _, ev in p.poll(0))
+        return any(ev & (select.POLLHUP | select.POLLERR) for _, ev in self._hup_poll.poll(0))
 
     def fileno(self) -> int | None:
         return self.ser.fd
@@ -121,7 +127,7 @@ class SerialTransport(Transport):
         deadline = time.monotonic() + timeout_s
         while not self._queue:
             try:  # the non-blocking fd itself (pyserial's read() adds a select() per call)
-                data = os.read(self.ser.fd, 4096)
+                data = os.read(self.ser.fd, self.READ_SIZE)
                 if not data and self._hung_up():
                     raise self._gone(OSError("end of file"))
             except BlockingIOError:
@@ -136,6 +142,48 @@ class SerialTransport(Transport):
                 return None
             self.wait(left)  # sleeps in select() until bytes arrive, not in a polling loop
         return self._queue.pop(0)
+
+    def wake_after(self, sizes) -> None:
+        """The line discipline's VMIN (VTIME 0): poll() reports the port readable only once
+        that many bytes wait (a frame is its message + 4 bytes: COBS overhead, CRC, delimiter),
+        at most 255. The sleeping device-mode loop sets it around its poll() only (two ioctls),
+        so every other read (handshake, upload acknowledgements, stream mode) sees VMIN 0."""
+        vmin = 0 if sizes is None else min(255, sum(n + 4 for n in sizes))
+        if vmin == self._vmin:
+            return
+        import termios
+
+        if self._attrs is None:
+            self._attrs = termios.tcgetattr(self.ser.fd)
+        self._attrs[6][termios.VMIN] = vmin
+        try:
+            termios.tcsetattr(self.ser.fd, termios.TCSANOW, self._attrs)
+        except termios.error as e:
+            raise self._gone(e) from None
+        self._vmin = vmin
+
+    READ_SIZE = 4096
+
+    def drain(self) -> list[bytes]:
+        """Every message waiting, with one read of the port (another only if the first filled
+        its buffer): a short read took all the port had. The sleeping device-mode loop calls
+        this once per wake-up; bytes that arrive after the read wake it again."""
+        self.flush_pending()
+        out, self._queue = self._queue, []
+        while True:
+            try:
+                data = os.read(self.ser.fd, self.READ_SIZE)
+            except BlockingIOError:
+                return out
+            except OSError as e:
+                raise self._gone(e) from None
+            if not data:
+                if self._hung_up():
+                    raise self._gone(OSError("end of file"))
+                return out
+            out += self.deframer.feed(data)
+            if len(data) < self.READ_SIZE:
+                return out
 
     def close(self) -> None:
         try:

@@ -375,18 +375,21 @@ def pump_main(cfg, conn, stats) -> None:
 
     last_pub = [0.0]
 
-    def each_wake() -> None:  # device mode: a wake-up of the sleeping loop
+    conn_fd = conn.fileno()
+
+    def each_wake(ready) -> None:  # device mode: a wake-up of the sleeping loop
         pump.stats.cycles += 1  # progress the daemon's watchdog sees
-        while conn.poll():
-            command(conn.recv())
+        if ready is None or conn_fd in ready:  # (conn.poll() builds a selector per call)
+            while conn.poll():
+                command(conn.recv())
         if dev is not None and pump.renderer is None:
             dev.tick()
         hotplug_cycle()
         # the counters are read at most a few times a second (status, sd_notify at 2 Hz): publish
-        # at 10 Hz, not at every report, unless the display's state changed
+        # at 4 Hz, not at every report, unless the display's state changed
         now = time.monotonic()
         s = link.stats.last_status
-        if now - last_pub[0] >= 0.1 or (s and s["state"] != stats[STAT_INDEX["device_state"]]):
+        if now - last_pub[0] >= 0.25 or (s and s["state"] != stats[STAT_INDEX["device_state"]]):
             last_pub[0] = now
             publish()
 
