@@ -53,6 +53,18 @@ def _write_all(fd: int, data: bytes) -> None:
         view = view[n:]
 
 
+def _fill_and_close(fd: int, data: bytes, mode: int, durable: bool) -> None:
+    """A new temporary file's contents and mode (fsync'ed when durable), then closed: what is
+    renamed over the target next is complete."""
+    try:
+        _write_all(fd, data)
+        os.fchmod(fd, mode)
+        if durable:
+            os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def write_output(path: str | os.PathLike, data: bytes, mode: int | None = None, durable: bool = True) -> None:
     """Write ``data`` to ``path`` as described in the module docstring."""
     if str(path) == "-":
@@ -87,13 +99,7 @@ def write_output(path: str | os.PathLike, data: bytes, mode: int | None = None, 
     tmp = None
     try:
         fd, tmp = tempfile.mkstemp(dir=directory, prefix=f"{TMP_PREFIX}{target.name}.", suffix=TMP_SUFFIX)
-        try:
-            _write_all(fd, data)
-            os.fchmod(fd, mode)
-            if durable:
-                os.fsync(fd)
-        finally:
-            os.close(fd)
+        _fill_and_close(fd, data, mode, durable)
         os.replace(tmp, target)
         tmp = None
         if durable:
@@ -211,13 +217,7 @@ def write_at(dir_fd: int, name: str, data: bytes, mode: int = 0o640, durable: bo
             break
         else:
             raise HostdError(f"cannot write {name}: no free temporary name")
-        try:
-            _write_all(fd, data)
-            os.fchmod(fd, mode)
-            if durable:
-                os.fsync(fd)
-        finally:
-            os.close(fd)
+        _fill_and_close(fd, data, mode, durable)
         os.rename(tmp, name, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
         tmp = None
         if durable:
