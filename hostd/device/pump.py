@@ -286,8 +286,13 @@ class Pump:
 
     def step(self) -> int:
         """One cycle: poll, supervise, render, send. Returns the number of samples sent."""
+        self.link.poll()
+        return self.after_poll()
+
+    def after_poll(self) -> int:
+        """The cycle after its messages are in: supervise, render, send (the compiled cycle,
+        hostd.device.fastpump, hands over here when a cycle leaves its steady state)."""
         link = self.link
-        link.poll()
         if self.renderer is None:
             return 0
         self._supervise()
