@@ -4,8 +4,11 @@ optional=True: without a C compiler the build goes on and hostd uses the pure-Py
 which is the reference each compiled module is tested against (same bytes, same samples, slower):
   hostd/codec/_rangecoder.c   the stream-v2 index coder (reference: hostd/codec/rangecoder.py)
   hostd/device/_fastlink.c    the link's per-message decode/encode (reference: hostd/device/protocol.py)
-  hostd/render/_fastrender.c  equalizer + output stage + codes of a real-time batch (reference:
-                              hostd/render/equalizer.py, output.py)
+  hostd/render/_fastrender.c  equalizer + output stage + codes of a real-time batch, and the
+                              batch's series (reference: hostd/render/equalizer.py, output.py,
+                              series.clenshaw_py; the arithmetic is in render_core.h)
+  hostd/device/_fastpump.c    the host-rendering pump's steady-state cycle (reference:
+                              hostd/device/pump.py Pump.step / Pump.run)
 -ffp-contract=off: no fused multiply-add, so the compiled renderer rounds exactly as Python does.
 """
 
@@ -15,5 +18,7 @@ setup(ext_modules=[
     Extension("hostd.codec._rangecoder", ["hostd/codec/_rangecoder.c"], optional=True),
     Extension("hostd.device._fastlink", ["hostd/device/_fastlink.c"], optional=True),
     Extension("hostd.render._fastrender", ["hostd/render/_fastrender.c"], optional=True,
-              extra_compile_args=["-ffp-contract=off"]),
+              depends=["hostd/render/render_core.h"], extra_compile_args=["-ffp-contract=off"]),
+    Extension("hostd.device._fastpump", ["hostd/device/_fastpump.c"], optional=True,
+              depends=["hostd/render/render_core.h"], extra_compile_args=["-ffp-contract=off"]),
 ])

@@ -241,11 +241,20 @@ def test_bench_cycle_splits_the_pump_cycle_into_its_parts(capsys):
         main(["bench", "cycle", "--json", "--seconds", "1"])
     except SystemExit as e:
         pytest.skip(f"the firmware's host port cannot run here: {e}")
-    (row,) = json.loads(capsys.readouterr().out)["rows"]
+    from hostd.device import fastpump
+
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    row = rows[0]
+    assert row["cycle"] == "reference"
     parts = [v for k, v in row.items() if k.endswith("_us") and k not in ("cpu_us_per_cycle",)]
     assert row["cycles_per_s"] > 100 and row["idle_loop_us_per_wake"] > 0
     assert all(v >= 0 for v in parts) and row["render_us"] > 0 and row["messages_in_us"] > 0
     assert row["link"] == fastlink.IMPLEMENTATION and row["render_tail"] == fastrender.IMPLEMENTATION
+    assert len(rows) == (2 if fastpump.IMPLEMENTATION == "c" else 1)
+    if len(rows) == 2:  # the compiled cycle ran the stream (and says what it handed over)
+        c = rows[1]
+        assert c["cycle"] == "compiled" and c["cycles_per_s"] > 100 and c["cpu_us_per_cycle"] > 0
+        assert c["reference_over_compiled"] > 0 and isinstance(c["handed_over"], dict)
 
 
 # ---------------------------------------------------------------- scalar paths of the render front

@@ -227,3 +227,58 @@ def test_equalizer_inverts_the_zero_order_held_actuator_exactly():
     # so the band the renderer plays is flat: within 0.05 dB up to 600 Hz with the default corner
     band = f <= 600.0
     assert np.max(np.abs(20 * np.log10(np.abs(chain[band])))) < 0.05
+
+
+# ---------------------------------------------------------------- the real-time batch's series
+def _exact_cos_sum(c, theta, k0=1):
+    """sum_j c_j cos((k0 + j) theta) in x87 extended precision (64-bit mantissa): the phase
+    products and the sum carry 11 bits more than a double, a reference for the bounds below."""
+    k = np.arange(k0, k0 + len(c), dtype=np.longdouble)
+    return np.array([float(np.sum(np.asarray(c, dtype=np.longdouble) * np.cos(k * np.longdouble(t))))
+                     for t in theta])
+
+
+needs_extended = pytest.mark.skipif(np.finfo(np.longdouble).eps > 1e-18,
+                                    reason="no extended precision long double here for the exact reference")
+
+
+@needs_extended
+@pytest.mark.parametrize("k, bound", [(5, 1e-15), (300, 1e-13), (1000, 1e-13), (16000, 1e-11)])
+def test_clenshaw_error_is_far_below_one_dac_step(k, bound):
+    """The real-time batch's recurrence against the exact sum, where it is weakest (theta near 0,
+    pi and 2 pi, where 2 cos(theta) ~ +-2 makes the recurrence's error grow with k^2) and at
+    random phases: below `bound` x sum|c| (a 16-bit DAC step is 3e-5 of full scale)."""
+    from hostd.render.series import clenshaw_py
+
+    rng = np.random.default_rng(k)
+    c = rng.standard_normal(k) / np.sqrt(np.arange(1, k + 1))
+    theta = np.concatenate([[0.0, 1e-9, 1e-5, 0.01, np.pi - 1e-7, np.pi, np.pi + 1e-6, 2 * np.pi - 1e-8],
+                            rng.uniform(0, 2 * np.pi, 8)])
+    for part in (theta[:16], theta[16:]):
+        err = np.abs(clenshaw_py(c, part) - _exact_cos_sum(c, part)).max()
+        assert err <= bound * np.abs(c).sum(), (k, err)
+
+
+def test_a_real_time_batch_is_the_recurrence_compiled_or_not():
+    """series.evaluate on a real-time batch is clenshaw_py's values, bit for bit, compiled
+    (_fastrender.clenshaw) or not: random coefficients with trailing zeros (a band limit), first
+    components k0 > 1, and phases that are huge, negative, NaN or infinite."""
+    from hostd.render import series
+
+    rng = np.random.default_rng(7)
+    cases = 0
+    for k in (1, 2, 7, 64, 513):
+        for k0 in (1, 2, 5):
+            c = rng.standard_normal(k) * 10.0 ** rng.integers(-6, 6)
+            c[rng.integers(0, k):] = 0.0 if k > 2 else c[rng.integers(0, k):]
+            th = np.concatenate([rng.uniform(-10, 10, 3), [1e17, -3.0, np.nan, np.inf, 0.0, -0.0]])
+            want = series.clenshaw_py(c, th, k0)
+            assert series.clenshaw(c, th, k0).tobytes() == want.tobytes()
+            if k0 == 1:
+                assert series.evaluate(c, th).tobytes() == want.tobytes()
+            ok = np.isfinite(th) & (np.abs(th) < 100)
+            ref = np.cos(np.multiply.outer(th[ok], np.arange(k0, k0 + k))) @ c
+            assert np.allclose(want[ok], ref, rtol=0, atol=1e-12 * max(1.0, np.abs(c).sum()))
+            cases += 1
+    assert cases == 15
+    assert series.clenshaw(np.zeros(4), np.array([1.0])).tolist() == [0.0]  # no component: silence

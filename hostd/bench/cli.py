@@ -44,8 +44,8 @@ def add_parser(sub, parents) -> None:
     so.add_argument("--load", action="store_true", help="a CPU hog on the other core meanwhile")
     so.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS",
                     help="the daemon's [device] host_cycle_ms (1..10, default 1)")
-    cy = bsub.add_parser("cycle", help="the host-rendering pump's CPU time per cycle, part by part, "
-                         "on the firmware's host port")
+    cy = bsub.add_parser("cycle", help="the host-rendering pump's CPU time per cycle on the firmware's "
+                         "host port: the Python reference part by part, then the compiled cycle")
     cy.add_argument("--json", action="store_true")
     cy.add_argument("--seconds", type=float, default=8.0, metavar="S", help="how long (default 8)")
     cy.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS", help="pump cycle (1..10)")
@@ -171,7 +171,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not (1.0 <= args.seconds <= 3600 and 1 <= args.host_cycle_ms <= 10):
             raise SystemExit("hostd bench cycle: error: --seconds must be 1..3600 and --host-cycle-ms 1..10")
         try:
-            rows.append(cycle.run(args.seconds, args.host_cycle_ms))
+            rows += cycle.run_both(args.seconds, args.host_cycle_ms)
         except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench cycle: error: {e}") from None
     if what == "sim":

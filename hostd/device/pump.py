@@ -273,12 +273,18 @@ class Pump:
         link = self.link
         t0 = link.next_play_time_s()
         t_play = t0 + np.arange(n) / pr.SAMPLE_RATE_HZ
-        codes = self.renderer.render_codes(t_play)
+        return self._send_codes(self.renderer.render_codes(t_play))
+
+    def _send_codes(self, codes: np.ndarray, first: int = 0) -> int:
+        """SAMPLES for `codes`, of which `first` went out already (the compiled cycle hands a
+        write that did not go through over here, with what it sent before it)."""
         try:
-            sent = link.send_samples(codes)
+            sent = first + self.link.send_samples(codes[first:]) if first < len(codes) else first
         except DeviceBusy:
-            self.stats.io_dropped += 1
-            return 0
+            if first == 0:
+                self.stats.io_dropped += 1
+                return 0
+            sent = first  # (send_samples stops at a busy write once something went out)
         if self.record:
             self.sent_codes.append(codes[:sent])
         self.stats.samples += sent
@@ -304,18 +310,30 @@ class Pump:
         if fill < self.renderer.cfg.samples_per_batch:
             self.stats.late_batches += 1
         sent = self._send(n)
+        self._motion_stats()
+        return sent
+
+    def _motion_stats(self) -> None:
         m = self.renderer.motion
         self.stats.relocks = self._motion_base[0] + m.relocks
         self.stats.implausible_speed = self._motion_base[1] + m.implausible
-        return sent
 
-    def run(self, duration_s: float | None = None, stop=None, each_cycle=None) -> PumpStats:
+    def run(self, duration_s: float | None = None, stop=None, each_cycle=None, wake_fds=(),
+            compiled: bool = True) -> PumpStats:
         """Cycle until duration_s has passed or stop() returns True; each_cycle() runs at the
-        start of every cycle (the daemon's pump takes its commands and publishes counters)."""
+        start of every cycle the reference loop runs (the daemon's pump takes its commands and
+        publishes counters).
+
+        With the compiled cycle (hostd.device.fastpump, compiled=True, where it applies) the
+        ordinary cycles between two of this loop's run compiled, for at most fastpump.BUDGET_S
+        or until one of wake_fds is readable (a command, a udev event): each_cycle() and stop()
+        are then asked at least that often, and at once on a command."""
+        from hostd.device import fastpump
+
+        fast = compiled and fastpump.usable(self)
         start = time.monotonic()
         k = 0
         st = self.stats
-        ring = st.step_us
         while True:
             now = time.monotonic()
             if duration_s is not None and now - start >= duration_s:
@@ -334,24 +352,40 @@ class Pump:
                 break
             c0 = time.thread_time()
             try:
-                self.step()
+                if fast:
+                    fastpump.step(self)
+                else:
+                    self.step()
             except DeviceBusy:
                 st.io_dropped += 1
-            ring[st.cycles % ring.size] = (time.thread_time() - c0) * 1e6
-            st.cycles += 1
-            st.io_retries = self._retries_base + self.link.stats.io_retries
-            k += 1
-            due = start + k * self.period_s
-            now = time.monotonic()
-            if now > due:
-                late = (now - due) * 1e6
-                st.max_late_us = max(st.max_late_us, late)
-                if late > self.period_s * 0.5e6:
-                    st.deadline_misses += 1
-                k = int((now - start) / self.period_s)  # skip missed cycles, keep the grid
-                continue
-            time.sleep(max(0.0, due - now))
+            k, due = self._end_cycle(c0, start, k)
+            if due:
+                time.sleep(max(0.0, due - time.monotonic()))
+            if fast:
+                k, _why, due = fastpump.run(self, start, k, duration_s, wake_fds)
+                if due:
+                    time.sleep(max(0.0, due - time.monotonic()))
         return st
+
+    def _end_cycle(self, c0: float, start: float, k: int) -> tuple[int, float]:
+        """The end of one cycle of run(): its CPU time, counters, the next deadline on the grid
+        start + k x period. Returns (k, the deadline to sleep until, or 0.0 when late: a late
+        cycle skips the missed ones and keeps the grid)."""
+        st = self.stats
+        ring = st.step_us
+        ring[st.cycles % ring.size] = (time.thread_time() - c0) * 1e6
+        st.cycles += 1
+        st.io_retries = self._retries_base + self.link.stats.io_retries
+        k += 1
+        due = start + k * self.period_s
+        now = time.monotonic()
+        if now > due:
+            late = (now - due) * 1e6
+            st.max_late_us = max(st.max_late_us, late)
+            if late > self.period_s * 0.5e6:
+                st.deadline_misses += 1
+            return int((now - start) / self.period_s), 0.0
+        return k, due
 
     def step_percentiles_us(self) -> tuple[float, float, float]:
         """p50, p99, p99.9 of the CPU time of one cycle (the latest 65536 cycles)."""

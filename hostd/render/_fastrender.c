@@ -26,9 +26,10 @@
 #include <stdint.h>
 #include <string.h>
 
-#define REVISION 1 /* fastrender.C_REVISION must equal this */
-#define MAX_N 64 /* the real-time batches are <= equalizer.SMALL_BATCH samples */
-#define DENORMAL_GUARD 1e-30 /* equalizer.DENORMAL_GUARD */
+#include "render_core.h"
+
+#define REVISION 2 /* fastrender.C_REVISION (and series._load_compiled) must equal this */
+#define MAX_N RC_MAX_N
 
 static int get_buf(PyObject *o, Py_buffer *b, int writable, Py_ssize_t itemsize, const char *what) {
     if (PyObject_GetBuffer(o, b, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0)) < 0)
@@ -72,60 +73,9 @@ static PyObject *fr_tail(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "tail: sos (n x 6), zi (n x 2), x and codes (same length) expected");
         goto done;
     }
-    const double *s = (const double *)sos.buf;
-    double *z = (double *)zi.buf;
-    double ys[MAX_N];
-    memcpy(ys, x.buf, (size_t)n * sizeof(double));
-    for (Py_ssize_t k = 0; k < ns; k++) {
-        const double b0 = s[6 * k], b1 = s[6 * k + 1], b2 = s[6 * k + 2], a1 = s[6 * k + 4], a2 = s[6 * k + 5];
-        double z0 = z[2 * k], z1 = z[2 * k + 1];
-        for (Py_ssize_t i = 0; i < n; i++) {
-            const double v = ys[i];
-            const double y = b0 * v + z0;
-            z0 = b1 * v - a1 * y + z1;
-            z1 = b2 * v - a2 * y;
-            ys[i] = y;
-        }
-        z[2 * k] = fabs(z0) >= DENORMAL_GUARD ? z0 : 0.0;
-        z[2 * k + 1] = fabs(z1) >= DENORMAL_GUARD ? z1 : 0.0;
-    }
-    long nonfinite = 0, clipped = 0;
-    int16_t *out = (int16_t *)codes.buf;
-    const double lcd = (double)lc;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        double v = ys[i];
-        if (!isfinite(v)) {
-            nonfinite++;
-            v = last;
-        }
-        if (env != target) {
-            if (target > env) {
-                const double e = env + ramp;
-                env = (1.0 < e) ? 1.0 : e; /* Python's min(e, 1.0) */
-            } else {
-                const double e = env - ramp;
-                env = (0.0 > e) ? 0.0 : e; /* Python's max(e, 0.0) */
-            }
-        }
-        v *= env;
-        if (v > lim || v < -lim) {
-            clipped++;
-            v = v > 0 ? lim : -lim;
-        }
-        const double d = v - last;
-        if (d > step)
-            v = last + step;
-        else if (d < -step)
-            v = last - step;
-        last = v;
-        double c = rint(v * cpu); /* OutputStage.to_codes: rint, clip, astype */
-        if (c < -lcd)
-            c = -lcd;
-        else if (c > lcd)
-            c = lcd;
-        out[i] = (int16_t)c;
-    }
-    ret = Py_BuildValue("ddll", last, env, nonfinite, clipped);
+    rc_out_t o = {last, env, target, lim, step, ramp, cpu, lc, 0, 0};
+    rc_tail((const double *)sos.buf, ns, (double *)zi.buf, (const double *)x.buf, n, (int16_t *)codes.buf, &o);
+    ret = Py_BuildValue("ddll", o.last, o.env, o.nonfinite, o.clipped);
 done:
     PyBuffer_Release(&sos);
     PyBuffer_Release(&zi);
@@ -134,7 +84,39 @@ done:
     return ret;
 }
 
+static PyObject *fr_clenshaw(PyObject *self, PyObject *args) {
+    PyObject *o_c, *o_th, *o_out;
+    long k0;
+    if (!PyArg_ParseTuple(args, "OOOl", &o_c, &o_th, &o_out, &k0))
+        return NULL;
+    Py_buffer c, th, out;
+    if (get_buf(o_c, &c, 0, 8, "coeffs") < 0)
+        return NULL;
+    if (get_buf(o_th, &th, 0, 8, "theta") < 0) {
+        PyBuffer_Release(&c);
+        return NULL;
+    }
+    if (get_buf(o_out, &out, 1, 8, "out") < 0) {
+        PyBuffer_Release(&c);
+        PyBuffer_Release(&th);
+        return NULL;
+    }
+    PyObject *ret = NULL;
+    if (out.len != th.len || k0 < 1) {
+        PyErr_SetString(PyExc_ValueError, "clenshaw: out as long as theta, k0 >= 1 expected");
+    } else {
+        rc_clenshaw((const double *)c.buf, c.len / 8, (const double *)th.buf, th.len / 8, (double *)out.buf, k0);
+        ret = Py_NewRef(Py_None);
+    }
+    PyBuffer_Release(&c);
+    PyBuffer_Release(&th);
+    PyBuffer_Release(&out);
+    return ret;
+}
+
 static PyMethodDef methods[] = {
+    {"clenshaw", fr_clenshaw, METH_VARARGS,
+     "clenshaw(coeffs, theta, out, k0): out[i] = sum_j coeffs[j] cos((k0 + j) theta[i]) (series.clenshaw_py)"},
     {"tail", fr_tail, METH_VARARGS,
      "tail(sos, zi, x, codes, last, env, target, lim, step, ramp, codes_per_um, limit_code)"
      " -> (last, env, nonfinite, clipped)"},

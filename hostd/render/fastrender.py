@@ -16,7 +16,7 @@ from hostd.compiled import load as load_compiled
 from hostd.render.equalizer import SMALL_BATCH, Equalizer
 from hostd.render.output import OutputStage
 
-C_REVISION = 1  # _fastrender.c's REVISION this module is written for
+C_REVISION = 2  # _fastrender.c's REVISION this module is written for
 _NO_SECTIONS = np.zeros((0, 6))
 
 

@@ -26,7 +26,6 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
-from operator import mul
 
 import numpy as np
 
@@ -46,6 +45,15 @@ class MotionConfig:
     relock_reports: int = 3  # consecutive disagreeing readings that mean a real move
     max_gap_s: float = 0.02  # readings further apart than this restart the fit
     max_speed_mm_s: float = 3000.0  # faster than any hand: an estimate above it is rejected
+
+
+def _dot(w, x) -> float:
+    """sum_i w_i x_i, left to right from 0.0 in IEEE doubles: the order the compiled cycle
+    (hostd/device/_fastpump.c) uses. Not sum(), which compensates its rounding from Python 3.12."""
+    acc = 0.0
+    for a, b in zip(w, x):
+        acc += a * b
+    return acc
 
 
 class MotionEstimator:
@@ -166,13 +174,13 @@ class MotionEstimator:
                 self._cache[key] = w
         else:
             w = self._weights((np.array(t) - tr) * 1e3, order)  # irregular: solve afresh
-        c0 = sum(map(mul, w[0], x))
-        c1 = sum(map(mul, w[1], x)) * 1e3
-        c2 = sum(map(mul, w[2], x)) * 1e6 if order == 2 else 0.0
+        c0 = _dot(w[0], x)
+        c1 = _dot(w[1], x) * 1e3
+        c2 = _dot(w[2], x) * 1e6 if order == 2 else 0.0
         self._c0, self._c1, self._c2 = c0, c1, c2
         if abs(c1) < self.cfg.rest_speed_mm_s:
             # At rest: hold a position; encoder dither (±1 count) must not move the output.
-            mx = sum(x) / n
+            mx = _dot((1.0,) * n, x) / n
             if self._rest_x is None or abs(mx - self._rest_x) * 1000.0 > self.cfg.rest_hold_um:
                 self._rest_x = mx
             self._c0, self._c1, self._c2 = self._rest_x, 0.0, 0.0

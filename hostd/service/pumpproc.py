@@ -455,7 +455,7 @@ def pump_main(cfg, conn, stats) -> None:
                     dev.run(stop=lambda: quit_ or not device_loop(), each_wake=each_wake, fds=fds)
                 else:
                     pump._last_cycle_start = None  # the sleeping loop's gaps are not stalls
-                    pump.run(stop=lambda: quit_ or device_loop(), each_cycle=each_cycle)
+                    pump.run(stop=lambda: quit_ or device_loop(), each_cycle=each_cycle, wake_fds=fds)
         except DeviceError as e:
             log(f"device lost while {'playing' if playing else 'idle'}: {e}; output stopped, waiting")
             put("connected", 0)
