@@ -225,7 +225,8 @@ def _fionread(fd: int) -> int:
 class Setup:
     """One host: pty pair, SerialTransport on its slave with a fake clock, DeviceLink, Pump."""
 
-    def __init__(self, name: str, jitter: JitterConfig | None, t0_s: float) -> None:
+    def __init__(self, name: str, jitter: JitterConfig | None, t0_s: float, period_s: float = 0.001,
+                 record: bool = False) -> None:
         self.name = name
         self.master, self.slave = os.openpty()
         fcntl.fcntl(self.master, fcntl.F_SETFL, fcntl.fcntl(self.master, fcntl.F_GETFL) | os.O_NONBLOCK)
@@ -236,7 +237,8 @@ class Setup:
         self.t.now = lambda: self.now_s  # the host clock the link and the pump read
         self.link = DeviceLink(self.t, 12)
         self.logged: list[str] = []
-        self.pump = Pump(self.link, None, jitter=jitter, log=self.logged.append)
+        self.pump = Pump(self.link, None, period_s=period_s, jitter=jitter, log=self.logged.append)
+        self.pump.record = record  # the demo's summary: sent_codes (compared array by array)
         self.unread = 0  # device bytes written to the master that the host has not read
         self.sent_before = 0
 
@@ -289,14 +291,16 @@ class Twin:
 
     def __init__(self, scenario: str, make_renderer, hand: Hand, clock_ppm: float = 350.0,
                  time0_us: int = 123_456_789, count0: int = 1_000_000, dither: bool = False,
-                 jitter: JitterConfig | None = None, step_b=None, seed: int = 7) -> None:
+                 jitter: JitterConfig | None = None, step_b=None, seed: int = 7, host_cycle_ms: int = 1,
+                 record: bool = False) -> None:
         from hostd.device import fastpump
 
         self.scenario = scenario
         self.make_renderer = make_renderer
         self.step_b = step_b or fastpump.step
-        self.a = Setup("A", jitter, HOST_T0_S)
-        self.b = Setup("B", jitter, HOST_T0_S)
+        self.host_cycle_ms = host_cycle_ms  # the host cycles in every host_cycle_ms-th slot
+        self.a = Setup("A", jitter, HOST_T0_S, host_cycle_ms * 1e-3, record)
+        self.b = Setup("B", jitter, HOST_T0_S, host_cycle_ms * 1e-3, record)
         self.dev = ScriptedDevice(hand, clock_ppm, time0_us, count0, dither)
         self.dev_rate = pr.SAMPLE_RATE_HZ * (1 + clock_ppm * 1e-6)  # device ticks per host second
         self.dev_rx = pr.Deframer()
@@ -426,7 +430,7 @@ class Twin:
     def run(self, ms: int, host: bool = True) -> None:
         """ms slots of 1 ms; host=False: the host stalls (no reads, no steps)."""
         for _ in range(ms):
-            self._slot(host)
+            self._slot(host and self.slot % self.host_cycle_ms == 0)
 
     def begin(self, key=None) -> None:
         """In the next slot, instead of a cycle: pump.begin(a fresh, started renderer of
@@ -463,11 +467,12 @@ class Twin:
         self.dev.glitch_counts = counts
 
 
-def renderer_factory(textures: dict):
-    """make(key) -> a Renderer for textures[key] = (coeffs, n, length_mm); key None: 'main'."""
+def renderer_factory(textures: dict, cfg=None):
+    """make(key) -> a Renderer for textures[key] = (coeffs, n, length_mm) (key None: 'main'),
+    with RenderConfig cfg (None: the defaults)."""
 
     def make(key=None):
         c, n, length_mm = textures[key or "main"]
-        return Renderer(c, n, length_mm)
+        return Renderer(c, n, length_mm, cfg)
 
     return make

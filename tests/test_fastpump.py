@@ -23,6 +23,9 @@ from hostd.bench.accuracy import texture_coeffs
 from hostd.device import fastpump
 from hostd.device import protocol as pr
 from hostd.device.pump import JitterConfig
+from hostd.render.equalizer import EqualizerConfig
+from hostd.render.motion import MotionConfig
+from hostd.render.pipeline import RenderConfig
 from hostd.texture import synth
 from tests.fastpump_twin import (
     Mismatch,
@@ -46,8 +49,8 @@ def textures():
     return {"main": wood, "sand": sand, "short": (c[:5].copy(), n, length_mm)}  # N' = 5
 
 
-def _twin(textures, name, hand=None, step_b=None, **kw) -> Twin:
-    return Twin(name, renderer_factory(textures), hand or stroke(), step_b=step_b, **kw)
+def _twin(textures, name, hand=None, step_b=None, cfg=None, **kw) -> Twin:
+    return Twin(name, renderer_factory(textures, cfg), hand or stroke(), step_b=step_b, **kw)
 
 
 def _play(tw: Twin, key=None, lead_ms: int = 8) -> None:
@@ -74,6 +77,23 @@ def sc_short_texture(tw):
     _play(tw, "short")
     tw.run(400)
     assert tw.a.pump.renderer.height.c.size == 5 and tw.seen["samples"] > 1000
+
+
+def sc_other_render_settings(tw):
+    _play(tw)
+    tw.run(400)
+    tw.run(10, host=False)
+    tw.run(100)
+    assert tw.seen["samples"] > 1000 and tw.a.pump.health.underruns >= 1
+
+
+def sc_two_ms_cycle(tw):
+    _play(tw)
+    tw.run(400)
+    p = tw.a.pump
+    assert p._extra == 3 and p.link.target_fill == 15
+    assert tw.seen["host_actions"] == 4 + 1 + 200  # lead-in cycles, begin, cycles
+    assert len(p.sent_codes) > 150 and tw.seen["samples"] > 1100
 
 
 def sc_rest_with_dither(tw):
@@ -228,6 +248,12 @@ SCENARIOS = {
     "steady_stroke": (sc_steady_stroke, {}),
     "sandpaper_slow_device_clock": (sc_sandpaper_slow_device_clock, {"clock_ppm": -450.0}),
     "short_texture": (sc_short_texture, {}),
+    # the table height method in float32, order-1 motion, no equalizer, the demo's record=True
+    "table_float32_order1_no_eq": (sc_other_render_settings, {"cfg": RenderConfig(
+        height_method="table-cubic", dtype="float32", motion=MotionConfig(order=1, window=8),
+        equalizer=EqualizerConfig(enabled=False)), "record": True}),
+    # [device] host_cycle_ms = 2: one SAMPLES of 2 ms per wake-up, fill target + 3 samples
+    "two_ms_cycle": (sc_two_ms_cycle, {"host_cycle_ms": 2, "record": True}),
     "rest_with_dither": (sc_rest_with_dither, {"hand": rest(), "dither": True}),
     "speed_sweep": (sc_speed_sweep, {"hand": sweep()}),
     "host_stalls": (sc_host_stalls, {}),
@@ -254,7 +280,7 @@ def test_compiled_cycle_equals_the_reference(textures, name):
         script(tw)
     finally:
         tw.close()
-    assert tw.seen["host_actions"] > 300
+    assert tw.seen["host_actions"] > 200
 
 
 # ------------------------------------------------------------------------ the harness can fail
