@@ -193,13 +193,18 @@ def stroke(amplitude_mm: float = 20.0, hz: float = 1.25, phase: float = 0.7):
     return Hand(lambda t: amplitude_mm * math.sin(2 * math.pi * hz * t + phase))
 
 
-def rest(x_mm: float = 3.0):
-    return Hand(lambda t: x_mm)
+def rest(x_mm: float = 3.0, move_at_s: float | None = None):
+    """At rest at x_mm; from move_at_s on (if given) a stroke starts smoothly from there."""
+    if move_at_s is None:
+        return Hand(lambda t: x_mm)
+    return Hand(lambda t: x_mm + (10.0 * (1.0 - math.cos(2 * math.pi * 1.25 * (t - move_at_s)))
+                                  if t > move_at_s else 0.0))
 
 
 def sweep(v0_mm_s: float = 0.3, v1_mm_s: float = 1500.0, up_s: float = 0.5):
-    """Speed rising exponentially from v0 to v1 over up_s, then falling back (backwards):
-    it crosses every band-limit bucket (2 % speed steps) between."""
+    """Speed rising exponentially from v0 to v1 over up_s, then the hand turns at once and
+    slows down exponentially: it crosses every band-limit bucket (2 % speed steps) between,
+    twice (the turn at full speed is a re-lock)."""
     a = math.log(v1_mm_s / v0_mm_s) / up_s
     top = v0_mm_s / a * (math.exp(a * up_s) - 1.0)
 

@@ -98,9 +98,17 @@ def sc_two_ms_cycle(tw):
 
 def sc_rest_with_dither(tw):
     _play(tw)
-    tw.run(500)
+    tw.run(500)  # the hand starts moving at 0.35 s
     m = tw.a.pump.renderer.motion
-    assert tw.seen["rest"] > 400 and m.glitches == 0 and m.relocks == 0
+    assert tw.seen["rest"] > 300 and m.glitches == 0 and m.relocks == 0
+    assert abs(m.velocity_mm_s) > 10
+
+
+def sc_implausible_speed(tw):
+    _play(tw)
+    tw.run(400)
+    p = tw.a.pump
+    assert p.stats.implausible_speed >= 1 and p.stats.implausible_speed == p.renderer.motion.implausible
 
 
 def sc_speed_sweep(tw):
@@ -176,7 +184,10 @@ def sc_lost_status(tw):
     tw.drop_status(2)
     tw.run(60)
     tw.drop_status(25)  # a 26 ms gap: past motion.max_gap_s, the fit restarts
-    tw.run(300)
+    tw.run(150)
+    for _ in range(3):
+        tw.transforms.append(lambda f: f + f)  # the same STATUS twice: a repeated reading
+        tw.run(30)
     m = tw.a.pump.renderer.motion
     assert tw.seen["irregular_fit"] > 10 and m.relocks >= 1
 
@@ -226,9 +237,13 @@ def sc_other_messages(tw):
         tw.insert(pr.encode("IDENT", protocol_version=1, sample_rate_hz=3000), after=True)
         tw.run(11)
     tw.insert(pr.encode("SAMPLES", seq=3, codes=[1, 2, 3]))  # a host->device id from the device
-    tw.run(100)
+    tw.run(20)
+    for name in ("CLIPPED", "SLEWED", "OVERFLOW", "ENCODER"):  # faults the pump does not act on
+        tw.dev.faults |= pr.FAULTS[name]
+        tw.run(20)
     p = tw.a.pump
     assert p.link.render_status is not None and p.link.ident is not None and p.health._last_rs is not None
+    assert len(p.health._recent_flags) == 4
 
 
 def sc_texture_switch(tw):
@@ -254,7 +269,9 @@ SCENARIOS = {
         equalizer=EqualizerConfig(enabled=False)), "record": True}),
     # [device] host_cycle_ms = 2: one SAMPLES of 2 ms per wake-up, fill target + 3 samples
     "two_ms_cycle": (sc_two_ms_cycle, {"host_cycle_ms": 2, "record": True}),
-    "rest_with_dither": (sc_rest_with_dither, {"hand": rest(), "dither": True}),
+    "rest_with_dither": (sc_rest_with_dither, {"hand": rest(move_at_s=0.35), "dither": True}),
+    # faster than any hand (> motion.max_speed_mm_s = 3000): rejected, the fit restarts
+    "implausible_speed": (sc_implausible_speed, {"hand": sweep(100.0, 6000.0, 0.3)}),
     "speed_sweep": (sc_speed_sweep, {"hand": sweep()}),
     "host_stalls": (sc_host_stalls, {}),
     # the decay runs at 40 ms per sample (the default is 2 s) to see the target fall in 1 s
