@@ -59,53 +59,60 @@ EXCLUDE = frozenset({
     "renderer.motion._cache", "renderer.height._w_cache", "renderer.height._tables",
 })
 TRANSPORT_FIELDS = ("_pending", "_queue", "_vmin")
+OWN_PREFIX = "_fastpump"  # attributes the compiled cycle may add for its own state (not compared)
 
 
-def _leaf(v, path: str, out: dict, seen: dict) -> None:
-    if v is None or isinstance(v, (str, bytes)):
-        out[path] = v
-    elif isinstance(v, bool | np.bool_):
+_PACK = struct.Struct("<d").pack
+_SEQUENCES = (list, tuple, deque)
+
+
+def _walk(v, path: str, out: dict, seen: dict) -> None:
+    """path -> a comparable value: ("f", the 8 bytes) for a float (by bits: -0.0 != 0.0, a NaN
+    equals only the same NaN), ("i", n) for an integer, Python and numpy scalars alike; arrays
+    by dtype, shape and bytes; containers element by element; objects attribute by attribute
+    (an object seen before: a reference to its first path); callbacks by owner and name."""
+    t = type(v)  # the common types first, by identity (this runs ~300 times per snapshot)
+    if t is float:
+        out[path] = ("f", _PACK(v))
+    elif t is int:
+        out[path] = ("i", v)
+    elif t is bool or t is np.bool_:
         out[path] = ("b", bool(v))
-    elif isinstance(v, int | np.integer):
-        out[path] = ("i", int(v))
-    elif isinstance(v, float | np.floating):
-        out[path] = ("f", struct.pack("<d", float(v)))  # by bits: -0.0 != 0.0, NaN == same NaN
-    elif isinstance(v, bytearray):
-        out[path] = ("ba", bytes(v))
-    elif isinstance(v, np.ndarray):
-        out[path] = ("nd", v.dtype.str, v.shape, v.tobytes())
-    elif isinstance(v, dict):
+    elif v is None or t is str or t is bytes:
+        out[path] = v
+    elif t in _SEQUENCES:
+        out[path] = (t.__name__, len(v))
+        for i, x in enumerate(v):
+            _walk(x, f"{path}[{i}]", out, seen)
+    elif t is dict:
         out[path] = ("dict", len(v))
         for k, x in v.items():
             _walk(x, f"{path}[{k!r}]", out, seen)
-    elif isinstance(v, list | tuple | deque):
-        out[path] = (type(v).__name__, len(v))
-        for i, x in enumerate(v):
-            _walk(x, f"{path}[{i}]", out, seen)
+    elif t is np.ndarray:
+        out[path] = ("nd", v.dtype.str, v.shape, v.tobytes())
+    elif t is bytearray:
+        out[path] = ("ba", bytes(v))
+    elif isinstance(v, float | np.floating):
+        out[path] = ("f", _PACK(float(v)))
+    elif isinstance(v, int | np.integer):
+        out[path] = ("i", int(v))
     elif isinstance(v, types.MethodType):  # a bound method (a callback): whose, which
-        owner = seen.get(id(v.__self__), f"<{type(v.__self__).__name__}>")
+        owner = seen.get(id(v.__self__), f"<{type(v.__self__).__name__}>") or "<the pump>"
         out[path] = ("method", owner, v.__func__.__qualname__)
     elif isinstance(v, types.FunctionType | types.BuiltinFunctionType | type):
-        out[path] = ("callable", getattr(v, "__qualname__", type(v).__name__))
+        out[path] = ("callable", getattr(v, "__qualname__", t.__name__))
     elif hasattr(v, "__dict__"):
         if id(v) in seen:
             out[path] = ("ref", seen[id(v)])
             return
         seen[id(v)] = path
-        out[path] = ("obj", type(v).__qualname__)
+        out[path] = ("obj", t.__qualname__)
         for k, x in vars(v).items():
-            _walk(x, f"{path}.{k}" if path else k, out, seen)
+            p = f"{path}.{k}" if path else k
+            if p not in EXCLUDE and not k.startswith(OWN_PREFIX):
+                _walk(x, p, out, seen)
     else:
-        out[path] = ("?", type(v).__qualname__)
-
-
-OWN_PREFIX = "_fastpump"  # attributes the compiled cycle may add for its own state (not compared)
-
-
-def _walk(v, path: str, out: dict, seen: dict) -> None:
-    if path in EXCLUDE or path.rpartition(".")[2].startswith(OWN_PREFIX):
-        return
-    _leaf(v, path, out, seen)
+        out[path] = ("?", t.__qualname__)
 
 
 def snapshot(pump: Pump) -> dict:
@@ -113,14 +120,13 @@ def snapshot(pump: Pump) -> dict:
     renderer: motion, position, height, equalizer, output stage, configs), path -> value,
     plus the serial transport's deframer buffer, bad-frame count, unsent bytes and queue."""
     out: dict = {}
-    seen = {id(pump): "pump"}
-    for k, x in vars(pump).items():
-        _walk(x, k, out, seen)
+    _walk(pump, "", out, {})
+    del out[""]
     t = pump.link.t
     for k in TRANSPORT_FIELDS:
-        _leaf(getattr(t, k), f"link.t.{k}", out, seen)
-    _leaf(t.deframer._buf, "link.t.deframer._buf", out, seen)
-    _leaf(t.deframer.bad_frames, "link.t.deframer.bad_frames", out, seen)
+        _walk(getattr(t, k), f"link.t.{k}", out, {})
+    _walk(t.deframer._buf, "link.t.deframer._buf", out, {})
+    _walk(t.deframer.bad_frames, "link.t.deframer.bad_frames", out, {})
     return out
 
 
@@ -265,6 +271,7 @@ class Setup:
         (more, if more are there already)."""
         self.unread = _fionread(self.slave)  # all had arrived before; an action may not read (end)
         want = self.link.stats.messages_sent - self.sent_before
+        self.sent_before = self.link.stats.messages_sent
         buf = bytearray()
         deadline = time.monotonic() + (WAIT_S if want else 0.0)
         while True:
@@ -328,6 +335,15 @@ class Twin:
     def close(self) -> None:
         self.a.close()
         self.b.close()
+
+    def finish(self, settle_s: float = 0.02) -> None:
+        """The end of a scenario: nothing more may arrive from either host (a frame written
+        but not counted as sent shows up here at the latest)."""
+        time.sleep(settle_s)
+        late = [s.take_output() for s in (self.a, self.b)]
+        if late[0] or late[1]:
+            raise Mismatch(f"scenario {self.scenario!r}, after the last action: bytes written but not "
+                           f"counted as sent: reference {late[0].hex()}, compiled {late[1].hex()}")
 
     # -- the device side of one slot
     def _device_bytes(self, host_t: float) -> tuple[bytes, int]:
