@@ -239,19 +239,29 @@ class Setup:
     def __init__(self, name: str, jitter: JitterConfig | None, t0_s: float, period_s: float = 0.001,
                  record: bool = False) -> None:
         self.name = name
+        self.now_s = t0_s
+        self._open()
+        self.logged: list[str] = []
+        self.pump = Pump(self.link, None, period_s=period_s, jitter=jitter, log=self.logged.append)
+        self.pump.record = record  # the demo's summary: sent_codes (compared array by array)
+
+    def _open(self) -> None:
         self.master, self.slave = os.openpty()
         fcntl.fcntl(self.master, fcntl.F_SETFL, fcntl.fcntl(self.master, fcntl.F_GETFL) | os.O_NONBLOCK)
         # pyserial puts the port in raw mode (iflag = oflag = lflag = 0: no echo, no CR/LF
         # translation, no XON/XOFF); test_the_pty_passes_every_byte_both_ways checks it
         self.t = SerialTransport(os.ttyname(self.slave))
-        self.now_s = t0_s
         self.t.now = lambda: self.now_s  # the host clock the link and the pump read
         self.link = DeviceLink(self.t, 12)
-        self.logged: list[str] = []
-        self.pump = Pump(self.link, None, period_s=period_s, jitter=jitter, log=self.logged.append)
-        self.pump.record = record  # the demo's summary: sent_codes (compared array by array)
         self.unread = 0  # device bytes written to the master that the host has not read
         self.sent_before = 0
+
+    def reconnect(self) -> None:
+        """The display was unplugged and is back: a new port, transport and link, attached
+        to the same pump (the daemon's reconnection: Pump.attach)."""
+        self.close()
+        self._open()
+        self.pump.attach(self.link)
 
     def write_device_bytes(self, data: bytes) -> None:
         if data:
@@ -315,6 +325,7 @@ class Twin:
         self.b = Setup("B", jitter, HOST_T0_S, host_cycle_ms * 1e-3, record)
         self.dev = ScriptedDevice(hand, clock_ppm, time0_us, count0, dither)
         self.dev_rate = pr.SAMPLE_RATE_HZ * (1 + clock_ppm * 1e-6)  # device ticks per host second
+        self.dev_t0 = HOST_T0_S  # host time of the device's tick 0
         self.dev_rx = pr.Deframer()
         self.rng = np.random.default_rng(seed)
         self.slot = 0
@@ -336,6 +347,21 @@ class Twin:
         self.a.close()
         self.b.close()
 
+    def reconnect(self, **device) -> None:
+        """Unplug and re-plug: a new device (ScriptedDevice(**device), counters and clock from
+        zero, the hand where it is) on new ports; both pumps attach their new links, with
+        no action of their own (the next cycles find the device idle)."""
+        host_t = self._host_time(self.slot)
+        hand = self.dev.hand
+        self.dev = ScriptedDevice(hand, self.dev.clock_ppm, **device)
+        self.dev_t0 = host_t
+        self.dev_rx = pr.Deframer()
+        self.transforms.clear()
+        self.carry = b""
+        for s in (self.a, self.b):
+            s.reconnect()
+        compare(snapshot(self.a.pump), snapshot(self.b.pump), f"{self.scenario}: after the reconnection")
+
     def finish(self, settle_s: float = 0.02) -> None:
         """The end of a scenario: nothing more may arrive from either host (a frame written
         but not counted as sent shows up here at the latest)."""
@@ -347,7 +373,7 @@ class Twin:
 
     # -- the device side of one slot
     def _device_bytes(self, host_t: float) -> tuple[bytes, int]:
-        due = math.floor((host_t - HOST_T0_S) * self.dev_rate)
+        due = math.floor((host_t - self.dev_t0) * self.dev_rate)
         statuses = 0
         while self.dev.ticks < due:
             self.dev.tick()

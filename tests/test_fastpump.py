@@ -259,6 +259,25 @@ def sc_texture_switch(tw):
     assert p.renderer.height.c.size == 5 and tw.seen["guard"] >= 3
 
 
+def sc_reconnect(tw):
+    _play(tw)
+    tw.run(200)
+    tw.run(30, host=False)  # unplugged
+    # a new device, its clock ahead of the old one's: the pump brings it back by itself
+    tw.reconnect(time0_us=200_000_000, count0=77)
+    tw.run(150)
+    assert tw.a.pump.stats.recoveries == 1
+    tw.run(20, host=False)
+    # another, its clock from zero (the episode then stays open until a begin: reported), and
+    # the daemon's own flow: attach, then begin
+    tw.reconnect(time0_us=5_000, count0=M32 - 100)
+    tw.run(50)
+    tw.begin("sand")
+    tw.run(200)
+    p = tw.a.pump
+    assert p.health.samples_played > 3 * 300 and p._episode is None
+
+
 SCENARIOS = {
     "steady_stroke": (sc_steady_stroke, {}),
     "sandpaper_slow_device_clock": (sc_sandpaper_slow_device_clock, {"clock_ppm": -450.0}),
@@ -286,6 +305,8 @@ SCENARIOS = {
     "corrupt_frames": (sc_corrupt_frames, {}),
     "other_messages": (sc_other_messages, {}),
     "texture_switch": (sc_texture_switch, {}),
+    # a new port, transport and link (Pump.attach), with and without a begin after it
+    "reconnect": (sc_reconnect, {}),
 }
 
 
