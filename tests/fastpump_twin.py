@@ -304,10 +304,6 @@ class Setup:
 
 
 # ------------------------------------------------------------------------ the twin
-def reference_step(pump: Pump, now_s: float) -> int:
-    return pump.step()
-
-
 class Twin:
     """Setups A (reference) and B (step_b) driven alike, one ms slot at a time."""
 
@@ -351,10 +347,8 @@ class Twin:
         """Unplug and re-plug: a new device (ScriptedDevice(**device), counters and clock from
         zero, the hand where it is) on new ports; both pumps attach their new links, with
         no action of their own (the next cycles find the device idle)."""
-        host_t = self._host_time(self.slot)
-        hand = self.dev.hand
-        self.dev = ScriptedDevice(hand, self.dev.clock_ppm, **device)
-        self.dev_t0 = host_t
+        self.dev = ScriptedDevice(self.dev.hand, self.dev.clock_ppm, **device)
+        self.dev_t0 = HOST_T0_S + self.slot * 1e-3
         self.dev_rx = pr.Deframer()
         self.transforms.clear()
         self.carry = b""
@@ -372,9 +366,9 @@ class Twin:
                            f"counted as sent: reference {late[0].hex()}, compiled {late[1].hex()}")
 
     # -- the device side of one slot
-    def _device_bytes(self, host_t: float) -> tuple[bytes, int]:
+    def _device_bytes(self, host_t: float) -> bytes:
+        """The device runs up to host_t; what it sent since, through the scripted wire events."""
         due = math.floor((host_t - self.dev_t0) * self.dev_rate)
-        statuses = 0
         while self.dev.ticks < due:
             self.dev.tick()
         data = bytearray(self.carry)
@@ -384,7 +378,6 @@ class Twin:
         self.extra.clear()
         while self.dev.outbox:
             m = self.dev.outbox.popleft()
-            statuses += m[0] == pr.IDS["STATUS"]
             f = pr.frame(m)
             if m[0] == pr.IDS["STATUS"] and self.transforms:
                 f = self.transforms.popleft()(f)
@@ -395,7 +388,7 @@ class Twin:
         for raw in self.extra_after:
             data += raw
         self.extra_after.clear()
-        return bytes(data), statuses
+        return bytes(data)
 
     def _host_time(self, k: int) -> float:
         # the host wakes up to 0.4 ms late in its 1 ms slot (the device's clock runs its own rate)
@@ -406,7 +399,7 @@ class Twin:
         k = self.slot
         self.slot += 1
         host_t = self._host_time(k)
-        data, _ = self._device_bytes(host_t)
+        data = self._device_bytes(host_t)
         for s in (self.a, self.b):
             s.write_device_bytes(data)
             if s.unread > MAX_UNREAD:
