@@ -12,8 +12,8 @@ input; a difference in B's output is a mismatch at that step anyway.
 Determinism on a pty: the kernel delivers pty bytes through a work queue, so a read right
 after a write can miss them. Before each host action the harness waits until the slave's
 input queue (FIONREAD) holds exactly the bytes written since the host's last read, and after
-it reads the master until it holds as many frames as the link counted as sent
-(LinkStats.messages_sent). Device bytes per host action are kept below the line
+it reads both masters until they hold as many bytes as the reference's transport wrote
+(counted at SerialTransport._write). Device bytes per host action are kept below the line
 discipline's 4 KiB read buffer (a fuller one would be read in timing-dependent pieces).
 """
 
@@ -254,7 +254,18 @@ class Setup:
         self.t.now = lambda: self.now_s  # the host clock the link and the pump read
         self.link = DeviceLink(self.t, 12)
         self.unread = 0  # device bytes written to the master that the host has not read
-        self.sent_before = 0
+        # bytes this host's transport has written to its port (counted for the reference, A:
+        # B's must be the same bytes, however its cycle writes them)
+        self.written = 0
+        self.taken = 0  # of those, read from the master
+        real_write = self.t._write
+
+        def counting_write(data):
+            n = real_write(data)
+            self.written += n
+            return n
+
+        self.t._write = counting_write
 
     def reconnect(self) -> None:
         """The display was unplugged and is back: a new port, transport and link, attached
@@ -274,14 +285,11 @@ class Setup:
             if n > self.unread or time.monotonic() > deadline:
                 raise Mismatch(f"setup {self.name}: {n} bytes wait on the port, {self.unread} were written "
                                "(the host read less than everything, or the kernel is stuck)")
-        self.sent_before = self.link.stats.messages_sent
 
-    def take_output(self) -> bytes:
-        """What the host wrote during its action: as many frames as it counted as sent
-        (more, if more are there already)."""
+    def take_output(self, want: int) -> bytes:
+        """What the host wrote during its action: `want` bytes (what the reference wrote), and
+        whatever more is there already (a surplus shows up at the next action at the latest)."""
         self.unread = _fionread(self.slave)  # all had arrived before; an action may not read (end)
-        want = self.link.stats.messages_sent - self.sent_before
-        self.sent_before = self.link.stats.messages_sent
         buf = bytearray()
         deadline = time.monotonic() + (WAIT_S if want else 0.0)
         while True:
@@ -290,7 +298,7 @@ class Setup:
                 continue
             except BlockingIOError:
                 pass
-            if buf.count(0) >= want:
+            if len(buf) >= want:
                 return bytes(buf)
             left = deadline - time.monotonic()
             if left <= 0:
@@ -336,7 +344,7 @@ class Twin:
         self.seen: dict = {"host_actions": 0, "max_status_per_poll": 0, "samples": 0, "xfade": 0,
                            "partial_frame": 0, "episode": 0, "guard": 0, "fill_max": 0, "fill_drops": 0,
                            "irregular_fit": 0, "rest": 0, "buckets": set(), "not_running": 0,
-                           "raw_count_high": 0, "raw_count_low": 0}
+                           "raw_count_high": 0, "raw_count_low": 0, "pending_bytes_max": 0}
         compare(snapshot(self.a.pump), snapshot(self.b.pump), f"{scenario}: after construction")
 
     def close(self) -> None:
@@ -360,10 +368,10 @@ class Twin:
         """The end of a scenario: nothing more may arrive from either host (a frame written
         but not counted as sent shows up here at the latest)."""
         time.sleep(settle_s)
-        late = [s.take_output() for s in (self.a, self.b)]
+        late = [s.take_output(0) for s in (self.a, self.b)]
         if late[0] or late[1]:
-            raise Mismatch(f"scenario {self.scenario!r}, after the last action: bytes written but not "
-                           f"counted as sent: reference {late[0].hex()}, compiled {late[1].hex()}")
+            raise Mismatch(f"scenario {self.scenario!r}, after the last action: more bytes arrived: "
+                           f"reference {late[0].hex()}, compiled {late[1].hex()}")
 
     # -- the device side of one slot
     def _device_bytes(self, host_t: float) -> bytes:
@@ -424,8 +432,10 @@ class Twin:
         else:
             ra = action(self.a.pump)
             rb = action(self.b.pump)
-        out_a = self.a.take_output()
-        out_b = self.b.take_output()
+        want = self.a.written - self.a.taken
+        out_a = self.a.take_output(want)
+        out_b = self.b.take_output(want)
+        self.a.taken += len(out_a)
         if type(ra) is not type(rb) or ra != rb:
             raise Mismatch(f"{where}: returned {ra!r} (reference) != {rb!r} (compiled)")
         if out_a != out_b:
@@ -452,6 +462,7 @@ class Twin:
         seen["_fill_prev"] = p._fill
         seen["fill_max"] = max(seen["fill_max"], p._fill)
         seen["partial_frame"] += bool(p.link.t.deframer._buf)
+        seen["pending_bytes_max"] = max(seen["pending_bytes_max"], len(p.link.t._pending))
         s = p.link.stats.last_status
         seen["not_running"] += bool(s) and s["state"] != pr.STATES["RUNNING"]
         r = p.renderer
@@ -486,6 +497,12 @@ class Twin:
     def end(self) -> None:
         """pump.end() on both in the next slot (playback stopped)."""
         self._slot(True, lambda pump: pump.end())
+
+    def block_output(self, blocked: bool) -> None:
+        """Suspend (resume) the hosts' output to the port, as a device that stops reading
+        does: writes fail with EAGAIN, the transport keeps what it could not write."""
+        for s in (self.a, self.b):
+            termios.tcflow(s.slave, termios.TCOOFF if blocked else termios.TCOON)
 
     # -- scripted wire events (the next STATUS frames)
     def drop_status(self, n: int = 1) -> None:

@@ -278,6 +278,24 @@ def sc_reconnect(tw):
     assert p.health.samples_played > 3 * 300 and p._episode is None
 
 
+def sc_output_blocked(tw):
+    _play(tw)
+    tw.run(150)
+    tw.block_output(True)  # the port takes nothing for 40 ms: the transport keeps it, in order
+    tw.run(40)
+    tw.block_output(False)
+    tw.run(150)
+    tw.block_output(True)  # for long: the device times out, the pump's restarts wait too
+    tw.run(330)
+    tw.block_output(False)
+    tw.run(250)
+    p = tw.a.pump
+    # (MAX_PENDING is not reached: unacknowledged samples count as in flight, so the pump
+    # stops sending; DeviceBusy from a serial port is not exercised here)
+    assert tw.seen["pending_bytes_max"] > 300 and p.stats.recoveries >= 2 and not p.link.t._pending
+    assert any("host timeout" in m for m in tw.a.logged)
+
+
 SCENARIOS = {
     "steady_stroke": (sc_steady_stroke, {}),
     "sandpaper_slow_device_clock": (sc_sandpaper_slow_device_clock, {"clock_ppm": -450.0}),
@@ -307,6 +325,8 @@ SCENARIOS = {
     "texture_switch": (sc_texture_switch, {}),
     # a new port, transport and link (Pump.attach), with and without a begin after it
     "reconnect": (sc_reconnect, {}),
+    # the port takes nothing for a while (TCOOFF): EAGAIN, SerialTransport._pending, in order
+    "output_blocked": (sc_output_blocked, {}),
 }
 
 
@@ -348,7 +368,7 @@ def _write_one_byte_short(pump, now):
     try:
         return fastpump.step(pump, now)
     finally:
-        del t._write
+        t._write = real
 
 
 def _all_fresh(pump, now):
