@@ -344,7 +344,8 @@ def test_compiled_cycle_equals_the_reference(textures, name):
 
 # ------------------------------------------------------------------------ the harness can fail
 def _perturbed(at: int, change):
-    """fastpump.step, then change(pump, now, result) -> result at the at-th cycle."""
+    """step_b for setup B: fastpump.step, except at its at-th call (1-based), where
+    change(pump, now) runs the cycle its own (perturbed) way and returns its result."""
     calls = [0]
 
     def step(pump, now):
@@ -443,9 +444,9 @@ PERTURBATIONS = {
     "one_sample_more_reported": ("steady_stroke", 120, _then(lambda p, r: r + 1), "returned"),
     "a_log_line": ("steady_stroke", 120, _then(lambda p, r: (p.log("x"), r)[1]), "log lines differ"),
     "one_byte_lost": ("steady_stroke", 120, _write_one_byte_short, "bytes written differ"),
-    # a frame written past the link's count (caught at this action or, if the kernel has not
+    # a frame more than the reference writes (caught at this action or, if the kernel has not
     # passed it on yet, at the next)
-    "uncounted_frame": ("steady_stroke", 120, _then(lambda p, r: (p.link.t.send(pr.encode("STOP")), r)[1]),
+    "one_frame_more": ("steady_stroke", 120, _then(lambda p, r: (p.link.t.send(pr.encode("STOP")), r)[1]),
                         "bytes written differ"),
     "clock_one_ulp_late": ("steady_stroke", 120, _late_clock, r"status_host_time|_last_decay|_offset"),
     "no_fill_decay": ("underrun_fill_rises_and_decays", 40, _no_decay, r"_last_decay"),
@@ -464,7 +465,7 @@ def test_the_comparison_catches_a_perturbed_cycle(textures, name):
     finally:
         tw.close()
     # caught at once: step_b's call `at` is host action `at` (8 lead-in cycles, begin, cycles)
-    late = 1 if name == "uncounted_frame" else 0
+    late = 1 if name == "one_frame_more" else 0
     assert any(str(e.value).startswith(f"scenario '{scenario}+{name}', host action {k} (")
                for k in range(at, at + late + 1)), str(e.value)
 
