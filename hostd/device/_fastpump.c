@@ -56,6 +56,9 @@
 static int C_STATUS_ID = -1, C_SAMPLES_ID = -1, C_MAX_SAMPLES = 0, C_RUNNING = 1, C_SMALL_BATCH = 32;
 static long long C_RATE = 3000, C_CAP = 0, C_MAX_FRAME = 0, C_MAX_GAP_US = 600000000LL;
 static PyObject *decode_fn = NULL; /* hostd.device.fastlink.decode: builds last_status dicts */
+static PyObject *DeviceBusy = NULL; /* hostd.errors.DeviceBusy (init) */
+static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the reference renders (init) */
+
 
 /* interned attribute names */
 #define NAMES(X)                                                                                          \
@@ -91,6 +94,7 @@ typedef struct {
     /* objects (new references) */
     PyObject *pump, *link, *t, *health, *r, *motion, *pos, *height, *eq, *out, *pstats, *lstats, *deframer;
     PyObject *mcache, *wcache, *w; /* motion weight cache, height weight cache, current weights */
+    PyObject *overflow;             /* messages of one poll beyond MAX_MSGS (a backlog), or NULL */
     Py_buffer wbuf, sosbuf, zibuf, ringbuf;
     int have_w, have_sos, have_zi, have_ring;
     int fd, mode; /* mode: MODE_SERIAL (COBS frames on a byte stream) or MODE_HID (a report per read/write) */
@@ -118,7 +122,7 @@ typedef struct {
     /* pump */
     long long flags_seen, last_sp, under_seen, fill, extra, base_fill, cycles, late_batches, samples;
     long long deadline_misses, motion_base0, motion_base1, retries_base;
-    int has_last_played, has_last_cycle, sent_any;
+    int has_last_played, has_last_cycle, sent_any, record;
     double last_played_dev_s, last_decay, decay_every_s, max_late_us, period_s, last_cycle_start;
     /* renderer */
     double latency_s;
@@ -244,6 +248,7 @@ static void release(S *s) {
     Py_CLEAR(s->mcache);
     Py_CLEAR(s->wcache);
     Py_CLEAR(s->w);
+    Py_CLEAR(s->overflow);
     PyMem_Free(s->dbuf);
     s->dbuf = NULL;
     s->dlen = s->dcap = 0;
@@ -338,7 +343,7 @@ static int load(S *s, PyObject *pump, int mode) {
     r = PyObject_IsTrue(o);
     Py_CLEAR(o);
     TRY(r);
-    NO(r);
+    s->record = r; /* (the demo's summary: pump.sent_codes gets each batch sent) */
     TRY(r = is_none(pump, N__episode));
     NO(!r);
     TRY(r = is_none(pump, N__guard_seq));
@@ -838,8 +843,24 @@ typedef struct {
 static msg_t g_msgs[MAX_MSGS]; /* one poll's messages (the GIL is held throughout) */
 static int16_t g_codes[RC_MAX_N]; /* a batch whose sending the reference finishes */
 
-/* Deframer.feed: append data, cut frames at zero bytes, keep what is valid. Stops at MAX_MSGS
- * messages, the bytes after them left in the buffer (returns 1: the reference drains the rest). */
+/* keep a message of one poll: in msgs while they hold, then in s->overflow (a backlog) */
+static int keep_msg(S *s, msg_t *msgs, int *nm, const unsigned char *b, Py_ssize_t n) {
+    if (*nm < MAX_MSGS) {
+        if (b != msgs[*nm].b)
+            memcpy(msgs[*nm].b, b, (size_t)n);
+        msgs[*nm].n = n;
+        (*nm)++;
+        return 0;
+    }
+    if (!s->overflow && !(s->overflow = PyList_New(0)))
+        return -1;
+    PyObject *m = PyBytes_FromStringAndSize((const char *)b, n);
+    int r = m ? PyList_Append(s->overflow, m) : -1;
+    Py_XDECREF(m);
+    return r;
+}
+
+/* Deframer.feed: append data, cut frames at zero bytes, keep what is valid */
 static int deframe(S *s, const unsigned char *data, Py_ssize_t n, msg_t *msgs, int *nm) {
     if (s->dlen + n > s->dcap) {
         Py_ssize_t cap = (s->dlen + n) * 2;
@@ -854,12 +875,8 @@ static int deframe(S *s, const unsigned char *data, Py_ssize_t n, msg_t *msgs, i
     memcpy(s->dbuf + s->dlen, data, (size_t)n);
     s->dlen += n;
     Py_ssize_t at = 0;
+    static unsigned char spare[sizeof g_msgs[0].b];
     while (1) {
-        if (*nm >= MAX_MSGS) {
-            memmove(s->dbuf, s->dbuf + at, (size_t)(s->dlen - at));
-            s->dlen -= at;
-            return 1;
-        }
         unsigned char *z = memchr(s->dbuf + at, 0, (size_t)(s->dlen - at));
         if (!z) {
             memmove(s->dbuf, s->dbuf + at, (size_t)(s->dlen - at));
@@ -875,7 +892,8 @@ static int deframe(S *s, const unsigned char *data, Py_ssize_t n, msg_t *msgs, i
         at = i + 1;
         if (len == 0)
             continue;
-        unsigned char *raw = msgs[*nm].b; /* COBS never lengthens: the body's length suffices */
+        /* COBS never lengthens: the body's length suffices */
+        unsigned char *raw = *nm < MAX_MSGS ? msgs[*nm].b : spare;
         Py_ssize_t m = len <= (Py_ssize_t)sizeof msgs[0].b ? cobs_decode(body, len, raw) : -1;
         if (m < 3) {
             s->bad_frames++;
@@ -885,8 +903,8 @@ static int deframe(S *s, const unsigned char *data, Py_ssize_t n, msg_t *msgs, i
             s->bad_frames++;
             continue;
         }
-        msgs[*nm].n = m - 2;
-        (*nm)++;
+        if (keep_msg(s, msgs, nm, raw, m - 2) < 0)
+            return -1;
     }
 }
 
@@ -924,6 +942,7 @@ static const char *H_NAMES[H_N] = {"not_ordinary", "backlog", "message", "fault"
                                    "irregular", "fit_uncached", "implausible", "supervise", "decay",
                                    "big_batch", "new_bucket", "read_error", "write_error"};
 static long long hand_count[H_N];
+static long long compiled_count; /* cycles done here from start to end */
 #define HAND(why, code) (hand_count[why]++, (code))
 
 /* ------------------------------------------------------------------ motion (MotionEstimator) */
@@ -1206,14 +1225,9 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         while (1) {
             ssize_t r = read(s->fd, rb, READ_SIZE);
             if (r > 0) {
-                memcpy(msgs[nm].b, rb, (size_t)r);
-                msgs[nm].n = r;
-                nm++;
+                if (keep_msg(s, msgs, &nm, rb, r) < 0)
+                    return -1;
                 empties = 0;
-                if (nm == MAX_MSGS) {
-                    *more = 1; /* the reference drains the rest (Transport.drain) */
-                    break;
-                }
                 continue;
             }
             if (r == 0) { /* a zero-length packet is not a report */
@@ -1246,17 +1260,13 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
                     return HAND(H_READ, HAND_READERR);
                 break;
             }
-            const int full = deframe(s, rb, r, msgs, &nm);
-            if (full < 0)
+            if (deframe(s, rb, r, msgs, &nm) < 0)
                 return -1;
-            if (full) {
-                *more = 1; /* the reference drains the rest (Transport.drain) */
-                break;
-            }
             if (r < READ_SIZE)
                 break;
         }
     }
+    *more = s->overflow != NULL;
     if (nm > FRESH || *more) { /* a backlog (the host stalled): stale statuses are the reference's */
         *nmsgs = nm;
         *first = 0;
@@ -1383,6 +1393,17 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         s->samples_sent += cnt;
         done += cnt;
     }
+    if (s->record) { /* Pump._send_codes: pump.sent_codes.append(codes[:sent]) */
+        PyObject *raw = PyBytes_FromStringAndSize((const char *)codes, (Py_ssize_t)(done * 2));
+        PyObject *arr = raw ? PyObject_CallOneArg(codes_fn, raw) : NULL;
+        Py_XDECREF(raw);
+        PyObject *lst = arr ? PyObject_GetAttrString(s->pump, "sent_codes") : NULL;
+        int r = lst ? PyList_Append(lst, arr) : -1;
+        Py_XDECREF(lst);
+        Py_XDECREF(arr);
+        if (r < 0)
+            return -1;
+    }
     s->samples += done;
     s->sent_any = 1;
     *sent = done;
@@ -1390,8 +1411,6 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
 }
 
 /* ------------------------------------------------------------------ hand-over, step, run */
-static PyObject *DeviceBusy = NULL; /* hostd.errors.DeviceBusy (init) */
-static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the reference renders (init) */
 
 /* A cycle: here while ordinary, else stored and finished by the reference. Returns the samples
  * sent (a new int), NULL on error. *loaded: whether s is still loaded afterwards. */
@@ -1400,17 +1419,20 @@ static PyObject *do_cycle(S *s, double now, int *loaded) {
     int nm, first, more;
     long long sent, ncodes = 0;
     int r = cycle(s, now, msgs, &nm, &first, &more, &sent, &ncodes);
-    if (r == DONE)
+    if (r == DONE) {
+        compiled_count++;
         return PyLong_FromLongLong(sent);
+    }
     *loaded = 0;
     if (r < 0) {
         release(s);
         return NULL;
     }
-    PyObject *pump = s->pump, *link = s->link, *t = s->t;
+    PyObject *pump = s->pump, *link = s->link, *t = s->t, *overflow = s->overflow;
     Py_INCREF(pump);
     Py_INCREF(link);
     Py_INCREF(t);
+    Py_XINCREF(overflow);
     PyObject *res = NULL;
     if (store(s) < 0)
         goto out;
@@ -1427,10 +1449,8 @@ static PyObject *do_cycle(S *s, double now, int *loaded) {
             }
             Py_DECREF(m);
         }
-        if (more) { /* the rest of the backlog, as Transport.drain reads it */
-            PyObject *rest = PyObject_CallMethod(t, "drain", NULL);
-            PyObject *x = rest ? PyObject_CallMethodOneArg(all, N_extend, rest) : NULL;
-            Py_XDECREF(rest);
+        if (more) { /* the rest of the backlog */
+            PyObject *x = PyObject_CallMethodOneArg(all, N_extend, overflow);
             if (!x) {
                 Py_DECREF(all);
                 goto out;
@@ -1470,6 +1490,7 @@ out:
     Py_DECREF(pump);
     Py_DECREF(link);
     Py_DECREF(t);
+    Py_XDECREF(overflow);
     return res;
 }
 
@@ -1736,6 +1757,13 @@ static PyObject *fp_init(PyObject *self, PyObject *args) {
 
 static PyObject *fp_handovers(PyObject *self, PyObject *noargs) {
     PyObject *d = PyDict_New();
+    PyObject *c = d ? PyLong_FromLongLong(compiled_count) : NULL;
+    if (!c || PyDict_SetItemString(d, "compiled", c) < 0) {
+        Py_XDECREF(c);
+        Py_XDECREF(d);
+        return NULL;
+    }
+    Py_DECREF(c);
     for (int i = 0; d && i < H_N; i++) {
         PyObject *v = PyLong_FromLongLong(hand_count[i]);
         if (!v || PyDict_SetItemString(d, H_NAMES[i], v) < 0) {
@@ -1749,7 +1777,8 @@ static PyObject *fp_handovers(PyObject *self, PyObject *noargs) {
 }
 
 static PyMethodDef methods[] = {
-    {"handovers", fp_handovers, METH_NOARGS, "handovers() -> {cause: cycles handed to the reference}"},
+    {"handovers", fp_handovers, METH_NOARGS,
+     "handovers() -> {cause: cycles handed to the reference, 'compiled': cycles done compiled}"},
     {"init", fp_init, METH_VARARGS, "init(consts, DeviceBusy, decode, codes_from_bytes)"},
     {"step", fp_step, METH_VARARGS, "step(pump, now_s | None, mode) -> samples sent: pump.step()"},
     {"run", fp_run, METH_VARARGS,

@@ -127,6 +127,7 @@ class Pump:
         link.target_fill = self._link_fill()
         self.health.new_device()
         self._last_samples_played = None
+        self._last_played_dev_s = None  # (another device, or the same one reset: another clock)
         self._started = False
         self._episode = None
 
@@ -134,6 +135,12 @@ class Pump:
         self.health.update(f)
         self._flags_seen |= f["fault_flags"]
         sp = f["samples_played"]
+        if self._last_played_dev_s is not None and device_time_s < self._last_played_dev_s:
+            # the device's clock went back (it was reset behind the same port): what it played
+            # before is on another clock; an open episode counts its silence from now
+            self._last_played_dev_s = None
+            if self._episode is not None:
+                self._episode.silent_since_s = device_time_s
         if (self._last_samples_played is not None and sp != self._last_samples_played
                 and f["state"] == RUNNING):
             self._last_played_dev_s = device_time_s

@@ -22,26 +22,44 @@
 #define RC_MAX_N 64             /* the real-time batches are <= equalizer.SMALL_BATCH samples */
 #define RC_DENORMAL_GUARD 1e-30 /* equalizer.DENORMAL_GUARD */
 
-/* clenshaw_py: the recurrence from the last non-zero coefficient down to component 1 */
+/* clenshaw_py: Clenshaw's recurrence in Reinsch's form, from the last non-zero coefficient down
+ * to component 1 (components 1..k0-1 are zero) */
 static void rc_clenshaw(const double *c, ptrdiff_t k, const double *theta, ptrdiff_t n, double *out, long k0) {
     while (k > 0 && c[k - 1] == 0.0)
         k--;
     const long pad = k > 0 ? k0 - 1 : 0;
     for (ptrdiff_t i = 0; i < n; i++) {
-        const double x = cos(theta[i]);
-        const double x2 = x + x;
-        double b1 = 0.0, b2 = 0.0;
-        for (ptrdiff_t j = k - 1; j >= 0; j--) {
-            const double b = c[j] + x2 * b1 - b2;
-            b2 = b1;
-            b1 = b;
+        const double t = theta[i];
+        if (!isfinite(t)) { /* no phase: no height (the output stage holds its last value) */
+            out[i] = NAN;    /* the positive quiet NaN, as Python's math.nan */
+            continue;
         }
-        for (long j = 0; j < pad; j++) {
-            const double b = 0.0 + x2 * b1 - b2;
-            b2 = b1;
-            b1 = b;
+        double b = 0.0, d = 0.0;
+        if (cos(t) >= 0.0) { /* near 0: d_k = b_k - b_(k+1), u = 2 cos(t) - 2 = -4 sin^2(t/2) */
+            const double h = sin(0.5 * t);
+            const double u = -4.0 * (h * h);
+            for (ptrdiff_t j = k - 1; j >= 0; j--) {
+                d = (c[j] + u * b) + d;
+                b = d + b;
+            }
+            for (long j = 0; j < pad; j++) {
+                d = (0.0 + u * b) + d;
+                b = d + b;
+            }
+            out[i] = d + (0.5 * u) * b;
+        } else { /* near pi: d_k = b_k + b_(k+1), u = 2 cos(t) + 2 = 4 cos^2(t/2) */
+            const double h = cos(0.5 * t);
+            const double u = 4.0 * (h * h);
+            for (ptrdiff_t j = k - 1; j >= 0; j--) {
+                d = (c[j] + u * b) - d;
+                b = d - b;
+            }
+            for (long j = 0; j < pad; j++) {
+                d = (0.0 + u * b) - d;
+                b = d - b;
+            }
+            out[i] = (0.5 * u) * b - d;
         }
-        out[i] = b1 * x - b2;
     }
 }
 

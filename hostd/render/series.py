@@ -88,27 +88,48 @@ SMALL_BATCH = 32  # float64 phases at or below this many (a real-time batch): Cl
 
 def clenshaw_py(coeffs, theta, k0: int = 1) -> np.ndarray:
     """The real-time batch's sum, the reference: sum_j coeffs[j] cos((k0 + j) theta_i), k0 >= 1, by
-    Clenshaw's recurrence b_k = c_k + 2 cos(theta) b_(k+1) - b_(k+2) from the last non-zero
-    component down to k = 1, sum = b_1 cos(theta) - b_2; one phase at a time in IEEE doubles.
+    Clenshaw's recurrence in Reinsch's form, from the last non-zero component down to k = 1, one
+    phase at a time in IEEE doubles.
 
-    Why this and not the cosine matrix: its result is defined by the operations alone (one
-    libm cos per phase, then multiplies and adds in a fixed order), so the compiled version
-    (hostd/render/render_core.h: the same operations, no FMA) gives the same samples bit for
-    bit; numpy's vectorized cos and its matrix product round differently with the SIMD width
-    and the BLAS kernel. Error (tests/test_render.py): below 1e-13 of sum |c_k| up to K = 1000
-    and 1e-11 at K = 16000, where one step of a 16-bit DAC is 3e-5 of full scale."""
+    Clenshaw: b_k = c_k + 2 cos(theta) b_(k+1) - b_(k+2), sum = b_1 cos(theta) - b_2. Near theta = 0
+    or pi, 2 cos(theta) rounds to nearly +-2 and the phase it carries is lost (an error growing
+    with K^2: 1e-9 of sum |c_k| at K = 16 000 for a lone top component, theta = 1/K). Reinsch's
+    form carries the differences d_k = b_k -+ b_(k+1) instead and the small u = 2 cos(theta) -+ 2,
+    computed from sin(theta/2)^2 (cos(theta) >= 0) or cos(theta/2)^2 (< 0), which keeps its
+    relative precision: d_k = c_k + u b_(k+1) +- d_(k+1), b_k = d_k +- b_(k+1), and
+    sum = +-d_1 + (u/2) b_1. Error (tests/test_render.py), up to K = 16 000 at any phase: below 1e-14
+    of sum |c_k| for a texture's decaying spectrum, 1e-12 for a lone top component; one step of a
+    16-bit DAC is 3e-5 of full scale.
+
+    Why a recurrence and not the cosine matrix: its result is defined by its operations alone
+    (two libm calls per phase, then multiplies and adds in a fixed order), so the compiled version
+    (hostd/render/render_core.h: the same operations, no FMA) gives the same samples bit for bit;
+    numpy's vectorized cosine and its matrix product round differently with the SIMD width and
+    the BLAS kernel."""
     c = np.asarray(coeffs, dtype=np.float64)
     nz = np.flatnonzero(c)
     # components k0-1 .. 1 below the first coefficient are zero: the recurrence runs over them too
     cl = c[: nz[-1] + 1].tolist()[::-1] + [0.0] * (int(k0) - 1) if nz.size else []
     out = []
     for t in np.asarray(theta, dtype=np.float64).tolist():
-        x = math.cos(t)
-        x2 = x + x
-        b1 = b2 = 0.0
-        for ck in cl:
-            b1, b2 = ck + x2 * b1 - b2, b1
-        out.append(b1 * x - b2)
+        if not math.isfinite(t):  # no phase: no height (the output stage holds its last value)
+            out.append(math.nan)
+            continue
+        b = d = 0.0
+        if math.cos(t) >= 0.0:  # theta near 0 (mod 2 pi): d_k = b_k - b_(k+1)
+            h = math.sin(0.5 * t)
+            u = -4.0 * (h * h)
+            for ck in cl:
+                d = ck + u * b + d
+                b = d + b
+            out.append(d + 0.5 * u * b)
+        else:  # theta near pi: d_k = b_k + b_(k+1)
+            h = math.cos(0.5 * t)
+            u = 4.0 * (h * h)
+            for ck in cl:
+                d = ck + u * b - d
+                b = d - b
+            out.append(0.5 * u * b - d)
     return np.array(out, dtype=np.float64)
 
 
