@@ -59,7 +59,8 @@ def _codes_from_bytes(raw: bytes) -> np.ndarray:
 
 _C = _load()
 IMPLEMENTATION = "c" if _C is not None else "python"
-BUDGET_S = 0.1  # the longest run of compiled cycles between two of the reference loop (each_cycle: commands, counters)
+# the longest run of compiled cycles between two of the Python loop's (each_cycle: commands, counters)
+BUDGET_S = 0.1
 
 
 MODE_SERIAL, MODE_HID = 0, 1  # _fastpump.c's transports

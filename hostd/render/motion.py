@@ -51,7 +51,7 @@ def _dot(w, x) -> float:
     """sum_i w_i x_i, left to right from 0.0 in IEEE doubles: the order the compiled cycle
     (hostd/device/_fastpump.c) uses. Not sum(), which compensates its rounding from Python 3.12."""
     acc = 0.0
-    for a, b in zip(w, x):
+    for a, b in zip(w, x, strict=True):
         acc += a * b
     return acc
 
