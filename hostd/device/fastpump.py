@@ -18,6 +18,8 @@ real-time batch is the Clenshaw recurrence on both sides (hostd.render.series.cl
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from hostd.compiled import load as load_compiled
@@ -84,11 +86,44 @@ def usable(pump) -> bool:
 
     t = pump.link.t
     r = pump.renderer
-    return _mode(t) is not None and type(t).now is Transport.now and (r is None or _renderer_ok(r))
+    return (_mode(t) is not None and type(t).now is Transport.now and "now" not in vars(t)
+            and (r is None or _renderer_ok(r)))
+
+
+@functools.cache
+def _methods(cls: type) -> frozenset:
+    return frozenset(k for k in dir(cls) if not k.startswith("__") and callable(getattr(cls, k, None)))
+
+
+def _plain(obj, cls: type) -> bool:
+    """obj is exactly a cls, with none of its methods replaced on the instance (a test's spy, a
+    wrapper): the compiled cycle does what cls's methods do, so it must be them that run."""
+    return type(obj) is cls and _methods(cls).isdisjoint(vars(obj))
+
+
+def _ordinary(pump) -> bool:
+    """The objects of the cycle are the classes the compiled cycle mirrors, unpatched, wired to
+    each other as Pump.attach wires them."""
+    from hostd.device.health import DeviceHealth
+    from hostd.device.link import DeviceLink
+    from hostd.device.pump import Pump
+    from hostd.render.equalizer import Equalizer
+    from hostd.render.height import HeightEvaluator
+    from hostd.render.motion import MotionEstimator
+    from hostd.render.output import OutputStage
+    from hostd.render.position import EncoderPosition
+
+    link, r = pump.link, pump.renderer
+    if not (_plain(pump, Pump) and _plain(link, DeviceLink) and _plain(pump.health, DeviceHealth)
+            and link.on_status == pump._on_status):
+        return False
+    return r is None or (_renderer_ok(r) and _plain(r.motion, MotionEstimator)
+                         and _plain(r.position, EncoderPosition) and _plain(r.height, HeightEvaluator)
+                         and _plain(r.eq, Equalizer) and _plain(r.out, OutputStage))
 
 
 def _renderer_ok(r) -> bool:
-    return (type(r) is Renderer and r.height.method == "series" and r.height.dtype is np.float64
+    return _methods(Renderer).isdisjoint(vars(r)) and (type(r) is Renderer and r.height.method == "series" and r.height.dtype is np.float64
             and r.out._code_dtype is np.int16)
 
 
@@ -97,7 +132,7 @@ def step(pump, now_s: float | None = None) -> int:
     (tests: it must equal what pump.link.t.now() returns during the call); None: the monotonic
     clock, which is what the transport's now() reads. Returns the number of samples sent."""
     mode = _mode(pump.link.t) if _C is not None else None
-    if mode is None or (pump.renderer is not None and not _renderer_ok(pump.renderer)):
+    if mode is None or not _ordinary(pump):
         return pump.step()
     return _C.step(pump, now_s, mode)
 
@@ -108,6 +143,6 @@ def run(pump, start_s: float, k: int, duration_s: float | None, fds=()) -> tuple
     a udev event), "signal", "handed" (the reference finished a cycle), "reference" (nothing
     done: not ordinary). due_s > 0: the caller sleeps until then (the grid's next deadline)."""
     mode = _mode(pump.link.t)
-    if mode is None or pump.renderer is None or not _renderer_ok(pump.renderer):
+    if mode is None or pump.renderer is None or not _ordinary(pump):
         return k, "reference", 0.0
     return _C.run(pump, start_s, k, duration_s, BUDGET_S, list(fds), mode)
