@@ -154,6 +154,7 @@ def doctor(config: str | None, json_out: bool = False) -> int:
                                 else "install a C compiler and reinstall hostd to build it"))
     from hostd.device import fastpump
 
+    head("host rendering")
     if fastpump.IMPLEMENTATION == "c":
         ok(f"host-rendering cycle: compiled ({Path(fastpump._C.__file__).name}; serial and hidraw displays)")
     else:
