@@ -123,8 +123,8 @@ def _ordinary(pump) -> bool:
 
 
 def _renderer_ok(r) -> bool:
-    return _methods(Renderer).isdisjoint(vars(r)) and (type(r) is Renderer and r.height.method == "series" and r.height.dtype is np.float64
-            and r.out._code_dtype is np.int16)
+    return (type(r) is Renderer and _methods(Renderer).isdisjoint(vars(r)) and r.height.method == "series"
+            and r.height.dtype is np.float64 and r.out._code_dtype is np.int16)
 
 
 def step(pump, now_s: float | None = None) -> int:
@@ -146,3 +146,9 @@ def run(pump, start_s: float, k: int, duration_s: float | None, fds=()) -> tuple
     if mode is None or pump.renderer is None or not _ordinary(pump):
         return k, "reference", 0.0
     return _C.run(pump, start_s, k, duration_s, BUDGET_S, list(fds), mode)
+
+
+def compiled_cycles() -> int:
+    """Host-rendering cycles this process ran compiled (0 where the compiled cycle is not built);
+    `hostd status` shows it (compiled_cycles) next to the pump's cycles."""
+    return _C.handovers()["compiled"] if _C is not None else 0
