@@ -21,7 +21,7 @@
  *
  *   init(consts, DeviceBusy, decode, codes_from_bytes)   the protocol's ids, sizes, constants
  *   step(pump, now_s, mode) -> int           one pump.step(); now_s: the host clock (None: CLOCK_MONOTONIC)
- *   run(pump, start_s, k, duration_s, budget_s, fds, mode) -> (k, why, due_s)
+ *   run(pump, start_s, k, duration_s, budget_s, fds, mode, top_done) -> (k, why, due_s)
  *        Pump.run's iterations (deadline grid start_s + k x period) while they are ordinary, at
  *        most budget_s, waking early for none of them: returns at an iteration's top when the
  *        budget is spent, end_s passed, a descriptor of fds became readable (after the sleep to
@@ -1583,8 +1583,8 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
     PyObject *pump, *o_dur, *o_fds;
     double start, budget;
     long long k;
-    int mode;
-    if (!PyArg_ParseTuple(args, "OdLOdOi", &pump, &start, &k, &o_dur, &budget, &o_fds, &mode))
+    int mode, top_done;
+    if (!PyArg_ParseTuple(args, "OdLOdOip", &pump, &start, &k, &o_dur, &budget, &o_fds, &mode, &top_done))
         return NULL;
     int has_dur = o_dur != Py_None;
     double duration = has_dur ? PyFloat_AsDouble(o_dur) : 0.0;
@@ -1623,8 +1623,14 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
     int loaded = 1;
     const double t_run0 = mono_now();
     const long long lim_fill = C_CAP - C_MAX_SAMPLES;
+    int skip_top = top_done && s->has_last_cycle; /* the caller's loop did this iteration's top */
     while (1) {
         double now = mono_now();
+        if (skip_top) {
+            now = s->last_cycle_start;
+            skip_top = 0;
+            goto cycle_now;
+        }
         if (has_dur && now - start >= duration) {
             why = "end";
             break;
@@ -1644,6 +1650,7 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
         }
         s->last_cycle_start = now;
         s->has_last_cycle = 1;
+    cycle_now:;
         const double c0 = thread_now();
         PyObject *res = do_cycle(s, now, &loaded);
         if (!loaded) { /* handed over: the reference finished the cycle; Pump.run's tail ends it */
@@ -1782,8 +1789,8 @@ static PyMethodDef methods[] = {
     {"init", fp_init, METH_VARARGS, "init(consts, DeviceBusy, decode, codes_from_bytes)"},
     {"step", fp_step, METH_VARARGS, "step(pump, now_s | None, mode) -> samples sent: pump.step()"},
     {"run", fp_run, METH_VARARGS,
-     "run(pump, start_s, k, duration_s | None, budget_s, fds, mode) -> (k, why, due_s): Pump.run's "
-     "ordinary iterations"},
+     "run(pump, start_s, k, duration_s | None, budget_s, fds, mode, top_done) -> (k, why, due_s): Pump.run's "
+     "ordinary iterations (top_done: the caller began the first one: stall check, _last_cycle_start)"},
     {NULL, NULL, 0, NULL},
 };
 

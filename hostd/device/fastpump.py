@@ -62,7 +62,7 @@ def _codes_from_bytes(raw: bytes) -> np.ndarray:
 _C = _load()
 IMPLEMENTATION = "c" if _C is not None else "python"
 # the longest run of compiled cycles between two of the Python loop's (each_cycle: commands, counters)
-BUDGET_S = 0.1
+BUDGET_S = 0.25
 
 
 MODE_SERIAL, MODE_HID = 0, 1  # _fastpump.c's transports
@@ -137,15 +137,18 @@ def step(pump, now_s: float | None = None) -> int:
     return _C.step(pump, now_s, mode)
 
 
-def run(pump, start_s: float, k: int, duration_s: float | None, fds=()) -> tuple[int, str, float]:
+def run(pump, start_s: float, k: int, duration_s: float | None, fds=(), top_done: bool = True
+        ) -> tuple[int, str, float]:
     """Pump.run's iterations, compiled, while they are ordinary and for at most BUDGET_S:
-    (k, why, due_s). why: "end", "stall", "budget", "wake" (one of fds is readable: a command,
-    a udev event), "signal", "handed" (the reference finished a cycle), "reference" (nothing
-    done: not ordinary). due_s > 0: the caller sleeps until then (the grid's next deadline)."""
+    (k, why, due_s). top_done: the caller's loop began the first iteration (its stall check,
+    _last_cycle_start, each_cycle, stop) and this does its cycle on. why: "end", "stall",
+    "budget", "wake" (one of fds is readable: a command, a udev event), "signal", "handed" (the
+    reference finished a cycle), "reference" (nothing done: not ordinary). due_s > 0: the
+    caller sleeps until then (the grid's next deadline)."""
     mode = _mode(pump.link.t)
     if mode is None or pump.renderer is None or not _ordinary(pump):
         return k, "reference", 0.0
-    return _C.run(pump, start_s, k, duration_s, BUDGET_S, list(fds), mode)
+    return _C.run(pump, start_s, k, duration_s, BUDGET_S, list(fds), mode, top_done)
 
 
 def compiled_cycles() -> int:

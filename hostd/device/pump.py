@@ -331,10 +331,10 @@ class Pump:
         start of every cycle the reference loop runs (the daemon's pump takes its commands and
         publishes counters).
 
-        With the compiled cycle (hostd.device.fastpump, compiled=True, where it applies) the
-        ordinary cycles between two of this loop's run compiled, for at most fastpump.BUDGET_S
-        or until one of wake_fds is readable (a command, a udev event): each_cycle() and stop()
-        are then asked at least that often, and at once on a command."""
+        With the compiled cycle (hostd.device.fastpump, compiled=True, where it applies) a
+        cycle and the ordinary ones after it run compiled, for at most fastpump.BUDGET_S or until
+        one of wake_fds is readable (a command, a udev event): each_cycle() and stop() are then
+        asked at least that often, and at the next deadline after a command."""
         from hostd.device import fastpump
 
         fast = compiled and fastpump.usable(self)
@@ -357,21 +357,20 @@ class Pump:
                 each_cycle()
             if stop is not None and stop():
                 break
+            if fast:  # this cycle and the ordinary ones after it, compiled
+                k, why, due = fastpump.run(self, start, k, duration_s, wake_fds)
+                if why != "reference":
+                    if due:
+                        time.sleep(max(0.0, due - time.monotonic()))
+                    continue
             c0 = time.thread_time()
             try:
-                if fast:
-                    fastpump.step(self)
-                else:
-                    self.step()
+                self.step()
             except DeviceBusy:
                 st.io_dropped += 1
             k, due = self._end_cycle(c0, start, k)
             if due:
                 time.sleep(max(0.0, due - time.monotonic()))
-            if fast:
-                k, _why, due = fastpump.run(self, start, k, duration_s, wake_fds)
-                if due:
-                    time.sleep(max(0.0, due - time.monotonic()))
         return st
 
     def _end_cycle(self, c0: float, start: float, k: int) -> tuple[int, float]:

@@ -23,43 +23,52 @@
 #define RC_DENORMAL_GUARD 1e-30 /* equalizer.DENORMAL_GUARD */
 
 /* clenshaw_py: Clenshaw's recurrence in Reinsch's form, from the last non-zero coefficient down
- * to component 1 (components 1..k0-1 are zero) */
+ * to component 1 (components 1..k0-1 are zero). Four phases at a time, interleaved (four
+ * independent chains keep the FPU busy; each phase's operations and their order are the
+ * reference's). The two forms in one expression: with g = +1 (cos(t) >= 0: near 0) or -1 (near
+ * pi), d = (c + u b) + g d and b = d + g b, where x + (-1) y is exactly x - y in IEEE arithmetic
+ * (signed zeros included), and the result (u/2) b + g d equals d + (u/2) b or (u/2) b - d. */
+#define RC_LANES 4
 static void rc_clenshaw(const double *c, ptrdiff_t k, const double *theta, ptrdiff_t n, double *out, long k0) {
     while (k > 0 && c[k - 1] == 0.0)
         k--;
     const long pad = k > 0 ? k0 - 1 : 0;
-    for (ptrdiff_t i = 0; i < n; i++) {
-        const double t = theta[i];
-        if (!isfinite(t)) { /* no phase: no height (the output stage holds its last value) */
-            out[i] = NAN;    /* the positive quiet NaN, as Python's math.nan */
-            continue;
+    for (ptrdiff_t i0 = 0; i0 < n; i0 += RC_LANES) {
+        const int m = (int)(n - i0 < RC_LANES ? n - i0 : RC_LANES);
+        double u[RC_LANES], g[RC_LANES], b[RC_LANES], d[RC_LANES];
+        int finite[RC_LANES];
+        for (int l = 0; l < RC_LANES; l++) {
+            const double t = l < m ? theta[i0 + l] : 0.0;
+            finite[l] = isfinite(t);
+            b[l] = d[l] = 0.0;
+            if (!finite[l]) {
+                u[l] = 0.0;
+                g[l] = 1.0;
+            } else if (cos(t) >= 0.0) { /* near 0: d_k = b_k - b_(k+1), u = -4 sin^2(t/2) */
+                const double h = sin(0.5 * t);
+                u[l] = -4.0 * (h * h);
+                g[l] = 1.0;
+            } else { /* near pi: d_k = b_k + b_(k+1), u = 4 cos^2(t/2) */
+                const double h = cos(0.5 * t);
+                u[l] = 4.0 * (h * h);
+                g[l] = -1.0;
+            }
         }
-        double b = 0.0, d = 0.0;
-        if (cos(t) >= 0.0) { /* near 0: d_k = b_k - b_(k+1), u = 2 cos(t) - 2 = -4 sin^2(t/2) */
-            const double h = sin(0.5 * t);
-            const double u = -4.0 * (h * h);
-            for (ptrdiff_t j = k - 1; j >= 0; j--) {
-                d = (c[j] + u * b) + d;
-                b = d + b;
+        for (ptrdiff_t j = k - 1; j >= 0; j--) {
+            const double cj = c[j];
+            for (int l = 0; l < RC_LANES; l++) {
+                d[l] = (cj + u[l] * b[l]) + g[l] * d[l];
+                b[l] = d[l] + g[l] * b[l];
             }
-            for (long j = 0; j < pad; j++) {
-                d = (0.0 + u * b) + d;
-                b = d + b;
-            }
-            out[i] = d + (0.5 * u) * b;
-        } else { /* near pi: d_k = b_k + b_(k+1), u = 2 cos(t) + 2 = 4 cos^2(t/2) */
-            const double h = cos(0.5 * t);
-            const double u = 4.0 * (h * h);
-            for (ptrdiff_t j = k - 1; j >= 0; j--) {
-                d = (c[j] + u * b) - d;
-                b = d - b;
-            }
-            for (long j = 0; j < pad; j++) {
-                d = (0.0 + u * b) - d;
-                b = d - b;
-            }
-            out[i] = (0.5 * u) * b - d;
         }
+        for (long j = 0; j < pad; j++) {
+            for (int l = 0; l < RC_LANES; l++) {
+                d[l] = (0.0 + u[l] * b[l]) + g[l] * d[l];
+                b[l] = d[l] + g[l] * b[l];
+            }
+        }
+        for (int l = 0; l < m; l++) /* no phase: no height (the output stage holds its last value) */
+            out[i0 + l] = finite[l] ? (0.5 * u[l]) * b[l] + g[l] * d[l] : NAN;
     }
 }
 
