@@ -255,6 +255,7 @@ def test_bench_cycle_splits_the_pump_cycle_into_its_parts(capsys):
         c = rows[1]
         assert c["cycle"] == "compiled" and c["cycles_per_s"] > 100 and c["cpu_us_per_cycle"] > 0
         assert c["reference_over_compiled"] > 0 and isinstance(c["handed_over"], dict)
+        assert c["compiled_cycles"] > 0 and "compiled" not in c["handed_over"]
 
 
 # ---------------------------------------------------------------- scalar paths of the render front
