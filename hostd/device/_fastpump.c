@@ -15,6 +15,9 @@
  * changed; at the first thing that is not ordinary the state is stored and the reference does
  * the rest of the cycle (`link._take` for the messages left, then `pump.after_poll()`), so the
  * rare paths (recovery, re-locks, new buckets, stalls) have one implementation: the Python one.
+ * The GIL is held throughout, the sleeps included: nothing else in the pump's process runs
+ * Python meanwhile (it has no other Python thread), so nothing can change the state held here
+ * behind its back; a signal ends the sleep and the run, and its handler runs at once.
  * The arithmetic is the reference's, operation by operation, in IEEE doubles, compiled with
  * -ffp-contract=off; Python's float semantics are spelled out where C differs (floored %, max()
  * and min() that keep the first of equals, round() half to even = rint()).
@@ -1673,6 +1676,8 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
             why = "handed";
             goto out;
         }
+        if (!res) /* (no memory for the count) */
+            break;
         Py_DECREF(res);
         /* Pump._end_cycle */
         double *ring = (double *)s->ringbuf.buf;
@@ -1701,6 +1706,10 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
             why = "wake";
             break;
         }
+    }
+    if (PyErr_Occurred()) {
+        store(s);
+        goto done;
     }
     if (store(s) < 0)
         goto done;
