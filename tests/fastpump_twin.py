@@ -395,7 +395,7 @@ class HidSetup(Setup):
         self._attach_link(HidrawTransport(fd=host.detach()))  # (the transport closes it)
         self.unread = 0  # device bytes in reports the host has not read
         self.written = self.taken = 0  # (the serial port's count; a report is there when written)
-        self.blocked = False
+        self.budget: int | None = None  # reports the device still reads (None: all)
 
     @staticmethod
     def wire(msg: bytes) -> bytes:
@@ -429,14 +429,17 @@ class HidSetup(Setup):
 
     def take_output(self, want: int) -> tuple[bytes, ...]:
         """The reports the host wrote during its action (all there: an AF_UNIX record is queued
-        when sent), unless the device is not reading (block_output): then none."""
+        when sent), unless the device is not reading (block_output): then none, or as many as
+        it was allowed to read (allow_output)."""
         self.unread = _fionread(self.t.fd)  # a host that stopped early (> 64 empty reads) left some
         out = []
-        while not self.blocked:
+        while self.budget is None or self.budget > 0:
             try:
                 out.append(self.dev_sock.recv(4096))
             except BlockingIOError:
                 break
+            if self.budget is not None:
+                self.budget -= 1
         return tuple(out)
 
     @staticmethod
@@ -455,7 +458,11 @@ class HidSetup(Setup):
     def block_output(self, blocked: bool) -> None:
         """The device stops (resumes) reading the host's reports: they stay queued, and once
         the host's send buffer is full, its writes fail with EAGAIN (DeviceBusy)."""
-        self.blocked = blocked
+        self.budget = 0 if blocked else None
+
+    def allow_output(self, n: int) -> None:
+        """A device that does not read takes n more reports (room for n in the send buffer)."""
+        self.budget = n
 
     def close(self) -> None:
         self.t.close()
@@ -503,7 +510,7 @@ class Twin:
                            "partial_frame": 0, "episode": 0, "guard": 0, "fill_max": 0, "fill_drops": 0,
                            "irregular_fit": 0, "rest": 0, "buckets": set(), "not_running": 0,
                            "raw_count_high": 0, "raw_count_low": 0, "pending_bytes_max": 0,
-                           "empty_reads": 0, "input_left": 0}
+                           "empty_reads": 0, "input_left": 0, "busy_dropped": 0, "busy_partial": 0}
         self._loose: dict = {}  # LOOSE field -> (reference's, compiled's) at the last comparison
         self._compare(f"{scenario}: after construction")
 
@@ -609,14 +616,15 @@ class Twin:
             raise Mismatch(f"{where}: bytes written differ:\n  reference {self.a.show(out_a)}\n"
                            f"  compiled  {self.b.show(out_b)}")
         if (wa := self.a.wire_state()) != (wb := self.b.wire_state()):
-            raise Mismatch(f"{where}: bytes written differ: reference {wa} unread by the device, compiled {wb}")
+            raise Mismatch(f"{where}: bytes written differ: reference {wa} unread by the device, "
+                           f"compiled {wb}")
         if self.a.logged != self.b.logged:
             raise Mismatch(f"{where}: log lines differ: {self.a.logged[-2:]} != {self.b.logged[-2:]}")
         self._compare(where)
         if self.deaf > 0:
             self.deaf -= 1
         else:
-            for m in self.dev_rx.feed(out_a):
+            for m in self.dev_rx(out_a):
                 self.dev.on_message(m)
         self._observe(ra, self.a.link.stats.statuses - statuses_before)
 
@@ -637,6 +645,13 @@ class Twin:
             seen["partial_frame"] += bool(t.deframer._buf)
             seen["pending_bytes_max"] = max(seen["pending_bytes_max"], len(t._pending))
         seen["input_left"] += self.a.unread > 0  # device input the host left for its next cycle
+        # a busy write retried (DeviceLink._send), and the message given up: all of the cycle's
+        # (io_dropped), or those after the first that went out (a partial send)
+        retried = p.link.stats.io_retries != seen.get("_retries_prev", 0)
+        dropped = p.stats.io_dropped != seen.get("_dropped_prev", 0)
+        seen["_retries_prev"], seen["_dropped_prev"] = p.link.stats.io_retries, p.stats.io_dropped
+        seen["busy_dropped"] += retried and dropped
+        seen["busy_partial"] += retried and not dropped and isinstance(ret, int) and ret > 0
         s = p.link.stats.last_status
         seen["not_running"] += bool(s) and s["state"] != pr.STATES["RUNNING"]
         r = p.renderer
@@ -677,6 +692,11 @@ class Twin:
         does: writes fail with EAGAIN once the kernel's buffer is full (Setup.block_output)."""
         for s in (self.a, self.b):
             s.block_output(blocked)
+
+    def allow_output(self, n: int) -> None:
+        """HID: the device, not reading, takes n reports after the next action (and no more)."""
+        for s in (self.a, self.b):
+            s.allow_output(n)
 
     # -- scripted wire events (the next STATUS frames)
     def drop_status(self, n: int = 1) -> None:
