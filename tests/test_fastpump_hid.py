@@ -107,6 +107,16 @@ def sc_busy(tw):
     tw.run(300)
     p = tw.a.pump
     assert p.health.underruns >= 1 and p.stats.recoveries >= 1 and p.link.stats.io_retries > 0
+    # for 52 ms: past the host timeout the device ramps down and goes idle, and the pump's
+    # restart meets the full buffer: its STOP is retried for 50 ms, then DeviceBusy comes out of
+    # the cycle (Pump.run counts it in io_dropped)
+    recoveries = p.stats.recoveries
+    tw.block_output(True)
+    tw.run(52)  # (each cycle that meets it costs 2 x 50 ms of retries: a few)
+    tw.block_output(False)
+    tw.run(200)
+    assert tw.seen["raised"] >= 1 and any("host timeout" in m for m in tw.a.logged)
+    assert p.stats.recoveries > recoveries
 
 
 PARTIAL_AFTER_MS = 14
