@@ -5,10 +5,12 @@ SOCK_SEQPACKET socket pair (a record per report, as hidraw). The scenarios lead 
 through its own paths: a stall backlog of more than 64 reports (the compiled cycle keeps those
 beyond 64 in its overflow list), zero-length reads (counted, skipped; more than 64 in a row
 end a read), a report with a non-zero byte after its STATUS, an unpadded and a truncated
-STATUS, other messages, underruns and recoveries, a glitch and a re-lock, and writes that fail
-with EAGAIN (the device stops reading: DeviceBusy, the compiled cycle hands the send to the
-reference). The perturbed twins prove the HID comparison sees a one-ULP, one-count or one-report
-difference."""
+STATUS, other messages, underruns, host timeouts, a device idle, deaf or reset, and recoveries,
+a glitch and a re-lock, a reconnection, and a device that stops reading: writes fail with EAGAIN
+(DeviceBusy), the compiled cycle hands the send to the reference, with none or the first of two
+messages sent, and a restart's STOP meets the full buffer (DeviceBusy out of the cycle). The
+perturbed twins prove the HID comparison sees a one-ULP, one-count, one-bit or one-report
+difference and a busy write given up without its retries."""
 
 from __future__ import annotations
 
@@ -28,9 +30,11 @@ from tests.test_fastpump import (
     _play,
     _then,
     _twin,
+    sc_device_idle_reset_deaf,
     sc_glitch_and_jump,
     sc_host_stalls,
     sc_other_messages,
+    sc_reconnect,
     sc_steady_stroke,
 )
 
@@ -130,6 +134,10 @@ HID_SCENARIOS = {
     "odd_reports": (sc_odd_reports, {}, ("message",)),
     "other_messages": (sc_other_messages, {}, ("message",)),
     "glitch_and_jump": (sc_glitch_and_jump, {"hand": jump_at(stroke(), 0.6, 5.0)}, ("glitch",)),
+    # device idle, deaf (the guard gives up, host timeout) and reset: the reference's restarts
+    "device_idle_reset_deaf": (sc_device_idle_reset_deaf, {}, ("supervise",)),
+    # a new socket pair, HidrawTransport and link (Pump.attach): the compiled cycle takes the new fd
+    "reconnect": (sc_reconnect, {}, ()),
     # a 27 ms jitter buffer: the host's send buffer fills before the device's buffer runs dry;
     # record=True: the codes of a partial send (Pump._send_codes from the first message not sent)
     "busy": (sc_busy, {"jitter": JitterConfig(base_fill=80), "record": True}, ("write_error",)),
