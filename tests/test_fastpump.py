@@ -19,14 +19,12 @@ import time
 import numpy as np
 import pytest
 
-from hostd.bench.accuracy import texture_coeffs
 from hostd.device import fastpump
 from hostd.device import protocol as pr
 from hostd.device.pump import JitterConfig
 from hostd.render.equalizer import EqualizerConfig
 from hostd.render.motion import MotionConfig
 from hostd.render.pipeline import RenderConfig
-from hostd.texture import synth
 from tests.fastpump_twin import (
     Mismatch,
     Twin,
@@ -34,6 +32,7 @@ from tests.fastpump_twin import (
     renderer_factory,
     rest,
     snapshot,
+    standard_textures,
     stroke,
     sweep,
 )
@@ -43,10 +42,7 @@ M32 = 1 << 32
 
 @pytest.fixture(scope="module")
 def textures():
-    wood = texture_coeffs(synth.make("wood", seed=1))
-    sand = texture_coeffs(synth.make("sandpaper", seed=2))
-    c, n, length_mm = wood
-    return {"main": wood, "sand": sand, "short": (c[:5].copy(), n, length_mm)}  # N' = 5
+    return standard_textures()
 
 
 def _twin(textures, name, hand=None, step_b=None, cfg=None, **kw) -> Twin:
