@@ -304,7 +304,8 @@ def test_sdist_builds_a_complete_wheel_and_ships_no_tests(tmp_path):
 
     names = [n.split("/", 1)[1] for n in tarfile.open(sdist).getnames() if "/" in n]
     assert not [n for n in names if n.startswith(("tests/", "firmware/"))], names
-    for f in ("hostd/codec/_rangecoder.c", "docs/daemon.md", "README.md", "LICENSE", "setup.py",
+    for f in ("hostd/codec/_rangecoder.c", "hostd/device/_fastpump.c", "hostd/render/_fastrender.c",
+              "hostd/render/render_core.h", "docs/daemon.md", "README.md", "LICENSE", "setup.py",
               "hostd/data/hostd.toml", "hostd/systemd/hostd.service"):  # the symlinks' files
         assert f in names, f
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
@@ -315,6 +316,9 @@ def test_sdist_builds_a_complete_wheel_and_ships_no_tests(tmp_path):
     inside = set(zipfile.ZipFile(whl).namelist())
     assert {"hostd/data/hostd.toml", "hostd/systemd/hostd.service",
             "hostd/data/thresholds/default.csv"} <= inside
+    # the compiled modules build from the sdist alone (their shared header is in it)
+    built = {n.split("/")[-1].split(".")[0] for n in inside if n.endswith(".so")}
+    assert {"_rangecoder", "_fastlink", "_fastrender", "_fastpump"} <= built, sorted(built)
 
 
 def test_auditwheel_repair_gives_a_manylinux_wheel(wheel, tmp_path):
