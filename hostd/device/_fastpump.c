@@ -68,7 +68,7 @@ static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the refere
     X(renderer) X(record) X(_episode) X(_guard_seq) X(_flags_seen) X(_last_samples_played)                \
     X(_last_played_dev_s) X(_under_seen) X(_fill) X(_last_decay) X(_extra) X(jitter) X(base_fill)         \
     X(decay_every_s) X(stats) X(cycles) X(late_batches) X(samples) X(deadline_misses) X(max_late_us)      \
-    X(step_us) X(io_retries) X(relocks) X(implausible_speed) X(_motion_base) X(_retries_base)             \
+    X(step_us) X(relocks) X(implausible_speed) X(_motion_base)             \
     X(_last_cycle_start) X(period_s) X(link) X(health) X(t) X(target_fill) X(_seq) X(_unacked)            \
     X(_time_hi) X(_last_us) X(device_time_s) X(status_host_time) X(_offset_s) X(_offset_host_t)           \
     X(_fill_from_seq) X(statuses) X(messages_sent) X(samples_sent) X(last_status) X(_last) X(state)        \
@@ -80,8 +80,7 @@ static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the refere
     X(n) X(length_mm) X(band) X(speed_bucket) X(_w_bucket) X(_w) X(_w_cache) X(sos) X(zi) X(last_um)      \
     X(envelope) X(target_envelope) X(limit_um) X(max_step_um) X(ramp_step) X(_codes_per_um) X(limit_code) \
     X(nonfinite) X(clipped) X(ser) X(fd) X(deframer) X(_buf) X(bad_frames) X(_queue) X(_pending)          \
-    X(_vmin) X(after_poll) X(_take) X(flush_pending) X(clear) X(extend) X(step) X(empty_reads)           \
-    X(io_dropped) X(retry_budget_s)
+    X(_vmin) X(after_poll) X(_take) X(clear) X(extend) X(step) X(empty_reads)
 #define DECL(name) static PyObject *N_##name;
 NAMES(DECL)
 #undef DECL
@@ -101,8 +100,7 @@ typedef struct {
     Py_buffer wbuf, sosbuf, zibuf, ringbuf;
     int have_w, have_sos, have_zi, have_ring;
     int fd, mode; /* mode: MODE_SERIAL (COBS frames on a byte stream) or MODE_HID (a report per read/write) */
-    long long empty_reads, io_dropped;
-    double retry_budget;
+    long long empty_reads;
     /* transport */
     unsigned char *dbuf;
     Py_ssize_t dlen, dcap;
@@ -110,7 +108,7 @@ typedef struct {
     unsigned char pend[MAX_PENDING + 256];
     Py_ssize_t plen;
     /* link */
-    long long seq, time_hi, last_us, statuses, messages_sent, samples_sent, target_fill, l_io_retries;
+    long long seq, time_hi, last_us, statuses, messages_sent, samples_sent, target_fill;
     int n_un;
     long long un_seq[MAX_UNACKED], un_cnt[MAX_UNACKED];
     double device_time_s, status_host_time, offset_s, offset_host_t;
@@ -124,7 +122,7 @@ typedef struct {
     long long sel_played;
     /* pump */
     long long flags_seen, last_sp, under_seen, fill, extra, base_fill, cycles, late_batches, samples;
-    long long deadline_misses, motion_base0, motion_base1, retries_base;
+    long long deadline_misses, motion_base0, motion_base1;
     int has_last_played, has_last_cycle, sent_any, record;
     double last_played_dev_s, last_decay, decay_every_s, max_late_us, period_s, last_cycle_start;
     /* renderer */
@@ -362,7 +360,6 @@ static int load(S *s, PyObject *pump, int mode) {
     TRY(get_ll(pump, N__extra, &s->extra));
     TRY(get_d(pump, N_period_s, &s->period_s));
     TRY(get_opt_d(pump, N__last_cycle_start, &s->last_cycle_start, &s->has_last_cycle));
-    TRY(get_ll(pump, N__retries_base, &s->retries_base));
     TRY(get_obj(pump, N_jitter, &o));
     r = get_ll(o, N_base_fill, &s->base_fill) < 0 || get_d(o, N_decay_every_s, &s->decay_every_s) < 0;
     Py_CLEAR(o);
@@ -383,7 +380,6 @@ static int load(S *s, PyObject *pump, int mode) {
     TRY(get_ll(s->pstats, N_late_batches, &s->late_batches));
     TRY(get_ll(s->pstats, N_samples, &s->samples));
     TRY(get_ll(s->pstats, N_deadline_misses, &s->deadline_misses));
-    TRY(get_ll(s->pstats, N_io_dropped, &s->io_dropped));
     TRY(get_d(s->pstats, N_max_late_us, &s->max_late_us));
     TRY(get_obj(s->pstats, N_step_us, &o));
     if (PyObject_GetBuffer(o, &s->ringbuf, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT) < 0) {
@@ -435,8 +431,6 @@ static int load(S *s, PyObject *pump, int mode) {
     TRY(get_ll(s->lstats, N_statuses, &s->statuses));
     TRY(get_ll(s->lstats, N_messages_sent, &s->messages_sent));
     TRY(get_ll(s->lstats, N_samples_sent, &s->samples_sent));
-    TRY(get_ll(s->lstats, N_io_retries, &s->l_io_retries));
-    TRY(get_d(s->link, N_retry_budget_s, &s->retry_budget));
     TRY(get_obj(s->lstats, N_last_status, &o));
     r = PyDict_Check(o) ? read_status_fields(o, &s->ls) : 0;
     Py_CLEAR(o);
@@ -510,7 +504,6 @@ static int load(S *s, PyObject *pump, int mode) {
         Py_CLEAR(o);
     }
     /* renderer */
-    TRY(r = (int)PyObject_HasAttr(s->r, N__xfade_left));
     TRY(get_ll(s->r, N__xfade_left, &ll));
     NO(ll != 0);
     TRY(get_d(s->r, N_latency_s, &s->latency_s));
@@ -748,8 +741,6 @@ static int store(S *s) {
     e |= SET_LL(s->pstats, late_batches, s->late_batches);
     e |= SET_LL(s->pstats, samples, s->samples);
     e |= SET_LL(s->pstats, deadline_misses, s->deadline_misses);
-    e |= SET_LL(s->pstats, io_dropped, s->io_dropped);
-    e |= SET_LL(s->lstats, io_retries, s->l_io_retries);
     e |= SET_D(s->pstats, max_late_us, s->max_late_us);
     if (s->sent_any) { /* after_poll sets these after a send */
         e |= SET_LL(s->pstats, relocks, s->motion_base0 + s->m_relocks);

@@ -1,9 +1,9 @@
 """The host-rendering pump's steady-state cycle, compiled (hostd/device/_fastpump.c), with
 hostd.device.pump.Pump.step and the loop of Pump.run as its reference.
 
-A Python cycle costs ~190 µs of CPU (at 1 kHz, a fifth of a core, issue 22); the compiled one
-does the same work, operation for operation, for the kernel's wake-up and a few µs. It takes
-a cycle only while everything is ordinary (a serial display streaming: STATUS messages, a
+A Python cycle costs 100–190 µs of CPU (at 1 kHz, a tenth to a fifth of a core, issue 22); the
+compiled one does the same work, operation for operation, for the kernel's wake-up and a few
+µs. It takes a cycle only while everything is ordinary (a display streaming: STATUS messages, a
 motion fit and band-limit weights already cached, nothing to recover) and hands the rest of
 any other cycle to the reference, so recovery, re-locks and new speed buckets have one
 implementation. tests/test_fastpump.py drives both on the same scripted display and checks,
@@ -26,7 +26,7 @@ from hostd.compiled import load as load_compiled
 from hostd.device import fastlink
 from hostd.device import protocol as pr
 from hostd.errors import DeviceBusy
-from hostd.render import equalizer, fastrender, series
+from hostd.render import equalizer, fastrender
 from hostd.render.pipeline import Renderer
 
 C_REVISION = 1  # _fastpump.c's REVISION this module is written for
@@ -38,7 +38,7 @@ _CODE = {"B": "u8", "H": "u16", "I": "u32"}
 
 def _load():
     c = load_compiled("hostd.device._fastpump", C_REVISION)
-    if c is None or fastrender._C is None or series._C is None:
+    if c is None or fastrender._C is None:
         return None
     lay = pr.LAYOUTS["STATUS"]
     if [f"{n}:{_CODE.get(code, code)}" for n, code in lay.fields] != _STATUS:

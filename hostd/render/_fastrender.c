@@ -1,6 +1,8 @@
 /* Compiled tail of the host renderer for the real-time path's small batches: equalizer
  * (second-order sections, transposed direct form II), output stage (soft-start envelope,
- * displacement limit, slew limit, non-finite guard) and DAC codes, in one call.
+ * displacement limit, slew limit, non-finite guard) and DAC codes, in one call; and the
+ * batch's series (clenshaw: hostd.render.series.clenshaw_py). The arithmetic is in
+ * render_core.h, shared with hostd/device/_fastpump.c.
  *
  * hostd/render/equalizer.py (Equalizer.__call__, its scalar path for <= SMALL_BATCH samples)
  * and hostd/render/output.py (OutputStage.process, OutputStage.to_codes) are the reference;

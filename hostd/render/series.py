@@ -22,6 +22,8 @@ import numpy as np
 import scipy.linalg
 import scipy.signal
 
+from hostd.render import fastrender
+
 
 def phase_rad(x_mm, n: int, length_mm: float) -> np.ndarray:
     """theta(x) = pi (x/dx + 1/2) / N in rad, x (mm) reduced to one period 2L first (in float64,
@@ -133,17 +135,9 @@ def clenshaw_py(coeffs, theta, k0: int = 1) -> np.ndarray:
     return np.array(out, dtype=np.float64)
 
 
-def _load_compiled():
-    from hostd.compiled import load
-
-    return load("hostd.render._fastrender", 2)
-
-
-_C = _load_compiled()
-
-
 def clenshaw(coeffs, theta, k0: int = 1) -> np.ndarray:
     """clenshaw_py's values, compiled (hostd/render/_fastrender.c) when it is built."""
+    _C = fastrender._C
     if _C is not None:
         c = np.ascontiguousarray(coeffs, dtype=np.float64)
         th = np.ascontiguousarray(theta, dtype=np.float64)

@@ -158,8 +158,8 @@ def doctor(config: str | None, json_out: bool = False) -> int:
     if fastpump.IMPLEMENTATION == "c":
         ok(f"host-rendering cycle: compiled ({Path(fastpump._C.__file__).name}; serial and hidraw displays)")
     else:
-        note("host-rendering cycle: Python (the same samples; about 100-190 µs of CPU per 1 ms cycle "
-             "instead of 30-40 µs when the display cannot render itself); " +
+        note("host-rendering cycle: Python (the same samples; about 100-150 µs of CPU per 1 ms cycle "
+             "instead of 30-50 µs when the display cannot render itself); " +
              ("HOSTD_PURE_PYTHON is set" if os.environ.get("HOSTD_PURE_PYTHON")
               else "install a C compiler and reinstall hostd to build it"))
     sock = Path(cfg.control.socket)
