@@ -60,3 +60,8 @@ class DeviceGone(DeviceError):
 class DeviceBusy(DeviceError):
     """A transient I/O condition (write timeout, EAGAIN): retried, never a reason to drop
     the device; only a vanished device (ENODEV, EIO, hang-up) is DeviceGone."""
+
+
+class DeviceTimeout(DeviceError):
+    """The device did not answer a request in time: it may be slow (an emulated or starved
+    host), which is not a refusal; the caller may ask once more."""

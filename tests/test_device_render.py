@@ -247,6 +247,65 @@ def test_send_and_confirm_uploads_swaps_and_names_a_refusal(monkeypatch):
     t.close()
 
 
+def test_an_upload_not_answered_in_time_is_a_timeout_and_is_sent_once_more(monkeypatch):
+    """No ACK within the wait is DeviceTimeout, not a refusal; DeviceMode.begin then sends the
+    whole upload once more with RETRY_ACK_S to wait before the host renders instead (the VM rig
+    under load missed a SET_EQ's ACK by the 1 s and rendered on the host for the connection)."""
+    from hostd.device import devmode, devrender
+    from hostd.device.link import DeviceLink
+    from hostd.device.simdev import SimTransport
+    from hostd.errors import DeviceTimeout
+    from hostd.render.pipeline import RenderConfig
+
+    clock = [0.0]
+
+    class Deaf:  # a display that never answers, on a clock that moves 10 ms per poll
+        def send(self, m):
+            pass
+
+        def recv(self, timeout_s=0.0):
+            clock[0] += 0.01
+            return None
+
+        def describe(self):
+            return "deaf"
+
+    monkeypatch.setattr(time, "monotonic", lambda: clock[0])
+    setup, _ = _setup("wood")
+    with pytest.raises(DeviceTimeout, match="no ACK for SET_EQ within 1 s"):
+        devrender.send_and_confirm(Deaf(), setup)
+    monkeypatch.undo()
+
+    t = SimTransport(realtime=False)  # its IDENT and CAPS, taken without running its clock
+    link = DeviceLink(t)
+    link.ident = pr.decode(t.device.ident())[1]
+    link.caps = pr.decode(t.device.caps())[1]
+    waits = []
+
+    def first_unanswered(tr, msgs, timeout_s=1.0, **kw):
+        waits.append(timeout_s)
+        if len(waits) == 1:
+            raise DeviceTimeout("no ACK for SET_EQ within 1 s")
+        return []
+
+    monkeypatch.setattr(devrender, "send_and_confirm", first_unanswered)
+    _, (c, n, length) = _setup("wood")
+    dev = devmode.DeviceMode(link, RenderConfig(), log=lambda m: None)
+    dev.begin(("wood", c, n, length))
+    assert waits == [1.0, devmode.DeviceMode.RETRY_ACK_S] and dev.rendering and dev.uploads == 1
+    waits.clear()
+    def never_answered(tr, msgs, timeout_s=1.0, **kw):
+        waits.append(timeout_s)
+        raise DeviceTimeout("no ACK")
+
+    monkeypatch.setattr(devrender, "send_and_confirm", never_answered)
+    dev2 = devmode.DeviceMode(link, RenderConfig(), log=lambda m: None)
+    with pytest.raises(DeviceTimeout):  # twice unanswered: the caller renders on the host
+        dev2.begin(("wood", c, n, length))
+    assert len(waits) == 2 and not dev2.rendering
+    t.close()
+
+
 def test_device_rendering_is_within_one_percent_and_inside_the_slew_limit():
     """Issue 12's accuracy goal on its hardest texture, measured as `hostd bench accuracy`
     measures the render_at = device row: the C firmware (fw-replay) renders from edges at the

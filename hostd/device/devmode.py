@@ -33,12 +33,14 @@ import numpy as np
 from hostd.device import devrender
 from hostd.device import protocol as pr
 from hostd.device.link import DeviceLink
+from hostd.errors import DeviceTimeout
 
 RENDERING = pr.STATES["RENDERING"]
 
 
 class DeviceMode:
     IDLE_WAIT_S = 0.05  # nothing to render: read the display's 1 ms statuses in batches
+    RETRY_ACK_S = 3.0  # an upload not answered within 1 s is sent once more with this long to wait
     REPORTS_PER_WAKE = 3  # report pairs per wake-up while rendering (150 ms; 3 x 66 bytes < VMIN's 255)
 
     def __init__(self, link: DeviceLink, cfg, log, host_lost_ms: int = 1000,
@@ -87,7 +89,13 @@ class DeviceMode:
         else:
             msgs = devrender.setup_messages(c, n, length_mm, self.cfg, slot=self.slot)
             msgs.append(pr.encode("START_RENDER", host_lost_ms=self.host_lost_ms))
-        devrender.send_and_confirm(self.link.t, msgs, on_other=self.link._take)
+        try:
+            devrender.send_and_confirm(self.link.t, msgs, on_other=self.link._take)
+        except DeviceTimeout:
+            # no answer is not a refusal: a starved or emulated host can miss the 1 s (the VM
+            # rig under load); the whole upload once more, waiting longer, before the host renders
+            devrender.send_and_confirm(self.link.t, msgs, timeout_s=self.RETRY_ACK_S,
+                                       on_other=self.link._take)
         self.texture = texture
         self.rendering = True
         self.uploads += 1

@@ -74,10 +74,11 @@ def send_and_confirm(transport, msgs: list[bytes], timeout_s: float = 1.0, on_ot
                      busy_retries: int = 20) -> list[dict]:
     """Send render messages and wait for their ACKs; a LOAD_END answered BUSY (a crossfade in
     progress) is resent after 60 ms. Messages other than ACK go to on_other(bytes) (the link's
-    STATUS handling). Raises DeviceError naming the refused message and the reason."""
+    STATUS handling). Raises DeviceError naming the refused message and the reason, DeviceTimeout
+    when no answer came within timeout_s."""
     import time
 
-    from hostd.errors import DeviceError
+    from hostd.errors import DeviceError, DeviceTimeout
 
     acks = []
     for m in msgs:
@@ -90,7 +91,7 @@ def send_and_confirm(transport, msgs: list[bytes], timeout_s: float = 1.0, on_ot
             r = transport.recv(0.005)
             if r is None:
                 if time.monotonic() > deadline:
-                    raise DeviceError(f"{transport.describe()}: no ACK for {pr.NAMES[m[0]]} within "
+                    raise DeviceTimeout(f"{transport.describe()}: no ACK for {pr.NAMES[m[0]]} within "
                                       f"{timeout_s:g} s: is the firmware protocol v2?")
                 continue
             try:
