@@ -52,6 +52,7 @@ class LoadOptions:
     columns: tuple[int, ...] | None = None  # 0-based (x, height) or (height,) of a text file
     decimal_comma: bool = False
     progress: bool = False  # a progress bar on stderr while reading large files
+    member: str | None = None  # container formats: which array (a .mat variable, an .hjif channel)
 
 
 def unit_factor(unit: str, axis: str) -> float:
@@ -293,33 +294,37 @@ def nonfinite_lines(path: Path, decimal_comma: bool = False, limit: int = 3) -> 
     return out
 
 
-def load_array(path: str | Path, opts: LoadOptions | None = None) -> np.ndarray:
-    opts = opts or LoadOptions()
-    p = Path(path)
-    if p.suffix.lower() == ".npy":
-        try:
-            arr = np.load(p, allow_pickle=False, mmap_mode="r")
-        except (OSError, ValueError) as exc:
-            raise ProfileError(f"cannot read {p} as .npy: {exc}") from None
-        if np.iscomplexobj(arr):
-            raise ProfileError(f"{p} holds complex numbers ({arr.dtype}): heights must be real; save "
-                               "np.real(a) (or np.abs(a)) if that is what you mean")
-        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
-                or arr.dtype == np.bool_):
-            raise ProfileError(f"{p}: dtype {arr.dtype} is not numeric")
-        if opts.columns is not None:
-            if arr.ndim != 2 or max(opts.columns) >= arr.shape[1]:
-                raise ProfileError(f"{p}: --columns does not fit an array of shape {arr.shape}")
-            arr = arr[:, list(opts.columns)]
-        arr = np.asarray(arr, dtype=np.float64)
-        if arr.ndim == 1:
-            return arr.reshape(-1, 1)
-        if arr.ndim == 2 and arr.shape[1] in (1, 2):
-            return arr
-        if arr.ndim == 2 and arr.shape[0] == 2:
-            return arr.T.copy()
-        raise ProfileError(f"{p}: expected heights (N,) or (N, 2) x/height columns, got {arr.shape} "
-                           "(choose columns with --columns X,Y)")
+def read_npy(p: Path, opts: LoadOptions) -> np.ndarray:
+    """The .npy reader of the format registry (hostd.texture.formats)."""
+    try:
+        arr = np.load(p, allow_pickle=False, mmap_mode="r")
+    except FileNotFoundError:
+        raise ProfileError(f"no such profile file: {p}") from None
+    except (OSError, ValueError) as exc:
+        raise ProfileError(f"cannot read {p} as .npy: {exc}") from None
+    if np.iscomplexobj(arr):
+        raise ProfileError(f"{p} holds complex numbers ({arr.dtype}): heights must be real; save "
+                           "np.real(a) (or np.abs(a)) if that is what you mean")
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+            or arr.dtype == np.bool_):
+        raise ProfileError(f"{p}: dtype {arr.dtype} is not numeric")
+    if opts.columns is not None:
+        if arr.ndim != 2 or max(opts.columns) >= arr.shape[1]:
+            raise ProfileError(f"{p}: --columns does not fit an array of shape {arr.shape}")
+        arr = arr[:, list(opts.columns)]
+    arr = np.asarray(arr, dtype=np.float64)
+    if arr.ndim == 1:
+        return arr.reshape(-1, 1)
+    if arr.ndim == 2 and arr.shape[1] in (1, 2):
+        return arr
+    if arr.ndim == 2 and arr.shape[0] == 2:
+        return arr.T.copy()
+    raise ProfileError(f"{p}: expected heights (N,) or (N, 2) x/height columns, got {arr.shape} "
+                       "(choose columns with --columns X,Y)")
+
+
+def read_text(p: Path, opts: LoadOptions) -> np.ndarray:
+    """The text reader of the format registry: any suffix no other format claims."""
     if not p.exists():
         raise ProfileError(f"no such profile file: {p}")
     stop_x = None
@@ -330,17 +335,33 @@ def load_array(path: str | Path, opts: LoadOptions | None = None) -> np.ndarray:
     return read_columns(p, opts.columns, opts.decimal_comma, stop_x=stop_x, progress=opts.progress)
 
 
+def load_columns(path: str | Path, opts: LoadOptions | None = None):
+    """The file's numbers and what it says of its units (hostd.texture.formats.Columns)."""
+    from hostd.texture import formats
+
+    return formats.read(Path(path), opts or LoadOptions())
+
+
+def load_array(path: str | Path, opts: LoadOptions | None = None) -> np.ndarray:
+    """(n, 1) heights or (n, 2) x, height in the file's units, through the format registry."""
+    return load_columns(path, opts).data
+
+
 def load_profile(path: str | Path, opts: LoadOptions | None = None) -> Profile:
     """Load, convert units, resample to a uniform grid and cut the patch."""
     opts = opts or LoadOptions()
-    fx = unit_factor(opts.x_unit, "x")
-    fy = unit_factor(opts.y_unit, "y")
-    arr = load_array(path, opts)
+    cols = load_columns(path, opts)
+    arr = cols.data
+    fx = unit_factor(cols.x_unit or opts.x_unit, "x")
+    fy = unit_factor(cols.y_unit or opts.y_unit, "y")
+    spacing = cols.spacing if cols.spacing is not None else opts.spacing
     finite = np.isfinite(arr).all(axis=1)
     if not finite.all():
         bad = int(np.count_nonzero(~finite))
         where = ""
-        if Path(path).suffix.lower() != ".npy":
+        from hostd.texture import formats
+
+        if formats.format_for(path) is formats.TEXT:
             lines = nonfinite_lines(Path(path), opts.decimal_comma)
             where = f" (line{'s' if len(lines) > 1 else ''} {', '.join(map(str, lines))}" \
                 f"{', ...' if bad > len(lines) else ''})" if lines else ""
@@ -352,16 +373,16 @@ def load_profile(path: str | Path, opts: LoadOptions | None = None) -> Profile:
         raise ProfileError(f"{path}: holds {arr.shape[0]} sample; a profile needs at least 2 "
                            "(is this the right file, or are the columns right?)")
     if arr.shape[1] == 1:
-        if opts.spacing is None:
+        if spacing is None:
             raise ProfileError(f"{path} has one column of heights: give the spacing with --spacing")
-        dx_um = opts.spacing * fx
+        dx_um = spacing * fx
         _check_spacing(dx_um)
         y_um = arr[:, 0] * fy
     else:
         x_um = arr[:, 0] * fx
         y_um = arr[:, 1] * fy
         x_um, y_um = _sorted_unique(x_um, y_um, str(path))
-        dx_um = opts.spacing * fx if opts.spacing else (x_um[-1] - x_um[0]) / (x_um.size - 1)
+        dx_um = spacing * fx if spacing else (x_um[-1] - x_um[0]) / (x_um.size - 1)
         _check_spacing(dx_um)
         y_um = _resample(x_um, y_um, dx_um)
     prof = cut_patch(y_um, dx_um, opts, str(path))
