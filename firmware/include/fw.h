@@ -97,7 +97,6 @@ void fw_init(fw_t *f, uint8_t encoder_ab);
 void fw_on_message(fw_t *f, const uint8_t *msg, size_t len);
 /* Raw serial bytes: deframed, each good frame handed to fw_on_message, bad ones counted. */
 void fw_deframer_feed(fw_t *f, const uint8_t *bytes, size_t n);
-void fw_encoder_pins(fw_t *f, uint8_t ab);
 /* The 3 kHz playout tick: one DAC sample, safety, and a STATUS every HP_STATUS_PERIOD_TICKS. */
 void fw_tick(fw_t *f);
 /* Builders (also used by tests). Return the message length. */

@@ -1,7 +1,8 @@
 /* The encoder: 4x quadrature decoding, and the edge times the device renderer measures the
  * hand's position and speed from (src/quad.c). Its own header, so that the core (fw.h: STATUS
  * reports the count and the illegal transitions) and the renderer (fw_render.h) both depend on
- * it and neither reaches into the other's state for it. No dependency on fw.h. */
+ * it and neither reaches into the other's state for it. No dependency on fw.h (struct fw is
+ * only named). */
 #ifndef HOSTD_FW_ENCODER_H
 #define HOSTD_FW_ENCODER_H
 
@@ -44,5 +45,15 @@ void fw_edges_track(fw_edges_t *e, uint32_t count, uint32_t t);
  * "less than one count since the last edge"; after 100 ms without an edge the hand rests in
  * the cell's centre. */
 void fw_edges_estimate(fw_edges_t *e, uint32_t now, int64_t *b0, float *p, float *v);
+
+/* The port's entry points (src/encoder.c): they take the whole device state (struct fw, fw.h),
+ * so that neither the core nor the renderer calls the other for the encoder.
+ * fw_encoder_pins: the A/B pin state on every pin change (or polled fast); an illegal
+ * transition sets HP_FAULT_ENCODER. Edges given this way are seen by the renderer at the next
+ * tick's time. fw_encoder_edge: the same with the edge's capture time (edge clock,
+ * HP_RENDER_EDGE_CLOCK_HZ; tick k of fw_tick, counting from 1, is at (k - 1) * FW_EDGE_PER_TICK). */
+struct fw;
+void fw_encoder_pins(struct fw *f, uint8_t ab);
+void fw_encoder_edge(struct fw *f, uint8_t ab, uint32_t t_edge);
 
 #endif

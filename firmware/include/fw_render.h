@@ -99,10 +99,6 @@ int32_t fw_render_tick(struct fw *f);
 void fw_render_halt(struct fw *f);
 /* After IDENT: the render capabilities. */
 void fw_render_send_caps(const struct fw *f);
-/* An encoder pin change with its capture time (edge clock, HP_RENDER_EDGE_CLOCK_HZ; tick k of
- * fw_tick, counting from 1, is at (k - 1) * FW_EDGE_PER_TICK). Ports without a capture timer
- * call fw_encoder_pins(): the renderer then sees the edges at the next tick's time. */
-void fw_encoder_edge(struct fw *f, uint8_t ab, uint32_t t_edge);
 /* CRC-32 (IEEE 802.3, reflected 0xEDB88320, as zlib): crc = fw_crc32(crc, p, n), start at 0. */
 uint32_t fw_crc32(uint32_t crc, const uint8_t *p, size_t n);
 

@@ -160,14 +160,6 @@ void fw_deframer_feed(fw_t *f, const uint8_t *bytes, size_t n) {
     }
 }
 
-void fw_encoder_pins(fw_t *f, uint8_t ab) {
-    uint16_t before = f->quad.errors;
-    fw_quad_update(&f->quad, ab);
-    if (f->quad.errors != before) {
-        f->faults |= HP_FAULT_ENCODER;
-    }
-}
-
 static int32_t toward_zero(int32_t v) {
     const int32_t step = HP_LIMIT_CODE / HP_RAMP_TICKS > 0 ? HP_LIMIT_CODE / HP_RAMP_TICKS : 1;
     if (v > step) return v - step;

@@ -96,11 +96,6 @@ void fw_render_send_caps(const fw_t *f) {
 /* edges the port gave without a time (fw_encoder_pins) are seen at time t */
 static void track(fw_t *f, uint32_t t) { fw_edges_track(&f->render.edges, f->quad.count, t); }
 
-void fw_encoder_edge(fw_t *f, uint8_t ab, uint32_t t_edge) {
-    fw_encoder_pins(f, ab);
-    track(f, t_edge);
-}
-
 /* ------------------------------------------------------------------ series */
 static float phase_turns(const fw_texture_t *t, int64_t b0, float pf) {
     const uint64_t ph = (uint64_t)b0 * t->dphase_half; /* mod 2^64: whole turns drop out */

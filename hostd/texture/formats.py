@@ -5,7 +5,8 @@ this registry for the reader of the file's suffix (text is the fallback for any 
 A reader is named "module:function" and imported only when a file of its kind is read, so a
 format's dependencies (scipy.io for .mat, the JSON model of .hjif) cost nothing elsewhere.
 
-A reader takes (path, LoadOptions) and returns `Columns`: the numbers as an (n, 1) array of
+A reader takes (path, LoadOptions) (defined here: what every reader is given; the loader
+re-exports it) and returns `Columns`: the numbers as an (n, 1) array of
 heights or an (n, 2) array of x, height, in the units the file uses. A format that states
 its own units or spacing says so in `Columns` (those override --x-unit/--y-unit/--spacing);
 the loader then converts to µm, resamples to a uniform grid and cuts the patch as for text.
@@ -21,14 +22,26 @@ import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from hostd.errors import ProfileError
 
-if TYPE_CHECKING:
-    from hostd.texture.load import LoadOptions
+
+@dataclass(frozen=True)
+class LoadOptions:
+    """The loader options every profile-reading command shares (see `hostd encode --help`)."""
+
+    x_unit: str = "um"
+    y_unit: str = "um"
+    spacing: float | None = None  # in x_unit: for one-column data, or the resampling target
+    length_mm: float | None = 10.0  # patch length; None = whole profile
+    offset_mm: float = 0.0
+    detrend: str = "none"  # none | mean | linear
+    columns: tuple[int, ...] | None = None  # 0-based (x, height) or (height,) of a text file
+    decimal_comma: bool = False
+    progress: bool = False  # a progress bar on stderr while reading large files
+    member: str | None = None  # container formats: which array (a .mat variable, an .hjif channel)
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from hostd.errors import ProfileError
+from hostd.texture.formats import LoadOptions
 
 UNITS_TO_UM = {"m": 1e6, "mm": 1e3, "um": 1.0, "µm": 1.0, "nm": 1e-3}
 _SPLIT = re.compile(r"[,;\s]+")
@@ -37,22 +38,6 @@ class Profile:
     @property
     def length_mm(self) -> float:
         return self.n * self.spacing_um / 1000.0
-
-
-@dataclass(frozen=True)
-class LoadOptions:
-    """The loader options every profile-reading command shares (see `hostd encode --help`)."""
-
-    x_unit: str = "um"
-    y_unit: str = "um"
-    spacing: float | None = None  # in x_unit: for one-column data, or the resampling target
-    length_mm: float | None = 10.0  # patch length; None = whole profile
-    offset_mm: float = 0.0
-    detrend: str = "none"  # none | mean | linear
-    columns: tuple[int, ...] | None = None  # 0-based (x, height) or (height,) of a text file
-    decimal_comma: bool = False
-    progress: bool = False  # a progress bar on stderr while reading large files
-    member: str | None = None  # container formats: which array (a .mat variable, an .hjif channel)
 
 
 def unit_factor(unit: str, axis: str) -> float:
