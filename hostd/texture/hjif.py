@@ -232,8 +232,11 @@ def build(ex: Export, date: str | None = None) -> dict:
                            f"{scale}"),
            "perception_modality": TIME, "perception_unit_exponent": 0,
            "reference_devices": [], "effect_library": [],
+           # one keyframe past the end (= the last sample, outside sample_count): the RM's
+           # cubicInterpolation2 stops one sample short and reads the last one past its buffer
            "channels": [_curve_channel("displacement at the fingertip (normalized to full scale)",
-                                       np.arange(p.size, dtype=np.int64), p / fs_um, ex.rate_hz // 2,
+                                       np.arange(p.size + 1, dtype=np.int64),
+                                       np.append(p, p[-1]) / fs_um, ex.rate_hz // 2,
                                        {"frequency_sampling": int(ex.rate_hz), "sample_count": int(p.size)})]}
     prov = {"hostd": {**ex.provenance, "full_scale_um": fs_um, "spacing_um": spacing_stated_um,
                       "speed_mm_s": ex.speed_mm_s, "rate_hz": int(ex.rate_hz)}}
@@ -475,8 +478,6 @@ def _render_by_rm(doc: dict, perception: dict, channel: dict, bands: list[dict],
                   count: int, path: Path) -> np.ndarray:
     """Bands hostd does not evaluate itself, played by the reference Synthesizer (int16 WAV)."""
     ch = {**channel, "gain": 1.0, "bands": bands}
-    ch.pop("frequency_sampling", None)
-    ch.pop("sample_count", None)
     p = {**perception, "perception_unit_exponent": 0, "channels": [ch], "effect_library": []}
     one = {**doc, "perceptions": [p], "avatars": [], "syncs": []}
     with tempfile.TemporaryDirectory(prefix="hostd-hjif-") as tmp:
@@ -587,18 +588,20 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
         def to_idx(x):
             return np.asarray(x, dtype=np.int64) * rate // timescale  # the RM's integer division
 
-        parts = [_render_curve(d, band, f"{cw}.bands[{bands.index(band)}]", to_idx, n_ch)
-                 for band in native]
-        count = n_ch if n_ch is not None else max((x.size for x in parts), default=0)
         if other and n_ch is None:
             raise d.err(f"{cw}.sample_count", "missing: needed to play its "
                         f"{sorted({b.get('band_type') for b in other})} bands")
+        parts = [_render_curve(d, band, f"{cw}.bands[{b}]", to_idx, n_ch) if is_native(band)
+                 else None for b, band in enumerate(bands)]
+        count = n_ch if n_ch is not None else max((x.size for x in parts if x is not None), default=0)
         y = np.zeros(count)
-        for x in parts:
+        for band, x in zip(bands, parts, strict=True):
+            if x is None:
+                x = _render_by_rm(doc, p, c, [band], int(rate), count, path)
             k = min(count, x.size)
             y[:k] += x[:k]
+            np.clip(y, -1.0, 1.0, out=y)  # as the RM: the channel is clipped after each band
         if other:
-            y += _render_by_rm(doc, p, c, other, int(rate), count, path)
             note = (f"{len(other)} {sorted({b.get('band_type') for b in other})} band(s) played by the "
                     "reference Synthesizer (16-bit)")
         step_m = None
