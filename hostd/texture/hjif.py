@@ -61,6 +61,7 @@ MAX_SAMPLES = 20_000_000  # samples of one evaluated channel
 MAX_KEYFRAMES = 2_000_000
 DEFAULT_RATE_HZ = 8000  # the reference Synthesizer's default output rate
 MAX_TIMESCALE = 48000  # the Main profile's limit (IOJson.cpp)
+MAX_DESCRIPTION_BYTES = 255  # .hmpg stores a description's length in 8 bits
 VERSION = "2023"
 TEXTURE = "Vibrotactile Texture"
 TIME = "Vibrotactile"
@@ -152,6 +153,10 @@ class Export:
     rate_hz: int
     provenance: dict
     full_scale_um: float | None = None  # None: the peak of both signals
+    # which perceptions: "both", "texture" (over space) or "time" (as played). The reference
+    # software at 2de9ff1 writes an .hmpg of a spatial perception its own Decoder cannot read
+    # (it aborts: map::at), so an .hmpg for that software is made from "time"
+    perceptions: str = "both"
 
 
 def spatial_unit(spacing_um: float, count: int) -> tuple[int, int, float]:
@@ -199,6 +204,8 @@ def build(ex: Export, date: str | None = None) -> dict:
         raise ProfileError("an .hjif export needs at least 3 samples over space and in time")
     if not (np.all(np.isfinite(h)) and np.all(np.isfinite(p))):
         raise ProfileError("an .hjif export cannot hold NaN or Inf heights")
+    if ex.perceptions not in ("both", "texture", "time"):
+        raise ProfileError(f"perceptions must be both, texture or time, got {ex.perceptions!r}")
     if not (1 <= ex.rate_hz <= MAX_TIMESCALE) or int(ex.rate_hz) != ex.rate_hz:
         raise ProfileError(f"--rate-hz must be a whole number of Hz in 1..{MAX_TIMESCALE} (the Main "
                            f"profile's timescale), got {ex.rate_hz}")
@@ -238,12 +245,34 @@ def build(ex: Export, date: str | None = None) -> dict:
                                        np.arange(p.size + 1, dtype=np.int64),
                                        np.append(p, p[-1]) / fs_um, ex.rate_hz // 2,
                                        {"frequency_sampling": int(ex.rate_hz), "sample_count": int(p.size)})]}
-    prov = {"hostd": {**ex.provenance, "full_scale_um": fs_um, "spacing_um": spacing_stated_um,
-                      "speed_mm_s": ex.speed_mm_s, "rate_hz": int(ex.rate_hz)}}
+    for q in (tex, tim):
+        if len(q["description"].encode()) > MAX_DESCRIPTION_BYTES:
+            raise ProfileError(f"description of perception {q['id']} is longer than "
+                               f"{MAX_DESCRIPTION_BYTES} bytes")
     return {"version": VERSION, "profile": "Main", "level": 1,
             "date": date or _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d"),
-            "description": json.dumps(prov, sort_keys=True, allow_nan=False),
-            "timescale": int(ex.rate_hz), "avatars": [], "perceptions": [tex, tim], "syncs": []}
+            "description": provenance_text(ex.provenance),
+            "timescale": int(ex.rate_hz), "avatars": [],
+            "perceptions": {"both": [tex, tim], "texture": [tex], "time": [tim]}[ex.perceptions],
+            "syncs": []}
+
+
+def provenance_text(prov: dict) -> str:
+    """hostd's provenance as compact JSON {"hostd": {...}} within MAX_DESCRIPTION_BYTES (the
+    binary .hmpg stores a description's length in 8 bits: the reference Decoder fails on longer
+    ones): a long source name is shortened, then the keys last in `prov` are dropped."""
+    items = dict(prov)
+    while True:
+        text = json.dumps({"hostd": items}, separators=(",", ":"), allow_nan=False)
+        if len(text.encode()) <= MAX_DESCRIPTION_BYTES:
+            return text
+        src = items.get("source")
+        if isinstance(src, str) and len(src) > 24:
+            items["source"] = src[:10] + "..." + src[-11:]
+        elif items:
+            items.pop(next(reversed(items)))
+        else:
+            return "hostd"
 
 
 def dumps(doc: dict) -> bytes:

@@ -53,33 +53,31 @@ def texture_export(spec: str, args: argparse.Namespace):
 
         s = _read_stream(spec)
         heights, spacing, coeffs, n, length = s.reconstruct(), s.spacing_um, s.coefficients, s.n, s.length_mm
-        setting = {"shaped": {"g_db": s.g_db}, "quant": {"levels": s.levels, "step_um": s.step_um},
-                   "cut": {"b0_db": s.b0_db, "value_bits": s.value_bits}}.get(s.method, {})
-        sc = score_stream(s)
-        prov.update(codec=f"hostd .vtx v{s.version}", method=s.method, setting=setting,
-                    Iobj=float(sc.Iobj), Ip=float(sc.Ip), Ia=float(sc.Ia), iobj_against="the stream "
-                    "header's reference sums", bytes=s.nbytes, n=s.n, n_keep=s.n_keep,
-                    length_mm=s.length_mm, v_ref_mm_s=s.speed_mm_s, fmax_hz=s.fmax_hz,
-                    spatial="the decoded patch (N samples)")
+        setting = (f"g_db={s.g_db}" if s.method == "shaped" else f"levels={s.levels}" if s.method == "quant"
+                   else f"b0_db={s.b0_db},value_bits={s.value_bits}")
+        prov.update(codec=f"hostd vtx v{s.version} {s.method}", setting=setting,
+                    Iobj=float(f"{float(score_stream(s).Iobj):.6g}"), bytes=s.nbytes,
+                    v_ref_mm_s=s.speed_mm_s, fmax_hz=s.fmax_hz, n_keep=s.n_keep)
         speed_ref = s.speed_mm_s
     else:
         prof = read_profile(spec, args)
         heights, spacing, n, length = prof.heights_um, prof.spacing_um, prof.n, prof.length_mm
         n_keep = min(n - 1, transform.n_keep_for(length, args.speed, args.fmax))
         coeffs = transform.analyze(heights, n_keep)
-        prov.update(codec="none: the profile itself", method=None, setting={}, Iobj=0.0,
-                    n=n, n_keep=n_keep, length_mm=length, v_ref_mm_s=args.speed, fmax_hz=args.fmax,
-                    spatial="the profile's patch as loaded")
+        prov.update(codec="none", setting="", Iobj=0.0, v_ref_mm_s=args.speed, fmax_hz=args.fmax,
+                    n_keep=n_keep)
         speed_ref = args.speed
     speed = args.speed_mm_s if args.speed_mm_s is not None else speed_ref
     cal = args.calibration
     if cal is not None and Path(cal).is_file():
-        cal = {"file": Path(cal).name, "sha256": hashlib.sha256(Path(cal).read_bytes()).hexdigest()}
-    prov["calibration"] = cal  # None: hostd's streams and profiles carry no actuator calibration
+        cal = f"{Path(cal).name} sha256:{hashlib.sha256(Path(cal).read_bytes()).hexdigest()[:16]}"
+    # None: hostd's streams and profiles carry no actuator calibration; last, as the first key
+    # dropped should the description run past 255 bytes
+    prov["calibration"] = cal
     played = played_um(coeffs, n, length, speed, args.rate_hz)
-    prov["played"] = "hostd render: the series with the renderer's band gains, one crossing from x = 0"
     return hjif.Export(heights_um=heights, spacing_um=spacing, played_um=played, speed_mm_s=float(speed),
-                       rate_hz=int(args.rate_hz), provenance=prov, full_scale_um=args.full_scale_um)
+                       rate_hz=int(args.rate_hz), provenance=prov, full_scale_um=args.full_scale_um,
+                       perceptions=args.perceptions)
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -95,20 +93,29 @@ def cmd_export(args: argparse.Namespace) -> int:
     ex = texture_export(args.source, args)
     doc = hjif.build(ex)
     write_output(args.output, hjif.dumps(doc))
-    tex, tim = doc["perceptions"]
-    def keyframes(p: dict) -> int:
-        return len(p["channels"][0]["bands"][0]["effects"][0]["keyframes"])
+    by_id = {p["id"]: p for p in doc["perceptions"]}
 
-    prov = json.loads(doc["description"])["hostd"]
-    info = {"output": args.output, "spatial_samples": keyframes(tex), "unit_exponent": tex["unit_exponent"],
-            "played_samples": keyframes(tim), "rate_hz": ex.rate_hz, "speed_mm_s": ex.speed_mm_s,
-            "full_scale_um": prov["full_scale_um"], "spacing_um": prov["spacing_um"]}
+    def keyframes(p: dict | None) -> int | None:
+        return None if p is None else len(p["channels"][0]["bands"][0]["effects"][0]["keyframes"])
+
+    tex, tim = by_id.get(0), by_id.get(1)
+    m = hjif._FULL_SCALE.search(doc["perceptions"][0]["description"])
+    info = {"output": args.output, "perceptions": [p["perception_modality"] for p in doc["perceptions"]],
+            "spatial_samples": keyframes(tex), "unit_exponent": tex and tex["unit_exponent"],
+            "played_samples": tim and tim["channels"][0]["sample_count"], "rate_hz": ex.rate_hz,
+            "speed_mm_s": ex.speed_mm_s, "full_scale_um": float(m.group(1)) if m else None,
+            "spacing_um": float(ex.spacing_um)}
     if args.json:
         print(json.dumps(info, allow_nan=False))
     else:
-        print(f"{args.output}: texture {info['spatial_samples']} samples every {info['spacing_um']:g} µm, "
-              f"played at {ex.speed_mm_s:g} mm/s: {info['played_samples']} samples at {ex.rate_hz} Hz; "
-              f"full scale {info['full_scale_um']:.4g} µm", file=sys.stderr)
+        parts = []
+        if tex is not None:
+            parts.append(f"texture {info['spatial_samples']} samples every {info['spacing_um']:g} µm")
+        if tim is not None:
+            parts.append(f"played at {ex.speed_mm_s:g} mm/s: {info['played_samples']} samples at "
+                         f"{ex.rate_hz} Hz")
+        print(f"{args.output}: {'; '.join(parts)}; full scale {info['full_scale_um']:.4g} µm",
+              file=sys.stderr)
     return 0
 
 
@@ -132,5 +139,8 @@ def add_parser(sub) -> None:
     p.add_argument("--calibration", default=None,
                    help="an actuator calibration to record in the provenance (a file: its name and "
                    "SHA-256; else the text)")
+    p.add_argument("--perceptions", choices=["both", "texture", "time"], default="both",
+                   help="both (default), the texture over space only, or the texture as played only "
+                   "(the reference Encoder/Decoder at 2de9ff1 carry only this one through .hmpg)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_export)
