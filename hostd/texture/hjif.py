@@ -68,7 +68,7 @@ TIME = "Vibrotactile"
 SPATIAL_MODALITIES = {"Vibrotactile Texture", "Texture"}  # the RM's names (Perception.h)
 # "Other": what the reference Encoder writes for a WAV input; read as a time-domain signal
 TEMPORAL_MODALITIES = {"Vibrotactile", "Vibration", "Other"}
-SPACING_UM_RANGE = (1e-6, 1e4)  # 1 pm .. 1 cm between samples: outside, the unit is absurd
+SPACING_UM_RANGE = (1e-4, 1e4)  # 0.1 nm .. 1 cm between samples: outside, the unit is absurd
 NATIVE_CURVES = {"Linear", "Cubic", "Unknown"}  # "Unknown": the RM's default case, cubic
 RM_ENV = "HOSTD_MPEG_RM"  # a directory with the reference software's Encoder, Decoder, Synthesizer
 RM_TOOLS = ("Encoder", "Decoder", "Synthesizer")
