@@ -209,3 +209,37 @@ def test_round_trip_costs_no_more_than_the_reference_codec(rm, wood):
     rt, codec = iobj(back.heights_um), iobj(codec_um)
     print(f"round trip Iobj {rt:.5f}, reference codec alone {codec:.5f}")
     assert 0 < rt <= codec + 0.005, (rt, codec)
+
+
+def test_the_standard_codec_runs_through_the_corpus_protocol(rm, monkeypatch):
+    """The reference software as a corpus codec (hostd.corpus.peercodecs, the protocol of
+    hostd.corpus.codecs), found in build.sh's cache, and the bench's peer runner on top of it."""
+    from hostd.bench import peers
+    from hostd.corpus import codecs
+    from hostd.texture import synth
+
+    monkeypatch.delenv(peers.MPEG_ENCODER_ENV, raising=False)
+    monkeypatch.delenv(peers.MPEG_SYNTH_ENV, raising=False)
+    codec = codecs.resolve("hostd.corpus.peercodecs:MpegRm")
+    assert codec.available() is None and len(codec.version) == 12
+    p = synth.make("wood", seed=4)
+    y = p.heights_um[:10000]  # 5 mm
+    geometry = {"speed_mm_s": 50.0, "fmax_hz": 400.0}
+    coarse = codecs.run_codec(codec, y, p.spacing_um, {"kbps": 2}, geometry)
+    fine = codecs.run_codec(codec, y, p.spacing_um, {"kbps": 64}, geometry)
+    assert coarse.reconstruction_um.size == y.size and len(coarse.data) < len(fine.data)
+    n_keep = transform.n_keep_for(5.0, 50.0, 400.0)
+    b_k = thresholds.default_curve()(transform.frequencies_hz(np.arange(1, n_keep + 1), 5.0, 50.0))
+
+    def iobj(rec):
+        return float(indices.score(transform.analyze(y, n_keep), transform.analyze(rec, n_keep), b_k).Iobj)
+
+    assert iobj(fine.reconstruction_um) < iobj(coarse.reconstruction_um)
+    # the bench's runner is the protocol's codec with the bench's scoring
+    found, _ = peers.find(None)
+    assert [c.name for c in found if c.name.startswith("MPEG")] == ["MPEG-I RM", "MPEG-I RM (-cf 0)"]
+    t = peers.Texture("wood:4", transform.analyze(y, n_keep), y.size, 5.0, 50.0, b_k)
+    default = next(c for c in found if c.name == "MPEG-I RM")
+    r = peers.run_peer(default, t, 64)  # the same crossing reaches the Encoder: the same bytes
+    assert r["bytes"] == len(fine.data)
+    assert r["Iobj"] == pytest.approx(iobj(fine.reconstruction_um), rel=1e-6, abs=1e-9)
