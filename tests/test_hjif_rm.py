@@ -50,6 +50,10 @@ def _unavailable(why: str):
 
 @pytest.fixture(scope="session")
 def rm() -> Path:
+    return locate_or_build()
+
+
+def locate_or_build() -> Path:
     """The directory of Encoder, Decoder, Synthesizer: found, or built once by build.sh (cached)."""
     d = hjif.rm_dir()
     if d is not None:
@@ -69,6 +73,17 @@ def rm() -> Path:
     if r.returncode != 0 or d is None:
         _unavailable(f"build.sh failed (exit {r.returncode}): {r.stderr.strip().splitlines()[-1:]}")
     return d
+
+
+def test_a_missing_reference_software_fails_under_ci_and_skips_elsewhere(tmp_path, monkeypatch):
+    monkeypatch.setattr(hjif, "rm_dir", lambda: None)
+    monkeypatch.setenv("HOSTD_MPEG_RM_SRC", str(tmp_path / "nowhere"))
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match=r"required under CI: not built and no build.sh"):
+        locate_or_build()
+    monkeypatch.delenv("CI")
+    with pytest.raises(pytest.skip.Exception, match=r"not built and no build.sh at .*nowhere"):
+        locate_or_build()
 
 
 def _run(rm: Path, tool: str, *args: str, cwd: Path) -> None:
