@@ -9,7 +9,8 @@ files with it (docs/interchange.md).
 What hostd writes (`export`, `hostd export X -o Y.hjif`): one experience (version 2023, profile
 Main, level 1, no avatars) with two perceptions, each of one channel holding one cubic Curve band
 of one effect whose keyframes are the samples (a keyframe per sample, so the reference
-Synthesizer's cubic interpolation passes through every sample and plays them exactly):
+Synthesizer's cubic interpolation passes through every sample and plays them exactly; the RM
+never plays an effect's last keyframe, so the time-domain effect has one past its sample_count):
 - perception 0, "Vibrotactile Texture": the height profile over space. Keyframe positions are
   spatial, in units of 10^unit_exponent metres (the perception's `unit_exponent`; hostd picks the
   coarsest power of ten that states the sample spacing as a whole number, e.g. -7 = 0.1 µm for a
@@ -27,8 +28,9 @@ its Synthesizer honours, nor for a codec's provenance.
 What hostd reads (`read`, the `.hjif` entry of hostd.texture.formats; `.hmpg` after the reference
 Decoder): one channel of one perception, chosen with LoadOptions.member "PERCEPTION[/CHANNEL]"
 (an index, or id=N). Its bands are evaluated as the reference Synthesizer evaluates them:
-Curve bands (linear, cubic) natively; Wavelet, Vectorial and Transient bands through the
-reference Synthesizer when it is installed (a one-line error saying how when not); the channel
+Curve bands (linear, cubic) natively; in time-domain perceptions, Wavelet, Vectorial and
+Transient bands through the reference Synthesizer when it is installed (a one-line error saying
+how when not); the channel
 is clipped to -1..1 and scaled by gain x 10^perception_unit_exponent. Spatial perceptions keep
 their spacing (unit_exponent); a time-domain one needs a spacing (v / fs): the file's own when
 hostd wrote it, else --spacing.
@@ -280,10 +282,6 @@ def dumps(doc: dict) -> bytes:
 
 
 # ============================================================================ reading
-
-def _where(path: Path, field: str) -> str:
-    return f"{path}: {field}"
-
 
 class _Doc:
     """Typed access to the JSON with errors that name the file and the field."""
