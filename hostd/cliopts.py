@@ -177,6 +177,8 @@ def read_profile(spec: str, args: argparse.Namespace, length_mm: float | None = 
         prof = synth.from_spec(spec)
         return cut_patch(prof.heights_um, prof.spacing_um, load_opts(args, length_mm), spec)
     prof = load_profile(spec, load_opts(args, length_mm))
+    if prof.note:
+        warn(command, f"{spec}: {prof.note}")
     rms_um = float(np.std(prof.heights_um))
     if not RMS_PLAUSIBLE_UM[0] <= rms_um <= RMS_PLAUSIBLE_UM[1]:
         warn(command, f"{spec}: height RMS {rms_um:.3g} µm is implausible for a texture (1 nm to 1 mm): "

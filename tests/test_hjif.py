@@ -170,3 +170,11 @@ def test_export_refuses_what_it_cannot_write(files, tmp_path, capsys):
     long = {"tool": "hostd", "source": "x" * 400 + ".vtx", "codec": "none", "calibration": "c" * 300}
     text = hjif.provenance_text(long)
     assert len(text.encode()) <= 255 and json.loads(text)["hostd"]["source"].endswith("xxx.vtx")
+
+
+def test_the_reader_s_notes_reach_the_user(files, tmp_path, capsys):
+    capsys.readouterr()
+    assert main(["encode", str(files / "wood.hjif"), "--method", "shaped", "--g", "0",
+                 "-o", str(tmp_path / "x.vtx")]) == 0
+    err = capsys.readouterr().err
+    assert "wood.hjif: took perception 0 (id=0, 'Vibrotactile Texture'" in err and "--member" in err
