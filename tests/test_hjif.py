@@ -114,12 +114,14 @@ def _kf(doc, p=0):
      r"perceptions\[0\]\.unit_exponent: 40: positions in 1e40 m are absurd"),
     (lambda d: d["perceptions"][0].update(unit_exponent=-12), "0",
      r"perceptions\[0\]\.unit_exponent: keyframes every 5 x 1e-12 m .* absurd spacing"),
-    (lambda d: d["perceptions"][1]["channels"][0].update(sample_count=10**12), "1",
-     r"perceptions\[1\]\.channels\[0\]\.sample_count: 1000000000000 samples: absurd"),
+    (lambda d: d["perceptions"][1]["channels"][0].update(sample_count=10**9), "1",
+     r"perceptions\[1\]\.channels\[0\]\.sample_count: 1000000000 samples: absurd"),
     (lambda d: d.update(timescale=0), "1", r"timescale: 0 ticks per second is absurd"),
     (lambda d: _kf(d, 1)[3].update(amplitude_modulation="loud"), "1",
      r"keyframes\[3\]\.amplitude_modulation: must be a number"),
     (lambda d: d.pop("perceptions"), None, r"bad.hjif: perceptions: missing"),
+    (lambda d: _kf(d)[2].update(relative_position=10**30), "0",
+     r"keyframes\[2\]\.relative_position: 10{30} is outside the 32-bit range"),
 ])
 def test_bad_files_name_the_file_and_the_field(files, tmp_path, change, member, field):
     p = _broken(files, tmp_path, change)

@@ -309,6 +309,8 @@ class _Doc:
             raise self.err(field, f"must be {names[kind]}, got {type(v).__name__} {str(v)[:40]}")
         if kind == "num" and not math.isfinite(v):
             raise self.err(field, "must be finite")
+        if kind == "int" and not -(2**31) <= v < 2**32:  # the RM reads 32-bit integers
+            raise self.err(field, f"{v} is outside the 32-bit range the format uses")
         return v
 
 
