@@ -180,3 +180,52 @@ def test_the_reader_s_notes_reach_the_user(files, tmp_path, capsys):
                  "-o", str(tmp_path / "x.vtx")]) == 0
     err = capsys.readouterr().err
     assert "wood.hjif: took perception 0 (id=0, 'Vibrotactile Texture'" in err and "--member" in err
+
+
+def test_mutated_files_give_one_line_errors_or_samples(files, tmp_path):
+    """Seeded mutations of a small valid file (values of every JSON type, removed keys): the reader
+    either returns finite samples or raises ProfileError with one line, nothing else."""
+    import random
+    import warnings
+
+    doc = json.loads((files / "wood.hjif").read_bytes())
+    for p in doc["perceptions"]:
+        p["channels"][0]["bands"][0]["effects"][0]["keyframes"] = _kf(doc, p["id"])[:30]
+        p["channels"][0].pop("sample_count", None)
+    paths: list[list] = []
+
+    def walk(o, path):
+        paths.append(path)
+        items = o.items() if isinstance(o, dict) else enumerate(o[:3]) if isinstance(o, list) else ()
+        for k, v in items:
+            walk(v, [*path, k])
+
+    walk(doc, [])
+    values = [None, True, -1, 0, 2**40, 1e308, -1e-300, "x", [], {}, [1], {"a": 1}, 3.5, "Vibrotactile",
+              "WaveletWave", 2**31 - 1, "full_scale_um=1-2", "full_scale_um=1e308 speed_mm_s=1e-300"]
+    rng = random.Random(33)
+    p = tmp_path / "m.hjif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no overflow into inf or NaN either
+        for _ in range(300):
+            d = copy.deepcopy(doc)
+            for _ in range(rng.randint(1, 3)):
+                path = rng.choice(paths[1:])
+                o = d
+                try:
+                    for k in path[:-1]:
+                        o = o[k]
+                    if rng.random() < 0.2 and isinstance(o, dict):
+                        o.pop(path[-1], None)
+                    else:
+                        o[path[-1]] = rng.choice(values)
+                except (KeyError, IndexError, TypeError):
+                    pass
+            p.write_text(json.dumps(d))
+            for member in (None, "0", "1"):
+                try:
+                    ch = hjif.read_channel(p, member)
+                except ProfileError as e:
+                    assert "\n" not in str(e)
+                else:
+                    assert np.all(np.isfinite(ch.samples))

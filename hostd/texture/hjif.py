@@ -61,6 +61,8 @@ if TYPE_CHECKING:
 MAX_HJIF_BYTES = 64 << 20  # a larger file is refused before it is parsed (~1 M keyframes)
 MAX_SAMPLES = 20_000_000  # samples of one evaluated channel
 MAX_KEYFRAMES = 2_000_000
+MAX_AMPLITUDE = 1e3  # keyframe amplitudes are -1..1; the RM clips the channel's sum to that
+MAX_GAIN = 1e6
 DEFAULT_RATE_HZ = 8000  # the reference Synthesizer's default output rate
 MAX_TIMESCALE = 48000  # the Main profile's limit (IOJson.cpp)
 MAX_DESCRIPTION_BYTES = 255  # .hmpg stores a description's length in 8 bits
@@ -364,8 +366,19 @@ class Channel:
 
 
 def _label(d: _Doc, p: dict, i: int) -> str:
-    return (f"{i} (id={p.get('id')}, {p.get('perception_modality')!r}, "
-            f"{len(p.get('channels') or [])} channel(s))")
+    chans = p.get("channels")
+    return (f"{i} (id={str(p.get('id'))[:20]}, {str(p.get('perception_modality'))[:40]!r}, "
+            f"{len(chans) if isinstance(chans, list) else 0} channel(s))")
+
+
+def _stated(pattern: re.Pattern, text: str, upper: float) -> float | None:
+    """A `key=value` hostd wrote in a description: a number in (0, upper], else None."""
+    m = pattern.search(text)
+    try:
+        v = float(m.group(1)) if m else math.nan
+    except ValueError:
+        return None
+    return v if 0 < v <= upper else None
 
 
 def _pick(items: list, spec: str | None, what: str, d: _Doc, labels: list[str]) -> int:
@@ -401,7 +414,9 @@ def select(doc: dict, path: Path, member: str | None) -> tuple[int, int, str]:
     elif len(perceptions) == 1:
         pi = 0
     else:
-        spatial = [i for i, p in enumerate(perceptions) if p.get("perception_modality") in SPATIAL_MODALITIES]
+        spatial = [i for i, p in enumerate(perceptions)
+                   if isinstance(p.get("perception_modality"), str)
+                   and p["perception_modality"] in SPATIAL_MODALITIES]
         if len(spatial) != 1:
             raise ProfileError(f"{path}: {len(perceptions)} perceptions, choose one with --member "
                                f"PERCEPTION[/CHANNEL] (index or id=N): {'; '.join(labels)}")
@@ -469,6 +484,9 @@ def _effects(d: _Doc, band: dict, where: str) -> list[tuple[int, np.ndarray, np.
                 raise d.err(kw, "must be an object")
             rel[m] = d.get(kf, "relative_position", kw, "int")
             amp[m] = d.get(kf, "amplitude_modulation", kw, "num")
+            if not abs(amp[m]) <= MAX_AMPLITUDE:
+                raise d.err(f"{kw}.amplitude_modulation", f"{amp[m]:g} is absurd (the format's amplitudes "
+                            f"are -1..1; at most {MAX_AMPLITUDE:g} is read, then clipped)")
         bad = np.flatnonzero(np.diff(rel) < 0)
         if bad.size:
             m = int(bad[0]) + 1
@@ -564,13 +582,13 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
         if not isinstance(band, dict):
             raise d.err(f"{cw}.bands[{b}]", "must be an object")
         d.get(band, "band_type", f"{cw}.bands[{b}]", "str")
+        d.get(band, "curve_type", f"{cw}.bands[{b}]", "str", None)
+    if not abs(gain) <= MAX_GAIN:
+        raise d.err(f"{cw}.gain", f"{gain:g} is absurd (|gain| <= {MAX_GAIN:g})")
 
-    full_scale = speed = None
-    desc = p.get("description", "")
-    if (m := _FULL_SCALE.search(desc)) and math.isfinite(float(m.group(1))) and float(m.group(1)) > 0:
-        full_scale = float(m.group(1))
-    if (m := _SPEED.search(desc)) and math.isfinite(float(m.group(1))) and float(m.group(1)) > 0:
-        speed = float(m.group(1))
+    desc = p["description"]
+    full_scale = _stated(_FULL_SCALE, desc, 1e6)  # up to 1 m
+    speed = _stated(_SPEED, desc, 1e6)
 
     def is_native(b: dict) -> bool:
         return b.get("band_type") == "Curve" and b.get("curve_type", "Cubic") in NATIVE_CURVES
