@@ -54,20 +54,22 @@ def rm() -> Path:
 
 
 def locate_or_build() -> Path:
-    """The directory of Encoder, Decoder, Synthesizer: found, or built once by build.sh (cached)."""
-    d = hjif.rm_dir()
-    if d is not None:
-        return d
-    build = _rm_sources() / "build.sh"
-    if not build.is_file():
-        _unavailable(f"not built and no build.sh at {build} (set HOSTD_MPEG_RM_SRC)")
-    missing = [t for t in ("cmake", "make", "g++") if shutil.which(t) is None]
-    if missing:
-        _unavailable(f"not built, and {', '.join(missing)} missing (apt-get install -y cmake g++)")
+    """The directory of Encoder, Decoder, Synthesizer: found, or built once by build.sh (cached).
+    Under the lock `./run test`'s background build holds: a build in progress is waited for
+    (and a half-copied binary never seen)."""
     cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     cache.mkdir(parents=True, exist_ok=True)
-    with open(cache / "mpeg-haptics-rm.lock", "w") as lock:  # the same lock as `./run test`'s build
+    with open(cache / "mpeg-haptics-rm.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
+        d = hjif.rm_dir()
+        if d is not None:
+            return d
+        build = _rm_sources() / "build.sh"
+        if not build.is_file():
+            _unavailable(f"not built and no build.sh at {build} (set HOSTD_MPEG_RM_SRC)")
+        missing = [t for t in ("cmake", "make", "g++") if shutil.which(t) is None]
+        if missing:
+            _unavailable(f"not built, and {', '.join(missing)} missing (apt-get install -y cmake g++)")
         r = subprocess.run([str(build)], capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
     d = hjif.rm_dir()
     if r.returncode != 0 or d is None:
