@@ -594,7 +594,7 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
         return b.get("band_type") == "Curve" and b.get("curve_type", "Cubic") in NATIVE_CURVES
 
     native = [b for b in bands if is_native(b)]
-    other = [b for b in bands if not is_native(b)]
+    other = [b for b in bands if not is_native(b) and (spatial or b["band_type"] != "WaveletWave")]
     note = ""
     if spatial:
         # a grid on every keyframe position: their greatest common step
@@ -635,15 +635,19 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
         def to_idx(x):
             return np.asarray(x, dtype=np.int64) * rate // timescale  # the RM's integer division
 
-        if other and n_ch is None:
+        if n_ch is None and not all(is_native(b) for b in bands):
             raise d.err(f"{cw}.sample_count", "missing: needed to play its "
-                        f"{sorted({b.get('band_type') for b in other})} bands")
+                        f"{sorted({b['band_type'] for b in bands if not is_native(b)})} bands")
         parts = [_render_curve(d, band, f"{cw}.bands[{b}]", to_idx, n_ch) if is_native(band)
                  else None for b, band in enumerate(bands)]
         count = n_ch if n_ch is not None else max((x.size for x in parts if x is not None), default=0)
         y = np.zeros(count)
-        for band, x in zip(bands, parts, strict=True):
-            if x is None:
+        for b, (band, x) in enumerate(zip(bands, parts, strict=True)):
+            if x is None and band["band_type"] == "WaveletWave":
+                from hostd.texture import hjif_wavelet
+
+                x = hjif_wavelet.render_band(band, timescale, int(rate), count, f"{cw}.bands[{b}]", path)
+            elif x is None:
                 x = _render_by_rm(doc, p, c, [band], int(rate), count, path)
             k = min(count, x.size)
             y[:k] += x[:k]
