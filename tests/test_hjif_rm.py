@@ -169,7 +169,8 @@ def _played_wav(d: Path, s) -> Path:
     return d / "in.wav"
 
 
-@pytest.mark.parametrize("options", [["--disable-wavelet"], []], ids=["curve-only", "curve+wavelet"])
+@pytest.mark.parametrize("options", [["--disable-wavelet"], [], ["-kb", "64"], ["-cf", "0", "-kb", "16"]],
+                         ids=["curve-only", "curve+wavelet", "64kbps", "wavelet-only-16kbps"])
 def test_encoder_hjif_imports_as_the_synthesizer_plays(rm, wood, options):
     d, s = wood
     wav = _played_wav(d, s)
@@ -177,7 +178,8 @@ def test_encoder_hjif_imports_as_the_synthesizer_plays(rm, wood, options):
     _run(rm, "Encoder", "-f", wav.name, "-o", enc.name, *options, cwd=d)
     doc = json.loads(enc.read_bytes())
     bands = [b["band_type"] for b in doc["perceptions"][0]["channels"][0]["bands"]]
-    assert bands == (["Curve"] if options else ["Curve", "WaveletWave"])
+    expect = {"--disable-wavelet": ["Curve"], "-cf": ["WaveletWave"]}
+    assert bands == expect.get(options[0] if options else "", ["Curve", "WaveletWave"])
     x = _synth(rm, enc)
     ch = hjif.read_channel(enc)
     assert ch.modality == "Other" and ch.samples.size == 8000
