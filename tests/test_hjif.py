@@ -229,3 +229,41 @@ def test_mutated_files_give_one_line_errors_or_samples(files, tmp_path):
                     assert "\n" not in str(e)
                 else:
                     assert np.all(np.isfinite(ch.samples))
+
+
+def test_wavelet_bands_decode_without_the_reference_software(tmp_path):
+    """Garbage wavelet streams decode to finite samples (the decoder's work is bounded by the
+    block); impossible blocks are one-line errors naming the field. The decoder's agreement with
+    the reference Synthesizer is tests/test_hjif_rm.py's."""
+    import random
+
+    rng = random.Random(5)
+    alphabet = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/"
+
+    def doc(block_length=128, effects=8, stream=None):
+        band = {"band_type": "WaveletWave", "block_length": block_length, "lower_frequency_limit": 0,
+                "upper_frequency_limit": 8000,
+                "effects": [{"effect_type": "Basis", "position": 0, "wavelet_stream":
+                             stream if stream is not None
+                             else "".join(rng.choice(alphabet) for _ in range(rng.randint(0, 400)))}
+                            for _ in range(effects)]}
+        ch = {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+              "frequency_sampling": 8000, "sample_count": 8000, "bands": [band]}
+        p = {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Other",
+             "reference_devices": [], "effect_library": [], "channels": [ch]}
+        return {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+                "timescale": 1000, "avatars": [], "perceptions": [p], "syncs": []}
+
+    f = tmp_path / "w.hjif"
+    for _ in range(5):
+        f.write_text(json.dumps(doc()))
+        ch = hjif.read_channel(f)
+        assert ch.samples.size == 8000 and np.all(np.isfinite(ch.samples)) and ch.note == ""
+    f.write_text(json.dumps(doc(stream="")))
+    assert not np.any(hjif.read_channel(f).samples)  # an empty stream is silence
+    f.write_text(json.dumps(doc(block_length=100)))  # 800 samples: not a power of two
+    with pytest.raises(ProfileError, match=r"bands\[0\]\.block_length: 800 samples a block"):
+        hjif.read_channel(f)
+    f.write_text(json.dumps(doc(block_length=8192, effects=100, stream="")))
+    with pytest.raises(ProfileError, match=r"bands\[0\]\.effects: 100 blocks of 65536 samples, more than"):
+        hjif.read_channel(f)
