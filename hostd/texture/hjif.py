@@ -28,8 +28,9 @@ its Synthesizer honours, nor for a codec's provenance.
 What hostd reads (`read`, the `.hjif` entry of hostd.texture.formats; `.hmpg` after the reference
 Decoder): one channel of one perception, chosen with LoadOptions.member "PERCEPTION[/CHANNEL]"
 (an index, or id=N). Its bands are evaluated as the reference Synthesizer evaluates them:
-Curve bands (linear, cubic) natively; in time-domain perceptions, Wavelet, Vectorial and
-Transient bands through the reference Synthesizer when it is installed (a one-line error saying
+Curve bands (linear, cubic) and WaveletWave bands (hostd.texture.hjif_wavelet, a port of the RM's
+decoder) by hostd; in time-domain perceptions, Vectorial and Transient bands (and Akima, Bezier,
+B-spline curves) through the reference Synthesizer when it is installed (a one-line error saying
 how when not); the channel
 is clipped to -1..1 and scaled by gain x 10^perception_unit_exponent. Spatial perceptions keep
 their spacing (unit_exponent); a time-domain one needs a spacing (v / fs): the file's own when
