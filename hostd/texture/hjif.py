@@ -625,6 +625,7 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
             if yb.size > y.size:
                 yb, y = y, yb
             y[: yb.size] += yb
+            np.clip(y, -1.0, 1.0, out=y)  # as the RM: the channel is clipped after each band
         rate = None
     else:
         rate = fs_ch if fs_ch is not None else timescale
