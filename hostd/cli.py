@@ -463,7 +463,9 @@ def build_parser() -> argparse.ArgumentParser:
     from hostd.bench.cli import add_parser as add_bench
     from hostd.service.cli import add_parsers as add_service
     from hostd.sim.cli import add_parser as add_sim
+    from hostd.texture.hjif_cli import add_parser as add_export
 
+    add_export(sub)
     add_bench(sub, [loader_parent(None)])
     add_service(sub)
     add_sim(sub)

@@ -100,6 +100,9 @@ def loader_parent(length_default: float | None = 10.0) -> argparse.ArgumentParse
                    "column Y for heights only (with --spacing). Default: one or two columns")
     g.add_argument("--decimal-comma", action="store_true",
                    help="text files: numbers use a decimal comma (1,5); columns split on ; tab or space")
+    g.add_argument("--member", default=None, metavar="NAME",
+                   help="container files: which array; .hjif/.hmpg: PERCEPTION[/CHANNEL], each an "
+                   "index or id=N (default: the only one, or the texture over space)")
     return p
 
 
@@ -150,6 +153,7 @@ def load_opts(args: argparse.Namespace, length_mm: float | None = None):
         columns=parse_columns(getattr(args, "columns", None)),
         decimal_comma=bool(getattr(args, "decimal_comma", False)),
         progress=sys.stderr.isatty(),
+        member=getattr(args, "member", None),
     )
 
 
@@ -164,6 +168,7 @@ def read_profile(spec: str, args: argparse.Namespace, length_mm: float | None = 
             ("--spacing", getattr(args, "spacing", None) is not None),
             ("--x-unit", getattr(args, "x_unit", None) is not None),
             ("--columns", getattr(args, "columns", None) is not None),
+            ("--member", getattr(args, "member", None) is not None),
             ("--decimal-comma", getattr(args, "decimal_comma", False)),
             ("--y-unit", getattr(args, "y_unit", "um") != "um")) if given]
         if ignored:
@@ -172,6 +177,8 @@ def read_profile(spec: str, args: argparse.Namespace, length_mm: float | None = 
         prof = synth.from_spec(spec)
         return cut_patch(prof.heights_um, prof.spacing_um, load_opts(args, length_mm), spec)
     prof = load_profile(spec, load_opts(args, length_mm))
+    if prof.note:
+        warn(command, f"{spec}: {prof.note}")
     rms_um = float(np.std(prof.heights_um))
     if not RMS_PLAUSIBLE_UM[0] <= rms_um <= RMS_PLAUSIBLE_UM[1]:
         warn(command, f"{spec}: height RMS {rms_um:.3g} µm is implausible for a texture (1 nm to 1 mm): "

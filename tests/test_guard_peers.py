@@ -123,18 +123,20 @@ def test_peer_runner_scores_a_lossless_codec_as_lossless(tmp_path):
 
     t = _texture()
     r = peers.run_peer(peers.vcpwq(_fake_vcpwq(tmp_path)), t, 7, tmp_path)
-    assert r["bytes"] == 7  # the size of the file the encoder wrote
+    assert r["bytes"] == 7 + 4  # the file the encoder wrote + the float32 scale factor (side info)
     # float32 WAV round trip only: Iobj ~ 0, wSNR ~ float32 precision
     assert r["Iobj"] < 1e-5 and r["wsnr_db"] > 100
     if peer.available():
         assert r["spqi"] > 0.999
 
 
-def test_peer_runner_fails_with_a_clear_message_on_a_missing_executable(tmp_path):
+def test_peer_runner_fails_with_a_clear_message_on_a_missing_executable(tmp_path, monkeypatch):
     from hostd.bench import peers
+    from hostd.texture import hjif
 
+    monkeypatch.setattr(hjif, "rm_dir", lambda: None)  # nor the reference software's build cache
     codec = peers.vcpwq(tmp_path / "no-such-VC_PWQ")
-    with pytest.raises(peers.PeerError, match=r"peer executable not found: .*no-such-VC_PWQ"):
+    with pytest.raises(peers.PeerError, match=r"binary missing: .*no-such-VC_PWQ; set HOSTD_PEER_VCPWQ"):
         peers.run_peer(codec, _texture(), 8, tmp_path)
     assert issubclass(peers.PeerError, HostdError)  # the CLI prints one line, exit 2
     found, notes = peers.find(tmp_path)

@@ -74,10 +74,11 @@ def add_parser(sub, parents) -> None:
             b.add_argument("--holdout", action="store_true",
                            help="only rate control's defaults on the held-out textures (not the "
                            "guard's calibration set): bytes, Iobj, SPQI, CPU time")
-            b.add_argument("--peers", metavar="DIR", default=None,
-                           help="only v2 against the peer codecs (MPEG-I Haptics RM, VC-PWQ) "
-                           "built under DIR (or named by HOSTD_PEER_* variables): bytes for "
-                           "SPQI >= 0.9; see docs/benchmarks.md 'Peer codecs'")
+            b.add_argument("--peers", metavar="DIR", default=None, nargs="?", const="",
+                           help="only v2 against the peer codecs (MPEG-I Haptics RM, VC-PWQ: a "
+                           "research codec, CC BY-NC) built under DIR (or named by HOSTD_PEER_* "
+                           "variables; the RM also from its build.sh cache, DIR optional): bytes "
+                           "for SPQI >= 0.9; see docs/benchmarks.md 'Peer codecs'")
     from hostd.cliopts import needs_subcommand
 
     p.set_defaults(func=needs_subcommand(p, "a benchmark (all: pipeline, codec and scoring)"))
@@ -209,7 +210,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     elif what == "codec" and (args.peers is not None or _peer_env()):
         from hostd.bench import codec2
 
-        rows += codec2.peer_rows(Path(args.peers) if args.peers is not None else None)
+        rows += codec2.peer_rows(Path(args.peers) if args.peers else None)
     elif what in ("codec", "all"):
         from hostd.bench import codec2
         from hostd.bench.codec2 import textures

@@ -1,9 +1,12 @@
 """Peer codecs for `hostd bench codec --peers DIR` (issue 14): the MPEG-I Haptics reference
-software (ISO/IEC 23090-31 RM: wavelet + SPIHT) and VC-PWQ (perceptual wavelet quantization),
-run as external programs and scored exactly like hostd's streams.
+software (ISO/IEC 23090-31 RM: the standard's codec, wavelet + SPIHT) and VC-PWQ (perceptual
+wavelet quantization: a research codec under CC BY-NC, not the standard's), run as external
+programs through the corpus codec protocol (hostd.corpus.peercodecs: the same objects
+`hostd corpus` runs) and scored exactly like hostd's streams.
 
 Their code is not part of hostd (VC-PWQ is CC BY-NC): they are built outside the repository
-(docs/benchmarks.md, "Peer codecs", gives the commits and the build commands) and only run.
+(docs/benchmarks.md, "Peer codecs", and docs/interchange.md give the commits and the build
+commands) and only run; each is used only when its programs are present.
 
 What every codec is scored on (the same for hostd v2 and the peers):
 - the texture's N' coefficients C_k (hostd.codec.transform.analyze), and
@@ -14,28 +17,33 @@ assume full-scale signals). Its decoded signal is scaled back and reduced to the
 N' components by least squares (hostd.render.series.project, the same fit the recorder
 uses); those coefficients C'_k are scored like a decoded hostd stream: Iobj against C
 (ref sums exact), and ST-SIM/SPQI of played(C') against played(C) over 1 s.
-In the peers' favour: the projection drops their error outside the N' components, and the
-bytes are only the file their encoder writes (the scale factor and the patch geometry a
-receiver would also need are not counted).
+In the peers' favour: the projection drops their error outside the N' components. The bytes
+are the file their encoder writes plus the 4-byte scale factor (the protocol counts the side
+information a receiver needs; the patch geometry, needed by every codec, is not counted).
 """
 
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
-import tempfile
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from hostd.corpus import peercodecs
+from hostd.corpus.peercodecs import (  # noqa: F401  (kept importable from here)
+    FS_HZ,
+    MPEG_BITRATES_KBPS,
+    MPEG_ENCODER_ENV,
+    MPEG_SYNTH_ENV,
+    VCPWQ_BLOCK,
+    VCPWQ_BUDGETS,
+    VCPWQ_ENV,
+    read_wav,
+    write_wav,
+)
 from hostd.errors import HostdError
 from hostd.perception import indices, peer
-
-FS_HZ = 8000  # vibromaf's rate; VC-PWQ supports 8000, 2800 and 2500 Hz
-RUN_TIMEOUT_S = 60.0
 
 
 class PeerError(HostdError):
@@ -44,108 +52,42 @@ class PeerError(HostdError):
 
 @dataclass(frozen=True)
 class PeerCodec:
-    """One external codec: `run(signal, workdir, knob)` -> (stream bytes, decoded signal)."""
+    """One external codec of the corpus protocol, with the knob its table sweeps."""
 
     name: str
     knob: str  # what the knob means (for the table)
     knob_values: tuple[int, ...]
-    executables: tuple[Path, ...]
-    run: Callable[[np.ndarray, Path, int], tuple[int, np.ndarray]]
+    codec: peercodecs._TimeSignalPeer  # the protocol object (hostd.corpus.codecs)
+    knob_key: str  # the setting's keyword the knob sets
+
+    def setting(self, knob: int) -> dict:
+        return {self.knob_key: knob}
 
 
-# ----------------------------------------------------------------------------- WAV in and out
-
-def write_wav(path: Path, signal: np.ndarray, fs_hz: int = FS_HZ) -> None:
-    """32-bit float mono WAV of a signal whose peak is <= 1."""
-    import scipy.io.wavfile
-
-    scipy.io.wavfile.write(path, fs_hz, np.asarray(signal, dtype=np.float32))
-
-
-def read_wav(path: Path) -> np.ndarray:
-    """The first channel of a WAV as float64 in -1..1 (integer PCM scaled by its full scale)."""
-    import scipy.io.wavfile
-
-    try:
-        _, data = scipy.io.wavfile.read(path)
-    except (OSError, ValueError) as e:
-        raise PeerError(f"cannot read the peer's decoded WAV {path}: {e}") from None
-    if data.ndim > 1:
-        data = data[:, 0]
-    if data.dtype == np.uint8:
-        return (data.astype(np.float64) - 128.0) / 128.0
-    if np.issubdtype(data.dtype, np.integer):
-        return data.astype(np.float64) / float(-np.iinfo(data.dtype).min)
-    return data.astype(np.float64)
-
-
-def _run(cmd: list[str], cwd: Path) -> None:
-    try:
-        r = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
-    except FileNotFoundError:
-        raise PeerError(f"peer executable not found: {cmd[0]}") from None
-    except subprocess.TimeoutExpired:
-        raise PeerError(f"{Path(cmd[0]).name} did not finish within {RUN_TIMEOUT_S:g} s") from None
-    if r.returncode != 0:
-        last = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["no output"]
-        raise PeerError(f"{Path(cmd[0]).name} failed (exit {r.returncode}): {last[0]}")
-
-
-# ----------------------------------------------------------------------------- the two peers
-
-VCPWQ_ENV = "HOSTD_PEER_VCPWQ"
-MPEG_ENCODER_ENV = "HOSTD_PEER_MPEG_ENCODER"
-MPEG_SYNTH_ENV = "HOSTD_PEER_MPEG_SYNTHESIZER"
 # where the build commands of docs/benchmarks.md put them, relative to --peers DIR
 VCPWQ_REL = "VC-PWQ/build/source/testprogram/VC_PWQ"
 MPEG_ENCODER_REL = "HapticReferenceSoftware/build/source/Encoder/Encoder"
 MPEG_SYNTH_REL = "HapticReferenceSoftware/build/source/Synthesizer/Synthesizer"
 
-VCPWQ_BUDGETS = (1, 2, 3, 4, 5, 6, 8, 10, 12, 14, 16, 20, 24, 28, 32, 40, 48, 56, 64, 80, 96, 120)
-VCPWQ_BLOCK = 512  # its default block length
+
+def _peer(codec: peercodecs._TimeSignalPeer, name: str) -> PeerCodec:
+    key = next(iter(codec.settings[0]))
+    return PeerCodec(name, codec.knob, tuple(s[key] for s in codec.settings), codec, key)
 
 
 def vcpwq(exe: Path) -> PeerCodec:
-    """VC-PWQ's demo program (it codes every WAV of a folder): knob = bit budget per block."""
-
-    def run(signal: np.ndarray, work: Path, budget: int) -> tuple[int, np.ndarray]:
-        for sub in ("in", "enc", "dec"):
-            shutil.rmtree(work / sub, ignore_errors=True)
-            (work / sub).mkdir()
-        write_wav(work / "in" / "sig.wav", signal)
-        _run([str(exe), "-i", "in", "-c", "enc", "-o", "dec", "-b", str(budget),
-              "-bl", str(VCPWQ_BLOCK), "-fs", str(FS_HZ)], work)
-        enc = work / "enc" / f"sig_{budget}.binary"
-        dec = work / "dec" / f"sig_{budget}.wav"
-        if not enc.is_file() or not dec.is_file():
-            raise PeerError(f"VC-PWQ wrote no {enc.name} / {dec.name} in {work}")
-        return enc.stat().st_size, read_wav(dec)
-
-    return PeerCodec("VC-PWQ", f"bit budget per {VCPWQ_BLOCK}-sample block", VCPWQ_BUDGETS,
-                     (exe,), run)
-
-
-MPEG_BITRATES_KBPS = (1, 2, 4, 6, 8, 12, 16, 20, 24, 32, 48, 64)
+    """VC-PWQ's demo program (a research codec, CC BY-NC): knob = bit budget per block."""
+    return _peer(peercodecs.VcPwq(exe), "VC-PWQ (research, CC BY-NC)")
 
 
 def mpeg_rm(encoder: Path, synthesizer: Path, options: tuple[str, ...] = ()) -> PeerCodec:
     """The MPEG-I Haptics reference software: Encoder (WAV -> binary .hmpg at a target bitrate,
-    kb/s; `options` are extra encoder options) and Synthesizer (.hmpg -> WAV at 8 kHz)."""
-
-    def run(signal: np.ndarray, work: Path, kbps: int) -> tuple[int, np.ndarray]:
-        write_wav(work / "sig.wav", signal)
-        for f in ("sig.hmpg", "dec.wav"):
-            (work / f).unlink(missing_ok=True)
-        _run([str(encoder), "-f", "sig.wav", "-o", "sig.hmpg", "--binary", "-kb", str(kbps),
-              *options], work)
-        _run([str(synthesizer), "-f", "sig.hmpg", "-o", "dec.wav", "--binary",
-              "-fs", str(FS_HZ)], work)
-        if not (work / "sig.hmpg").is_file() or not (work / "dec.wav").is_file():
-            raise PeerError(f"the MPEG RM wrote no sig.hmpg / dec.wav in {work}")
-        return (work / "sig.hmpg").stat().st_size, read_wav(work / "dec.wav")
-
+    kb/s; `options`: () or ("-cf", "0")) and Synthesizer (.hmpg -> WAV at 8 kHz)."""
+    cls = {(): peercodecs.MpegRm, ("-cf", "0"): peercodecs.MpegRmCf0}.get(tuple(options))
+    if cls is None:
+        raise PeerError(f"MPEG-I RM options {' '.join(options)!r}: only the default and -cf 0 are tabled")
     name = "MPEG-I RM" + (f" ({' '.join(options)})" if options else "")
-    return PeerCodec(name, "target bitrate, kb/s", MPEG_BITRATES_KBPS, (encoder, synthesizer), run)
+    return _peer(cls(encoder, synthesizer), name)
 
 
 def mpeg_rm_variants(encoder: Path, synthesizer: Path) -> list[PeerCodec]:
@@ -162,22 +104,31 @@ def _exe(env: str, root: Path | None, rel: str) -> Path | None:
 
 def find(root: Path | None) -> tuple[list[PeerCodec], list[str]]:
     """The peers that can run, and one note for each one that cannot (what is missing, and
-    how to provide it). root: the --peers DIR (None: only the environment variables)."""
+    how to provide it). root: the --peers DIR (None: the environment variables, and for the
+    reference software the cache its build.sh fills: hostd.texture.hjif.rm_dir)."""
+    from hostd.texture import hjif
+
     found, notes = [], []
+    rm = hjif.rm_dir()
     cands = [
-        ("VC-PWQ", [(VCPWQ_ENV, VCPWQ_REL)], lambda exe: [vcpwq(exe)]),
-        ("MPEG-I RM", [(MPEG_ENCODER_ENV, MPEG_ENCODER_REL), (MPEG_SYNTH_ENV, MPEG_SYNTH_REL)],
-         mpeg_rm_variants),
+        ("VC-PWQ (research, CC BY-NC)", [(VCPWQ_ENV, VCPWQ_REL, None)], lambda exe: [vcpwq(exe)]),
+        ("MPEG-I RM", [(MPEG_ENCODER_ENV, MPEG_ENCODER_REL, rm and rm / "Encoder"),
+                       (MPEG_SYNTH_ENV, MPEG_SYNTH_REL, rm and rm / "Synthesizer")], mpeg_rm_variants),
     ]
     for name, parts, make in cands:
-        paths = [_exe(env, root, rel) for env, rel in parts]
+        paths = []
+        for env, rel, cached in parts:
+            p = _exe(env, root, rel)
+            if (p is None or not p.is_file()) and cached is not None:
+                p = cached
+            paths.append(p)
         missing = [f"{env} or DIR/{rel}" if p is None else str(p)
-                   for (env, rel), p in zip(parts, paths, strict=True)
+                   for (env, rel, _), p in zip(parts, paths, strict=True)
                    if p is None or not (p.is_file() and os.access(p, os.X_OK))]
         if missing:
             notes.append(f"{name} not run: no executable at {', '.join(missing)} (build it as "
                          f"docs/benchmarks.md 'Peer codecs' says, then pass --peers DIR or set "
-                         f"{' / '.join(env for env, _ in parts)})")
+                         f"{' / '.join(env for env, _, _ in parts)})")
         else:
             found += make(*paths)
     return found, notes
@@ -233,35 +184,40 @@ def score(t: Texture, decoded_um: np.ndarray) -> dict:
             "st_sim": ps.get("st_sim"), "spqi": ps.get("spqi")}
 
 
-def run_peer(codec: PeerCodec, t: Texture, knob: int, work: Path) -> dict:
-    """One peer encode + decode of the texture's crossing, scored."""
-    sig = traverse_signal(t)
-    peak = float(np.max(np.abs(sig)))
-    scale = peak if peak > 0 else 1.0
-    nbytes, dec = codec.run(sig / scale, work, knob)
-    if not np.all(np.isfinite(dec)):
-        raise PeerError(f"{codec.name} decoded NaN or Inf samples")
-    c = coefficients_from_signal(t, dec * scale)
-    return {"bytes": int(nbytes), **score(t, c)}
+def run_peer(codec: PeerCodec, t: Texture, knob: int, work: Path | None = None) -> dict:
+    """One peer encode + decode of the texture through the corpus protocol, scored. The heights
+    it is given are the texture's N' components on its grid (so its own analysis finds C)."""
+    from hostd.codec import transform
+    from hostd.corpus.codecs import CodecFailure, run_codec
+
+    heights = transform.synthesize(t.coeffs_um, t.n)
+    geometry = {"speed_mm_s": t.speed_mm_s,
+                "fmax_hz": t.coeffs_um.size * t.speed_mm_s / (2.0 * t.length_mm)}  # N' = C's size
+    try:
+        coded = run_codec(codec.codec, heights, t.length_mm * 1000.0 / t.n, codec.setting(knob), geometry)
+    except CodecFailure as e:
+        raise PeerError(str(e)) from None
+    c = transform.analyze(coded.reconstruction_um, t.coeffs_um.size)
+    return {"bytes": len(coded.data), **score(t, c)}
 
 
 def sweep(codec: PeerCodec, t: Texture, spqi_min: float = 0.9) -> list[dict]:
     """The peer across its knob on one texture: the knob's grid, then every integer knob value
     between the largest one below spqi_min and the smallest one reaching it."""
     rows: dict[int, dict] = {}
-    with tempfile.TemporaryDirectory(prefix="hostd-peer-") as d:
-        def at(knob: int) -> None:
-            if knob not in rows:
-                rows[knob] = {"bench": "codec_peer", "texture": t.name, "codec": codec.name,
-                              "knob": knob, **run_peer(codec, t, knob, Path(d))}
 
-        for knob in codec.knob_values:
+    def at(knob: int) -> None:
+        if knob not in rows:
+            rows[knob] = {"bench": "codec_peer", "texture": t.name, "codec": codec.name,
+                          "knob": knob, **run_peer(codec, t, knob)}
+
+    for knob in codec.knob_values:
+        at(knob)
+    good = [k for k in codec.knob_values if (rows[k]["spqi"] or 0.0) >= spqi_min]
+    if good:
+        below = [k for k in codec.knob_values if k < good[0]]
+        for knob in range((below[-1] + 1) if below else good[0], good[0]):
             at(knob)
-        good = [k for k in codec.knob_values if (rows[k]["spqi"] or 0.0) >= spqi_min]
-        if good:
-            below = [k for k in codec.knob_values if k < good[0]]
-            for knob in range((below[-1] + 1) if below else good[0], good[0]):
-                at(knob)
     return [rows[k] for k in sorted(rows)]
 
 

@@ -74,6 +74,8 @@ _BUILTIN: tuple[Format, ...] = (
     Format("text", (".csv", ".txt", ".dat", ".asc", ".xyz", ".prf", ".tsv"),
            "hostd.texture.load:read_text",
            "one or two numeric columns; instrument preambles skipped (--columns, --decimal-comma)"),
+    Format("MPEG-I Haptics", (".hjif", ".hmpg"), "hostd.texture.hjif:read",
+           "ISO/IEC 23090-31 (.hmpg through the reference Decoder): one channel (--member P[/C])"),
 )
 TEXT = _BUILTIN[1]  # any suffix not registered is read as text
 

@@ -10,7 +10,7 @@ import io
 import math
 import re
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +30,7 @@ class Profile:
     heights_um: np.ndarray
     spacing_um: float
     source: str = ""
+    note: str = ""  # what the file's reader said worth telling (formats.Columns.note)
 
     @property
     def n(self) -> int:
@@ -371,7 +372,7 @@ def load_profile(path: str | Path, opts: LoadOptions | None = None) -> Profile:
         _check_spacing(dx_um)
         y_um = _resample(x_um, y_um, dx_um)
     prof = cut_patch(y_um, dx_um, opts, str(path))
-    return prof
+    return replace(prof, note=cols.note) if cols.note else prof
 
 
 def _check_spacing(dx_um: float) -> None:

@@ -1,0 +1,720 @@
+"""MPEG-I Haptics (ISO/IEC 23090-31) interchange: `.hjif` (its JSON format) in and out, `.hmpg`
+(its binary stream) in through the reference Decoder.
+
+The standard's model is experience -> perceptions -> channels -> bands -> effects -> keyframes.
+Its JSON schema is not public; what the reference software (MPEGGroup/HapticReferenceSoftware,
+`source/IOHaptics/src/IOJson.cpp`) reads and plays is the judge, and the tests check hostd's
+files with it (docs/interchange.md).
+
+What hostd writes (`export`, `hostd export X -o Y.hjif`): one experience (version 2023, profile
+Main, level 1, no avatars) with two perceptions, each of one channel holding one cubic Curve band
+of one effect whose keyframes are the samples (a keyframe per sample, so the reference
+Synthesizer's cubic interpolation passes through every sample and plays them exactly; the RM
+never plays an effect's last keyframe, so the time-domain effect has one past its sample_count):
+- perception 0, "Vibrotactile Texture": the height profile over space. Keyframe positions are
+  spatial, in units of 10^unit_exponent metres (the perception's `unit_exponent`; hostd picks the
+  coarsest power of ten that states the sample spacing as a whole number, e.g. -7 = 0.1 µm for a
+  0.5 µm spacing).
+- perception 1, "Vibrotactile": the texture as a hand at one stroke speed feels it (one crossing
+  of the patch, hostd's own rendering `hostd render` at that speed), in time: one keyframe per
+  sample at `rate_hz`, the experience's timescale being rate_hz ticks per second.
+Amplitudes are normalized: keyframe amplitude = height / full scale, |amplitude| <= 1, the
+channel gain 1 and `perception_unit_exponent` 0, so the reference Synthesizer's WAV (full scale
+= 1.0) holds the samples. The full scale in µm is written in each perception's description
+(`full_scale_um=...`), and hostd's provenance (codec, setting, Iobj, geometry, source) as JSON in
+the experience's description: the standard has no field for a physical displacement scale that
+its Synthesizer honours, nor for a codec's provenance.
+
+What hostd reads (`read`, the `.hjif` entry of hostd.texture.formats; `.hmpg` after the reference
+Decoder): one channel of one perception, chosen with LoadOptions.member "PERCEPTION[/CHANNEL]"
+(an index, or id=N). Its bands are evaluated as the reference Synthesizer evaluates them:
+Curve bands (linear, cubic) and WaveletWave bands (hostd.texture.hjif_wavelet, a port of the RM's
+decoder) by hostd; in time-domain perceptions, Vectorial and Transient bands (and Akima, Bezier,
+B-spline curves) through the reference Synthesizer when it is installed (a one-line error saying
+how when not); the channel
+is clipped to -1..1 and scaled by gain x 10^perception_unit_exponent. Spatial perceptions keep
+their spacing (unit_exponent); a time-domain one needs a spacing (v / fs): the file's own when
+hostd wrote it, else --spacing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from hostd.errors import ProfileError
+
+if TYPE_CHECKING:
+    from hostd.texture.formats import Columns
+    from hostd.texture.load import LoadOptions
+
+MAX_HJIF_BYTES = 64 << 20  # a larger file is refused before it is parsed (~1 M keyframes)
+MAX_SAMPLES = 20_000_000  # samples of one evaluated channel
+MAX_KEYFRAMES = 2_000_000
+MAX_AMPLITUDE = 1e3  # keyframe amplitudes are -1..1; the RM clips the channel's sum to that
+MAX_GAIN = 1e6
+DEFAULT_RATE_HZ = 8000  # the reference Synthesizer's default output rate
+MAX_TIMESCALE = 48000  # the Main profile's limit (IOJson.cpp)
+MAX_DESCRIPTION_BYTES = 255  # .hmpg stores a description's length in 8 bits
+VERSION = "2023"
+TEXTURE = "Vibrotactile Texture"
+TIME = "Vibrotactile"
+SPATIAL_MODALITIES = {"Vibrotactile Texture", "Texture"}  # the RM's names (Perception.h)
+# "Other": what the reference Encoder writes for a WAV input; read as a time-domain signal
+TEMPORAL_MODALITIES = {"Vibrotactile", "Vibration", "Other"}
+SPACING_UM_RANGE = (1e-4, 1e4)  # 0.1 nm .. 1 cm between samples: outside, the unit is absurd
+NATIVE_CURVES = {"Linear", "Cubic", "Unknown"}  # "Unknown": the RM's default case, cubic
+RM_ENV = "HOSTD_MPEG_RM"  # a directory with the reference software's Encoder, Decoder, Synthesizer
+RM_TOOLS = ("Encoder", "Decoder", "Synthesizer")
+RM_TIMEOUT_S = 120.0
+_FULL_SCALE = re.compile(r"full_scale_um=([0-9.eE+-]+)")
+_SPEED = re.compile(r"speed_mm_s=([0-9.eE+-]+)")
+
+
+# ============================================================================ the reference software
+
+def rm_dir() -> Path | None:
+    """The directory holding the reference Encoder, Decoder and Synthesizer: $HOSTD_MPEG_RM, else
+    where the reference software's build.sh caches them (~/.cache/mpeg-haptics-rm/bin), else the
+    directory of a `Synthesizer` on PATH. None when none of these holds all three."""
+    cands: list[Path] = []
+    if os.environ.get(RM_ENV):
+        cands.append(Path(os.environ[RM_ENV]))
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    cands.append(cache / "mpeg-haptics-rm" / "bin")
+    on_path = shutil.which("Synthesizer")
+    if on_path:
+        cands.append(Path(on_path).resolve().parent)
+    for d in cands:
+        if all((d / t).is_file() and os.access(d / t, os.X_OK) for t in RM_TOOLS):
+            return d
+    return None
+
+
+RM_HOW = (f"build the MPEG-I Haptics reference software (docs/interchange.md: build.sh of "
+          f"mpeg-haptics-rm caches it in ~/.cache/mpeg-haptics-rm/bin) or set {RM_ENV} to the "
+          f"directory holding Encoder, Decoder and Synthesizer")
+
+
+def rm_tool(name: str) -> Path:
+    d = rm_dir()
+    if d is None:
+        raise ProfileError(f"the reference {name} is not installed: {RM_HOW}")
+    return d / name
+
+
+def run_rm(name: str, *args: str, cwd: Path | None = None) -> str:
+    """Run one reference tool; its stdout. A failure is one line naming the tool."""
+    exe = rm_tool(name)
+    try:
+        r = subprocess.run([str(exe), *args], cwd=cwd, capture_output=True, text=True,
+                           timeout=RM_TIMEOUT_S, errors="replace")
+    except subprocess.TimeoutExpired:
+        raise ProfileError(f"the reference {name} did not finish within {RM_TIMEOUT_S:g} s") from None
+    if r.returncode != 0:
+        last = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["no output"]
+        raise ProfileError(f"the reference {name} failed (exit {r.returncode}): {last[0]}")
+    return r.stdout
+
+
+def read_wav_full_scale(path: Path) -> tuple[int, np.ndarray]:
+    """(rate, samples (frames, channels)) of a PCM WAV as the reference tools write it, in units
+    of full scale (int16 / 32768)."""
+    import scipy.io.wavfile
+
+    try:
+        rate, data = scipy.io.wavfile.read(path)
+    except (OSError, ValueError) as e:
+        raise ProfileError(f"cannot read the WAV {path}: {e}") from None
+    data = np.asarray(data)
+    if data.ndim == 1:
+        data = data.reshape(-1, 1)
+    if np.issubdtype(data.dtype, np.integer):
+        return int(rate), data.astype(np.float64) / float(-np.iinfo(data.dtype).min)
+    return int(rate), data.astype(np.float64)
+
+
+# ============================================================================ writing
+
+@dataclasses.dataclass(frozen=True)
+class Export:
+    """What one .hjif of hostd holds (amplitudes in µm; the writer normalizes them)."""
+
+    heights_um: np.ndarray  # the texture over space, uniform spacing
+    spacing_um: float
+    played_um: np.ndarray  # the texture in time at speed_mm_s, rate_hz
+    speed_mm_s: float
+    rate_hz: int
+    provenance: dict
+    full_scale_um: float | None = None  # None: the peak of both signals
+    # which perceptions: "both", "texture" (over space) or "time" (as played). The reference
+    # software at 2de9ff1 writes an .hmpg of a spatial perception its own Decoder cannot read
+    # (it aborts: map::at), so an .hmpg for that software is made from "time"
+    perceptions: str = "both"
+
+
+def spatial_unit(spacing_um: float, count: int) -> tuple[int, int, float]:
+    """(unit_exponent, step in units, rounding error in µm): the coarsest power of ten 10^e m
+    (e in -12..-3) that states the spacing as a whole number of units (to 1e-9 relative); when
+    none does, the coarsest with >= 1000 units per sample (positions then round to the unit,
+    an error of at most 0.05 % of the spacing). Positions must fit a 32-bit keyframe position."""
+    if not (SPACING_UM_RANGE[0] <= spacing_um <= SPACING_UM_RANGE[1]):
+        raise ProfileError(f"spacing {spacing_um:g} µm is outside {SPACING_UM_RANGE[0]:g}.."
+                           f"{SPACING_UM_RANGE[1]:g} µm")
+    best = None
+    for e in range(-3, -13, -1):
+        units = spacing_um * 10.0 ** (-6 - e)
+        r = round(units)
+        if r >= 1 and abs(units - r) <= 1e-9 * units:
+            best = (e, int(r), 0.0)
+            break
+        if best is None and units >= 1000:
+            best = (e, int(r), abs(units - r) * 10.0 ** (e + 6))
+    if best is None:
+        raise ProfileError(f"spacing {spacing_um:g} µm cannot be stated in 1 pm units")
+    if best[1] * (count - 1) >= 2**31:
+        raise ProfileError(f"{count} samples at {spacing_um:g} µm do not fit 32-bit keyframe positions "
+                           "in any unit: export a shorter patch (--length-mm)")
+    return best
+
+
+def _curve_channel(desc: str, positions: np.ndarray, amps: np.ndarray, upper_hz: int,
+                   extra: dict | None = None) -> dict:
+    kfs = [{"relative_position": int(p), "amplitude_modulation": float(a)}
+           for p, a in zip(positions.tolist(), amps.tolist(), strict=True)]
+    ch = {"id": 0, "description": desc, "gain": 1.0, "mixing_coefficient": 1.0,
+          "body_part_mask": 0, **(extra or {}),
+          "bands": [{"band_type": "Curve", "curve_type": "Cubic", "lower_frequency_limit": 0,
+                     "upper_frequency_limit": int(upper_hz),
+                     "effects": [{"effect_type": "Basis", "position": 0, "keyframes": kfs}]}]}
+    return ch
+
+
+def build(ex: Export, date: str | None = None) -> dict:
+    """The .hjif document (a dict ready for json) of an Export."""
+    h = np.asarray(ex.heights_um, dtype=np.float64)
+    p = np.asarray(ex.played_um, dtype=np.float64)
+    if h.ndim != 1 or h.size < 3 or p.ndim != 1 or p.size < 3:
+        raise ProfileError("an .hjif export needs at least 3 samples over space and in time")
+    if not (np.all(np.isfinite(h)) and np.all(np.isfinite(p))):
+        raise ProfileError("an .hjif export cannot hold NaN or Inf heights")
+    if ex.perceptions not in ("both", "texture", "time"):
+        raise ProfileError(f"perceptions must be both, texture or time, got {ex.perceptions!r}")
+    if not (1 <= ex.rate_hz <= MAX_TIMESCALE) or int(ex.rate_hz) != ex.rate_hz:
+        raise ProfileError(f"--rate-hz must be a whole number of Hz in 1..{MAX_TIMESCALE} (the Main "
+                           f"profile's timescale), got {ex.rate_hz}")
+    if p.size >= 2**31:
+        raise ProfileError("the played signal is too long for 32-bit keyframe positions")
+    peak = max(float(np.max(np.abs(h))), float(np.max(np.abs(p))))
+    fs_um = ex.full_scale_um if ex.full_scale_um is not None else (peak if peak > 0 else 1.0)
+    if not (math.isfinite(fs_um) and fs_um > 0):
+        raise ProfileError(f"full scale must be a finite number > 0 µm, got {fs_um}")
+    clipped = int(np.count_nonzero(np.abs(h) > fs_um) + np.count_nonzero(np.abs(p) > fs_um))
+    if clipped:
+        raise ProfileError(f"{clipped} samples exceed the full scale {fs_um:g} µm (peak {peak:.4g} µm): "
+                           "raise --full-scale-um")
+    e, step, _err = spatial_unit(ex.spacing_um, h.size)
+    spacing_stated_um = step * 10.0 ** (e + 6)
+    # the spatial band's "frequency" limit: samples per metre / 2 would not fit an int; the
+    # limit at the stroke speed (Nyquist of the spatial samples at v) is what a player can use
+    upper_tex = max(1, min(2**31 - 1, round(ex.speed_mm_s * 1e3 / (2 * spacing_stated_um))))
+    scale = f"full_scale_um={fs_um!r}"
+    tex = {"id": 0, "avatar_id": 0,
+           "description": (f"hostd texture: height profile over space, {h.size} samples every "
+                           f"{spacing_stated_um:g} um (positions in 1e{e} m); amplitude 1.0 = "
+                           f"{fs_um:.6g} um; {scale}"),
+           "perception_modality": TEXTURE, "unit_exponent": e, "perception_unit_exponent": 0,
+           "reference_devices": [], "effect_library": [],
+           "channels": [_curve_channel("height profile (normalized to full scale)",
+                                       np.arange(h.size, dtype=np.int64) * step, h / fs_um, upper_tex)]}
+    tim = {"id": 1, "avatar_id": 0,
+           "description": (f"hostd texture as played at speed_mm_s={ex.speed_mm_s!r}: one crossing of the "
+                           f"patch, {p.size} samples at {ex.rate_hz} Hz; amplitude 1.0 = {fs_um:.6g} um; "
+                           f"{scale}"),
+           "perception_modality": TIME, "perception_unit_exponent": 0,
+           "reference_devices": [], "effect_library": [],
+           # one keyframe past the end (= the last sample, outside sample_count): the RM's
+           # cubicInterpolation2 stops one sample short and reads the last one past its buffer
+           "channels": [_curve_channel("displacement at the fingertip (normalized to full scale)",
+                                       np.arange(p.size + 1, dtype=np.int64),
+                                       np.append(p, p[-1]) / fs_um, ex.rate_hz // 2,
+                                       {"frequency_sampling": int(ex.rate_hz), "sample_count": int(p.size)})]}
+    for q in (tex, tim):
+        if len(q["description"].encode()) > MAX_DESCRIPTION_BYTES:
+            raise ProfileError(f"description of perception {q['id']} is longer than "
+                               f"{MAX_DESCRIPTION_BYTES} bytes")
+    return {"version": VERSION, "profile": "Main", "level": 1,
+            "date": date or _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d"),
+            "description": provenance_text(ex.provenance),
+            "timescale": int(ex.rate_hz), "avatars": [],
+            "perceptions": {"both": [tex, tim], "texture": [tex], "time": [tim]}[ex.perceptions],
+            "syncs": []}
+
+
+def provenance_text(prov: dict) -> str:
+    """hostd's provenance as compact JSON {"hostd": {...}} within MAX_DESCRIPTION_BYTES (the
+    binary .hmpg stores a description's length in 8 bits: the reference Decoder fails on longer
+    ones): a long source name is shortened, then the keys last in `prov` are dropped."""
+    items = dict(prov)
+    while True:
+        text = json.dumps({"hostd": items}, separators=(",", ":"), allow_nan=False)
+        if len(text.encode()) <= MAX_DESCRIPTION_BYTES:
+            return text
+        src = items.get("source")
+        if isinstance(src, str) and len(src) > 24:
+            items["source"] = src[:10] + "..." + src[-11:]
+        elif items:
+            items.pop(next(reversed(items)))
+        else:
+            return "hostd"
+
+
+def dumps(doc: dict) -> bytes:
+    return json.dumps(doc, separators=(",", ":"), allow_nan=False).encode()
+
+
+# ============================================================================ reading
+
+class _Doc:
+    """Typed access to the JSON with errors that name the file and the field."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def err(self, field: str, what: str) -> ProfileError:
+        return ProfileError(f"{self.path}: {field}: {what}")
+
+    def get(self, obj: dict, key: str, where: str, kind: str, default: Any = ...) -> Any:
+        field = f"{where}.{key}" if where else key
+        if key not in obj:
+            if default is not ...:
+                return default
+            raise self.err(field, "missing")
+        v = obj[key]
+        ok = {"int": isinstance(v, int) and not isinstance(v, bool),
+              "num": isinstance(v, int | float) and not isinstance(v, bool),
+              "str": isinstance(v, str), "list": isinstance(v, list),
+              "obj": isinstance(v, dict)}[kind]
+        if not ok:
+            names = {"int": "an integer", "num": "a number", "str": "a string", "list": "an array",
+                     "obj": "an object"}
+            raise self.err(field, f"must be {names[kind]}, got {type(v).__name__} {str(v)[:40]}")
+        if kind == "num" and not math.isfinite(v):
+            raise self.err(field, "must be finite")
+        if kind == "int" and not -(2**31) <= v < 2**32:  # the RM reads 32-bit integers
+            raise self.err(field, f"{v} is outside the 32-bit range the format uses")
+        return v
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"{name} is not JSON")
+
+
+def load_json(path: Path) -> dict:
+    """The parsed document; a file larger than MAX_HJIF_BYTES is refused before parsing."""
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise ProfileError(f"no such .hjif file: {path}") from None
+    except OSError as e:
+        raise ProfileError(f"cannot read {path}: {e.strerror or e}") from None
+    if size > MAX_HJIF_BYTES:
+        raise ProfileError(f"{path}: {size} bytes, more than the {MAX_HJIF_BYTES >> 20} MiB an .hjif may "
+                           "have here (hostd.texture.hjif.MAX_HJIF_BYTES); split the file")
+    try:
+        with path.open("rb") as fh:
+            raw = fh.read(MAX_HJIF_BYTES + 1)
+    except OSError as e:
+        raise ProfileError(f"cannot read {path}: {e.strerror or e}") from None
+    if len(raw) > MAX_HJIF_BYTES:
+        raise ProfileError(f"{path}: more than {MAX_HJIF_BYTES >> 20} MiB; refused")
+    try:
+        doc = json.loads(raw, parse_constant=_reject_constant)
+    except (ValueError, RecursionError) as e:
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ProfileError(f"{path}: not valid JSON ({msg})") from None
+    if not isinstance(doc, dict):
+        raise ProfileError(f"{path}: not an .hjif (the top level must be a JSON object)")
+    return doc
+
+
+@dataclasses.dataclass(frozen=True)
+class Channel:
+    """One evaluated channel: samples as the reference Synthesizer plays them (full scale 1,
+    times gain x 10^perception_unit_exponent), on a uniform grid."""
+
+    samples: np.ndarray
+    spatial: bool
+    step_m: float | None  # spatial: grid spacing in metres
+    rate_hz: float | None  # temporal: samples per second
+    perception: int
+    channel: int
+    modality: str
+    full_scale_um: float | None  # hostd's files: amplitude 1.0 in µm
+    speed_mm_s: float | None  # hostd's time-domain perception: its stroke speed
+    note: str = ""
+
+
+def _label(d: _Doc, p: dict, i: int) -> str:
+    chans = p.get("channels")
+    return (f"{i} (id={str(p.get('id'))[:20]}, {str(p.get('perception_modality'))[:40]!r}, "
+            f"{len(chans) if isinstance(chans, list) else 0} channel(s))")
+
+
+def _stated(pattern: re.Pattern, text: str, upper: float) -> float | None:
+    """A `key=value` hostd wrote in a description: a number in (0, upper], else None."""
+    m = pattern.search(text)
+    try:
+        v = float(m.group(1)) if m else math.nan
+    except ValueError:
+        return None
+    return v if 0 < v <= upper else None
+
+
+def _pick(items: list, spec: str | None, what: str, d: _Doc, labels: list[str]) -> int:
+    choices = "; ".join(labels)
+    m = re.fullmatch(r"\s*(?:(id)\s*=\s*)?(-?\d+)\s*", spec or "")
+    if not m:
+        raise d.err("member", f"{what} {spec!r}: give an index or id=N (choices: {choices})")
+    n = int(m.group(2))
+    if m.group(1):
+        hits = [i for i, it in enumerate(items) if isinstance(it, dict) and it.get("id") == n]
+        if len(hits) != 1:
+            raise d.err("member", f"no single {what} with id {n} (choices: {choices})")
+        return hits[0]
+    if not 0 <= n < len(items):
+        raise d.err("member", f"{what} index {n} out of range (choices: {choices})")
+    return n
+
+
+def select(doc: dict, path: Path, member: str | None) -> tuple[int, int, str]:
+    """(perception index, channel index, note) chosen by member "PERCEPTION[/CHANNEL]"."""
+    d = _Doc(path)
+    perceptions = d.get(doc, "perceptions", "", "list")
+    if not perceptions:
+        raise d.err("perceptions", "empty: the file holds no perception")
+    for i, p in enumerate(perceptions):
+        if not isinstance(p, dict):
+            raise d.err(f"perceptions[{i}]", "must be an object")
+    labels = [_label(d, p, i) for i, p in enumerate(perceptions)]
+    note = ""
+    pspec, _, cspec = (member or "").partition("/")
+    if member:
+        pi = _pick(perceptions, pspec, "perception", d, labels)
+    elif len(perceptions) == 1:
+        pi = 0
+    else:
+        spatial = [i for i, p in enumerate(perceptions)
+                   if isinstance(p.get("perception_modality"), str)
+                   and p["perception_modality"] in SPATIAL_MODALITIES]
+        if len(spatial) != 1:
+            raise ProfileError(f"{path}: {len(perceptions)} perceptions, choose one with --member "
+                               f"PERCEPTION[/CHANNEL] (index or id=N): {'; '.join(labels)}")
+        pi = spatial[0]
+        note = (f"took perception {labels[pi]}, the texture over space; --member chooses another of: "
+                f"{'; '.join(labels)}")
+    where = f"perceptions[{pi}]"
+    chans = d.get(perceptions[pi], "channels", where, "list")
+    if not chans:
+        raise d.err(f"{where}.channels", "empty: the perception has no channel")
+    clabels = [f"{j} (id={c.get('id') if isinstance(c, dict) else '?'})" for j, c in enumerate(chans)]
+    if cspec:
+        ci = _pick(chans, cspec, "channel", d, clabels)
+    elif len(chans) == 1:
+        ci = 0
+    else:
+        raise ProfileError(f"{path}: perception {pi} has {len(chans)} channels, choose one with --member "
+                           f"{pi}/CHANNEL: {'; '.join(clabels)}")
+    return pi, ci, note
+
+
+def _hermite(idx: np.ndarray, amps: np.ndarray, curve: str) -> np.ndarray:
+    """Samples 0..idx[-1] of a curve through (idx, amps), idx non-decreasing from 0, as the
+    RM's linearInterpolation2 / cubicInterpolation2 (cubic: zero slope at every keyframe)."""
+    last = int(idx[-1])
+    t = np.arange(last + 1, dtype=np.float64)
+    if last == 0:
+        return amps[:1].copy()
+    j1 = np.searchsorted(idx, t, side="left")
+    j1 = np.clip(j1, 1, idx.size - 1)
+    j0 = j1 - 1
+    t0, t1 = idx[j0].astype(np.float64), idx[j1].astype(np.float64)
+    f0, f1 = amps[j0], amps[j1]
+    h = np.where(t1 > t0, t1 - t0, 1.0)
+    if curve == "Linear" or idx.size == 2:
+        y = (f0 * (t1 - t) + f1 * (t - t0)) / h
+    else:
+        y = f0 + (f1 - f0) * (3 * h + 2 * (t0 - t)) * (t - t0) ** 2 / h**3
+    y[0] = amps[0]
+    return y
+
+
+def _effects(d: _Doc, band: dict, where: str) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(position, relative positions, amplitudes) of each effect of a Curve band, checked."""
+    out = []
+    for k, e in enumerate(d.get(band, "effects", where, "list")):
+        ew = f"{where}.effects[{k}]"
+        if not isinstance(e, dict):
+            raise d.err(ew, "must be an object")
+        etype = d.get(e, "effect_type", ew, "str")
+        if etype != "Basis":
+            raise d.err(f"{ew}.effect_type", f"{etype!r}: only Basis effects are read in Curve bands "
+                        "(linearize the file with the reference Encoder -l)")
+        pos = d.get(e, "position", ew, "int")
+        kfs = d.get(e, "keyframes", ew, "list")
+        if len(kfs) > MAX_KEYFRAMES:
+            raise d.err(f"{ew}.keyframes", f"{len(kfs)} keyframes, more than {MAX_KEYFRAMES}")
+        if not kfs:
+            continue
+        rel = np.empty(len(kfs), dtype=np.int64)
+        amp = np.empty(len(kfs), dtype=np.float64)
+        for m, kf in enumerate(kfs):
+            kw = f"{ew}.keyframes[{m}]"
+            if not isinstance(kf, dict):
+                raise d.err(kw, "must be an object")
+            rel[m] = d.get(kf, "relative_position", kw, "int")
+            amp[m] = d.get(kf, "amplitude_modulation", kw, "num")
+            if not abs(amp[m]) <= MAX_AMPLITUDE:
+                raise d.err(f"{kw}.amplitude_modulation", f"{amp[m]:g} is absurd (the format's amplitudes "
+                            f"are -1..1; at most {MAX_AMPLITUDE:g} is read, then clipped)")
+        bad = np.flatnonzero(np.diff(rel) < 0)
+        if bad.size:
+            m = int(bad[0]) + 1
+            raise d.err(f"{ew}.keyframes[{m}].relative_position",
+                        f"{int(rel[m])} comes before {int(rel[m - 1])}: keyframes out of order")
+        if rel[0] < 0 or pos < 0:
+            raise d.err(f"{ew}.keyframes[0].relative_position", "negative positions are not played")
+        out.append((pos, rel, amp))
+    return out
+
+
+def _render_curve(d: _Doc, band: dict, where: str, to_idx, count_hint: int | None) -> np.ndarray:
+    curve = band.get("curve_type", "Cubic")
+    parts = []
+    end = 0
+    for pos, rel, amp in _effects(d, band, where):
+        start = int(to_idx(pos + rel[0]))
+        idx = to_idx(rel) - to_idx(rel[0])
+        if int(idx[-1]) + 1 > MAX_SAMPLES:
+            raise d.err(where, f"spans {int(idx[-1]) + 1} samples, more than {MAX_SAMPLES}")
+        y = _hermite(idx, amp, curve)
+        parts.append((start, y))
+        end = max(end, start + y.size)
+    n = count_hint if count_hint is not None else end
+    if n > MAX_SAMPLES:
+        raise d.err(where, f"spans {n} samples, more than {MAX_SAMPLES}")
+    out = np.zeros(n)
+    for start, y in parts:
+        stop = min(n, start + y.size)
+        if stop > start:
+            out[start:stop] += y[: stop - start]
+    return out
+
+
+def _render_by_rm(doc: dict, perception: dict, channel: dict, bands: list[dict], rate: int,
+                  count: int, path: Path) -> np.ndarray:
+    """Bands hostd does not evaluate itself, played by the reference Synthesizer (int16 WAV)."""
+    ch = {**channel, "gain": 1.0, "bands": bands}
+    p = {**perception, "perception_unit_exponent": 0, "channels": [ch], "effect_library": []}
+    one = {**doc, "perceptions": [p], "avatars": [], "syncs": []}
+    with tempfile.TemporaryDirectory(prefix="hostd-hjif-") as tmp:
+        src, wav = Path(tmp) / "bands.hjif", Path(tmp) / "bands.wav"
+        src.write_bytes(dumps(one))
+        run_rm("Synthesizer", "-f", str(src), "-o", str(wav), "-fs", str(rate))
+        if not wav.is_file():
+            raise ProfileError(f"{path}: the reference Synthesizer wrote no WAV")
+        _, x = read_wav_full_scale(wav)
+    y = np.zeros(count)
+    k = min(count, x.shape[0])
+    y[:k] = x[:k, 0]
+    return y
+
+
+def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
+    """The samples of channel ci of perception pi, as the reference Synthesizer plays them."""
+    d = _Doc(path)
+    for key, kind in (("version", "str"), ("profile", "str"), ("level", "int"), ("date", "str"),
+                      ("description", "str"), ("avatars", "list"), ("syncs", "list")):
+        d.get(doc, key, "", kind)
+    timescale = d.get(doc, "timescale", "", "int")
+    if not 1 <= timescale <= 10**6:
+        raise d.err("timescale", f"{timescale} ticks per second is absurd (1..1000000)")
+    pw = f"perceptions[{pi}]"
+    p = doc["perceptions"][pi]
+    modality = d.get(p, "perception_modality", pw, "str")
+    d.get(p, "id", pw, "int")
+    d.get(p, "description", pw, "str")
+    if modality in SPATIAL_MODALITIES:
+        spatial = True
+    elif modality in TEMPORAL_MODALITIES:
+        spatial = False
+    else:
+        raise d.err(f"{pw}.perception_modality", f"{modality!r} is not a vibrotactile signal (hostd reads "
+                    f"{', '.join(sorted(SPATIAL_MODALITIES | TEMPORAL_MODALITIES))}); choose another "
+                    "perception with --member")
+    ue = d.get(p, "unit_exponent", pw, "int", -3)
+    pue = d.get(p, "perception_unit_exponent", pw, "int", 0)
+    if not -12 <= ue <= 3:
+        raise d.err(f"{pw}.unit_exponent", f"{ue}: positions in 1e{ue} m are absurd (-12..3)")
+    if not -12 <= pue <= 12:
+        raise d.err(f"{pw}.perception_unit_exponent", f"{pue} is absurd (-12..12)")
+    cw = f"{pw}.channels[{ci}]"
+    c = p["channels"][ci]
+    if not isinstance(c, dict):
+        raise d.err(cw, "must be an object")
+    gain = d.get(c, "gain", cw, "num")
+    bands = d.get(c, "bands", cw, "list")
+    if not bands:
+        raise d.err(f"{cw}.bands", "empty: the channel holds no band")
+    fs_ch = d.get(c, "frequency_sampling", cw, "int", None)
+    n_ch = d.get(c, "sample_count", cw, "int", None)
+    for b, band in enumerate(bands):
+        if not isinstance(band, dict):
+            raise d.err(f"{cw}.bands[{b}]", "must be an object")
+        d.get(band, "band_type", f"{cw}.bands[{b}]", "str")
+        d.get(band, "curve_type", f"{cw}.bands[{b}]", "str", None)
+    if not abs(gain) <= MAX_GAIN:
+        raise d.err(f"{cw}.gain", f"{gain:g} is absurd (|gain| <= {MAX_GAIN:g})")
+
+    desc = p["description"]
+    full_scale = _stated(_FULL_SCALE, desc, 1e6)  # up to 1 m
+    speed = _stated(_SPEED, desc, 1e6)
+
+    def is_native(b: dict) -> bool:
+        return b.get("band_type") == "Curve" and b.get("curve_type", "Cubic") in NATIVE_CURVES
+
+    native = [b for b in bands if is_native(b)]
+    other = [b for b in bands if not is_native(b) and (spatial or b["band_type"] != "WaveletWave")]
+    note = ""
+    if spatial:
+        # a grid on every keyframe position: their greatest common step
+        pos_all = []
+        for band in native:
+            for pos, rel, _ in _effects(d, band, f"{cw}.bands[{bands.index(band)}]"):
+                pos_all.append(pos + rel)
+        allpos = np.unique(np.concatenate(pos_all)) if pos_all else np.zeros(0, np.int64)
+        if allpos.size < 2:
+            raise d.err(f"{cw}.bands", "fewer than 2 keyframes: no profile")
+        step = int(np.gcd.reduce(np.diff(allpos)))
+        step_m = step * 10.0**ue
+        if not SPACING_UM_RANGE[0] <= step_m * 1e6 <= SPACING_UM_RANGE[1]:
+            raise d.err(f"{pw}.unit_exponent", f"keyframes every {step} x 1e{ue} m = {step_m * 1e6:g} µm: "
+                        "an absurd spacing for a texture")
+        if other:
+            raise d.err(f"{cw}.bands", "a spatial perception with "
+                        f"{sorted({b.get('band_type') for b in other})} bands: hostd reads Curve bands "
+                        "(Linear, Cubic) of textures")
+
+        def to_idx(x):
+            return np.asarray(x, dtype=np.int64) // step
+
+        y = np.zeros(0)
+        for band in native:
+            yb = _render_curve(d, band, f"{cw}.bands[{bands.index(band)}]", to_idx, None)
+            if yb.size > y.size:
+                yb, y = y, yb
+            y[: yb.size] += yb
+            np.clip(y, -1.0, 1.0, out=y)  # as the RM: the channel is clipped after each band
+        rate = None
+    else:
+        rate = fs_ch if fs_ch is not None else timescale
+        if not 1 <= rate <= 10**6:
+            raise d.err(f"{cw}.frequency_sampling", f"{rate} Hz is absurd (1..1000000)")
+        if n_ch is not None and not 0 < n_ch <= MAX_SAMPLES:
+            raise d.err(f"{cw}.sample_count", f"{n_ch} samples: absurd (1..{MAX_SAMPLES})")
+
+        def to_idx(x):
+            return np.asarray(x, dtype=np.int64) * rate // timescale  # the RM's integer division
+
+        if n_ch is None and not all(is_native(b) for b in bands):
+            raise d.err(f"{cw}.sample_count", "missing: needed to play its "
+                        f"{sorted({b['band_type'] for b in bands if not is_native(b)})} bands")
+        parts = [_render_curve(d, band, f"{cw}.bands[{b}]", to_idx, n_ch) if is_native(band)
+                 else None for b, band in enumerate(bands)]
+        count = n_ch if n_ch is not None else max((x.size for x in parts if x is not None), default=0)
+        y = np.zeros(count)
+        for b, (band, x) in enumerate(zip(bands, parts, strict=True)):
+            if x is None and band["band_type"] == "WaveletWave":
+                from hostd.texture import hjif_wavelet
+
+                x = hjif_wavelet.render_band(band, timescale, int(rate), count, f"{cw}.bands[{b}]", path)
+            elif x is None:
+                x = _render_by_rm(doc, p, c, [band], int(rate), count, path)
+            k = min(count, x.size)
+            y[:k] += x[:k]
+            np.clip(y, -1.0, 1.0, out=y)  # as the RM: the channel is clipped after each band
+        if other:
+            note = (f"{len(other)} {sorted({b.get('band_type') for b in other})} band(s) played by the "
+                    "reference Synthesizer (16-bit)")
+        step_m = None
+    if y.size < 2:
+        raise d.err(f"{cw}.bands", "fewer than 2 samples: no profile")
+    y = np.clip(y, -1.0, 1.0) * gain * 10.0**pue
+    return Channel(samples=y, spatial=spatial, step_m=step_m, rate_hz=None if spatial else float(rate),
+                   perception=pi, channel=ci, modality=modality, full_scale_um=full_scale,
+                   speed_mm_s=speed, note=note)
+
+
+def read_channel(path: Path, member: str | None = None) -> Channel:
+    """Load, select and evaluate one channel of an .hjif (or .hmpg through the reference Decoder)."""
+    path = Path(path)
+    if path.suffix.lower() == ".hmpg":
+        with tempfile.TemporaryDirectory(prefix="hostd-hmpg-") as tmp:
+            out = Path(tmp) / "decoded.hjif"
+            if not path.is_file():
+                raise ProfileError(f"no such .hmpg file: {path}")
+            if rm_dir() is None:
+                raise ProfileError(f"{path}: an .hmpg is read through the reference Decoder, which is not "
+                                   f"installed: {RM_HOW}")
+            run_rm("Decoder", "-f", str(path), "-o", str(out))
+            if not out.is_file():
+                raise ProfileError(f"{path}: the reference Decoder wrote no .hjif")
+            doc = load_json(out)
+            pi, ci, note = select(doc, path, member)
+            ch = evaluate(doc, out, pi, ci)
+            return dataclasses.replace(ch, note="; ".join(x for x in (note, ch.note, "decoded by the "
+                                                                    "reference Decoder") if x))
+    doc = load_json(path)
+    pi, ci, note = select(doc, path, member)
+    ch = evaluate(doc, path, pi, ci)
+    return dataclasses.replace(ch, note="; ".join(x for x in (note, ch.note) if x))
+
+
+def read(path: Path, opts: LoadOptions) -> Columns:
+    """The reader of hostd.texture.formats for .hjif and .hmpg: one channel as heights (n, 1) with
+    the spacing the file states (spatial perceptions) or v/fs (time-domain ones)."""
+    from hostd.texture.formats import Columns
+
+    ch = read_channel(path, opts.member)
+    y = ch.samples
+    y_unit = None
+    notes = [ch.note] if ch.note else []
+    if ch.full_scale_um is not None:
+        y, y_unit = y * ch.full_scale_um, "um"
+    else:
+        notes.append("amplitude 1.0 read as 1 " + (opts.y_unit or "um") + " (the file states no scale; "
+                     "--y-unit sets it)")
+    if ch.spatial:
+        return Columns(y.reshape(-1, 1), x_unit="um", y_unit=y_unit, spacing=ch.step_m * 1e6,
+                       note="; ".join(notes))
+    if ch.speed_mm_s is not None:
+        spacing_um = ch.speed_mm_s * 1e3 / ch.rate_hz
+        notes.append(f"time-domain perception at {ch.speed_mm_s:g} mm/s: {spacing_um:g} µm per sample")
+        return Columns(y.reshape(-1, 1), x_unit="um", y_unit=y_unit, spacing=spacing_um,
+                       note="; ".join(notes))
+    if opts.spacing is None:
+        raise ProfileError(f"{path}: perception {ch.perception} ({ch.modality!r}) is a signal in time "
+                           f"({ch.rate_hz:g} Hz): give its spacing over space with --spacing (speed / "
+                           f"rate, e.g. {50e3 / ch.rate_hz:g} um at 50 mm/s)")
+    return Columns(y.reshape(-1, 1), y_unit=y_unit, note="; ".join(notes))

@@ -1,0 +1,269 @@
+"""MPEG-I Haptics .hjif in and out (hostd.texture.hjif) without the reference software: what hostd
+writes reads back to the same samples, the loader options choose the perception and channel,
+and bad files get one-line errors naming the file and the field. The reference software's own
+verdict on these files is tests/test_hjif_rm.py."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hostd import api
+from hostd.cli import main
+from hostd.errors import ProfileError
+from hostd.texture import hjif
+from hostd.texture.load import LoadOptions, load_profile
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("hjif")
+    stream = d / "wood.vtx"
+    assert main(["encode", "synthetic:wood:3", "--length-mm", "5", "--method", "shaped", "--g", "0",
+                 "-o", str(stream)]) == 0
+    assert main(["export", str(stream), "-o", str(d / "wood.hjif"), "--speed-mm-s", "80"]) == 0
+    assert main(["export", "synthetic:wood:3", "--length-mm", "5", "-o", str(d / "prof.hjif")]) == 0
+    return d
+
+
+def test_export_reads_back_to_the_same_samples(files):
+    s = api.decode(files / "wood.vtx")
+    tex = hjif.read_channel(files / "wood.hjif", "0")
+    assert tex.spatial and tex.modality == "Vibrotactile Texture"
+    assert tex.step_m * 1e6 == pytest.approx(s.spacing_um, rel=1e-12)
+    np.testing.assert_allclose(tex.samples * tex.full_scale_um, s.reconstruct(), rtol=0, atol=1e-12)
+    tim = hjif.read_channel(files / "wood.hjif", "id=1")
+    assert not tim.spatial and tim.rate_hz == 8000 and tim.speed_mm_s == 80
+    played = api.render_stroke(s, speed_mm_s=80, seconds=s.length_mm / 80, rate_hz=8000)["height_um"]
+    np.testing.assert_allclose(tim.samples * tim.full_scale_um, played, rtol=0, atol=1e-12)
+    doc = json.loads((files / "wood.hjif").read_bytes())
+    prov = json.loads(doc["description"])["hostd"]
+    assert prov["codec"] == "hostd vtx v2 shaped" and prov["setting"] == "g_db=0.0"
+    assert prov["Iobj"] == pytest.approx(api.score(s)["Iobj"], rel=1e-5)
+    assert doc["perceptions"][0]["unit_exponent"] == -7  # 0.5 µm = 5 x 0.1 µm
+    # every description fits the 8-bit length of the binary format
+    assert all(len(x.encode()) <= 255 for x in [doc["description"]]
+               + [p["description"] for p in doc["perceptions"]])
+
+
+def test_loader_reads_hjif_as_a_profile(files, capsys):
+    prof = load_profile(files / "prof.hjif", LoadOptions(length_mm=None))
+    ref = api.load_profile("synthetic:wood:3", length_mm=5)
+    assert prof.spacing_um == pytest.approx(ref.spacing_um, rel=1e-12)
+    np.testing.assert_allclose(prof.heights_um, ref.heights_um, rtol=0, atol=1e-12)
+    # `hostd iobj REF.hjif STREAM` scores as the profile it was exported from
+    capsys.readouterr()
+    assert main(["iobj", str(files / "prof.hjif"), str(files / "wood.vtx"), "--json"]) == 0
+    via_hjif = json.loads(capsys.readouterr().out)
+    assert main(["iobj", "synthetic:wood:3", str(files / "wood.vtx"), "--length-mm", "5", "--json"]) == 0
+    direct = json.loads(capsys.readouterr().out)
+    assert via_hjif["Iobj"] == pytest.approx(direct["Iobj"], rel=1e-9)
+    # the time-domain perception: its spacing is the stated speed over the rate
+    tprof = load_profile(files / "wood.hjif", LoadOptions(length_mm=None, member="1"))
+    assert tprof.spacing_um == pytest.approx(80e3 / 8000)
+    assert main(["encode", str(files / "wood.hjif"), "--member", "1", "--method", "shaped", "--g", "0",
+                 "-o", str(files / "t.vtx"), "--length-mm", "5"]) == 0
+
+
+def test_member_choice_and_its_messages(files, tmp_path):
+    ch = hjif.read_channel(files / "wood.hjif")  # two perceptions: the one over space by default
+    assert ch.perception == 0 and "--member" in ch.note
+    with pytest.raises(ProfileError, match=r"wood.hjif: member: perception index 2 out of range .*"
+                       r"0 \(id=0, 'Vibrotactile Texture'.*1 \(id=1, 'Vibrotactile'"):
+        hjif.read_channel(files / "wood.hjif", "2")
+    doc = json.loads((files / "wood.hjif").read_bytes())
+    doc["perceptions"][0]["perception_modality"] = "Vibrotactile"
+    (tmp_path / "two.hjif").write_text(json.dumps(doc))
+    with pytest.raises(ProfileError, match=r"2 perceptions, choose one with --member"):
+        hjif.read_channel(tmp_path / "two.hjif")
+    doc = json.loads((files / "wood.hjif").read_bytes())
+    ch2 = copy.deepcopy(doc["perceptions"][1]["channels"][0])
+    ch2["id"] = 7
+    doc["perceptions"][1]["channels"].append(ch2)
+    (tmp_path / "chans.hjif").write_text(json.dumps(doc))
+    with pytest.raises(ProfileError, match=r"perception 1 has 2 channels, .*--member 1/CHANNEL: 0 \(id=0\); "
+                       r"1 \(id=7\)"):
+        hjif.read_channel(tmp_path / "chans.hjif", "1")
+    assert hjif.read_channel(tmp_path / "chans.hjif", "1/id=7").channel == 1
+
+
+def _broken(files: Path, tmp_path: Path, change) -> Path:
+    doc = json.loads((files / "wood.hjif").read_bytes())
+    change(doc)
+    p = tmp_path / "bad.hjif"
+    p.write_text(json.dumps(doc))
+    return p
+
+
+def _kf(doc, p=0):
+    return doc["perceptions"][p]["channels"][0]["bands"][0]["effects"][0]["keyframes"]
+
+
+@pytest.mark.parametrize("change, member, field", [
+    (lambda d: d["perceptions"][0].update(perception_modality="Temperature"), "0",
+     r"perceptions\[0\]\.perception_modality: 'Temperature' is not a vibrotactile signal"),
+    (lambda d: d["perceptions"][1].update(channels=[]), "1", r"perceptions\[1\]\.channels: empty"),
+    (lambda d: _kf(d).__setitem__(5, {**_kf(d)[5], "relative_position": 1}), "0",
+     r"perceptions\[0\]\.channels\[0\]\.bands\[0\]\.effects\[0\]\.keyframes\[5\]\.relative_position: "
+     r"1 comes before 20: keyframes out of order"),
+    (lambda d: d["perceptions"][0].update(unit_exponent=40), "0",
+     r"perceptions\[0\]\.unit_exponent: 40: positions in 1e40 m are absurd"),
+    (lambda d: d["perceptions"][0].update(unit_exponent=-12), "0",
+     r"perceptions\[0\]\.unit_exponent: keyframes every 5 x 1e-12 m .* absurd spacing"),
+    (lambda d: d["perceptions"][1]["channels"][0].update(sample_count=10**9), "1",
+     r"perceptions\[1\]\.channels\[0\]\.sample_count: 1000000000 samples: absurd"),
+    (lambda d: d.update(timescale=0), "1", r"timescale: 0 ticks per second is absurd"),
+    (lambda d: _kf(d, 1)[3].update(amplitude_modulation="loud"), "1",
+     r"keyframes\[3\]\.amplitude_modulation: must be a number"),
+    (lambda d: d.pop("perceptions"), None, r"bad.hjif: perceptions: missing"),
+    (lambda d: _kf(d)[2].update(relative_position=10**30), "0",
+     r"keyframes\[2\]\.relative_position: 10{30} is outside the 32-bit range"),
+])
+def test_bad_files_name_the_file_and_the_field(files, tmp_path, change, member, field):
+    p = _broken(files, tmp_path, change)
+    with pytest.raises(ProfileError, match=field) as e:
+        hjif.read_channel(p, member)
+    assert "\n" not in str(e.value) and str(p) in str(e.value)
+
+
+def test_bad_json_and_size_limit(files, tmp_path, monkeypatch, capsys):
+    bad = tmp_path / "bad.hjif"
+    bad.write_text('{"version": "2023", "perceptions": [')
+    assert main(["encode", str(bad), "-o", str(tmp_path / "x.vtx"), "--method", "cut", "--b0", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{bad}: not valid JSON" in err
+    bad.write_text('{"timescale": NaN}')
+    with pytest.raises(ProfileError, match="not valid JSON"):
+        hjif.read_channel(bad)
+    bad.write_text("[1, 2]")
+    with pytest.raises(ProfileError, match="top level must be a JSON object"):
+        hjif.read_channel(bad)
+    # a file over the limit is refused from its size, before a byte is parsed
+    monkeypatch.setattr(hjif, "MAX_HJIF_BYTES", 1000)
+    monkeypatch.setattr(hjif.json, "loads", lambda *a, **k: pytest.fail("parsed a file over the limit"))
+    with pytest.raises(ProfileError, match=r"wood.hjif: \d+ bytes, more than the 0 MiB"):
+        hjif.read_channel(files / "wood.hjif")
+
+
+def test_hmpg_without_the_reference_decoder_says_how(tmp_path, monkeypatch):
+    monkeypatch.setenv(hjif.RM_ENV, str(tmp_path / "nothing"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setenv("PATH", str(tmp_path))
+    (tmp_path / "x.hmpg").write_bytes(b"\0" * 16)
+    with pytest.raises(ProfileError, match=r"x.hmpg: an .hmpg is read through the reference Decoder, which "
+                       r"is not installed: build the MPEG-I Haptics reference software .*HOSTD_MPEG_RM"):
+        load_profile(tmp_path / "x.hmpg", LoadOptions())
+
+
+def test_export_refuses_what_it_cannot_write(files, tmp_path, capsys):
+    assert main(["export", str(files / "wood.vtx"), "-o", str(tmp_path / "x.hmpg")]) == 2
+    assert "reference Encoder" in capsys.readouterr().err
+    assert main(["export", str(files / "wood.vtx"), "-o", str(tmp_path / "x.hjif"),
+                 "--full-scale-um", "0.01"]) == 2
+    assert "raise --full-scale-um" in capsys.readouterr().err
+    assert main(["export", str(files / "wood.vtx"), "-o", str(tmp_path / "x.hjif"),
+                 "--rate-hz", "96000"]) == 2
+    assert "48000" in capsys.readouterr().err
+    # a long source name is shortened to keep the description within 255 bytes
+    long = {"tool": "hostd", "source": "x" * 400 + ".vtx", "codec": "none", "calibration": "c" * 300}
+    text = hjif.provenance_text(long)
+    assert len(text.encode()) <= 255 and json.loads(text)["hostd"]["source"].endswith("xxx.vtx")
+
+
+def test_the_reader_s_notes_reach_the_user(files, tmp_path, capsys):
+    capsys.readouterr()
+    assert main(["encode", str(files / "wood.hjif"), "--method", "shaped", "--g", "0",
+                 "-o", str(tmp_path / "x.vtx")]) == 0
+    err = capsys.readouterr().err
+    assert "wood.hjif: took perception 0 (id=0, 'Vibrotactile Texture'" in err and "--member" in err
+
+
+def test_mutated_files_give_one_line_errors_or_samples(files, tmp_path):
+    """Seeded mutations of a small valid file (values of every JSON type, removed keys): the reader
+    either returns finite samples or raises ProfileError with one line, nothing else."""
+    import random
+    import warnings
+
+    doc = json.loads((files / "wood.hjif").read_bytes())
+    for p in doc["perceptions"]:
+        p["channels"][0]["bands"][0]["effects"][0]["keyframes"] = _kf(doc, p["id"])[:30]
+        p["channels"][0].pop("sample_count", None)
+    paths: list[list] = []
+
+    def walk(o, path):
+        paths.append(path)
+        items = o.items() if isinstance(o, dict) else enumerate(o[:3]) if isinstance(o, list) else ()
+        for k, v in items:
+            walk(v, [*path, k])
+
+    walk(doc, [])
+    values = [None, True, -1, 0, 2**40, 1e308, -1e-300, "x", [], {}, [1], {"a": 1}, 3.5, "Vibrotactile",
+              "WaveletWave", 2**31 - 1, "full_scale_um=1-2", "full_scale_um=1e308 speed_mm_s=1e-300"]
+    rng = random.Random(33)
+    p = tmp_path / "m.hjif"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # no overflow into inf or NaN either
+        for _ in range(300):
+            d = copy.deepcopy(doc)
+            for _ in range(rng.randint(1, 3)):
+                path = rng.choice(paths[1:])
+                o = d
+                try:
+                    for k in path[:-1]:
+                        o = o[k]
+                    if rng.random() < 0.2 and isinstance(o, dict):
+                        o.pop(path[-1], None)
+                    else:
+                        o[path[-1]] = rng.choice(values)
+                except (KeyError, IndexError, TypeError):
+                    pass
+            p.write_text(json.dumps(d))
+            for member in (None, "0", "1"):
+                try:
+                    ch = hjif.read_channel(p, member)
+                except ProfileError as e:
+                    assert "\n" not in str(e)
+                else:
+                    assert np.all(np.isfinite(ch.samples))
+
+
+def test_wavelet_bands_decode_without_the_reference_software(tmp_path):
+    """Garbage wavelet streams decode to finite samples (the decoder's work is bounded by the
+    block); impossible blocks are one-line errors naming the field. The decoder's agreement with
+    the reference Synthesizer is tests/test_hjif_rm.py's."""
+    import random
+
+    rng = random.Random(5)
+    alphabet = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/"
+
+    def doc(block_length=128, effects=8, stream=None):
+        band = {"band_type": "WaveletWave", "block_length": block_length, "lower_frequency_limit": 0,
+                "upper_frequency_limit": 8000,
+                "effects": [{"effect_type": "Basis", "position": 0, "wavelet_stream":
+                             stream if stream is not None
+                             else "".join(rng.choice(alphabet) for _ in range(rng.randint(0, 400)))}
+                            for _ in range(effects)]}
+        ch = {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+              "frequency_sampling": 8000, "sample_count": 8000, "bands": [band]}
+        p = {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Other",
+             "reference_devices": [], "effect_library": [], "channels": [ch]}
+        return {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+                "timescale": 1000, "avatars": [], "perceptions": [p], "syncs": []}
+
+    f = tmp_path / "w.hjif"
+    for _ in range(5):
+        f.write_text(json.dumps(doc()))
+        ch = hjif.read_channel(f)
+        assert ch.samples.size == 8000 and np.all(np.isfinite(ch.samples)) and ch.note == ""
+    f.write_text(json.dumps(doc(stream="")))
+    assert not np.any(hjif.read_channel(f).samples)  # an empty stream is silence
+    f.write_text(json.dumps(doc(block_length=100)))  # 800 samples: not a power of two
+    with pytest.raises(ProfileError, match=r"bands\[0\]\.block_length: 800 samples a block"):
+        hjif.read_channel(f)
+    f.write_text(json.dumps(doc(block_length=8192, effects=100, stream="")))
+    with pytest.raises(ProfileError, match=r"bands\[0\]\.effects: 100 blocks of 65536 samples, more than"):
+        hjif.read_channel(f)
