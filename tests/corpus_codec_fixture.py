@@ -1,0 +1,64 @@
+"""External codecs for tests/test_corpus.py, written as a researcher would (hostd.corpus.codecs):
+a plain uniform quantizer with zlib, and codecs that misbehave in each way the driver must
+survive (raise, hang, wrong length, NaN, not installed)."""
+
+from __future__ import annotations
+
+import struct
+import time
+import zlib
+
+import numpy as np
+
+
+class UniformZlib:
+    """Heights rounded to multiples of step_um, as int32, zlib-compressed; the step travels in
+    the first 8 bytes (the decoder needs it, so it is counted)."""
+
+    name = "uniform-zlib"
+    version = "1"
+    settings = tuple({"step_um": s} for s in (2.0, 1.0, 0.5, 0.25, 0.125))
+
+    def encode(self, heights_um, spacing_um, *, step_um, **_):
+        q = np.rint(np.asarray(heights_um) / step_um).astype("<i4")
+        return struct.pack("<d", step_um) + zlib.compress(q.tobytes(), 9)
+
+    def decode(self, data, n, spacing_um, **_):
+        (step,) = struct.unpack_from("<d", data)
+        return np.frombuffer(zlib.decompress(data[8:]), "<i4").astype(np.float64) * step
+
+
+uniform = UniformZlib  # "tests.corpus_codec_fixture:uniform": a class, called with no arguments
+
+
+class Misbehaving(UniformZlib):
+    """setting fault = none | raise | hang | short | nan | str."""
+
+    name = "misbehaving"
+    settings = tuple({"step_um": 1.0, "fault": f} for f in ("none", "raise", "hang", "short", "nan", "str"))
+
+    def encode(self, heights_um, spacing_um, *, fault="none", **kw):
+        if fault == "raise":
+            raise ValueError("this codec always fails on fault=raise")
+        if fault == "hang":
+            while True:
+                time.sleep(0.01)
+        if fault == "str":
+            return "not bytes"
+        return super().encode(heights_um, spacing_um, **kw)
+
+    def decode(self, data, n, spacing_um, *, fault="none", **kw):
+        y = super().decode(data, n, spacing_um, **kw)
+        if fault == "short":
+            return y[:-1]
+        if fault == "nan":
+            y = y.copy()
+            y[3] = np.nan
+        return y
+
+
+class NotInstalled(UniformZlib):
+    name = "not-installed"
+
+    def available(self):
+        return "binary missing: set HOSTD_TEST_CODEC to the encoder (this fixture never has one)"
