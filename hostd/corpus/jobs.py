@@ -252,7 +252,7 @@ def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
         prof = load_texture(tex)
         row.update(n=prof.n, spacing_um=prof.spacing_um, length_mm=prof.length_mm)
         try:
-            geom, nk, b_k, c_ref = _reference(tex, float(job.speed_mm_s), float(job.fmax_hz))
+            _geom, nk, b_k, c_ref = _reference(tex, float(job.speed_mm_s), float(job.fmax_hz))
         except HostdError as exc:
             raise InputError(str(exc), "geometry") from None
         row["n_keep"] = nk

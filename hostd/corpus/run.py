@@ -331,7 +331,7 @@ class Summary:
 
 
 def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
-        scoring: Scoring = Scoring(), dask: str | None = None, workers: int | None = None,
+        scoring: Scoring | None = None, dask: str | None = None, workers: int | None = None,
         batch: int = DEFAULT_BATCH, progress: bool | None = None, retry_errors: bool = False,
         on_rows: Callable[[list[dict]], None] | None = None) -> Summary:
     """Run every job not yet in the store; returns what happened (Ctrl-C: interrupted=True)."""
@@ -339,6 +339,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
 
     if batch < 1:
         raise HostdError("--batch must be >= 1")
+    scoring = scoring or Scoring()
     t0 = time.monotonic()
     st = Store(store_path)
     summ = Summary(str(store_path), total=len(textures) * plan.per_texture)

@@ -28,7 +28,8 @@ class Store:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self.db = sqlite3.connect(str(self.path), timeout=30.0)
             self.db.execute("PRAGMA journal_mode=WAL")
-            self.db.execute("PRAGMA synchronous=NORMAL")  # WAL + NORMAL: a committed task survives a crash
+            # WAL + NORMAL: a committed task survives a killed process (not a power cut)
+            self.db.execute("PRAGMA synchronous=NORMAL")
             cols = ", ".join(f'"{c}" {_SQL_TYPE[t]}' + (" PRIMARY KEY" if c == "key" else "")
                              for c, t in SCHEMA)
             self.db.execute(f"CREATE TABLE IF NOT EXISTS {TABLE} ({cols}) WITHOUT ROWID")

@@ -81,8 +81,8 @@ def read(path: str | Path, defaults: LoadOptions | None = None) -> list[Entry]:
             with open(p, encoding="utf-8", newline="") as fh:
                 lines = [ln for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
             rows = list(csv.DictReader(lines))
-            items = [({k.strip(): (v or "").strip() for k, v in r.items() if k is not None and (v or "").strip()},
-                      f"row {i + 2}") for i, r in enumerate(rows)]
+            items = [({k.strip(): (v or "").strip() for k, v in r.items()
+                       if k is not None and (v or "").strip()}, f"row {i + 2}") for i, r in enumerate(rows)]
     except (OSError, UnicodeDecodeError) as exc:
         raise ProfileError(f"cannot read the manifest {p}: {exc}") from None
     except Exception as exc:  # tomllib.TOMLDecodeError, csv.Error
@@ -123,7 +123,8 @@ def _entry(item: dict, where: str, manifest: Path, base: LoadOptions) -> Entry:
             opts = replace(opts, offset_mm=_num(item["offset_mm"], "offset_mm"))
         if "length_mm" in item:
             v = item["length_mm"]
-            opts = replace(opts, length_mm=None if str(v).lower() in ("all", "none") else _pos(v, "length_mm"))
+            whole = str(v).lower() in ("all", "none")
+            opts = replace(opts, length_mm=None if whole else _pos(v, "length_mm"))
         if "detrend" in item:
             if item["detrend"] not in ("none", "mean", "linear"):
                 raise ProfileError(f"detrend {item['detrend']!r}: use none, mean or linear")
