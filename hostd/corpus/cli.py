@@ -46,9 +46,11 @@ def add_parser(sub, parents) -> None:
                    help="settings per codec: [codec.\"NAME\"] settings = [{...}, ...]")
     r.add_argument("--methods", type=lambda v: [t.strip() for t in v.split(",") if t.strip()],
                    help="hostd codecs: methods to sweep (shaped,quant,cut; default all of the format)")
-    r.add_argument("--g", type=_floats, help="shaped step g in dB, comma list (default -18..18 by 6)")
+    r.add_argument("--g", type=_floats, help="shaped step g in dB, comma list (default -18..18 by 6; "
+                   "a list that starts negative needs '=': --g=-12,0,12)")
     r.add_argument("--levels", type=_ints, help="quant levels, comma list (default 4..128)")
-    r.add_argument("--b0", type=_floats, help="cut shift b0 in dB, comma list (default -18..12 by 6)")
+    r.add_argument("--b0", type=_floats,
+                   help="cut shift b0 in dB, comma list (default -18..12 by 6; --b0=-6,0,6)")
     r.add_argument("--target-iobj", type=_floats, default=[],
                    help="rate-control points of hostd codecs (comma list, e.g. 0.02,0.05,0.1)")
     r.add_argument("--speed", type=_floats, default=[50.0], help="reference speeds, mm/s (comma list; 50)")

@@ -196,8 +196,9 @@ def load_texture(tex: TextureSpec):
             prof = cut_patch(whole.heights_um, whole.spacing_um, opts, tex.source)
         else:
             prof = load_profile(tex.source, opts)
-    except HostdError as exc:
-        raise InputError(str(exc), "unreadable_profile") from None
+    except HostdError as exc:  # the loader's hints name the unit when units are the likely cause
+        units = "-unit" in str(exc)
+        raise InputError(str(exc), "implausible_units" if units else "unreadable_profile") from None
     except Exception as exc:  # a reader that crashed on a malformed file
         raise InputError(f"{tex.source}: {type(exc).__name__}: {exc}", "unreadable_profile") from None
     lo, hi = SPACING_UM_RANGE
