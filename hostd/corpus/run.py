@@ -180,9 +180,9 @@ class _Serial:
 
         self._Future = Future
 
-    def submit(self, task: Task):
+    def submit(self, task: Task, fn=jobs.run_task):
         f = self._Future()
-        f.set_result(jobs.run_task(task))
+        f.set_result(fn(task))
         return f
 
     def next_done(self, pending):
@@ -215,8 +215,8 @@ class _Local:
         ctx.set_forkserver_preload(["hostd.corpus.jobs", "hostd.corpus.hostdcodec", "numpy", "scipy.fft"])
         self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=jobs.ignore_sigint)
 
-    def submit(self, task: Task):
-        return self.pool.submit(jobs.run_task, task)
+    def submit(self, task: Task, fn=jobs.run_task):
+        return self.pool.submit(fn, task)
 
     def next_done(self, pending):
         from concurrent.futures import FIRST_COMPLETED, wait
@@ -264,8 +264,8 @@ class _Dask:
 
         self._ac = as_completed()
 
-    def submit(self, task: Task):
-        f = self.client.submit(jobs.run_task, task, pure=False)
+    def submit(self, task: Task, fn=jobs.run_task):
+        f = self.client.submit(fn, task, pure=False)
         self._ac.add(f)
         return f
 
@@ -286,11 +286,13 @@ class _Dask:
                 self.cluster.close()
 
 
-def executor(dask: str | None, workers: int | None):
+def executor(dask: str | None, workers: int | None, pool: bool = False):
+    """Dask when `dask` is given; else a process pool of `workers` (default every core); one
+    worker runs in this process unless `pool` (the bench's one-worker pool)."""
     n = workers or os.cpu_count() or 1
     if dask:
         return _Dask(dask, n)
-    if n == 1:
+    if n == 1 and not pool:
         return _Serial()
     return _Local(n)
 
@@ -333,7 +335,8 @@ class Summary:
 def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
         scoring: Scoring | None = None, dask: str | None = None, workers: int | None = None,
         batch: int = DEFAULT_BATCH, progress: bool | None = None, retry_errors: bool = False,
-        on_rows: Callable[[list[dict]], None] | None = None) -> Summary:
+        on_rows: Callable[[list[dict]], None] | None = None, task_fn: Callable = jobs.run_task,
+        pool: bool = False) -> Summary:
     """Run every job not yet in the store; returns what happened (Ctrl-C: interrupted=True)."""
     from hostd.corpus.store import Store
 
@@ -357,7 +360,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
 
     tasks = iter_tasks(textures, plan, scoring, batch,
                        lambda keys: st.known(keys, ok_only=retry_errors), skipped)
-    ex = executor(dask, workers)
+    ex = executor(dask, workers, pool)
     summ.executor = ex.name if not dask else f"dask {dask}"
     window = 4 * (workers or os.cpu_count() or 1) + 2
     pending: dict = {}
@@ -371,7 +374,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             if t is None:
                 exhausted = True
                 return
-            pending[ex.submit(t)] = t
+            pending[ex.submit(t, task_fn)] = t
 
     def record(rows: list[dict]) -> None:
         summ.written += st.write(rows, replace=retry_errors)
@@ -408,7 +411,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
                                  "error_reason": "worker_lost"} for j in t.jobs]
                         record(rows)
                     else:
-                        pending[ex.submit(t)] = t
+                        pending[ex.submit(t, task_fn)] = t
                 continue
             record(rows)
             fill()
