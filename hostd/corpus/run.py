@@ -169,6 +169,16 @@ def iter_tasks(textures: Iterable[TextureSpec], plan: Plan, scoring: Scoring, ba
 # ----------------------------------------------------------------------------- executors
 
 
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _one_thread_per_worker() -> None:
+    """One process per core: BLAS/OpenMP pools of one thread in the worker processes started
+    from here (they inherit the environment; a variable the user set is kept)."""
+    for v in _THREAD_VARS:
+        os.environ.setdefault(v, "1")
+
+
 class _Serial:
     """In this process (workers=1): for debugging and the bench's bare-call reference."""
 
@@ -211,6 +221,7 @@ class _Local:
         import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
 
+        _one_thread_per_worker()
         ctx = mp.get_context("forkserver")
         ctx.set_forkserver_preload(["hostd.corpus.jobs", "hostd.corpus.hostdcodec", "numpy", "scipy.fft"])
         self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=jobs.ignore_sigint)
@@ -250,6 +261,7 @@ class _Dask:
             raise HostdError("--dask needs the corpus extra: pip install 'hostd[corpus]'") from None
         self.cluster = None
         if address == "local":
+            _one_thread_per_worker()
             self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                         dashboard_address=None)
             self.client = Client(self.cluster)
