@@ -449,8 +449,8 @@ def run_corpus(inputs: str | Path | Iterable[str | Path], store: str | Path, *,
                fmaxs_hz: Iterable[float] = (400.0,), x_unit: str = "um", y_unit: str = "um",
                spacing: float | None = None, length_mm: float | None = 10.0, offset_mm: float = 0.0,
                detrend: str = "none", workers: int | None = None, dask: str | None = None,
-               batch: int = 16, timeout_s: float = 60.0, spqi: bool = True, retry_errors: bool = False,
-               progress: bool | None = None, as_pandas: bool | None = None):
+               batch: int | None = None, timeout_s: float = 60.0, spqi: bool = True,
+               retry_errors: bool = False, progress: bool | None = None, as_pandas: bool | None = None):
     """Evaluate codecs over a corpus: the same run as ``hostd corpus run`` (docs/corpus.md).
 
     Every (texture, codec, setting, speed, fmax) is one row of `store` (SQLite), keyed by a

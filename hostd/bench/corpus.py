@@ -83,7 +83,7 @@ def bare_ms_per_job(textures, plan, scoring) -> float:
 
 
 def pool_run(textures, plan, scoring, store, *, workers: int, dask: str | None = None,
-             batch: int = 16, rss_at: int | None = None) -> dict:
+             batch: int | None = None, rss_at: int | None = None) -> dict:
     """One run: wall s, jobs/s, driver + worker CPU ms per job, driver RSS at `rss_at` and at the end."""
     from hostd.corpus import jobs, run
 
@@ -156,7 +156,7 @@ def run(*, jobs_scale: int = 10_000, length_mm: float = 1.0, dask: bool = True, 
         res["parallel_efficiency"] = res["jobs_per_s"] / (w * res["jobs_per_s_one_worker"])
         res["parallel_efficiency_runs"] = [m / (w * o) for o, m in zip(one_rates, many_rates, strict=True)]
         if dask:
-            res.update(_dask(tex, plan, scoring, d, w, batch, res["bare_ms_per_job"]))
+            res.update(_dask(tex, plan, scoring, d, w, None, res["bare_ms_per_job"]))
         # memory: jobs_scale jobs through the local pool, rows streamed to disk
         n_tex = max(1, jobs_scale // 100)
         big = pool_run(_textures(n_tex, length_mm), _plan(100), scoring, d / "big.sqlite", workers=w,
@@ -172,14 +172,19 @@ def run(*, jobs_scale: int = 10_000, length_mm: float = 1.0, dask: bool = True, 
     return res
 
 
-def _dask(tex, plan, scoring, d, w: int, batch: int, bare_ms: float) -> dict:
-    """The same 1000 jobs on a LocalCluster of w worker processes (1 thread each), started and
-    warmed up (imports) before the measured run; its scheduler runs in this process, so its
-    CPU time is counted as the driver's."""
+def _dask(tex, plan, scoring, d, w: int, batch: int | None, bare_ms: float) -> dict:
+    """The same 1000 jobs on a LocalCluster of w worker processes (1 thread each, as
+    `--dask local` starts it), started and warmed up (imports) before the measured run; its
+    scheduler runs in this process, so its CPU time is counted as the driver's. batch None:
+    the Dask default (run.DASK_BATCH)."""
     try:
         from distributed import LocalCluster
     except ImportError:
         return {"dask_note": "distributed not installed: pip install 'hostd[corpus]'"}
+    from hostd.corpus import run as crun
+
+    os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")  # as --dask local
+    crun._one_thread_per_worker()
     cluster = LocalCluster(n_workers=w, threads_per_worker=1, processes=True, dashboard_address=None)
     try:
         pool_run(tex[:2], plan, scoring, d / "dask-warm.sqlite", workers=w, dask=cluster.scheduler_address,
@@ -189,6 +194,7 @@ def _dask(tex, plan, scoring, d, w: int, batch: int, bare_ms: float) -> dict:
     finally:
         cluster.close()
     cpu = dk["driver_cpu_ms_per_job"] + dk["worker_cpu_ms_per_job"]
-    return {"dask_cpu_ms_per_job": cpu, "dask_overhead_ms_per_job": cpu - dk["work_cpu_ms_per_job"],
+    return {"dask_batch": batch or crun.DASK_BATCH,
+            "dask_cpu_ms_per_job": cpu, "dask_overhead_ms_per_job": cpu - dk["work_cpu_ms_per_job"],
             "dask_overhead_vs_bare_loop_ms_per_job": cpu - bare_ms,
             "dask_driver_cpu_ms_per_job": dk["driver_cpu_ms_per_job"], "dask_jobs_per_s": dk["jobs_per_s"]}

@@ -23,7 +23,8 @@ from hostd.corpus import codecs, jobs
 from hostd.corpus.jobs import JobSpec, Scoring, Task, TextureSpec
 from hostd.errors import HostdError
 
-DEFAULT_BATCH = 16
+DEFAULT_BATCH = 16  # jobs per task on the local pool
+DASK_BATCH = 64  # on Dask, whose per-task cost (scheduler, worker event loop) is larger
 MAX_TASK_RETRIES = 3
 
 
@@ -262,6 +263,9 @@ class _Dask:
         self.cluster = None
         if address == "local":
             _one_thread_per_worker()
+            # no dashboard here, so no use for the workers' statistical profiler (it samples
+            # every thread every 10 ms: CPU taken from the jobs)
+            os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")
             self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                         dashboard_address=None)
             self.client = Client(self.cluster)
@@ -346,12 +350,14 @@ class Summary:
 
 def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
         scoring: Scoring | None = None, dask: str | None = None, workers: int | None = None,
-        batch: int = DEFAULT_BATCH, progress: bool | None = None, retry_errors: bool = False,
+        batch: int | None = None, progress: bool | None = None, retry_errors: bool = False,
         on_rows: Callable[[list[dict]], None] | None = None, task_fn: Callable = jobs.run_task,
         pool: bool = False) -> Summary:
     """Run every job not yet in the store; returns what happened (Ctrl-C: interrupted=True)."""
     from hostd.corpus.store import Store
 
+    if batch is None:
+        batch = DASK_BATCH if dask else DEFAULT_BATCH
     if batch < 1:
         raise HostdError("--batch must be >= 1")
     scoring = scoring or Scoring()
