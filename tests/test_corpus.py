@@ -311,6 +311,21 @@ def test_kill_9_of_the_driver_then_the_same_command_resumes_with_nothing_lost_or
             assert r == before[r["key"]]
 
 
+def test_ctrl_c_stops_the_run_and_keeps_the_finished_rows(tmp_path):
+    db = tmp_path / "r.sqlite"
+    p = _cli(["run", "synthetic:wood:1-4", "--codec", f"{FIX}:Slow", "--length-mm", "2", "--no-spqi",
+              "--workers", "2", "--batch", "1", "-o", str(db)])
+    deadline = time.monotonic() + 120
+    while _count(db) < 2 and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert p.poll() is None, "the run ended before Ctrl-C: " + p.stderr.read()
+    os.kill(p.pid, signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130 and "interrupted: the rows above are kept" in err
+    kept = _rows(db)
+    assert 2 <= len(kept) < 16 and all(r["error"] is None for r in kept)
+
+
 def test_cli_report_and_export(tmp_path):
     db = tmp_path / "r.sqlite"
     for args in (["run", "synthetic:wood:1", "--codec", f"{FIX}:uniform", "--codec", "hostd-v2", "--methods",
@@ -343,17 +358,23 @@ def cluster():
 
 
 def test_dask_worker_processes_give_the_local_pools_rows(tmp_path, cluster):
+    """Equal rows, error rows included: a codec that hangs is stopped by SIGALRM in the pool's
+    worker processes and by an asynchronous exception in Dask's worker threads."""
     tex = crun.textures_from(["synthetic:wood:1", "synthetic:sandpaper:1"], SHORT)
-    plan = crun.make_plan(["hostd-v2", f"{FIX}:uniform"], methods=["shaped", "quant"], g_db=[-6.0, 6.0],
-                          levels=[8, 32], speeds_mm_s=[50.0, 80.0])
-    sc = jobs.Scoring(spqi=True, timeout_s=30)
+    bad = f"{FIX}:Misbehaving"
+    plan = crun.make_plan(["hostd-v2", f"{FIX}:uniform", bad], methods=["shaped", "quant"], g_db=[-6.0, 6.0],
+                          levels=[8, 32], speeds_mm_s=[50.0],
+                          settings={bad: [{"step_um": 1.0, "fault": f} for f in ("hang", "raise", "nan")]})
+    sc = jobs.Scoring(spqi=True, timeout_s=1.5)
     local = crun.run(tex, plan, tmp_path / "local.sqlite", workers=2, scoring=sc, batch=3)
     dask = crun.run(tex, plan, tmp_path / "dask.sqlite", dask=cluster.scheduler_address, workers=2,
                     scoring=sc, batch=3)
-    assert local.written == dask.written == 2 * 2 * (4 + 5) and dask.executor.startswith("dask")
+    assert local.written == dask.written == 2 * (4 + 5 + 3) and dask.executor.startswith("dask")
     a, b = _rows(tmp_path / "local.sqlite"), _rows(tmp_path / "dask.sqlite")
     assert _without_timings(a) == _without_timings(b)
-    assert all(r["error"] is None and r["spqi"] is not None for r in b)
+    assert all(r["error"] is None and r["spqi"] is not None for r in b if r["codec"] != "misbehaving")
+    assert sorted(r["error_reason"] for r in b if r["codec"] == "misbehaving") == \
+        ["codec_error"] * 2 + ["nonfinite"] * 2 + ["timeout"] * 2
 
 
 def test_dask_worker_sigkilled_mid_run_every_row_exactly_once(tmp_path, cluster):

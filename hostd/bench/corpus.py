@@ -15,9 +15,11 @@ on synthetic patches of `length_mm` (default 1 mm = 2000 heights), Iobj only (no
 - bare_ms_per_job: the same work called in a plain loop in this process (a researcher's script),
   and overhead_vs_bare_loop_ms_per_job = pool_cpu_ms_per_job - bare_ms_per_job, for reference:
   it also contains the cost of running in other processes (cold caches, contention).
-- parallel efficiency = jobs/s with W worker processes / (W x jobs/s with one worker process),
-  wall clock: on a machine shared with other work this is a lower bound (the load average at
-  the start of the run is reported beside it).
+- parallel_efficiency = jobs/s with W worker processes / (W x jobs/s with one worker process),
+  wall clock, medians of alternating runs: on a machine shared with other work it says little
+  (the load average at the start and end is reported beside it);
+  parallel_efficiency_cpu = CPU per job with one worker / CPU per job with W workers: what
+  running in parallel costs in CPU, the bound for idle cores.
 - RSS: the driver's resident memory after job 10^3 and after the last job (10^4 by default).
 """
 
@@ -144,12 +146,18 @@ def run(*, jobs_scale: int = 10_000, length_mm: float = 1.0, dask: bool = True, 
         res["cpu_efficiency"] = res["work_ms_per_job"] / res["pool_cpu_ms_per_job"]
         # wall-clock efficiency: one worker and w workers alternately, medians of `repeats` runs
         small_tex, small_plan = _textures(12, length_mm), _plan(50)
-        one_rates, many_rates = [], []
+        one_rates, many_rates, one_cpu, many_cpu = [], [], [], []
         for i in range(repeats):
-            one_rates.append(pool_run(small_tex, small_plan, scoring, d / f"one{i}.sqlite", workers=1,
-                                      batch=batch)["jobs_per_s"])
-            many_rates.append(pool_run(small_tex, small_plan, scoring, d / f"many{i}.sqlite", workers=w,
-                                       batch=batch)["jobs_per_s"])
+            o = pool_run(small_tex, small_plan, scoring, d / f"one{i}.sqlite", workers=1, batch=batch)
+            m = pool_run(small_tex, small_plan, scoring, d / f"many{i}.sqlite", workers=w, batch=batch)
+            one_rates.append(o["jobs_per_s"])
+            many_rates.append(m["jobs_per_s"])
+            one_cpu.append(o["driver_cpu_ms_per_job"] + o["worker_cpu_ms_per_job"])
+            many_cpu.append(m["driver_cpu_ms_per_job"] + m["worker_cpu_ms_per_job"])
+        # CPU time per job with one worker / with w workers: the extra CPU that running in
+        # parallel costs (IPC, contention); on otherwise idle cores this bounds the wall-clock
+        # efficiency from above, and it is far less disturbed by other load than wall time
+        res["parallel_efficiency_cpu"] = statistics.median(one_cpu) / statistics.median(many_cpu)
         res["jobs_per_s_one_worker"] = statistics.median(one_rates)
         res["jobs_per_s"] = statistics.median(many_rates)
         res["jobs_per_s_per_core"] = res["jobs_per_s"] / w
