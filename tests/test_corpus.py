@@ -347,8 +347,10 @@ def test_cli_report_and_export(tmp_path):
 # ----------------------------------------------------------------------------- Dask, for real
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def cluster():
+    """One LocalCluster of 2 worker processes x 1 thread for the module (its start costs seconds);
+    the test that SIGKILLs a worker comes last, and the nanny restarts the worker anyway."""
     distributed = pytest.importorskip("distributed")
     c = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
     try:
@@ -363,18 +365,19 @@ def test_dask_worker_processes_give_the_local_pools_rows(tmp_path, cluster):
     tex = crun.textures_from(["synthetic:wood:1", "synthetic:sandpaper:1"], SHORT)
     bad = f"{FIX}:Misbehaving"
     plan = crun.make_plan(["hostd-v2", f"{FIX}:uniform", bad], methods=["shaped", "quant"], g_db=[-6.0, 6.0],
-                          levels=[8, 32], speeds_mm_s=[50.0],
-                          settings={bad: [{"step_um": 1.0, "fault": f} for f in ("hang", "raise", "nan")]})
+                          levels=[8], speeds_mm_s=[50.0],
+                          settings={f"{FIX}:uniform": [{"step_um": 1.0}, {"step_um": 0.25}],
+                                    bad: [{"step_um": 1.0, "fault": f} for f in ("hang", "nan")]})
     sc = jobs.Scoring(spqi=True, timeout_s=1.5)
     local = crun.run(tex, plan, tmp_path / "local.sqlite", workers=2, scoring=sc, batch=3)
     dask = crun.run(tex, plan, tmp_path / "dask.sqlite", dask=cluster.scheduler_address, workers=2,
                     scoring=sc, batch=3)
-    assert local.written == dask.written == 2 * (4 + 5 + 3) and dask.executor.startswith("dask")
+    assert local.written == dask.written == 2 * (3 + 2 + 2) and dask.executor.startswith("dask")
     a, b = _rows(tmp_path / "local.sqlite"), _rows(tmp_path / "dask.sqlite")
     assert _without_timings(a) == _without_timings(b)
     assert all(r["error"] is None and r["spqi"] is not None for r in b if r["codec"] != "misbehaving")
-    assert sorted(r["error_reason"] for r in b if r["codec"] == "misbehaving") == \
-        ["codec_error"] * 2 + ["nonfinite"] * 2 + ["timeout"] * 2
+    reasons = sorted(r["error_reason"] for r in b if r["codec"] == "misbehaving")
+    assert reasons == ["nonfinite"] * 2 + ["timeout"] * 2
 
 
 def test_dask_worker_sigkilled_mid_run_every_row_exactly_once(tmp_path, cluster):

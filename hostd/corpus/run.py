@@ -224,7 +224,10 @@ class _Local:
 
         _one_thread_per_worker()
         ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(["hostd.corpus.jobs", "hostd.corpus.hostdcodec", "numpy", "scipy.fft"])
+        # imported once in the fork server, inherited by every worker (and every replacement)
+        ctx.set_forkserver_preload(["hostd.corpus.jobs", "hostd.corpus.hostdcodec", "hostd.codec.stream",
+                                    "hostd.codec.ratecontrol", "hostd.perception.peer", "hostd.render.series",
+                                    "hostd.texture.load", "scipy.signal", "scipy.fft"])
         self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=jobs.ignore_sigint)
 
     def submit(self, task: Task, fn=jobs.run_task):
