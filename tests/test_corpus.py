@@ -255,6 +255,12 @@ def test_api_returns_a_table_of_the_store(tmp_path):
     df = api.run_corpus("synthetic:wood:1", tmp_path / "r.sqlite", codecs=[f"{FIX}:uniform"], length_mm=2.0,
                         workers=1, spqi=False, as_pandas=True)
     assert len(df) == 5 and df.attrs["summary"]["skipped"] == 5
+    import pyarrow.parquet as pq
+
+    from hostd.corpus import store
+
+    out = store.export_parquet(tmp_path / "r.sqlite", tmp_path / "r.parquet", chunk_rows=2)  # 3 row groups
+    assert pq.read_table(out).equals(store.to_arrow(tmp_path / "r.sqlite"))
 
 
 def test_the_daemon_and_other_commands_do_not_import_the_corpus_dependencies():

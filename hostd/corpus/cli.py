@@ -140,7 +140,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     else:
         for line in summ.lines():
             print(line, file=sys.stderr if summ.interrupted else sys.stdout)
-    return 130 if summ.interrupted else 0
+    if summ.interrupted:
+        return 130
+    if summ.written and not summ.ok and not summ.skipped:
+        print("hostd corpus run: error: every job failed (see the reasons above and the rows' `error`)",
+              file=sys.stderr)
+        return 1
+    return 0
 
 
 def cmd_report(args: argparse.Namespace) -> int:

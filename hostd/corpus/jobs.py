@@ -285,6 +285,8 @@ def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
         row.update(error=str(exc), error_reason="codec_error")
     except MemoryError:
         row.update(error="out of memory", error_reason="codec_error")
+    except SystemExit as exc:  # a codec must not end the worker
+        row.update(error=f"the codec called exit({exc.code})", error_reason="codec_error")
     except Exception as exc:  # the codec's own exception: its type and one line
         text = str(exc).strip().splitlines()
         row.update(error=f"{type(exc).__name__}: {text[0] if text else ''}"[:500], error_reason="codec_error")

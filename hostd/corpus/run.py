@@ -434,6 +434,10 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
                     else:
                         pending[ex.submit(t, task_fn)] = t
                 continue
+            except Exception as exc:  # the task itself failed in the worker (not a codec: those are rows)
+                text = f"the task failed in its worker: {type(exc).__name__}: {exc}"[:500]
+                rows = [{**jobs.empty_row(task.texture, j), "error": text, "error_reason": "worker_error"}
+                        for j in task.jobs]
             record(rows)
             fill()
     except KeyboardInterrupt:

@@ -76,26 +76,51 @@ class Store:
         return [dict(zip(names, r, strict=True)) for r in cur]
 
 
+def _schema():
+    import pyarrow as pa
+
+    types = {"str": pa.string(), "float": pa.float64(), "int": pa.int64()}
+    return pa.schema([(c, types[t]) for c, t in SCHEMA])
+
+
+ORDER = "ORDER BY texture, codec, curve, speed_mm_s, fmax_hz, key"
+
+
 def to_arrow(path: str | Path):
     """The whole store as a pyarrow Table (the schema of hostd.corpus.jobs.SCHEMA)."""
     import pyarrow as pa
 
-    types = {"str": pa.string(), "float": pa.float64(), "int": pa.int64()}
     st = Store(path)
     try:
-        rows = st.rows("ORDER BY texture, codec, curve, speed_mm_s, fmax_hz, key")
+        rows = st.rows(ORDER)
     finally:
         st.close()
-    schema = pa.schema([(c, types[t]) for c, t in SCHEMA])
-    return pa.Table.from_pylist(rows, schema=schema)
+    return pa.Table.from_pylist(rows, schema=_schema())
 
 
-def export_parquet(path: str | Path, out: str | Path) -> Path:
-    """Write the store as one Parquet file (written beside, then renamed: never half a file)."""
+def export_parquet(path: str | Path, out: str | Path, chunk_rows: int = 50_000) -> Path:
+    """Write the store as one Parquet file, `chunk_rows` rows at a time (memory stays flat),
+    written beside and then renamed: never half a file under the final name."""
+    import pyarrow as pa
     import pyarrow.parquet as pq
 
     out = Path(out)
     tmp = out.with_name(out.name + ".part")
-    pq.write_table(to_arrow(path), tmp)
+    schema = _schema()
+    st = Store(path)
+    try:
+        names = ", ".join(f'"{c}"' for c in COLUMNS)
+        cur = st.db.execute(f"SELECT {names} FROM {TABLE} {ORDER}")
+        with pq.ParquetWriter(tmp, schema) as w:
+            while True:
+                part = cur.fetchmany(chunk_rows)
+                if not part:
+                    break
+                cols = list(zip(*part, strict=True))
+                w.write_table(pa.Table.from_arrays([pa.array(c, type=f.type) for c, f in zip(cols, schema,
+                                                                                             strict=True)],
+                                                   schema=schema))
+    finally:
+        st.close()
     tmp.replace(out)
     return out
