@@ -503,6 +503,7 @@ def run_corpus(inputs: str | Path | Iterable[str | Path], store: str | Path, *,
                           levels=None if levels is None else list(levels),
                           b0_db=None if b0_db is None else list(b0_db), target_iobj=list(target_iobj),
                           settings={k: list(v) for k, v in (settings or {}).items()})
+    cstore._pyarrow()  # before the run: the result is a pyarrow table
     summ = crun.run(textures, plan, store, scoring=Scoring(spqi=spqi, timeout_s=timeout_s), dask=dask,
                     workers=workers, batch=batch, progress=progress, retry_errors=retry_errors)
     table = cstore.to_arrow(store)

@@ -412,3 +412,33 @@ def test_dask_worker_sigkilled_mid_run_every_row_exactly_once(tmp_path, cluster)
     rows = _rows(tmp_path / "r.sqlite")
     assert summ.written == len(rows) == len({r["key"] for r in rows}) == 24
     assert all(r["error"] is None for r in rows)
+
+
+_BLOCK = """
+import importlib.abc, sys
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("dask", "distributed", "pyarrow", "bjontegaard"):
+            raise ImportError(f"blocked {name}")
+sys.meta_path.insert(0, Block())
+from hostd.cli import main
+raise SystemExit(main(sys.argv[1:]))
+"""
+
+
+def test_without_the_corpus_extra_runs_work_and_the_rest_names_the_extra(tmp_path):
+    def hostd(*args):
+        return subprocess.run([sys.executable, "-c", _BLOCK, "corpus", *args], capture_output=True, text=True,
+                              env=_env(), cwd=ROOT, timeout=300)
+
+    db = str(tmp_path / "r.sqlite")
+    r = hostd("run", "synthetic:wood:1", "--codec", f"{FIX}:uniform", "--length-mm", "2", "--no-spqi",
+              "--workers", "1", "-o", db)
+    assert r.returncode == 0 and "5 rows written" in r.stdout, r.stderr
+    for args in (["report", db, "-o", str(tmp_path / "rep")],
+                 ["export", db, "-o", str(tmp_path / "r.parquet")],
+                 ["run", "synthetic:wood:1", "--dask", "local", "-o", db]):
+        r = hostd(*args)
+        assert r.returncode == 2 and "pip install 'hostd[corpus]'" in r.stderr, (args, r.stderr)
+        assert len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "rep").exists()

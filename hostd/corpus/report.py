@@ -58,8 +58,9 @@ def bd_rate(anchor: tuple[Sequence[float], Sequence[float]], test: tuple[Sequenc
             method: str = "pchip") -> tuple[float, str]:
     """BD-rate (%) of test against anchor, each (rates, qualities); and a note (why NaN, or the
     package's warnings)."""
-    import bjontegaard
+    from hostd.extras import need
 
+    bjontegaard = need("bjontegaard", "corpus", "BD-rate (hostd corpus report)")
     if method not in INTERPOLATIONS:
         raise HostdError(f"interpolation {method!r}: use pchip or akima")
     ra, qa = pareto(*anchor)
@@ -203,8 +204,9 @@ def _write_csv(path: Path, rows: Sequence[dict]) -> None:
 
 def plot(rows: Sequence[dict], out_dir: Path, anchor: str, max_plots: int = 20) -> list[Path]:
     """One PNG per texture and geometry: bytes against Iobj in dB and against SPQI, every curve."""
-    import matplotlib
+    from hostd.extras import need
 
+    matplotlib = need("matplotlib", "plot", "the rate-quality PNGs (or --no-plots)")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
@@ -246,6 +248,9 @@ def report(store_path: str | Path, out_dir: str | Path, *, anchor: str | None = 
         st.close()
     if not rows:
         raise HostdError(f"{store_path} holds no rows: run `hostd corpus run` first")
+    from hostd.extras import need
+
+    need("bjontegaard", "corpus", "BD-rate (hostd corpus report)")
     anchor = anchor or default_anchor(rows)
     known = {r["curve"] for r in rows if r.get("curve")}
     if anchor not in known:

@@ -257,12 +257,12 @@ class _Dask:
     name = "dask"
 
     def __init__(self, address: str, workers: int) -> None:
-        try:
-            from distributed import Client, LocalCluster
-            from distributed.client import FutureCancelledError
-            from distributed.scheduler import KilledWorker
-        except ImportError:
-            raise HostdError("--dask needs the corpus extra: pip install 'hostd[corpus]'") from None
+        from hostd.extras import need
+
+        need("distributed", "corpus", "--dask")
+        from distributed import Client, LocalCluster
+        from distributed.client import FutureCancelledError
+        from distributed.scheduler import KilledWorker
         self.cluster = None
         if address == "local":
             _one_thread_per_worker()
@@ -381,9 +381,11 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
 
     tasks = iter_tasks(textures, plan, scoring, batch,
                        lambda keys: st.known(keys, ok_only=retry_errors), skipped)
-    ex = executor(dask, workers, pool)
-    summ.executor = ex.name if not dask else f"dask {dask}"
-    window = 4 * (workers or os.cpu_count() or 1) + 2
+    ex = None
+    n_workers = workers or os.cpu_count() or 1
+    summ.executor = (f"dask {dask}" if dask else "in this process" if n_workers == 1 and not pool
+                     else f"local pool of {n_workers}")
+    window = 4 * n_workers + 2
     pending: dict = {}
     tries: Counter = Counter()
     exhausted = False
@@ -410,6 +412,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             on_rows(rows)
 
     try:
+        ex = executor(dask, workers, pool)
         fill()
         while pending:
             fut = ex.next_done(pending)
@@ -442,7 +445,8 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             fill()
     except KeyboardInterrupt:
         summ.interrupted = True
-        ex.close(cancel=True)
+        if ex is not None:
+            ex.close(cancel=True)
         ex = None
     finally:
         if ex is not None:

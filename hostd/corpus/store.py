@@ -76,8 +76,14 @@ class Store:
         return [dict(zip(names, r, strict=True)) for r in cur]
 
 
+def _pyarrow():
+    from hostd.extras import need
+
+    return need("pyarrow", "corpus", "a table or Parquet file of the results")
+
+
 def _schema():
-    import pyarrow as pa
+    pa = _pyarrow()
 
     types = {"str": pa.string(), "float": pa.float64(), "int": pa.int64()}
     return pa.schema([(c, types[t]) for c, t in SCHEMA])
@@ -88,7 +94,7 @@ ORDER = "ORDER BY texture, codec, curve, speed_mm_s, fmax_hz, key"
 
 def to_arrow(path: str | Path):
     """The whole store as a pyarrow Table (the schema of hostd.corpus.jobs.SCHEMA)."""
-    import pyarrow as pa
+    pa = _pyarrow()
 
     st = Store(path)
     try:
@@ -101,7 +107,7 @@ def to_arrow(path: str | Path):
 def export_parquet(path: str | Path, out: str | Path, chunk_rows: int = 50_000) -> Path:
     """Write the store as one Parquet file, `chunk_rows` rows at a time (memory stays flat),
     written beside and then renamed: never half a file under the final name."""
-    import pyarrow as pa
+    pa = _pyarrow()
     import pyarrow.parquet as pq
 
     out = Path(out)
