@@ -283,6 +283,13 @@ class _Dask:
 
         self._ac = as_completed()
 
+    def slots(self) -> int:
+        """Worker threads of the cluster now (at least 1)."""
+        try:
+            return max(1, sum(self.client.nthreads().values()))
+        except Exception:  # the scheduler is busy or gone: keep going with a small window
+            return 1
+
     def submit(self, task: Task, fn=jobs.run_task):
         f = self.client.submit(fn, task, pure=False)
         self._ac.add(f)
@@ -385,13 +392,17 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
     n_workers = workers or os.cpu_count() or 1
     summ.executor = (f"dask {dask}" if dask else "in this process" if n_workers == 1 and not pool
                      else f"local pool of {n_workers}")
-    window = 4 * n_workers + 2
+    window = 4 * n_workers + 2  # tasks in flight (Dask: from the cluster's threads, see below)
+    done_tasks = 0
     pending: dict = {}
     tries: Counter = Counter()
     exhausted = False
 
     def fill() -> None:
         nonlocal exhausted
+        nonlocal window
+        if done_tasks % 50 == 0 and hasattr(ex, "slots"):  # a cluster grows and shrinks
+            window = 4 * ex.slots() + 2
         while not exhausted and len(pending) < window:
             t = next(tasks, None)
             if t is None:
@@ -442,6 +453,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
                 rows = [{**jobs.empty_row(task.texture, j), "error": text, "error_reason": "worker_error"}
                         for j in task.jobs]
             record(rows)
+            done_tasks += 1
             fill()
     except KeyboardInterrupt:
         summ.interrupted = True
