@@ -332,7 +332,9 @@ def test_ctrl_c_stops_the_run_and_keeps_the_finished_rows(tmp_path):
     assert 2 <= len(kept) < 16 and all(r["error"] is None for r in kept)
 
 
-def test_cli_report_and_export(tmp_path):
+def test_cli_report_and_export(tmp_path, capsys):
+    from hostd.cli import main
+
     db = tmp_path / "r.sqlite"
     for args in (["run", "synthetic:wood:1", "--codec", f"{FIX}:uniform", "--codec", "hostd-v2", "--methods",
                   "shaped", "--g=-12,-6,0,6", "--length-mm", "2", "--no-spqi", "--workers", "1", "-o",
@@ -340,14 +342,13 @@ def test_cli_report_and_export(tmp_path):
                  ["report", str(db), "-o", str(tmp_path / "rep"), "--anchor", "hostd-v2/shaped",
                   "--interpolation", "akima", "--no-plots"],
                  ["export", str(db), "-o", str(tmp_path / "r.csv")]):
-        p = _cli(args)
-        _, err = p.communicate(timeout=120)
-        assert p.returncode == 0, err
+        assert main(["corpus", *args]) == 0, capsys.readouterr().err
     assert "akima" in (tmp_path / "rep" / "report.md").read_text()
     assert (tmp_path / "r.csv").read_text().count("\n") == 1 + 9
-    p = _cli(["report", str(db), "-o", str(tmp_path / "rep"), "--anchor", "nope"])
-    _, err = p.communicate(timeout=60)
-    assert p.returncode == 2 and "anchor 'nope' is not a curve" in err and len(err.strip().splitlines()) == 1
+    capsys.readouterr()
+    assert main(["corpus", "report", str(db), "-o", str(tmp_path / "rep"), "--anchor", "nope"]) == 2
+    err = capsys.readouterr().err
+    assert "anchor 'nope' is not a curve" in err and len(err.strip().splitlines()) == 1
 
 
 # ----------------------------------------------------------------------------- Dask, for real
