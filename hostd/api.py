@@ -16,6 +16,8 @@ score             Ip, Ia, Iobj of a stream (from its header, or against its orig
 fit               fit (a, b) of Iobj = a Ip + b Ia to subjective scores
 render_stroke     the displacement a hand moving at constant speed feels (offline)
 run_scene         a scene simulation: delivered quality per effect
+run_corpus        textures x codecs x settings -> a results table (resumable store; BD-rate
+                  reports with `hostd corpus report`); needs the ``corpus`` extra
 
 See docs/api.md for a worked example.
 """
@@ -32,7 +34,7 @@ from hostd.errors import HostdError
 from hostd.texture.load import Profile
 
 __all__ = ["Profile", "Stream", "decode", "encode", "fit", "load_profile", "render_stroke",
-           "run_scene", "score"]
+           "run_corpus", "run_scene", "score"]
 
 
 def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
@@ -437,3 +439,84 @@ def run_scene(scene: str | Path, *, only: list[str] | None = None) -> dict:
     r = sc_mod.run(sc, list(only))
     return {"scene": sc.name, "codec_iobj": r["codec_iobj"],
             "runs": [{k: v for k, v in r.items() if not k.startswith("_")}]}
+
+
+def run_corpus(inputs: str | Path | Iterable[str | Path], store: str | Path, *,
+               codecs: Iterable[str] = ("hostd-v2",), settings: Mapping[str, Iterable[Mapping]] | None = None,
+               methods: Iterable[str] | None = None, g_db: Iterable[float] | None = None,
+               levels: Iterable[int] | None = None, b0_db: Iterable[float] | None = None,
+               target_iobj: Iterable[float] = (), speeds_mm_s: Iterable[float] = (50.0,),
+               fmaxs_hz: Iterable[float] = (400.0,), x_unit: str = "um", y_unit: str = "um",
+               spacing: float | None = None, length_mm: float | None = 10.0, offset_mm: float = 0.0,
+               detrend: str = "none", workers: int | None = None, dask: str | None = None,
+               batch: int | None = None, timeout_s: float = 60.0, spqi: bool = True,
+               retry_errors: bool = False, progress: bool | None = None, as_pandas: bool | None = None):
+    """Evaluate codecs over a corpus: the same run as ``hostd corpus run`` (docs/corpus.md).
+
+    Every (texture, codec, setting, speed, fmax) is one row of `store` (SQLite), keyed by a
+    content hash: rows already there are not computed again, so calling this again after an
+    interruption goes on where it stopped. Jobs run on every core (`workers`), in this
+    process (`workers=1`) or on a Dask cluster (`dask="tcp://host:8786"` or ``"local"``).
+
+    Parameters
+    ----------
+    inputs : path, ``synthetic:KIND[:SEED]`` or a list of them
+        Directories of profiles, manifests (.toml / .csv), profile files, synthetic names.
+    store : path
+        The SQLite results file (created or resumed).
+    codecs : names
+        ``"hostd-v2"``, ``"hostd-v1"``, or external codecs ``"module:attr"`` following the
+        protocol of hostd.corpus.codecs.
+    settings : {codec name: [setting dict, ...]}, optional
+        Sweeps for external codecs (default: each codec's own ``settings``).
+    methods, g_db, levels, b0_db, target_iobj
+        The sweep of hostd's codecs (None: the defaults of hostd.corpus.hostdcodec).
+    speeds_mm_s, fmaxs_hz
+        Geometries: every speed x every band limit.
+    x_unit, y_unit, spacing, length_mm, offset_mm, detrend
+        Loader options for profiles that a manifest does not describe.
+    as_pandas : bool, optional
+        Return a pandas DataFrame (default: when pandas is installed); else a pyarrow Table.
+
+    Returns
+    -------
+    pyarrow.Table or pandas.DataFrame
+        Every row of the store (the schema of docs/corpus.md), not only this call's. The run's
+        summary (counts by failure reason, interrupted) is in ``.attrs["summary"]`` of a
+        DataFrame, or in the Table's schema metadata ``b"summary"`` (JSON).
+    """
+    import json
+
+    from hostd.corpus import run as crun
+    from hostd.corpus import store as cstore
+    from hostd.corpus.jobs import Scoring
+    from hostd.texture.load import LoadOptions
+
+    if isinstance(inputs, str | Path):
+        inputs = [inputs]
+    opts = LoadOptions(x_unit=x_unit, y_unit=y_unit, spacing=spacing, length_mm=length_mm,
+                       offset_mm=offset_mm, detrend=detrend)
+    textures = crun.textures_from([str(i) for i in inputs], opts)
+    plan = crun.make_plan(list(codecs), speeds_mm_s=list(speeds_mm_s), fmaxs_hz=list(fmaxs_hz),
+                          methods=None if methods is None else list(methods),
+                          g_db=None if g_db is None else list(g_db),
+                          levels=None if levels is None else list(levels),
+                          b0_db=None if b0_db is None else list(b0_db), target_iobj=list(target_iobj),
+                          settings={k: list(v) for k, v in (settings or {}).items()})
+    cstore._pyarrow()  # before the run: the result is a pyarrow table
+    summ = crun.run(textures, plan, store, scoring=Scoring(spqi=spqi, timeout_s=timeout_s), dask=dask,
+                    workers=workers, batch=batch, progress=progress, retry_errors=retry_errors)
+    table = cstore.to_arrow(store)
+    table = table.replace_schema_metadata({b"summary": json.dumps(summ.as_dict()).encode()})
+    if as_pandas is None:
+        try:
+            import pandas  # noqa: F401
+
+            as_pandas = True
+        except ImportError:
+            as_pandas = False
+    if not as_pandas:
+        return table
+    df = table.to_pandas()
+    df.attrs["summary"] = summ.as_dict()
+    return df

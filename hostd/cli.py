@@ -461,12 +461,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_manpage)
 
     from hostd.bench.cli import add_parser as add_bench
+    from hostd.corpus.cli import add_parser as add_corpus
     from hostd.service.cli import add_parsers as add_service
     from hostd.sim.cli import add_parser as add_sim
     from hostd.texture.hjif_cli import add_parser as add_export
 
     add_export(sub)
     add_bench(sub, [loader_parent(None)])
+    add_corpus(sub, [loader_parent(10.0)])
     add_service(sub)
     add_sim(sub)
     return ap

@@ -62,3 +62,15 @@ class NotInstalled(UniformZlib):
 
     def available(self):
         return "binary missing: set HOSTD_TEST_CODEC to the encoder (this fixture never has one)"
+
+
+class Slow(UniformZlib):
+    """The uniform quantizer, waiting `delay_s` (wall time, not CPU) per encode: a run long enough
+    to be killed in the middle."""
+
+    name = "slow-uniform"
+    settings = tuple({"step_um": s, "delay_s": 0.05} for s in (2.0, 1.0, 0.5, 0.25))
+
+    def encode(self, heights_um, spacing_um, *, delay_s=0.05, **kw):
+        time.sleep(delay_s)
+        return super().encode(heights_um, spacing_um, **kw)

@@ -57,6 +57,13 @@ def add_parser(sub, parents) -> None:
     ob = bsub.add_parser("offline", help="goals: shipped scenes at N'=1600 < 5 s, rate-quality "
                          "report at N'=160 < 3 s (CPU time of the working thread)")
     ob.add_argument("--json", action="store_true")
+    cb = bsub.add_parser("corpus", help="hostd corpus: machinery overhead per job vs the bare codec call, "
+                         "parallel efficiency, driver memory over 10^4 jobs (needs hostd[corpus] for Dask)")
+    cb.add_argument("--json", action="store_true")
+    cb.add_argument("--jobs", type=int, default=10_000, metavar="N", help="jobs of the memory run (10^4)")
+    cb.add_argument("--workers", type=int, default=None, metavar="N", help="pool size (default every core)")
+    cb.add_argument("--batch", type=int, default=16, metavar="JOBS", help="jobs per task (default 16)")
+    cb.add_argument("--no-dask", action="store_true", help="skip the Dask LocalCluster run")
     lb = bsub.add_parser("load", help="reading a large two-column CSV against np.loadtxt (goal <= 1.5x)")
     lb.add_argument("--lines", type=int, default=2_000_000)
     lb.add_argument("--json", action="store_true")
@@ -175,6 +182,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
             rows += cycle.run_both(args.seconds, args.host_cycle_ms)
         except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench cycle: error: {e}") from None
+    if what == "corpus":
+        from hostd.bench import corpus as corpus_bench
+
+        if args.jobs < 1000 or (args.workers is not None and args.workers < 1) or args.batch < 1:
+            raise SystemExit("hostd bench corpus: error: --jobs must be >= 1000, --workers and --batch >= 1")
+        try:
+            rows.append(corpus_bench.run(jobs_scale=args.jobs, dask=not args.no_dask, workers=args.workers,
+                                         batch=args.batch))
+        except (RuntimeError, HostdError) as e:
+            raise SystemExit(f"hostd bench corpus: error: {e}") from None
     if what == "sim":
         from hostd.bench import simbench
 

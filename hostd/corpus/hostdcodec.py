@@ -16,9 +16,9 @@ import numpy as np
 import hostd
 from hostd.codec import transform
 
-SHAPED_G_DB = (-6.0, 0.0, 6.0, 12.0, 18.0, 24.0)
-QUANT_LEVELS = (3, 4, 6, 8, 12, 16, 24, 32)
-CUT_B0_DB = (-12.0, -6.0, 0.0, 6.0, 12.0, 18.0)
+SHAPED_G_DB = (-18.0, -12.0, -6.0, 0.0, 6.0, 12.0, 18.0)
+QUANT_LEVELS = (4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128)
+CUT_B0_DB = (-18.0, -12.0, -6.0, 0.0, 6.0, 12.0)
 METHODS = {"v1": ("quant", "cut"), "v2": ("shaped", "quant", "cut")}
 KNOB = {"shaped": "g_db", "quant": "levels", "cut": "b0_db"}
 

@@ -1,0 +1,201 @@
+"""`hostd corpus run | report | export`: the parser and its handlers (docs/corpus.md)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def _floats(v: str) -> list[float]:
+    try:
+        out = [float(t) for t in v.split(",") if t.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of numbers: {v!r}") from None
+    if not out:
+        raise argparse.ArgumentTypeError("an empty list")
+    return out
+
+
+def _ints(v: str) -> list[int]:
+    vals = _floats(v)
+    if any(x != int(x) for x in vals):
+        raise argparse.ArgumentTypeError(f"whole numbers only: {v!r}")
+    return [int(x) for x in vals]
+
+
+def add_parser(sub, parents) -> None:
+    from hostd.cliopts import needs_subcommand
+
+    p = sub.add_parser("corpus", help="evaluate codecs over a texture database: sweep, results store, "
+                       "BD-rate (needs hostd[corpus])",
+                       description="Corpus-scale codec evaluation (docs/corpus.md): every texture x codec x "
+                       "setting x geometry -> one row in a resumable SQLite store; BD-rate reports.")
+    csub = p.add_subparsers(dest="corpus", metavar="WHAT")
+    p.set_defaults(func=needs_subcommand(p, "run, report or export"))
+
+    r = csub.add_parser("run", parents=parents, help="run the sweep (skips rows already in the store)")
+    r.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="a directory of profiles, a manifest (.toml, or .csv whose header starts with "
+                   "'file'), a profile file, or synthetic:KIND[:SEED] / synthetic:KIND:FIRST-LAST")
+    r.add_argument("-o", "--out", default="corpus.sqlite", metavar="FILE.sqlite",
+                   help="the results store (default corpus.sqlite); created, or resumed")
+    r.add_argument("--codec", action="append", default=None, metavar="NAME",
+                   help="hostd-v2 (default), hostd-v1, or module:attr / file.py:attr (repeatable)")
+    r.add_argument("--sweep", metavar="FILE.toml",
+                   help="settings per codec: [codec.\"NAME\"] settings = [{...}, ...]")
+    r.add_argument("--methods", type=lambda v: [t.strip() for t in v.split(",") if t.strip()],
+                   help="hostd codecs: methods to sweep (shaped,quant,cut; default all of the format)")
+    r.add_argument("--g", type=_floats, help="shaped step g in dB, comma list (default -18..18 by 6; "
+                   "a list that starts negative needs '=': --g=-12,0,12)")
+    r.add_argument("--levels", type=_ints, help="quant levels, comma list (default 4..128)")
+    r.add_argument("--b0", type=_floats,
+                   help="cut shift b0 in dB, comma list (default -18..12 by 6; --b0=-6,0,6)")
+    r.add_argument("--target-iobj", type=_floats, default=[],
+                   help="rate-control points of hostd codecs (comma list, e.g. 0.02,0.05,0.1)")
+    r.add_argument("--speed", type=_floats, default=[50.0], help="reference speeds, mm/s (comma list; 50)")
+    r.add_argument("--fmax", type=_floats, default=[400.0], help="band limits, Hz (comma list; 400)")
+    r.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="processes (default: every core; 1 = in this process)")
+    r.add_argument("--dask", metavar="ADDRESS",
+                   help="run on a Dask cluster: tcp://HOST:8786, or 'local' (a LocalCluster of worker "
+                   "processes)")
+    r.add_argument("--batch", type=int, default=None, metavar="JOBS",
+                   help="jobs per task (default 16 on the local pool, 64 on Dask)")
+    r.add_argument("--timeout", type=float, default=60.0, metavar="S",
+                   help="per-job limit: a codec still running after S seconds is an error row (60)")
+    r.add_argument("--no-spqi", action="store_true", help="skip SPQI (faster; the SPQI column stays empty)")
+    r.add_argument("--retry-errors", action="store_true", help="run again the jobs whose row is an error")
+    r.add_argument("--parquet", metavar="FILE.parquet", help="also export the whole store as Parquet")
+    r.add_argument("--no-progress", action="store_true", help="no progress bar (default: on a terminal)")
+    r.add_argument("--json", action="store_true", help="print the summary as JSON")
+    r.set_defaults(func=cmd_run)
+
+    rep = csub.add_parser("report", help="BD-rate tables (CSV, Markdown) and rate-quality PNGs")
+    rep.add_argument("store", help="the results store of `hostd corpus run`")
+    rep.add_argument("-o", "--out", default="corpus-report", help="output directory (default corpus-report)")
+    rep.add_argument("--anchor", help="the curve to compare against (default hostd-v2/shaped when present)")
+    rep.add_argument("--interpolation", choices=["pchip", "akima"], default="pchip",
+                     help="BD-rate interpolation (default pchip, as the video standards' spreadsheets)")
+    rep.add_argument("--no-plots", action="store_true", help="no PNGs")
+    rep.add_argument("--max-plots", type=int, default=20, metavar="N", help="at most N PNGs (default 20)")
+    rep.add_argument("--json", action="store_true", help="print the summary as JSON")
+    rep.set_defaults(func=cmd_report)
+
+    ex = csub.add_parser("export", help="the store as Parquet or CSV")
+    ex.add_argument("store")
+    ex.add_argument("-o", "--out", required=True, metavar="FILE", help="FILE.parquet or FILE.csv")
+    ex.set_defaults(func=cmd_export)
+
+
+def _sweep_file(path: str) -> dict[str, list[dict]]:
+    import tomllib
+
+    from hostd.errors import ConfigError
+
+    try:
+        with open(path, "rb") as fh:
+            doc = tomllib.load(fh)
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"cannot read the sweep {path}: {exc}") from None
+    out = {}
+    for name, tbl in doc.get("codec", {}).items():
+        sets = tbl.get("settings") if isinstance(tbl, dict) else None
+        if not isinstance(sets, list) or not all(isinstance(s, dict) for s in sets):
+            raise ConfigError(f"{path}: [codec.\"{name}\"] needs settings = [{{...}}, ...]")
+        out[name] = sets
+    extra = set(doc) - {"codec"}
+    if extra:
+        raise ConfigError(f"{path}: unknown key(s) {', '.join(sorted(extra))}; only [codec.\"NAME\"] tables")
+    return out
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from hostd.cliopts import load_opts
+    from hostd.corpus import run, store
+    from hostd.corpus.jobs import Scoring
+    from hostd.errors import HostdError
+
+    if args.workers is not None and args.workers < 1:
+        raise HostdError("--workers must be >= 1")
+    if not (args.timeout > 0):
+        raise HostdError("--timeout must be > 0 seconds")
+    settings = _sweep_file(args.sweep) if args.sweep else {}
+    codec_specs = args.codec or (list(settings) or ["hostd-v2"])
+    missing = set(settings) - set(codec_specs)
+    if missing:
+        raise HostdError(f"--sweep names codec(s) not given with --codec: {', '.join(sorted(missing))}")
+    textures = run.textures_from(args.inputs, load_opts(args))
+    plan = run.make_plan(codec_specs, speeds_mm_s=args.speed, fmaxs_hz=args.fmax, methods=args.methods,
+                         g_db=args.g, levels=args.levels, b0_db=args.b0, target_iobj=args.target_iobj,
+                         settings=settings)
+    scoring = Scoring(spqi=not args.no_spqi, timeout_s=args.timeout)
+    summ = run.run(textures, plan, args.out, scoring=scoring, dask=args.dask, workers=args.workers,
+                   batch=args.batch, progress=False if (args.no_progress or args.json) else None,
+                   retry_errors=args.retry_errors)
+    if args.parquet and not summ.interrupted:
+        store.export_parquet(args.out, args.parquet)
+    if args.json:
+        print(json.dumps(summ.as_dict(), indent=1))
+    else:
+        for line in summ.lines():
+            print(line, file=sys.stderr if summ.interrupted else sys.stdout)
+    if summ.interrupted:
+        return 130
+    if summ.written and not summ.ok and not summ.skipped:
+        print("hostd corpus run: error: every job failed (see the reasons above and the rows' `error`)",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from hostd.corpus import report
+
+    res = report.report(args.store, args.out, anchor=args.anchor, method=args.interpolation,
+                        plots=not args.no_plots, max_plots=args.max_plots)
+    for w in res["warnings"]:
+        print(f"hostd corpus report: warning: {w}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(res, indent=1, default=str))
+        return 0
+    for s in res["summary"]:
+        print(f"{s['transform']:<32} {s['curve']:<24} vs {s['anchor']}: mean {s['mean_pct']:+.1f} %, "
+              f"median {s['median_pct']:+.1f} %, worst {s['worst_pct']:+.1f} %, "
+              f"wins {s['wins']}/{s['textures']}"
+              + (f", no value {s['no_value']}" if s["no_value"] else ""))
+    if res["failed_by_reason"]:
+        print("failed rows: " + ", ".join(f"{k} {v}" for k, v in res["failed_by_reason"].items()))
+    pngs = len(res["files"]) - 3
+    print("wrote " + ", ".join(res["files"][:3]) + (f" and {pngs} PNGs" if pngs else ""))
+    return 0
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from hostd.corpus import store
+    from hostd.errors import HostdError
+
+    out = Path(args.out)
+    if out.suffix.lower() == ".parquet":
+        store.export_parquet(args.store, out)
+    elif out.suffix.lower() == ".csv":
+        import csv
+
+        from hostd.corpus.jobs import COLUMNS
+
+        st = store.Store(args.store)
+        try:
+            tmp = out.with_name(out.name + ".part")
+            with open(tmp, "w", newline="", encoding="utf-8") as fh:
+                w = csv.DictWriter(fh, fieldnames=list(COLUMNS))
+                w.writeheader()
+                w.writerows(st.rows("ORDER BY texture, codec, curve, key"))
+            tmp.replace(out)
+        finally:
+            st.close()
+    else:
+        raise HostdError(f"{out}: give a .parquet or .csv file name")
+    print(f"wrote {out}")
+    return 0

@@ -1,0 +1,313 @@
+"""A corpus job is a pure function (profile bytes, loader options, codec, setting, geometry) ->
+one result row; a task is a batch of jobs on one texture (its profile is loaded once).
+
+Rows are keyed by a content hash (`job_key`), so running again skips known keys and a job run
+twice (a worker lost mid-task, a rerun after kill -9) writes its row once.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import json
+import math
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from hostd.errors import HostdError
+
+KEY_VERSION = "corpus-row-1"  # changes when the scoring of a row changes
+
+# (column, type): the result schema, in order (docs/corpus.md "Result schema")
+SCHEMA: tuple[tuple[str, str], ...] = (
+    ("key", "str"), ("texture", "str"), ("source", "str"), ("input_sha256", "str"), ("loader", "str"),
+    ("codec", "str"), ("codec_version", "str"), ("curve", "str"), ("setting", "str"),
+    ("speed_mm_s", "float"), ("fmax_hz", "float"), ("n", "int"), ("spacing_um", "float"),
+    ("length_mm", "float"), ("n_keep", "int"), ("bytes", "int"), ("bits_per_mm", "float"),
+    ("bits_per_s", "float"), ("Ip", "float"), ("Ia", "float"), ("Iobj", "float"), ("iobj_db", "float"),
+    ("spqi", "float"), ("encode_cpu_s", "float"), ("decode_cpu_s", "float"), ("error", "str"),
+    ("error_reason", "str"),
+)
+COLUMNS = tuple(c for c, _ in SCHEMA)
+TIMING_COLUMNS = ("encode_cpu_s", "decode_cpu_s")
+
+# plausible input after unit conversion: 1 nm .. 1 mm between samples, heights within 1 cm
+SPACING_UM_RANGE = (1e-3, 1e3)
+MAX_PEAK_TO_PEAK_UM = 1e4
+
+
+class JobTimeout(HostdError):
+    """A codec did not finish a job within the per-job time limit."""
+
+
+@dataclass(frozen=True)
+class TextureSpec:
+    """Where a texture comes from and how it is loaded; `input_sha256` hashes its bytes."""
+
+    name: str
+    source: str
+    loader: str  # canonical JSON of the LoadOptions
+    input_sha256: str
+
+
+@dataclass(frozen=True)
+class JobSpec:
+    key: str
+    codec: str  # the name resolve() takes
+    setting: str  # canonical JSON
+    speed_mm_s: float
+    fmax_hz: float
+
+
+@dataclass(frozen=True)
+class Scoring:
+    spqi: bool = True
+    timeout_s: float = 60.0
+    a: float = 0.581
+    b: float = 0.464
+
+    def as_json(self) -> str:
+        return json.dumps({"spqi": self.spqi, "a": self.a, "b": self.b}, sort_keys=True)
+
+
+@dataclass(frozen=True)
+class Task:
+    texture: TextureSpec
+    jobs: tuple[JobSpec, ...]
+    scoring: Scoring
+
+
+# ----------------------------------------------------------------------------- keys
+
+
+def loader_json(opts) -> str:
+    d = asdict(opts)
+    d.pop("progress", None)
+    return json.dumps(d, sort_keys=True, separators=(",", ":"))
+
+
+def input_sha256(source: str) -> str:
+    """sha256 of the profile's bytes (synthetic: of its name and hostd's version)."""
+    from hostd.texture import synth
+
+    h = hashlib.sha256()
+    if synth.is_spec(source):
+        import hostd
+
+        h.update(f"{source}|hostd {hostd.__version__}".encode())
+        return h.hexdigest()
+    try:
+        with open(source, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    except OSError as exc:
+        return "unreadable:" + hashlib.sha256(f"{source}|{exc.strerror}".encode()).hexdigest()
+    return h.hexdigest()
+
+
+def job_key(tex: TextureSpec, codec_name: str, codec_version: str, setting_json: str,
+            speed_mm_s: float, fmax_hz: float, scoring: Scoring) -> str:
+    blob = json.dumps([KEY_VERSION, tex.input_sha256, tex.loader, codec_name, codec_version,
+                       setting_json, repr(float(speed_mm_s)), repr(float(fmax_hz)), scoring.as_json()])
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+# ----------------------------------------------------------------------------- time limit
+
+
+@contextmanager
+def deadline(seconds: float) -> Iterator[None]:
+    """Raise JobTimeout in this thread after `seconds`: SIGALRM on the main thread (interrupts
+    sleeps and waits), else an asynchronous exception (Dask's worker threads), which lands at
+    the next Python bytecode: a codec stuck inside one C call is stopped when it returns."""
+    if not (seconds and math.isfinite(seconds) and seconds > 0):
+        yield
+        return
+    msg = f"the codec did not finish within the per-job limit of {seconds:g} s (--timeout)"
+    if threading.current_thread() is threading.main_thread() and hasattr(signal, "setitimer"):
+        def on_alarm(signum, frame):
+            raise JobTimeout(msg)
+
+        old = signal.signal(signal.SIGALRM, on_alarm)
+        signal.setitimer(signal.ITIMER_REAL, seconds)
+        try:
+            yield
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, old)
+        return
+    tid = threading.get_ident()
+    fired = threading.Event()
+    lock = threading.Lock()
+    done = [False]
+
+    def fire() -> None:
+        with lock:
+            if not done[0]:
+                fired.set()
+                ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(tid), ctypes.py_object(JobTimeout))
+
+    timer = threading.Timer(seconds, fire)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    except JobTimeout:
+        raise JobTimeout(msg) from None
+    finally:
+        with lock:
+            done[0] = True
+        timer.cancel()
+        if fired.is_set():  # fired but not yet delivered: withdraw it
+            ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(tid), None)
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+class InputError(HostdError):
+    reason = "unreadable_profile"
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+@lru_cache(maxsize=4)
+def load_texture(tex: TextureSpec):
+    """The texture's Profile (µm), checked for plausible units; cached per process."""
+    from hostd.texture import synth
+    from hostd.texture.load import LoadOptions, cut_patch, load_profile
+
+    d = json.loads(tex.loader)
+    if d.get("columns") is not None:
+        d["columns"] = tuple(d["columns"])
+    opts = LoadOptions(**d)
+    try:
+        if synth.is_spec(tex.source):
+            whole = synth.from_spec(tex.source)
+            prof = cut_patch(whole.heights_um, whole.spacing_um, opts, tex.source)
+        else:
+            prof = load_profile(tex.source, opts)
+    except HostdError as exc:  # the loader's hints name the unit when units are the likely cause
+        units = "-unit" in str(exc)
+        raise InputError(str(exc), "implausible_units" if units else "unreadable_profile") from None
+    except Exception as exc:  # a reader that crashed on a malformed file
+        raise InputError(f"{tex.source}: {type(exc).__name__}: {exc}", "unreadable_profile") from None
+    lo, hi = SPACING_UM_RANGE
+    if not lo <= prof.spacing_um <= hi:
+        raise InputError(f"{tex.name}: sample spacing {prof.spacing_um:.3g} µm is implausible "
+                         f"(expected {lo:g}..{hi:g} µm): check the x unit / spacing of this entry",
+                         "implausible_units")
+    ptp = float(np.ptp(prof.heights_um))
+    if ptp > MAX_PEAK_TO_PEAK_UM:
+        raise InputError(f"{tex.name}: heights span {ptp:.3g} µm, implausible for a texture: check "
+                         "the y unit of this entry", "implausible_units")
+    prof.heights_um.flags.writeable = False
+    return prof
+
+
+@lru_cache(maxsize=16)
+def _reference(tex: TextureSpec, speed_mm_s: float, fmax_hz: float):
+    """(geometry, N', b_k, C_k) of a texture at one geometry."""
+    from hostd.codec import transform
+    from hostd.perception import thresholds as th
+
+    prof = load_texture(tex)
+    geom = transform.Geometry(prof.n, prof.length_mm, speed_mm_s, fmax_hz)
+    nk = geom.n_keep
+    b_k = th.default_curve()(geom.frequencies_hz(nk))
+    return geom, nk, b_k, transform.analyze(prof.heights_um, nk)
+
+
+# ----------------------------------------------------------------------------- running
+
+
+def empty_row(tex: TextureSpec, job: JobSpec) -> dict:
+    row = dict.fromkeys(COLUMNS)
+    row.update(key=job.key, texture=tex.name, source=tex.source, input_sha256=tex.input_sha256,
+               loader=tex.loader, codec=job.codec, setting=job.setting,
+               speed_mm_s=float(job.speed_mm_s), fmax_hz=float(job.fmax_hz))
+    return row
+
+
+def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
+    """One row: encode, decode, score; any failure is the row's error, never an exception."""
+    from hostd.codec import transform
+    from hostd.corpus import codecs
+    from hostd.perception import indices, peer
+
+    row = empty_row(tex, job)
+    try:
+        codec = codecs.resolve(job.codec)
+        row.update(codec=codec.name, codec_version=codec.version)
+        setting = json.loads(job.setting)
+        row["curve"] = codecs.curve_of(codec, setting)
+        prof = load_texture(tex)
+        row.update(n=prof.n, spacing_um=prof.spacing_um, length_mm=prof.length_mm)
+        try:
+            _geom, nk, b_k, c_ref = _reference(tex, float(job.speed_mm_s), float(job.fmax_hz))
+        except HostdError as exc:
+            raise InputError(str(exc), "geometry") from None
+        row["n_keep"] = nk
+        why = codecs.unavailable_reason(codec)
+        if why:
+            raise codecs.Unavailable(why)
+        geometry = {"speed_mm_s": float(job.speed_mm_s), "fmax_hz": float(job.fmax_hz)}
+        with deadline(scoring.timeout_s):
+            t_work = time.process_time()  # the bare work (codec and scoring), for `hostd bench corpus`
+            coded = codecs.run_codec(codec, prof.heights_um, prof.spacing_um, setting, geometry)
+        c_dec = transform.analyze(coded.reconstruction_um, nk)
+        sc = indices.score(c_ref, c_dec, b_k, scoring.a, scoring.b)
+        nbytes = len(coded.data)
+        iobj = float(sc.Iobj)
+        row.update(bytes=nbytes, bits_per_mm=8.0 * nbytes / prof.length_mm,
+                   bits_per_s=8.0 * nbytes * float(job.speed_mm_s) / prof.length_mm,
+                   Ip=float(sc.Ip), Ia=float(sc.Ia), Iobj=iobj,
+                   iobj_db=-10.0 * math.log10(iobj) if iobj > 0 else None,
+                   encode_cpu_s=coded.encode_cpu_s,
+                   decode_cpu_s=None if math.isnan(coded.decode_cpu_s) else coded.decode_cpu_s)
+        if scoring.spqi:
+            row["spqi"] = float(peer.played_spqi(c_ref, c_dec, prof.n, prof.length_mm, float(job.speed_mm_s)))
+        row["_work_cpu_s"] = time.process_time() - t_work  # not a column: the store ignores it
+    except JobTimeout as exc:
+        row.update(error=str(exc), error_reason="timeout")
+    except (InputError, codecs.CodecFailure) as exc:
+        row.update(error=str(exc), error_reason=exc.reason)
+    except HostdError as exc:
+        row.update(error=str(exc), error_reason="codec_error")
+    except MemoryError:
+        row.update(error="out of memory", error_reason="codec_error")
+    except SystemExit as exc:  # a codec must not end the worker
+        row.update(error=f"the codec called exit({exc.code})", error_reason="codec_error")
+    except Exception as exc:  # the codec's own exception: its type and one line
+        text = str(exc).strip().splitlines()
+        row.update(error=f"{type(exc).__name__}: {text[0] if text else ''}"[:500], error_reason="codec_error")
+    return row
+
+
+def run_task(task: Task) -> list[dict]:
+    """Every job of a task, in order (what a worker process runs)."""
+    return [run_job(task.texture, j, task.scoring) for j in task.jobs]
+
+
+def run_task_measured(task: Task) -> list[dict]:
+    """run_task, with the worker's CPU time for the whole task in the first row's
+    "_worker_cpu_s" (the bench's machinery overhead; the store ignores the field)."""
+    t0 = time.process_time()
+    rows = run_task(task)
+    if rows:
+        rows[0]["_worker_cpu_s"] = time.process_time() - t0
+    return rows
+
+
+def ignore_sigint() -> None:
+    """Worker initializer: Ctrl-C is the driver's to handle (it keeps the finished rows)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)

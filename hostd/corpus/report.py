@@ -1,0 +1,276 @@
+"""`hostd corpus report`: BD-rate tables of every codec curve against an anchor, per texture and
+summarised, and rate-quality PNGs, from a results store.
+
+BD-rate (Bjøntegaard delta rate, the `bjontegaard` package): the average difference in
+log10(rate) between two rate-quality curves over the quality range both cover, as a percentage
+of the anchor's rate (-10 % = the test needs 10 % fewer bytes for the same quality). The
+curves are interpolated by `pchip` (default; it reproduces the video standards' reference
+spreadsheets) or `akima`. BD-rate needs a quality axis where higher is better:
+- "Iobj in dB" = -10 log10(Iobj) (Iobj is a loss; 0 is lossless, so an Iobj of 0 is left out),
+- "SPQI" as is (0..1, 1 = identical played signal).
+Each curve is first reduced to its Pareto front (the points no other point of the curve beats
+in both rate and quality), sorted by quality, because interpolation needs a quality that
+increases with rate. A curve with fewer than 2 such points, or curves that do not overlap in
+quality, give no BD-rate (NaN with the reason); the package's own warnings (small overlap) are
+passed on in the `note` column and on stderr, not hidden.
+
+Rate: bytes of the coded texture (per texture and geometry bits per mm and per second of
+stroke are proportional to it, so the percentage is the same).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import statistics
+import warnings
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hostd.errors import HostdError
+
+METRICS = {"iobj_db": "Iobj in dB = -10·log10(Iobj)", "spqi": "SPQI (as is)"}
+INTERPOLATIONS = ("pchip", "akima")
+
+
+def pareto(rate: Sequence[float], quality: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """The points not beaten in both rate and quality, sorted by quality (strictly increasing
+    in quality and in rate); non-finite and non-positive rates are dropped."""
+    pts = sorted((float(q), float(r)) for r, q in zip(rate, quality, strict=True)
+                 if r is not None and q is not None and math.isfinite(r) and math.isfinite(q) and r > 0)
+    keep_q: list[float] = []
+    keep_r: list[float] = []
+    # from the best quality down: keep a point when it is cheaper than every better one
+    best_rate = math.inf
+    for q, r in sorted(pts, key=lambda p: (-p[0], p[1])):
+        if r < best_rate and (not keep_q or q < keep_q[-1]):
+            keep_q.append(q)
+            keep_r.append(r)
+            best_rate = r
+    return np.array(keep_r[::-1]), np.array(keep_q[::-1])
+
+
+def bd_rate(anchor: tuple[Sequence[float], Sequence[float]], test: tuple[Sequence[float], Sequence[float]],
+            method: str = "pchip") -> tuple[float, str]:
+    """BD-rate (%) of test against anchor, each (rates, qualities); and a note (why NaN, or the
+    package's warnings)."""
+    from hostd.extras import need
+
+    bjontegaard = need("bjontegaard", "corpus", "BD-rate (hostd corpus report)")
+    if method not in INTERPOLATIONS:
+        raise HostdError(f"interpolation {method!r}: use pchip or akima")
+    ra, qa = pareto(*anchor)
+    rt, qt = pareto(*test)
+    if ra.size < 2 or rt.size < 2:
+        return math.nan, f"too few points on the Pareto front (anchor {ra.size}, test {rt.size}; need 2)"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            val = float(bjontegaard.bd_rate(ra, qa, rt, qt, method=method, require_matching_points=False))
+        except (ValueError, ZeroDivisionError) as exc:
+            return math.nan, f"bjontegaard: {exc}"
+    note = "; ".join(str(w.message) for w in caught)
+    return val, note
+
+
+@dataclass
+class BDRow:
+    metric: str
+    texture: str
+    speed_mm_s: float
+    fmax_hz: float
+    anchor: str
+    curve: str
+    bd_rate_pct: float
+    note: str
+
+
+def curves(rows: Iterable[dict], metric: str) -> dict[tuple, dict[str, tuple[list, list]]]:
+    """(texture, speed, fmax) -> curve label -> (bytes, quality) of the rows without error."""
+    out: dict[tuple, dict[str, tuple[list, list]]] = defaultdict(lambda: defaultdict(lambda: ([], [])))
+    for r in rows:
+        if r.get("error") is not None or r.get(metric) is None or r.get("bytes") is None:
+            continue
+        c = out[(r["texture"], r["speed_mm_s"], r["fmax_hz"])][r["curve"]]
+        c[0].append(float(r["bytes"]))
+        c[1].append(float(r[metric]))
+    return out
+
+
+def bd_table(rows: Sequence[dict], anchor: str, metric: str, method: str = "pchip") -> list[BDRow]:
+    """BD-rate of every curve against `anchor`, per texture and geometry."""
+    if metric not in METRICS:
+        raise HostdError(f"quality axis {metric!r}: use {' or '.join(METRICS)}")
+    out = []
+    for (tex, v, f), by_curve in sorted(curves(rows, metric).items()):
+        for label in sorted(by_curve):
+            if label == anchor:
+                continue
+            if anchor not in by_curve:
+                out.append(BDRow(metric, tex, v, f, anchor, label, math.nan, "the anchor has no result here"))
+                continue
+            val, note = bd_rate(by_curve[anchor], by_curve[label], method)
+            out.append(BDRow(metric, tex, v, f, anchor, label, val, note))
+    return out
+
+
+def summarise(table: Sequence[BDRow]) -> list[dict]:
+    """Per (metric, curve): mean, median, worst (largest) BD-rate over textures with a value,
+    how many textures it wins (BD-rate < 0), and how many gave no value."""
+    groups: dict[tuple[str, str], list[BDRow]] = defaultdict(list)
+    for r in table:
+        groups[(r.metric, r.curve)].append(r)
+    out = []
+    for (metric, curve), rs in sorted(groups.items()):
+        vals = [r.bd_rate_pct for r in rs if math.isfinite(r.bd_rate_pct)]
+        out.append({"metric": metric, "transform": METRICS[metric], "curve": curve, "anchor": rs[0].anchor,
+                    "textures": len(vals), "no_value": len(rs) - len(vals),
+                    "mean_pct": statistics.fmean(vals) if vals else math.nan,
+                    "median_pct": statistics.median(vals) if vals else math.nan,
+                    "worst_pct": max(vals) if vals else math.nan,
+                    "wins": sum(1 for x in vals if x < 0),
+                    "warnings": sum(1 for r in rs if r.note)})
+    return out
+
+
+def default_anchor(rows: Sequence[dict]) -> str:
+    labels = sorted({r["curve"] for r in rows if r.get("curve") and r.get("error") is None})
+    if not labels:
+        raise HostdError("the store holds no successful row: nothing to compare")
+    for pref in ("hostd-v2/shaped", "hostd-v2/quant", "hostd-v1/quant"):
+        if pref in labels:
+            return pref
+    return labels[0]
+
+
+def failures(rows: Sequence[dict]) -> dict[str, int]:
+    out: dict[str, int] = defaultdict(int)
+    for r in rows:
+        if r.get("error") is not None:
+            out[r.get("error_reason") or "error"] += 1
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+
+
+# ----------------------------------------------------------------------------- outputs
+
+
+def _fmt(x: float) -> str:
+    return "—" if not math.isfinite(x) else f"{x:+.1f} %"
+
+
+def markdown(summary: Sequence[dict], table: Sequence[BDRow], method: str, fails: dict[str, int],
+             total_rows: int) -> str:
+    lines = [f"# Corpus BD-rate report ({total_rows} rows)", ""]
+    lines.append(f"Interpolation: {method}. Rate: bytes. Negative = fewer bytes than the anchor for the "
+                 "same quality. Each curve reduced to its Pareto front first.")
+    if fails:
+        lines.append("")
+        lines.append("Failed rows: " + ", ".join(f"{k} {v}" for k, v in fails.items()))
+    for metric, transform in METRICS.items():
+        summ = [s for s in summary if s["metric"] == metric]
+        if not summ:
+            continue
+        lines += ["", f"## Quality axis: {transform}", "",
+                  f"Anchor: `{summ[0]['anchor']}`. Quality axis: {transform}.", "",
+                  "| curve | textures | mean | median | worst | wins | no value | warnings |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for s in summ:
+            lines.append(f"| `{s['curve']}` | {s['textures']} | {_fmt(s['mean_pct'])} "
+                         f"| {_fmt(s['median_pct'])} | {_fmt(s['worst_pct'])} | {s['wins']} "
+                         f"| {s['no_value']} | {s['warnings']} |")
+        per = [r for r in table if r.metric == metric]
+        lines += ["", f"Per texture ({transform}; BD-rate against `{summ[0]['anchor']}`):", "",
+                  "| texture | speed mm/s | fmax Hz | curve | BD-rate | note |",
+                  "|---|---:|---:|---|---:|---|"]
+        for r in per:
+            lines.append(f"| {r.texture} | {r.speed_mm_s:g} | {r.fmax_hz:g} | `{r.curve}` | "
+                         f"{_fmt(r.bd_rate_pct)} | {r.note.replace('|', '/')} |")
+    return "\n".join(lines) + "\n"
+
+
+def _write_csv(path: Path, rows: Sequence[dict]) -> None:
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "w", newline="", encoding="utf-8") as fh:
+        if rows:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    tmp.replace(path)
+
+
+def plot(rows: Sequence[dict], out_dir: Path, anchor: str, max_plots: int = 20) -> list[Path]:
+    """One PNG per texture and geometry: bytes against Iobj in dB and against SPQI, every curve."""
+    from hostd.extras import need
+
+    matplotlib = need("matplotlib", "plot", "the rate-quality PNGs (or --no-plots)")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    by_metric = {m: curves(rows, m) for m in METRICS}
+    keys = sorted(by_metric["iobj_db"])[:max_plots]
+    paths = []
+    for key in keys:
+        tex, v, f = key
+        fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+        for ax, metric in zip(axes, METRICS, strict=True):
+            for label, (r, q) in sorted(by_metric[metric].get(key, {}).items()):
+                pr, pq = pareto(r, q)
+                style = {"lw": 2.5} if label == anchor else {"lw": 1.2}
+                ax.plot(pr, pq, marker="o", ms=3, label=label, **style)
+            ax.set_xscale("log")
+            ax.set_xlabel("bytes")
+            ax.set_ylabel(METRICS[metric])
+            ax.grid(True, which="both", alpha=0.3)
+        axes[0].legend(fontsize=7)
+        fig.suptitle(f"{tex}  (v = {v:g} mm/s, fmax = {f:g} Hz; Pareto fronts)")
+        fig.tight_layout()
+        safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in f"{tex}_v{v:g}_f{f:g}")
+        p = out_dir / f"rq_{safe}.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        paths.append(p)
+    return paths
+
+
+def report(store_path: str | Path, out_dir: str | Path, *, anchor: str | None = None,
+           method: str = "pchip", plots: bool = True, max_plots: int = 20) -> dict:
+    """Write bdrate.csv, bdrate_summary.csv, report.md (and PNGs) under out_dir; return the summary."""
+    from hostd.corpus.store import Store
+
+    st = Store(store_path)
+    try:
+        rows = st.rows()
+    finally:
+        st.close()
+    if not rows:
+        raise HostdError(f"{store_path} holds no rows: run `hostd corpus run` first")
+    from hostd.extras import need
+
+    need("bjontegaard", "corpus", "BD-rate (hostd corpus report)")
+    anchor = anchor or default_anchor(rows)
+    known = {r["curve"] for r in rows if r.get("curve")}
+    if anchor not in known:
+        raise HostdError(f"anchor {anchor!r} is not a curve of this store: use one of "
+                         f"{', '.join(sorted(known))}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    table = [r for m in METRICS for r in bd_table(rows, anchor, m, method)]
+    summ = summarise(table)
+    fails = failures(rows)
+    _write_csv(out / "bdrate.csv", [{**r.__dict__, "transform": METRICS[r.metric], "interpolation": method}
+                                    for r in table])
+    _write_csv(out / "bdrate_summary.csv", [{**s, "interpolation": method} for s in summ])
+    md = markdown(summ, table, method, fails, len(rows))
+    tmp = out / "report.md.part"
+    tmp.write_text(md, encoding="utf-8")
+    tmp.replace(out / "report.md")
+    pngs = plot(rows, out, anchor, max_plots) if plots else []
+    return {"anchor": anchor, "interpolation": method, "rows": len(rows), "failed_by_reason": fails,
+            "summary": summ,
+            "warnings": [f"{r.texture} {r.curve} ({r.metric}): {r.note}" for r in table if r.note],
+            "files": [str(out / n) for n in ("bdrate.csv", "bdrate_summary.csv", "report.md")]
+            + [str(p) for p in pngs]}

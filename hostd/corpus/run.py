@@ -1,0 +1,470 @@
+"""`hostd corpus run`: textures x codecs x settings x geometries -> rows in the store, on a local
+process pool (default: every core), in this process (`workers=1`), or on a Dask cluster.
+
+The driver streams: jobs are generated texture by texture, batched into tasks (one profile
+load per task), at most a small window of tasks is in flight, and each finished task's rows
+are written in one transaction; memory does not grow with the number of jobs. A lost worker's
+tasks run again (their rows are written once: the key is UNIQUE). Ctrl-C stops the run and
+keeps every row already written.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from hostd.corpus import codecs, jobs
+from hostd.corpus.jobs import JobSpec, Scoring, Task, TextureSpec
+from hostd.errors import HostdError
+
+DEFAULT_BATCH = 16  # jobs per task on the local pool
+DASK_BATCH = 64  # on Dask, whose per-task cost (scheduler, worker event loop) is larger
+MAX_TASK_RETRIES = 3
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def textures_from(inputs: Sequence[str], opts) -> list[TextureSpec]:
+    """Texture specs for directories (every file of a registered format, recursively, sorted),
+    manifests (.toml, or .csv whose header starts with `file`), profile files and
+    synthetic:KIND[:SEED] or synthetic:KIND:FIRST-LAST names. Names must be unique."""
+    from hostd.texture import formats, manifest, synth
+
+    entries: list[tuple[str, str, Any]] = []
+    for raw in inputs:
+        s = str(raw)
+        if synth.is_spec(s):
+            parts = s.split(":")
+            if len(parts) == 3 and "-" in parts[2]:
+                a, _, b = parts[2].partition("-")
+                try:
+                    seeds = range(int(a), int(b) + 1)
+                except ValueError:
+                    raise HostdError(f"bad synthetic range {s!r}: use synthetic:KIND:FIRST-LAST") from None
+                names = [f"synthetic:{parts[1]}:{k}" for k in seeds]
+            else:
+                names = [s]
+            for nm in names:
+                synth.parse_spec(nm)
+                entries.append((nm, nm, opts))
+            continue
+        p = Path(s)
+        if p.is_dir():
+            suffixes = {suf for f in formats.formats() for suf in f.suffixes}
+            files = sorted(f for f in p.rglob("*") if f.is_file() and f.suffix.lower() in suffixes
+                           and not manifest.is_manifest(f))
+            if not files:
+                raise HostdError(f"{p}: no profile of a known format ({', '.join(sorted(suffixes))})")
+            for f in files:
+                entries.append((str(f.relative_to(p).with_suffix("")), str(f.resolve()), opts))
+        elif manifest.is_manifest(p):
+            for e in manifest.read(p, opts):
+                entries.append((e.name, e.source, e.options))
+        elif p.exists():
+            entries.append((p.stem, str(p.resolve()), opts))
+        else:
+            raise HostdError(f"{s}: no such file or directory (give profiles, a directory, a "
+                             "manifest .csv/.toml or synthetic:KIND[:SEED])")
+    names = [n for n, _, _ in entries]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise HostdError(f"texture name(s) given twice: {', '.join(dup[:5])}; use a manifest with `name`")
+    return [TextureSpec(n, src, jobs.loader_json(o), "") for n, src, o in entries]
+
+
+def hashed(tex: TextureSpec) -> TextureSpec:
+    return TextureSpec(tex.name, tex.source, tex.loader, jobs.input_sha256(tex.source))
+
+
+# ----------------------------------------------------------------------------- the sweep
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What runs on every texture: (codec name, setting) pairs and the geometries."""
+
+    points: tuple[tuple[str, str], ...]  # (codec spec, canonical setting JSON)
+    geometries: tuple[tuple[float, float], ...]  # (speed_mm_s, fmax_hz)
+
+    @property
+    def per_texture(self) -> int:
+        return len(self.points) * len(self.geometries)
+
+
+def make_plan(codec_specs: Sequence[str], *, speeds_mm_s: Sequence[float] = (50.0,),
+              fmaxs_hz: Sequence[float] = (400.0,), methods: Sequence[str] | None = None,
+              g_db: Sequence[float] | None = None, levels: Sequence[int] | None = None,
+              b0_db: Sequence[float] | None = None, target_iobj: Sequence[float] = (),
+              settings: Mapping[str, Sequence[Mapping]] | None = None) -> Plan:
+    """The sweep. hostd's codecs take the method grids (`methods`, `g_db`, `levels`, `b0_db`;
+    None = the defaults of hostd.corpus.hostdcodec) and `target_iobj` adds rate-control points;
+    an external codec runs its own `settings` unless `settings[spec]` gives others."""
+    from hostd.corpus import hostdcodec
+
+    points: list[tuple[str, str]] = []
+    for spec in codec_specs:
+        codec = codecs.resolve(spec)
+        if isinstance(codec, hostdcodec.HostdStream):
+            grid = {"shaped": g_db, "quant": levels, "cut": b0_db}
+            ms = [m for m in hostdcodec.METHODS[codec.fmt] if methods is None or m in methods]
+            if methods is not None:
+                bad = set(methods) - {"shaped", "quant", "cut"}
+                if bad:
+                    raise HostdError(f"unknown method(s) {', '.join(sorted(bad))}: use shaped, quant, cut")
+            pts: list[dict] = []
+            for m in ms:
+                values = grid[m] if grid[m] is not None else [s[hostdcodec.KNOB[m]] for s in codec.settings
+                                                              if s["method"] == m]
+                pts += [{"method": m, hostdcodec.KNOB[m]: v} for v in values]
+            pts += [{"target_iobj": float(t)} for t in target_iobj]
+        else:
+            pts = [dict(s) for s in (settings or {}).get(spec, codec.settings)]
+        if not pts:
+            raise HostdError(f"codec {spec}: the sweep gives it no setting")
+        points += [(spec, codecs.setting_json(s)) for s in pts]
+    geoms = tuple((float(v), float(f)) for v in speeds_mm_s for f in fmaxs_hz)
+    for v, f in geoms:
+        if not (v > 0 and f > 0):
+            raise HostdError(f"speed {v} mm/s and fmax {f} Hz must be > 0")
+    return Plan(tuple(dict.fromkeys(points)), geoms)
+
+
+def versions(plan: Plan) -> dict[str, tuple[str, str]]:
+    """codec spec -> (name, version), resolved in this process (they go into the keys)."""
+    out = {}
+    for spec, _ in plan.points:
+        if spec not in out:
+            c = codecs.resolve(spec)
+            out[spec] = (c.name, c.version)
+    return out
+
+
+def iter_tasks(textures: Iterable[TextureSpec], plan: Plan, scoring: Scoring, batch: int,
+               skip: Callable[[list[str]], set[str]], on_skip: Callable[[int], None]) -> Iterator[Task]:
+    """Tasks of at most `batch` jobs of one texture, leaving out the keys `skip` says are done."""
+    ver = versions(plan)
+    for tex in textures:
+        tex = hashed(tex)
+        specs: list[JobSpec] = []
+        for v, f in plan.geometries:
+            for spec, sj in plan.points:
+                name, version = ver[spec]
+                specs.append(JobSpec(jobs.job_key(tex, name, version, sj, v, f, scoring), spec, sj, v, f))
+        for i in range(0, len(specs), batch):
+            part = specs[i : i + batch]
+            done = skip([j.key for j in part])
+            todo = tuple(j for j in part if j.key not in done)
+            if len(todo) < len(part):
+                on_skip(len(part) - len(todo))
+            if todo:
+                yield Task(tex, todo, scoring)
+
+
+# ----------------------------------------------------------------------------- executors
+
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _one_thread_per_worker() -> None:
+    """One process per core: BLAS/OpenMP pools of one thread in the worker processes started
+    from here (they inherit the environment; a variable the user set is kept)."""
+    for v in _THREAD_VARS:
+        os.environ.setdefault(v, "1")
+
+
+class _Serial:
+    """In this process (workers=1): for debugging and the bench's bare-call reference."""
+
+    name = "serial"
+    lost = ()
+
+    def __init__(self) -> None:
+        from concurrent.futures import Future
+
+        self._Future = Future
+
+    def submit(self, task: Task, fn=jobs.run_task):
+        f = self._Future()
+        f.set_result(fn(task))
+        return f
+
+    def next_done(self, pending):
+        return next(iter(pending))
+
+    def restart(self) -> None:
+        pass
+
+    def close(self, cancel: bool = False) -> None:
+        pass
+
+
+class _Local:
+    """A process pool over `workers` processes (default: every core)."""
+
+    name = "local"
+
+    def __init__(self, workers: int) -> None:
+        from concurrent.futures.process import BrokenProcessPool
+
+        self.workers = workers
+        self.lost = (BrokenProcessPool,)
+        self._start()
+
+    def _start(self) -> None:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        _one_thread_per_worker()
+        ctx = mp.get_context("forkserver")
+        # imported once in the fork server, inherited by every worker (and every replacement)
+        ctx.set_forkserver_preload(["hostd.corpus.jobs", "hostd.corpus.hostdcodec", "hostd.codec.stream",
+                                    "hostd.codec.ratecontrol", "hostd.perception.peer", "hostd.render.series",
+                                    "hostd.texture.load", "scipy.signal", "scipy.fft"])
+        self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=jobs.ignore_sigint)
+
+    def submit(self, task: Task, fn=jobs.run_task):
+        return self.pool.submit(fn, task)
+
+    def next_done(self, pending):
+        from concurrent.futures import FIRST_COMPLETED, wait
+
+        done, _ = wait(pending, return_when=FIRST_COMPLETED)
+        return next(iter(done))
+
+    def restart(self) -> None:
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        self._start()
+
+    def close(self, cancel: bool = False) -> None:
+        if cancel:
+            for p in list(getattr(self.pool, "_processes", {}).values()):
+                p.terminate()  # our own workers (Ctrl-C: do not wait for their jobs)
+        self.pool.shutdown(wait=not cancel, cancel_futures=True)
+
+
+class _Dask:
+    """A distributed cluster: `address` (tcp://host:8786) or "local" (a LocalCluster of
+    worker processes, one thread each, over every core)."""
+
+    name = "dask"
+
+    def __init__(self, address: str, workers: int) -> None:
+        from hostd.extras import need
+
+        need("distributed", "corpus", "--dask")
+        from distributed import Client, LocalCluster
+        from distributed.client import FutureCancelledError
+        from distributed.scheduler import KilledWorker
+        self.cluster = None
+        if address == "local":
+            _one_thread_per_worker()
+            # no dashboard here, so no use for the workers' statistical profiler (it samples
+            # every thread every 10 ms: CPU taken from the jobs)
+            os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")
+            self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                        dashboard_address=None)
+            self.client = Client(self.cluster)
+        else:
+            try:
+                self.client = Client(address, timeout="20s")
+            except OSError as exc:
+                raise HostdError(f"cannot reach the Dask scheduler at {address}: {exc} (start it with "
+                                 "`dask scheduler`, workers with `dask worker ADDRESS`)") from None
+        self.lost = (KilledWorker, FutureCancelledError)
+        from distributed import as_completed
+
+        self._ac = as_completed()
+
+    def slots(self) -> int:
+        """Worker threads of the cluster now (at least 1)."""
+        try:
+            return max(1, sum(self.client.nthreads().values()))
+        except Exception:  # the scheduler is busy or gone: keep going with a small window
+            return 1
+
+    def submit(self, task: Task, fn=jobs.run_task):
+        f = self.client.submit(fn, task, pure=False)
+        self._ac.add(f)
+        return f
+
+    def next_done(self, pending):
+        while True:
+            f = next(self._ac)
+            if f in pending:
+                return f
+
+    def restart(self) -> None:
+        pass
+
+    def close(self, cancel: bool = False) -> None:
+        try:
+            self.client.close()
+        finally:
+            if self.cluster is not None:
+                self.cluster.close()
+
+
+def executor(dask: str | None, workers: int | None, pool: bool = False):
+    """Dask when `dask` is given; else a process pool of `workers` (default every core); one
+    worker runs in this process unless `pool` (the bench's one-worker pool)."""
+    n = workers or os.cpu_count() or 1
+    if dask:
+        return _Dask(dask, n)
+    if n == 1 and not pool:
+        return _Serial()
+    return _Local(n)
+
+
+# ----------------------------------------------------------------------------- the driver
+
+
+@dataclass
+class Summary:
+    store: str
+    total: int = 0
+    skipped: int = 0
+    written: int = 0
+    ok: int = 0
+    failed: Counter = field(default_factory=Counter)
+    retried_tasks: int = 0
+    interrupted: bool = False
+    seconds: float = 0.0
+    executor: str = ""
+
+    def as_dict(self) -> dict:
+        return {"store": self.store, "executor": self.executor, "total": self.total,
+                "skipped": self.skipped, "written": self.written, "ok": self.ok,
+                "failed": sum(self.failed.values()), "failed_by_reason": dict(self.failed),
+                "retried_tasks": self.retried_tasks, "interrupted": self.interrupted,
+                "seconds": round(self.seconds, 3)}
+
+    def lines(self) -> list[str]:
+        out = [f"{self.written} rows written to {self.store} ({self.ok} ok, {sum(self.failed.values())} "
+               f"failed), {self.skipped} already there, of {self.total} jobs, in {self.seconds:.1f} s "
+               f"({self.executor})"]
+        if self.failed:
+            out.append("failed: " + ", ".join(f"{k} {v}" for k, v in self.failed.most_common())
+                       + "  (the rows' `error` column says why; rerun with --retry-errors after a fix)")
+        if self.interrupted:
+            out.append("interrupted: the rows above are kept; run the same command again to go on")
+        return out
+
+
+def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
+        scoring: Scoring | None = None, dask: str | None = None, workers: int | None = None,
+        batch: int | None = None, progress: bool | None = None, retry_errors: bool = False,
+        on_rows: Callable[[list[dict]], None] | None = None, task_fn: Callable = jobs.run_task,
+        pool: bool = False) -> Summary:
+    """Run every job not yet in the store; returns what happened (Ctrl-C: interrupted=True)."""
+    from hostd.corpus.store import Store
+
+    if batch is None:
+        batch = DASK_BATCH if dask else DEFAULT_BATCH
+    if batch < 1:
+        raise HostdError("--batch must be >= 1")
+    scoring = scoring or Scoring()
+    t0 = time.monotonic()
+    st = Store(store_path)
+    summ = Summary(str(store_path), total=len(textures) * plan.per_texture)
+    show = sys.stderr.isatty() if progress is None else progress
+    bar = None
+    if show:
+        from tqdm import tqdm
+
+        bar = tqdm(total=summ.total, unit="job", desc="corpus", file=sys.stderr, smoothing=0.05)
+
+    def skipped(k: int) -> None:
+        summ.skipped += k
+        if bar is not None:
+            bar.update(k)
+
+    tasks = iter_tasks(textures, plan, scoring, batch,
+                       lambda keys: st.known(keys, ok_only=retry_errors), skipped)
+    ex = None
+    n_workers = workers or os.cpu_count() or 1
+    summ.executor = (f"dask {dask}" if dask else "in this process" if n_workers == 1 and not pool
+                     else f"local pool of {n_workers}")
+    window = 4 * n_workers + 2  # tasks in flight (Dask: from the cluster's threads, see below)
+    done_tasks = 0
+    pending: dict = {}
+    tries: Counter = Counter()
+    exhausted = False
+
+    def fill() -> None:
+        nonlocal exhausted
+        nonlocal window
+        if done_tasks % 50 == 0 and hasattr(ex, "slots"):  # a cluster grows and shrinks
+            window = 4 * ex.slots() + 2
+        while not exhausted and len(pending) < window:
+            t = next(tasks, None)
+            if t is None:
+                exhausted = True
+                return
+            pending[ex.submit(t, task_fn)] = t
+
+    def record(rows: list[dict]) -> None:
+        summ.written += st.write(rows, replace=retry_errors)
+        for r in rows:
+            if r["error"] is None:
+                summ.ok += 1
+            else:
+                summ.failed[r["error_reason"] or "error"] += 1
+        if bar is not None:
+            bar.update(len(rows))
+        if on_rows is not None:
+            on_rows(rows)
+
+    try:
+        ex = executor(dask, workers, pool)
+        fill()
+        while pending:
+            fut = ex.next_done(pending)
+            task = pending.pop(fut)
+            try:
+                rows = fut.result()
+            except ex.lost as exc:
+                tries[id(task)] += 1
+                summ.retried_tasks += 1
+                if ex.name == "local":  # the pool is broken: every pending future with it
+                    redo = [task, *pending.values()]
+                    pending.clear()
+                    ex.restart()
+                else:
+                    redo = [task]
+                for t in redo:
+                    if tries[id(t)] > MAX_TASK_RETRIES:
+                        rows = [{**jobs.empty_row(t.texture, j), "error": f"the worker running this job "
+                                 f"was lost {tries[id(t)]} times ({type(exc).__name__})",
+                                 "error_reason": "worker_lost"} for j in t.jobs]
+                        record(rows)
+                    else:
+                        pending[ex.submit(t, task_fn)] = t
+                continue
+            except Exception as exc:  # the task itself failed in the worker (not a codec: those are rows)
+                text = f"the task failed in its worker: {type(exc).__name__}: {exc}"[:500]
+                rows = [{**jobs.empty_row(task.texture, j), "error": text, "error_reason": "worker_error"}
+                        for j in task.jobs]
+            record(rows)
+            done_tasks += 1
+            fill()
+    except KeyboardInterrupt:
+        summ.interrupted = True
+        if ex is not None:
+            ex.close(cancel=True)
+        ex = None
+    finally:
+        if ex is not None:
+            ex.close()
+        if bar is not None:
+            bar.close()
+        st.close()
+        summ.seconds = time.monotonic() - t0
+    return summ
