@@ -16,7 +16,7 @@ def man_page() -> str:
     from argparse_manpage.manpage import Manpage
 
     from hostd import __version__
-    from hostd.cli import build_parser
+    from hostd.parser import build_parser
 
     return str(Manpage(build_parser(), _data={
         "manual_section": "8", "manual_title": "hostd manual", "version": __version__,
@@ -27,6 +27,6 @@ def man_page() -> str:
 def completion(shell: str) -> str:
     import shtab
 
-    from hostd.cli import build_parser
+    from hostd.parser import build_parser
 
     return shtab.complete(build_parser(), shell)

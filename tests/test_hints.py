@@ -163,3 +163,17 @@ def test_profile_options_live_below_both_clis():
     r = subprocess.run([sys.executable, "-c", "import sys, hostd.bench.cli, hostd.cliopts; "
                         "print('hostd.cli' in sys.modules)"], capture_output=True, text=True, timeout=120)
     assert r.stdout.strip() == "False", r.stderr
+
+
+def test_parser_lives_below_cli_and_docgen():
+    """cli.py <-> docgen.py <-> service/install.py: the parser is hostd/parser.py, which cli.py and
+    docgen.py import; generating the man page and completions (install-service) never imports cli.py."""
+    import subprocess
+    import sys
+
+    for mod in ("docgen.py", "parser.py", "commands.py", "service/install.py"):
+        assert "hostd.cli import" not in (ROOT / "hostd" / mod).read_text(), mod
+    r = subprocess.run([sys.executable, "-c", "import sys, hostd.service.install, hostd.docgen as d; "
+                        "d.man_page(); d.completion('bash'); print('hostd.cli' in sys.modules)"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.stdout.strip() == "False", r.stderr
