@@ -140,10 +140,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--json", action="store_true", help="print notes and every row as JSON")
     r.set_defaults(func=commands.cmd_report_rate_quality)
 
-    p = sub.add_parser("completion", help="print the shell completion script (bash, zsh)",
-                       description="Print the completion script; install-service installs both. By "
-                       "hand: hostd completion bash > ~/.local/share/bash-completion/completions/hostd")
-    p.add_argument("shell", choices=["bash", "zsh"])
+    p = sub.add_parser("completion", help="print the shell completion script (bash, zsh, fish)",
+                       description="Print the completion script; install-service installs all three. By "
+                       "hand: hostd completion bash > ~/.local/share/bash-completion/completions/hostd; "
+                       "hostd completion fish > ~/.config/fish/completions/hostd.fish; "
+                       "hostd completion zsh > ~/.zfunc/_hostd (a directory on $fpath)")
+    p.add_argument("shell", choices=["bash", "zsh", "fish"])
     p.set_defaults(func=commands.cmd_completion)
     p = sub.add_parser("manpage", help="print the man page hostd(8) (roff), generated from this parser",
                        description="install-service installs it as /usr/local/share/man/man8/hostd.8")
@@ -156,4 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench(sub, [loader_parent(None)])
     add_service(sub)
     add_sim(sub)
+
+    from hostd.helptext import add_epilogs
+
+    add_epilogs(ap)  # the README's examples in each command's --help
     return ap

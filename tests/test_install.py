@@ -344,10 +344,10 @@ def test_man_page_and_completions_come_from_the_parser(tmp_path, capsys):
     sub = next(a for a in build_parser()._actions if isinstance(a, __import__("argparse")._SubParsersAction))
     for cmd in sub.choices:  # every command, as the parser has it
         assert f"hostd\\fR \\fI\\,{cmd.replace('-', chr(92) + '-')}" in man, cmd
-    for shell in ("bash", "zsh"):
+    for shell in ("bash", "zsh", "fish"):
         assert main(["completion", shell]) == 0
         script = capsys.readouterr().out
-        assert "install-service" in script and "--since" in script
+        assert "install-service" in script and ("-l since" if shell == "fish" else "--since") in script
     if shutil.which("bash"):
         assert main(["completion", "bash"]) == 0
         (tmp_path / "c.sh").write_text(capsys.readouterr().out)
@@ -357,4 +357,5 @@ def test_man_page_and_completions_come_from_the_parser(tmp_path, capsys):
 
     dests = {str(d.relative_to(tmp_path)) for d, *_ in plan(tmp_path, Path("/opt/hostd/bin/hostd"))}
     assert {"usr/local/share/man/man8/hostd.8", "usr/local/share/bash-completion/completions/hostd",
-            "usr/local/share/zsh/site-functions/_hostd"} <= dests
+            "usr/local/share/zsh/site-functions/_hostd",
+            "usr/local/share/fish/vendor_completions.d/hostd.fish"} <= dests

@@ -1,0 +1,148 @@
+"""Issue 32: the toolkit and the service as users meet them (completion, man page, hints, API)."""
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from hostd import docgen
+from hostd.cli import main
+from hostd.parser import build_parser
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+# ---------------------------------------------------------------- man page and completion
+
+
+@pytest.mark.skipif(shutil.which("groff") is None, reason="no groff (apt-get install groff-base)")
+def test_man_page_is_clean_for_groff():
+    man = docgen.man_page()
+    r = subprocess.run(["groff", "-ww", "-man", "-Tutf8"], input=man, capture_output=True, text=True)
+    assert r.returncode == 0 and r.stderr == "", r.stderr
+    lines = man.splitlines()
+    assert not [i for i, ln in enumerate(lines) if ln.strip() in (".SH", ".SS")], "an empty .SH"
+    for sec in ("EXIT STATUS", "ENVIRONMENT", "FILES", "SEE ALSO", "EXAMPLES"):
+        assert f".SH {sec}" in lines, sec
+    import re
+
+    text = re.sub(r".\x08", "", r.stdout)
+    text = re.sub("\u2010\n\\s+", "", text).replace("\u2212", "-").replace("\u2010", "-")  # hyphenation
+    assert "stream .vtx stream" in text  # hostd render's '.vtx stream' line is text, not a macro
+    for needle in ("HOSTD_CONFIG", "/etc/hostd/hostd.toml", "quality.sqlite", "systemd.unit(5)", "udev(7)",
+                   "/dev/hostd/by-serial"):
+        assert needle in text, needle
+
+
+def test_roff_escaping_keeps_requests_and_escapes_text():
+    out = docgen.fix_roff(".SH\nOPTIONS\n.TP\n.vtx stream\n'quoted\n.B bold")
+    assert out.splitlines() == [".SH OPTIONS", ".TP", "\\&.vtx stream", "\\&'quoted", ".B bold"]
+
+
+@pytest.fixture
+def files_here(tmp_path, monkeypatch):
+    (tmp_path / "prof.csv").write_text("1\n")
+    (tmp_path / "pq.vtx").write_bytes(b"")
+    (tmp_path / "pdir").mkdir()
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+@pytest.mark.skipif(shutil.which("bash") is None, reason="no bash")
+def test_bash_completion_completes_files(files_here, capsys):
+    assert main(["completion", "bash"]) == 0
+    script = capsys.readouterr().out
+    (files_here / "c.bash").write_text(script)
+    assert "complete -o bashdefault -o default -F _shtab_hostd hostd" in script  # other args: files too
+
+    def complete(*words):
+        cw = " ".join(f"'{w}'" for w in words)
+        prev = ("hostd", *words)[-2]
+        r = subprocess.run(["bash", "-c", f"source c.bash; COMP_WORDS=(hostd {cw}); "
+                            f"COMP_CWORD={len(words)}; _shtab_hostd hostd '{words[-1]}' '{prev}'; "
+                            "printf '%s\\n' \"${COMPREPLY[@]}\""], capture_output=True, text=True,
+                           cwd=files_here)
+        assert r.returncode == 0, r.stderr
+        return set(r.stdout.split())
+
+    assert {"prof.csv", "pq.vtx"} <= complete("encode", "p")  # the profile
+    assert {"prof.csv", "pq.vtx"} <= complete("encode", "-o", "p")  # the output
+    assert "pq.vtx" in complete("iobj", "p") and "pq.vtx" in complete("send", "p")
+    assert complete("encode", "--method", "") == {"shaped", "quant", "cut"}  # choices stay choices
+    assert "encode" in complete("enc")
+
+
+@pytest.mark.skipif(shutil.which("fish") is None, reason="fish is not installed (apt-get install fish)")
+def test_fish_completion_completes_files_and_commands(files_here, capsys):
+    assert main(["completion", "fish"]) == 0
+    (files_here / "hostd.fish").write_text(capsys.readouterr().out)
+
+    def complete(line):
+        r = subprocess.run(["fish", "--no-config", "-c", f"source hostd.fish; complete -C '{line}'"],
+                           capture_output=True, text=True, cwd=files_here, timeout=60)
+        assert r.returncode == 0, r.stderr
+        return {ln.split("\t")[0] for ln in r.stdout.splitlines()}
+
+    assert {"prof.csv", "pq.vtx", "pdir/"} <= complete("hostd encode p")
+    assert {"prof.csv", "pq.vtx"} <= complete("hostd encode -o p")
+    assert complete("hostd encode --method ") == {"shaped", "quant", "cut"}
+    assert complete("hostd enc") == {"encode"}
+    assert complete("hostd report ") == {"rate-quality"}
+    assert "--target-iobj" in complete("hostd encode --tar")
+    assert complete("hostd stop --da") == {"--daemon"}
+    assert "pdir/" in complete("hostd demo --out p")
+    # a command of the same name deeper down (hostd bench sim) takes its own options, not hostd sim's
+    assert "--plot" in complete("hostd sim --") and "--plot" not in complete("hostd bench sim --")
+    assert "prof.csv" not in complete("hostd list ")  # no file where none is taken
+
+
+@pytest.mark.skipif(shutil.which("zsh") is None, reason="zsh is not installed (apt-get install zsh)")
+def test_zsh_completion_parses_and_offers_files(tmp_path, capsys):
+    """zsh's completion runs only inside its line editor; checked here: the script parses and every
+    argument that takes a file is completed with _files (shtab's spec), e.g. encode's profile."""
+    assert main(["completion", "zsh"]) == 0
+    script = capsys.readouterr().out
+    (tmp_path / "_hostd").write_text(script)
+    r = subprocess.run(["zsh", "-n", str(tmp_path / "_hostd")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    enc = script.split("_shtab_hostd_encode_options=(", 1)[1].split("\n)", 1)[0]
+    assert enc.count(":_files") >= 3 and '":profile file' in enc  # the profile, -o, --thresholds
+    pos = [ln for ln in enc.splitlines() if ln.startswith('  ":profile file')]
+    assert pos and pos[0].endswith(':_files"')
+
+
+def test_every_path_argument_is_marked_for_completion():
+    """Arguments that name files: the positional profile/stream/scores/scene/file and -o, --config,
+    --thresholds, --db ...; nothing that takes a number."""
+    marked = {(" ".join(path), a.dest) for path, p in docgen.walk(build_parser()) for a in p._actions
+              if docgen.path_kind(a)}
+    for want in (("encode", "profile"), ("encode", "output"), ("decode", "stream"), ("iobj", "first"),
+                 ("render", "output"), ("fit", "scores"), ("send", "file"), ("run", "config"),
+                 ("quality", "db"), ("sim", "scene"), ("report rate-quality", "out"),
+                 ("encode", "thresholds")):
+        assert want in marked, want
+    assert not [m for m in marked if m[1] in ("speed", "levels", "seconds", "length_mm")]
+
+
+# ---------------------------------------------------------------- --help examples
+
+
+def test_each_command_help_shows_the_readme_examples():
+    from hostd import helptext
+
+    readme = (ROOT / "README.md").read_text()
+    assert helptext.EXAMPLES in readme  # the README's block, verbatim
+    ap = build_parser()
+    with_examples = {p for p, _ in helptext.examples()}
+    assert {("encode",), ("render",), ("send",), ("bench", "latency"), ("demo",), ("completion",)} <= {
+        p[:2] if p[0] == "bench" else p[:1] for p in with_examples}
+    for path, p in docgen.walk(ap):
+        if not path:
+            continue
+        mine = [t for q, t in helptext.examples() if q[:len(path)] == path]
+        help_text = p.format_help()
+        for t in mine:
+            assert t in help_text, (path, t)
+    enc = next(p for path, p in docgen.walk(ap) if path == ("encode",)).format_help()
+    assert "examples:\n  hostd encode PROFILE -o OUT.vtx --target-iobj 0.05" in enc
