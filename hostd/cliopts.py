@@ -9,6 +9,7 @@ profile-loading, geometry and index option groups, and read_profile with its pla
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 
 import numpy as np
@@ -35,7 +36,18 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str):
         message = " ".join(message.split())
+        m = _INVALID_CHOICE.match(message)
+        if m:  # a mistyped command or choice: the closest one, not the whole list
+            import difflib
+
+            choices = re.findall(r"'([^']*)'", m.group(3))
+            close = difflib.get_close_matches(m.group(2), choices, n=1, cutoff=0.6)
+            if close:
+                message = f"{m.group(1)}invalid choice: '{m.group(2)}', did you mean '{close[0]}'?"
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+_INVALID_CHOICE = re.compile(r"^(argument [^:]+: )invalid choice: '(.*?)' \(choose from (.*)\)$")
 
 
 def needs_subcommand(parser: argparse.ArgumentParser, what: str):

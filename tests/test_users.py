@@ -146,3 +146,55 @@ def test_each_command_help_shows_the_readme_examples():
             assert t in help_text, (path, t)
     enc = next(p for path, p in docgen.walk(ap) if path == ("encode",)).format_help()
     assert "examples:\n  hostd encode PROFILE -o OUT.vtx --target-iobj 0.05" in enc
+
+
+def test_a_mistyped_command_gets_the_closest_one(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["encod"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "did you mean 'encode'?" in err and "'inspect'" not in err
+    with pytest.raises(SystemExit):
+        main(["encode", "x", "-o", "y", "--method", "quantt"])
+    assert "did you mean 'quant'?" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["xyzzy"])
+    assert "choose from 'encode'" in capsys.readouterr().err  # nothing close: the list
+
+
+# ---------------------------------------------------------------- hints that lead the right way
+
+
+def test_install_refusal_names_a_command_that_works_from_the_checkout(tmp_path):
+    from hostd.errors import HostdError
+    from hostd.service import install
+
+    with pytest.raises(HostdError) as e:
+        install.install(prefix=str(tmp_path), exec_path="/home/u/venv/bin/hostd")
+    msg = str(e.value)
+    assert f"/opt/hostd/bin/pip install '{ROOT}[device]'" in msg, msg  # this checkout, with the extra
+    assert "'hostd[device]'" not in msg
+
+
+def test_pip_hint_names_the_wheel_hostd_was_installed_from(monkeypatch):
+    import importlib.metadata
+    import json
+
+    from hostd import extras
+
+    class Dist:
+        def read_text(self, name):
+            assert name == "direct_url.json"
+            return json.dumps({"url": "file:///srv/dl/hostd-0.1.0-cp311-cp311-linux_x86_64.whl",
+                               "archive_info": {}})
+
+    monkeypatch.setattr(extras, "_is_checkout", lambda root: False)
+    monkeypatch.setattr(importlib.metadata, "distribution", lambda name: Dist())
+    assert extras.pip_install("plot") == "pip install '/srv/dl/hostd-0.1.0-cp311-cp311-linux_x86_64.whl[plot]'"
+    with pytest.raises(extras.MissingExtra, match=r"pip install '/srv/dl/hostd-0\.1\.0.*\.whl\[nope\]'"):
+        extras.need("no_such_module_hostd", "nope", "this")
+
+    def none(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "distribution", none)  # unknown: says which wheel
+    assert "the wheel you installed hostd from" in extras.pip_install("device")
