@@ -189,7 +189,8 @@ def test_pip_hint_names_the_wheel_hostd_was_installed_from(monkeypatch):
 
     monkeypatch.setattr(extras, "_is_checkout", lambda root: False)
     monkeypatch.setattr(importlib.metadata, "distribution", lambda name: Dist())
-    assert extras.pip_install("plot") == "pip install '/srv/dl/hostd-0.1.0-cp311-cp311-linux_x86_64.whl[plot]'"
+    want = "pip install '/srv/dl/hostd-0.1.0-cp311-cp311-linux_x86_64.whl[plot]'"
+    assert extras.pip_install("plot") == want
     with pytest.raises(extras.MissingExtra, match=r"pip install '/srv/dl/hostd-0\.1\.0.*\.whl\[nope\]'"):
         extras.need("no_such_module_hostd", "nope", "this")
 
