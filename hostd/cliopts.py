@@ -127,8 +127,8 @@ def geometry_parent(from_stream: bool = False) -> argparse.ArgumentParser:
                    help="band limit at v_ref, Hz (default " + ("the stream's)" if from_stream else "400)"))
     g.add_argument("--thresholds", default=None, metavar="CSV",
                    help="detection-threshold curve (default: the stream's if embedded, else "
-                   "config/thresholds/default.csv)" if from_stream else
-                   "detection-threshold curve (default config/thresholds/default.csv)")
+                   "shipped default curve)" if from_stream else
+                   "detection-threshold curve (default: the shipped default curve, the paper's)")
     return p
 
 

@@ -77,7 +77,9 @@ def add_parser(sub, parents) -> None:
             b.add_argument("--peers", metavar="DIR", default=None,
                            help="only v2 against the peer codecs (MPEG-I Haptics RM, VC-PWQ) "
                            "built under DIR (or named by HOSTD_PEER_* variables): bytes for "
-                           "SPQI >= 0.9; see docs/benchmarks.md 'Peer codecs'")
+                           "SPQI >= 0.9. DIR holds the peers' own builds: "
+                           "VC-PWQ/build/source/testprogram/VC_PWQ and HapticReferenceSoftware/build/"
+                           "source/{Encoder/Encoder,Synthesizer/Synthesizer}")
     from hostd.cliopts import needs_subcommand
 
     p.set_defaults(func=needs_subcommand(p, "a benchmark (all: pipeline, codec and scoring)"))

@@ -286,7 +286,7 @@ def read_scores(path: str | Path, score_one=None) -> list[Stimulus]:
     cols = set(rows[0].keys())
     missing = [c for c in REQUIRED if c not in cols]
     if missing:
-        raise FitError(f"{p}: missing column(s) {', '.join(missing)}; see docs/fitting.md")
+        raise FitError(f"{p}: missing column(s) {', '.join(missing)}; see hostd fit --help")
     has_idx = {"Ip", "Ia"} <= cols
     if not has_idx and "stream" not in cols:
         raise FitError(f"{p}: give Ip and Ia columns, or a stream column (and profile)")

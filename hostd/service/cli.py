@@ -208,7 +208,8 @@ def add_parsers(sub) -> None:
     conn = _conn_parent()
     p = sub.add_parser("run", help="run the daemon (foreground; systemd runs it as a service)")
     p.add_argument("--config", default=None, metavar="FILE",
-                   help="config file (see config/hostd.toml); default: $HOSTD_CONFIG, else "
+                   help="config file (every key with its default: the shipped hostd.toml, which "
+                   "install-service copies to /etc/hostd); default: $HOSTD_CONFIG, else "
                    "/etc/hostd/hostd.toml if it exists, else the built-in defaults")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
                    help="least severe message logged (default info; debug adds per-request detail)")

@@ -212,13 +212,20 @@ def resolve_path(given: str | Path | None) -> str | None:
     return DEFAULT_PATH if Path(DEFAULT_PATH).is_file() else None
 
 
+def shipped_config():
+    """The shipped hostd.toml (every key with its default), in the installed package."""
+    from hostd import paths
+
+    return paths.shipped_dir() / "hostd.toml"
+
+
 def load(path: str | Path | None) -> Config:
     """Read and validate a config file (None: the defaults)."""
     cfg = Config()
     if path is None:
         return cfg
     p = Path(path)
-    doc = tomlfile.read(p, "config file", "start from config/hostd.toml")
+    doc = tomlfile.read(p, "config file", f"start from {shipped_config()}")
     cfg.path = str(p)
     sections = {f.name for f in fields(Config) if f.name != "path"}
     for section, table in doc.items():

@@ -42,13 +42,13 @@ def doctor(config: str | None, json_out: bool = False) -> int:
             print(f"  note  {msg}")
 
     head("config")
-    from hostd.service.config import load
+    from hostd.service.config import load, shipped_config
 
     try:
         cfg = load(config)
         ok(f"{cfg.path} is valid")
     except HostdError as e:
-        bad(str(e), "correct the key named above (config/hostd.toml documents every key)")
+        bad(str(e), f"correct the key named above ({shipped_config()} documents every key)")
         cfg = load(None)
     head("device")
     from hostd.device.backend import node_owner
@@ -179,7 +179,8 @@ def doctor(config: str | None, json_out: bool = False) -> int:
                 ok(f"rendered on the {st['render_at']}: {st['render_reason']}")
             if st["texture"] and st["played_fraction"] < 0.99:
                 note("the display played less than 99 % of the time: see `hostd status`; host stalls "
-                     "are what it recovers from (docs/daemon.md, real-time settings)")
+                     "are what it recovers from (the real-time checks above; hostd bench soak "
+                     "measures it)")
         except HostdError as e:
             bad(str(e), "systemctl restart hostd")
     else:

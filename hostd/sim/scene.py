@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostd import tomlfile
+from hostd import paths, tomlfile
 from hostd.errors import ConfigError, ProfileError
 
 SETTLE_S = 0.15  # soft start (50 ms) and filters settle before delivered samples count
@@ -55,7 +55,7 @@ class Scene:
 
 def load(path: str | Path) -> Scene:
     p = Path(path)
-    doc = tomlfile.read(p, "scene", "shipped ones are in config/scenes/")
+    doc = tomlfile.read(p, "scene", f"shipped ones are in {paths.scenes_dir()}")
     allowed = {"name", "description", "duration_s", "seed", "texture", "hand", "effects"}
     for k in doc:
         if k not in allowed:
