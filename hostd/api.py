@@ -38,7 +38,8 @@ __all__ = ["Profile", "Stream", "decode", "encode", "fit", "load_profile", "rend
 def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
                  spacing: float | None = None, length_mm: float | None = 10.0,
                  offset_mm: float = 0.0, detrend: str = "none",
-                 columns: tuple[int, ...] | None = None, decimal_comma: bool = False) -> Profile:
+                 columns: tuple[int, ...] | None = None, decimal_comma: bool = False,
+                 var: str | None = None) -> Profile:
     """Load a height profile as micrometres on a uniform grid, cut to a patch.
 
     Parameters
@@ -61,6 +62,9 @@ def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
         0-based columns (x, height) or (height,) of a text file.
     decimal_comma : bool
         Numbers written with a decimal comma (``1,5``).
+    var : str, optional
+        A MATLAB ``.mat`` file's variable holding the profile (needed when it holds several
+        arrays), or ``"X,Y"``: an x and a height vector.
 
     Returns
     -------
@@ -74,7 +78,7 @@ def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
     opts = LoadOptions(x_unit=x_unit, y_unit=y_unit, spacing=spacing, length_mm=length_mm,
                        offset_mm=offset_mm, detrend=detrend,
                        columns=tuple(columns) if columns is not None else None,
-                       decimal_comma=decimal_comma)
+                       decimal_comma=decimal_comma, member=var)
     if synth.is_spec(str(source)):
         prof = synth.from_spec(str(source))
         return cut_patch(prof.heights_um, prof.spacing_um, opts, str(source))

@@ -112,6 +112,9 @@ def loader_parent(length_default: float | None = 10.0) -> argparse.ArgumentParse
                    "column Y for heights only (with --spacing). Default: one or two columns")
     g.add_argument("--decimal-comma", action="store_true",
                    help="text files: numbers use a decimal comma (1,5); columns split on ; tab or space")
+    g.add_argument("--var", default=None, metavar="NAME",
+                   help=".mat files: the variable that holds the profile, when there are several "
+                   "(or X,Y: an x and a height vector)")
     return p
 
 
@@ -162,6 +165,7 @@ def load_opts(args: argparse.Namespace, length_mm: float | None = None):
         columns=parse_columns(getattr(args, "columns", None)),
         decimal_comma=bool(getattr(args, "decimal_comma", False)),
         progress=sys.stderr.isatty(),
+        member=getattr(args, "var", None),
     )
 
 
@@ -177,6 +181,7 @@ def read_profile(spec: str, args: argparse.Namespace, length_mm: float | None = 
             ("--x-unit", getattr(args, "x_unit", None) is not None),
             ("--columns", getattr(args, "columns", None) is not None),
             ("--decimal-comma", getattr(args, "decimal_comma", False)),
+            ("--var", getattr(args, "var", None) is not None),
             ("--y-unit", getattr(args, "y_unit", "um") != "um")) if given]
         if ignored:
             warn(command, f"{', '.join(ignored)} ignored for {spec} (synthetic profiles are "

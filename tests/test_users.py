@@ -230,3 +230,65 @@ def test_fit_points_at_its_help_for_the_columns(tmp_path):
     r = subprocess.run([sys.executable, "-m", "hostd", "fit", str(tmp_path / "s.csv")], capture_output=True,
                        text=True, timeout=120)
     assert r.returncode == 2 and "see hostd fit --help" in r.stderr and "docs/" not in r.stderr, r.stderr
+
+
+# ---------------------------------------------------------------- MATLAB .mat profiles
+
+
+@pytest.fixture
+def mats(tmp_path):
+    import numpy as np
+    import scipy.io
+
+    x_um = np.arange(20000) * 0.5
+    h_um = np.sin(x_um / 7.0) + 0.3 * np.cos(x_um / 3.1)
+    scipy.io.savemat(tmp_path / "one.mat", {"h": h_um})
+    scipy.io.savemat(tmp_path / "two.mat", {"x": x_um, "z": h_um, "meta": np.array([1.0, 2.0])})
+    scipy.io.savemat(tmp_path / "cols.mat", {"p": np.column_stack([x_um, h_um])})
+    hdr = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, HDF5 schema 1.00 .".ljust(116, b" ") + b"\0" * 8
+    (tmp_path / "v73.mat").write_bytes(hdr + b"\x00\x02IM" + b"\x89HDF\r\n\x1a\n" + b"\0" * 400)
+    np.savetxt(tmp_path / "ref.csv", np.column_stack([x_um, h_um]), delimiter=",")
+    return tmp_path
+
+
+def test_mat_profiles_read_like_the_same_numbers_in_csv(mats):
+    import numpy as np
+
+    from hostd import api
+    from hostd.texture import formats
+
+    assert formats.format_for("a.MAT").name == "matlab"
+    ref = api.load_profile(mats / "ref.csv").heights_um
+    for f, kw in (("one.mat", {"spacing": 0.5}), ("two.mat", {"var": "x,z"}), ("cols.mat", {}),
+                  ("two.mat", {"var": "z", "spacing": 0.5})):
+        got = api.load_profile(mats / f, **kw).heights_um
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12, err_msg=f)
+
+
+def test_mat_errors_say_what_to_do(mats):
+    from hostd import api
+    from hostd.errors import ProfileError
+
+    with pytest.raises(ProfileError, match=r"several arrays \(x 1x20000, z 1x20000, meta 1x2\): choose one "
+                       r"with --var NAME"):
+        api.load_profile(mats / "two.mat")
+    with pytest.raises(ProfileError, match=r"no variable 'q' \(its numeric arrays: x 1x20000"):
+        api.load_profile(mats / "two.mat", var="q")
+    with pytest.raises(ProfileError, match=r"v7\.3 \(HDF5\) file.*save it as v7 .*'-v7'"):
+        api.load_profile(mats / "v73.mat")
+
+
+def test_mat_through_the_cli_and_scipy_io_only_for_mat(mats):
+    def run(*a):
+        return subprocess.run([sys.executable, "-m", "hostd", *a], capture_output=True, text=True,
+                              timeout=120, cwd=mats)
+
+    r = run("encode", "two.mat", "--var", "x,z", "-o", "t.vtx", "--method", "quant", "--levels", "14")
+    assert r.returncode == 0, r.stderr
+    r = run("encode", "v73.mat", "-o", "t.vtx", "--method", "quant", "--levels", "14")
+    assert r.returncode == 2 and len(r.stderr.splitlines()) == 1 and "-v7" in r.stderr, r.stderr
+    code = ("import sys; from hostd.cli import main; "
+            "main(['encode', 'ref.csv', '-o', 'u.vtx', '--method', 'quant', '--levels', '14']); "
+            "print('scipy.io.matlab' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=mats, timeout=120)
+    assert r.stdout.strip() == "False", r.stderr

@@ -61,6 +61,8 @@ _BUILTIN: tuple[Format, ...] = (
     Format("text", (".csv", ".txt", ".dat", ".asc", ".xyz", ".prf", ".tsv"),
            "hostd.texture.load:read_text",
            "one or two numeric columns; instrument preambles skipped (--columns, --decimal-comma)"),
+    Format("matlab", (".mat",), "hostd.texture.matfile:read_mat",
+           "MATLAB v4-v7 (v7.3 is HDF5: save with -v7); --var NAME picks an array, --var X,Y two vectors"),
 )
 TEXT = _BUILTIN[1]  # any suffix not registered is read as text
 
