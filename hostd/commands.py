@@ -265,6 +265,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from hostd.api import render_stroke
     from hostd.errors import ConfigError
 
+    _check_wav_name(args.output)
     s = _read_stream(args.stream)
     if not (0 < args.seconds <= 3600):
         raise ConfigError(f"--seconds must be within 0..3600, got {args.seconds:g}")
@@ -294,6 +295,27 @@ def cmd_render(args: argparse.Namespace) -> int:
         print(f"{args.output}: {h.size} samples at {args.rate:g} Hz ({args.format}), peak {peak:.4g} µm, "
               f"full scale ±{full:g} µm = ±1.0", file=sys.stderr)
     return 0
+
+
+def _check_wav_name(output: str) -> None:
+    """hostd render writes WAV: a file named for another format (out.mp3) is refused before any
+    work; '-' (stdout), a device or a FIFO take the WAV bytes as they are."""
+    import stat
+
+    from hostd.errors import ConfigError
+
+    if output == "-" or Path(output).suffix.lower() == ".wav":
+        return
+    try:
+        if not stat.S_ISREG(Path(output).stat().st_mode):
+            return
+    except OSError:
+        pass
+    suffix = Path(output).suffix or "no extension"
+    wav = Path(output).with_suffix(".wav").name
+    raise ConfigError(f"-o {output}: hostd render writes WAV files only ({suffix} is not .wav): name it "
+                      f"{wav}, and convert it afterwards for another format (e.g. ffmpeg -i {wav} "
+                      f"{Path(output).name})")
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -292,3 +292,20 @@ def test_mat_through_the_cli_and_scipy_io_only_for_mat(mats):
             "print('scipy.io.matlab' in sys.modules)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=mats, timeout=120)
     assert r.stdout.strip() == "False", r.stderr
+
+
+def test_render_refuses_an_extension_it_cannot_write(tmp_path):
+    vtx = tmp_path / "w.vtx"
+    assert main(["encode", "synthetic:wood:1", "-o", str(vtx), "--method", "quant", "--levels", "14"]) == 0
+
+    def run(out):
+        return subprocess.run([sys.executable, "-m", "hostd", "render", str(vtx), "-o", out, "--seconds", "0.05"],
+                              capture_output=True, timeout=120, cwd=tmp_path)
+
+    r = run("out.mp3")
+    err = r.stderr.decode()
+    assert r.returncode == 2 and "writes WAV files only" in err and "out.wav" in err, err
+    assert not (tmp_path / "out.mp3").exists()
+    assert run("out.WAV").returncode == 0 and (tmp_path / "out.WAV").read_bytes()[:4] == b"RIFF"
+    r = run("-")
+    assert r.returncode == 0 and r.stdout[:4] == b"RIFF"
