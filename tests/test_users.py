@@ -299,7 +299,8 @@ def test_render_refuses_an_extension_it_cannot_write(tmp_path):
     assert main(["encode", "synthetic:wood:1", "-o", str(vtx), "--method", "quant", "--levels", "14"]) == 0
 
     def run(out):
-        return subprocess.run([sys.executable, "-m", "hostd", "render", str(vtx), "-o", out, "--seconds", "0.05"],
+        return subprocess.run([sys.executable, "-m", "hostd", "render", str(vtx), "-o", out,
+                               "--seconds", "0.05"],
                               capture_output=True, timeout=120, cwd=tmp_path)
 
     r = run("out.mp3")
