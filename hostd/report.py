@@ -15,7 +15,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from hostd.bench.common import cpu_median_s, one_blas_thread
 from hostd.codec import stream as vtx
@@ -24,6 +23,7 @@ from hostd.errors import HostdError
 from hostd.perception import indices, peer
 from hostd.perception.thresholds import ThresholdCurve
 from hostd.plotting import log_byte_axis, place_labels
+from hostd.tty import progress_bar
 
 TABLE_I_LEVELS = (14, 12, 10, 8, 6, 5, 4)
 TABLE_I_B0 = (-12, -8, -4, 0, 4, 8, 12)
@@ -100,8 +100,8 @@ def sweep(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve,
     jobs += v2_jobs(top)
     rows = []
     with one_blas_thread():  # once: the CPU figures are this thread's work alone
-        for label, kw in tqdm(jobs, desc="rate-quality", unit="stream", disable=not progress,
-                              leave=False):
+        for label, kw in progress_bar(progress, iterable=jobs, desc="rate-quality", unit="stream",
+                                      leave=False):
             rows.append(_row(label, kw, y_um, c, geometry, curve, b_k, ref, ab, with_peers, repeats))
     return rows
 

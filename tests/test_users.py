@@ -310,3 +310,47 @@ def test_render_refuses_an_extension_it_cannot_write(tmp_path):
     assert run("out.WAV").returncode == 0 and (tmp_path / "out.WAV").read_bytes()[:4] == b"RIFF"
     r = run("-")
     assert r.returncode == 0 and r.stdout[:4] == b"RIFF"
+
+
+# ---------------------------------------------------------------- progress only on a terminal
+
+
+def test_progress_bars_only_on_a_terminal():
+    """The same bar: drawn (with '\\r') on a pseudo-terminal, nothing in a pipe (a log)."""
+    import os
+    import pty
+
+    code = ("from hostd.tty import progress_bar\n"
+            "for _ in progress_bar(True, iterable=range(5), desc='working', mininterval=0): pass\n"
+            "import sys; sys.stderr.write('done\\n')")
+    piped = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert piped.returncode == 0 and piped.stderr == "done\n", piped.stderr
+    main_fd, sub_fd = pty.openpty()
+    import fcntl
+    import struct
+    import termios
+
+    fcntl.ioctl(sub_fd, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))  # a terminal 80 wide
+    try:
+        p = subprocess.Popen([sys.executable, "-c", code], stderr=sub_fd, stdout=subprocess.DEVNULL)
+        os.close(sub_fd)
+        out = b""
+        while True:
+            try:
+                chunk = os.read(main_fd, 4096)
+            except OSError:  # EIO: the child closed the terminal
+                break
+            if not chunk:
+                break
+            out += chunk
+        assert p.wait(timeout=60) == 0
+    finally:
+        os.close(main_fd)
+    assert b"working" in out and b"\r" in out, out
+
+
+def test_progress_goes_through_one_helper():
+    """Every bar of the package is hostd.tty.progress_bar (which checks for a terminal)."""
+    users = [str(f.relative_to(ROOT)) for f in (ROOT / "hostd").rglob("*.py")
+             if "tqdm(" in f.read_text() and f.name != "tty.py"]
+    assert not users, users

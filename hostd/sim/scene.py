@@ -237,11 +237,12 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False, shared
         n_arrive = len(arrive_sorted)
         last_t = -1.0
         r.start()
-        from tqdm import tqdm
+        from hostd.tty import progress_bar
 
         on_encoder, plan, render_um = r.on_encoder, r.plan, r.render_um
-        for j, th in enumerate(tqdm(t_host.tolist(), disable=not progress, unit="ms", leave=False,
-                                    desc=f"{sc.name} {'+'.join(names) or 'ideal'}", mininterval=0.5)):
+        for j, th in enumerate(progress_bar(progress, iterable=t_host.tolist(), unit="ms", leave=False,
+                                            desc=f"{sc.name} {'+'.join(names) or 'ideal'}",
+                                            mininterval=0.5)):
             while m < n_arrive and arrive_sorted[m] <= th + 1e-12:
                 if t_dev_sorted[m] > last_t:  # a report older than one already seen adds nothing
                     on_encoder(t_dev_sorted[m], counts_sorted[m])

@@ -185,12 +185,12 @@ def read_columns(path: Path, columns: tuple[int, ...] | None = None, decimal_com
             raise ProfileError(
                 f"{path} holds about {est_rows:,} rows ({size / 2**20:.0f} MiB), more than the "
                 f"{MAX_ROWS:,} a profile may have: take a patch with --length-mm (and --offset-mm)")
-        from tqdm import tqdm
+        from hostd.tty import progress_bar
 
         for attempt_stop in ((stop_x, None) if stop_x is not None else (None,)):
             fh.seek(offset)
-            with tqdm(total=size - offset, unit="B", unit_scale=True, desc=f"reading {path.name}",
-                      disable=not (progress and size >= PROGRESS_BYTES), leave=False) as bar:
+            with progress_bar(progress and size >= PROGRESS_BYTES, total=size - offset, unit="B",
+                              unit_scale=True, desc=f"reading {path.name}", leave=False) as bar:
                 src = _Source(fh, bar, None if delim is None else delim.decode(),
                               usecols[0] if len(usecols) == 2 else None, attempt_stop)
                 arr = _parse(src, delim, usecols, first_line)
