@@ -57,10 +57,8 @@ def cmd_encode(args: argparse.Namespace) -> int:
     _write_bytes_atomic(args.output, data)
     for note in res["notes"]:
         warn("encode", note)
-    if res.get("size_set_by") == "waveform":
-        print(f"hostd encode: note: the waveform criterion (SPQI >= {res['spqi_min']:g}), not Iobj, set "
-              f"the size: Iobj {res['Iobj']:.4f} is under --target-iobj {args.target_iobj:g}; a lower "
-              "--spqi-min (or --no-guard, Iobj alone) gives a smaller stream", file=sys.stderr)
+    if res.get("size_note"):
+        print(f"hostd encode: note: {res['size_note']}", file=sys.stderr)
     if res["chosen"] is not None:
         print(f"chose {res['chosen']} after {res['encodes']} encodes in "
               f"{res['search_cpu_s'] * 1e3:.0f} ms CPU", file=sys.stderr)

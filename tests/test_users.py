@@ -354,3 +354,59 @@ def test_progress_goes_through_one_helper():
     users = [str(f.relative_to(ROOT)) for f in (ROOT / "hostd").rglob("*.py")
              if "tqdm(" in f.read_text() and f.name != "tty.py"]
     assert not users, users
+
+
+# ---------------------------------------------------------------- the API: exceptions, notes, warnings
+
+
+def test_api_errors_are_the_builtin_exceptions_callers_catch(tmp_path):
+    import numpy as np
+
+    from hostd import api
+    from hostd.errors import HostdError, ProfileError
+
+    with pytest.raises(FileNotFoundError) as e:
+        api.load_profile("/nonexistent")
+    assert isinstance(e.value, ProfileError) and isinstance(e.value, HostdError)
+    assert str(e.value) == "no such profile file: /nonexistent"
+    with pytest.raises(FileNotFoundError):
+        api.load_profile(tmp_path / "missing.npy")
+    with pytest.raises(ValueError, match=r"unknown method .bogus."):
+        api.encode(np.sin(np.arange(2000) / 5.0), length_mm=1.0, method="bogus")
+    with pytest.raises(ValueError):
+        api.decode(b"not a stream")
+    np.savetxt(tmp_path / "p.csv", np.sin(np.arange(2000) / 5.0))
+    with pytest.raises(ValueError, match="unknown y unit 'furlong'"):
+        api.load_profile(tmp_path / "p.csv", y_unit="furlong", spacing=0.5)
+    with pytest.raises(FileNotFoundError):
+        api.encode(np.sin(np.arange(2000) / 5.0), length_mm=1.0, method="quant", levels=8,
+                   thresholds=str(tmp_path / "none.csv"))
+
+
+def test_cli_keeps_its_one_line_message_and_exit_code(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "hostd", "encode", str(tmp_path / "no.csv"), "-o", "x.vtx",
+                        "--method", "quant"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert r.returncode == 2 and r.stderr == f"hostd encode: error: no such profile file: {tmp_path}/no.csv\n"
+
+
+def test_api_returns_and_warns_what_the_cli_notes():
+    import warnings
+
+    from hostd import api
+    from hostd.errors import HostdWarning
+    from hostd.texture import synth
+
+    p = synth.wood(seed=4)  # the waveform criterion, not Iobj, sets the size (test_ratecontrol_report)
+    with pytest.warns(HostdWarning, match=r"the waveform criterion \(SPQI >= 0\.9\), not Iobj, set the size"):
+        res = api.encode(p.heights_um, length_mm=p.length_mm, target_iobj=0.05)
+    assert res["size_set_by"] == "waveform"
+    assert res["size_note"] in res["notes"]
+    assert "target_iobj=" in res["size_note"] and "--target-iobj" not in res["size_note"]  # API words
+    assert issubclass(HostdWarning, UserWarning)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warnings.simplefilter("ignore", HostdWarning)  # filterable on its own
+        api.encode(p.heights_um, length_mm=p.length_mm, method="quant", levels=14, b0_db=-3)
+    with pytest.warns(HostdWarning, match="b0_db= is ignored with method= quant"):
+        res = api.encode(p.heights_um, length_mm=p.length_mm, method="quant", levels=14, b0_db=-3)
+    assert any("b0_db=" in n for n in res["notes"])

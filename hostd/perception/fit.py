@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import scipy.optimize
 
-from hostd.errors import FitError
+from hostd.errors import FitError, HostdError
 from hostd.texture import synth
 
 REQUIRED = ("texture", "method", "level", "score")
@@ -303,6 +303,8 @@ def read_scores(path: str | Path, score_one=None) -> list[Stimulus]:
                 if prof and not synth.is_spec(prof):
                     prof = str(p.parent / prof)
                 ip, ia = score_one(p.parent / r["stream"], prof)
+        except HostdError:  # (a ValueError too) its own message: the stream or profile named
+            raise
         except (ValueError, TypeError):
             raise FitError(f"{p}:{i}: score, Ip and Ia must be numbers") from None
         out.append(Stimulus(r["texture"], r["method"], r["level"], score, ip, ia))

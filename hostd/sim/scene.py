@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from hostd import paths, tomlfile
-from hostd.errors import ConfigError, ProfileError
+from hostd.errors import ConfigError, HostdError, ProfileError
 
 SETTLE_S = 0.15  # soft start (50 ms) and filters settle before delivered samples count
 FS = 3000.0
@@ -78,6 +78,8 @@ def load(path: str | Path) -> Scene:
         from hostd.sim import effects as fx
 
         fx.build(sc.effects, sc.seed)
+    except HostdError:  # (a ValueError too) already names what to change
+        raise
     except (ValueError, KeyError, TypeError) as e:
         raise ConfigError(f"{p}: {e}") from None
     return sc

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostd.errors import ProfileError
+from hostd.errors import ProfileError, ProfileNotFound
 
 UNITS_TO_UM = {"m": 1e6, "mm": 1e3, "um": 1.0, "µm": 1.0, "nm": 1e-3}
 _SPLIT = re.compile(r"[,;\s]+")
@@ -162,6 +162,8 @@ def read_columns(path: Path, columns: tuple[int, ...] | None = None, decimal_com
     try:
         size = path.stat().st_size
         fh = path.open("r", encoding="latin-1", newline="")
+    except FileNotFoundError:
+        raise ProfileNotFound(f"no such profile file: {path}") from None
     except OSError as exc:
         raise ProfileError(f"cannot read {path}: {exc.strerror or exc}") from None
     with fh:
@@ -299,7 +301,7 @@ def read_npy(p: Path, opts: LoadOptions) -> np.ndarray:
     try:
         arr = np.load(p, allow_pickle=False, mmap_mode="r")
     except FileNotFoundError:
-        raise ProfileError(f"no such profile file: {p}") from None
+        raise ProfileNotFound(f"no such profile file: {p}") from None
     except (OSError, ValueError) as exc:
         raise ProfileError(f"cannot read {p} as .npy: {exc}") from None
     if np.iscomplexobj(arr):
@@ -326,7 +328,7 @@ def read_npy(p: Path, opts: LoadOptions) -> np.ndarray:
 def read_text(p: Path, opts: LoadOptions) -> np.ndarray:
     """The text reader of the format registry: any suffix no other format claims."""
     if not p.exists():
-        raise ProfileError(f"no such profile file: {p}")
+        raise ProfileNotFound(f"no such profile file: {p}")
     stop_x = None
     if opts.length_mm is not None and math.isfinite(opts.length_mm):
         # a patch of a two-column file: read no further than it needs (plus a margin)

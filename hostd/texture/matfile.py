@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostd.errors import ProfileError
+from hostd.errors import ProfileError, ProfileNotFound
 from hostd.texture.formats import Columns
 
 V73_HINT = ("is a MATLAB v7.3 (HDF5) file, which hostd cannot read: save it as v7 in MATLAB "
@@ -29,7 +29,7 @@ def _load(p: Path) -> dict[str, np.ndarray]:
     from scipy.io.matlab import matfile_version
 
     if not p.exists():
-        raise ProfileError(f"no such profile file: {p}")
+        raise ProfileNotFound(f"no such profile file: {p}")
     try:
         with p.open("rb") as fh:
             major, _minor = matfile_version(fh)
