@@ -185,7 +185,8 @@ def encode(profile: Profile | np.ndarray, *, method: str | None = None, format: 
         ``n``, ``n_keep``, ``kept``, ``bytes``, ``ratio_coeffs``, ``ratio_profile``, ``Ip``,
         ``Ia``, ``Iobj``, ``a``, ``b``, ``spqi``, ``wsnr_db``, ``ssnr_db``, ``notes`` (what the
         CLI prints as warnings and notes, each also raised as a ``hostd.errors.HostdWarning``,
-        a UserWarning: ``warnings.simplefilter("ignore", HostdWarning)`` silences them); with `target_iobj` also ``target_iobj``, ``spqi_min``,
+        a UserWarning: ``warnings.simplefilter("ignore", HostdWarning)`` silences them); with
+        `target_iobj` also ``target_iobj``, ``spqi_min``,
         ``waveform_verified`` (True: SPQI >= spqi_min measured on this stream; False: SPQI
         could not be computed, see notes), ``size_set_by`` ("Iobj" or "waveform": which
         criterion kept a smaller stream out; ``size_note`` says so when it was the waveform),

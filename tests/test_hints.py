@@ -112,7 +112,7 @@ def test_bench_load_and_codec_report_progress_steps():
     assert len(steps) == 5
     bar = common.progress(3, "x")  # stderr is not a terminal under pytest: no bar
     assert bar.disable
-    assert common.progress(3, "x", enabled=True).disable  # asked for, but a pipe or log: still none (issue 32)
+    assert common.progress(3, "x", enabled=True).disable  # asked for, but not a terminal: none (issue 32)
 
 
 def test_sim_table_combined_row_keeps_the_columns(monkeypatch, capsys):
