@@ -227,7 +227,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_status)
     p = sub.add_parser("stop", parents=[conn], help="stop playing (ramp to zero); --daemon stops hostd")
-    p.add_argument("--daemon", action="store_true", help="shut the daemon down")
+    p.add_argument("--daemon", action="store_true",
+                   help="shut the daemon down (root or the daemon's own user only; under systemd: "
+                   "systemctl stop hostd)")
     p.set_defaults(func=cmd_stop)
     p = sub.add_parser("quality", parents=[conn], help="read the quality log (Ip, Ia, Iobj per stream)")
     p.add_argument("--since", default=None, metavar="T",
