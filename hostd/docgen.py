@@ -120,8 +120,8 @@ the quality log (\fBhostd quality\fR reads it)
 the unit \fBhostd install\-service\fR installs (stop the service with \fBsystemctl stop hostd\fR)
 .TP
 .I /etc/udev/rules.d/70\-hostd.rules
-gives group \fBhostd\fR the display's device nodes and names them
-/dev/hostd/display (the latest plugged in) and /dev/hostd/by\-serial/SERIAL (one per display)
+gives group \fBhostd\fR the display's device nodes and names them /dev/hostd/by\-serial/hid\-SERIAL
+and /dev/hostd/by\-serial/tty\-SERIAL, one per display (\fB[device] serial\fR picks one of several)
 .SH SEE ALSO
 .BR systemctl (1),
 .BR systemd.unit (5),
