@@ -410,3 +410,50 @@ def test_api_returns_and_warns_what_the_cli_notes():
     with pytest.warns(HostdWarning, match="b0_db= is ignored with method= quant"):
         res = api.encode(p.heights_um, length_mm=p.length_mm, method="quant", levels=14, b0_db=-3)
     assert any("b0_db=" in n for n in res["notes"])
+
+
+# ---------------------------------------------------------------- the rate-quality PNG
+
+
+def test_rate_quality_png_has_no_overlapping_texts(tmp_path, monkeypatch):
+    """At its default size, every text the PNG draws (titles, tick labels, axis labels, the
+    settings' labels, the legend) has a box of its own: recorded as Agg draws them (texts
+    outside the view are not drawn), measured with get_window_extent. synthetic:wood:5 had
+    L=6 on L=14 and L=4 on L=8 before."""
+    import itertools
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_agg import RendererAgg
+
+    from hostd import report
+    from hostd.codec import transform
+    from hostd.perception import thresholds
+    from hostd.texture import synth
+    from hostd.texture.load import LoadOptions, cut_patch
+
+    drawn = []
+    draw_text = RendererAgg.draw_text
+
+    def record(self, gc, x, y, s, prop, angle, ismath=False, mtext=None):
+        if mtext is not None and s.strip():
+            drawn.append(mtext)
+        return draw_text(self, gc, x, y, s, prop, angle, ismath, mtext)
+
+    monkeypatch.setattr(RendererAgg, "draw_text", record)
+    prof = synth.make("wood", seed=5)
+    p = cut_patch(prof.heights_um, prof.spacing_um, LoadOptions(), "wood:5")
+    geom = transform.Geometry(p.n, p.length_mm)
+    rows = report.sweep(p.heights_um, geom, thresholds.default_curve(), with_peers=True, progress=False,
+                        repeats=1)
+    fig = report.figure(rows, "synthetic:wood:5", 2 * geom.n_keep, ab=(0.581, 0.464))  # what plot() saves
+    fig.savefig(tmp_path / "rq.png")
+    renderer = fig.canvas.get_renderer()
+    boxes = [(t.get_text(), t.get_window_extent(renderer)) for t in drawn]
+    assert len(boxes) > 80 and sum(t.startswith(("L=", "g=")) for t, _ in boxes) >= 8  # labels remain
+    overlaps = [(a, b) for (a, ba), (b, bb) in itertools.combinations(boxes, 2) if ba.overlaps(bb)]
+    assert not overlaps, overlaps
+    assert all(fig.bbox.contains(b.x0, b.y0) and fig.bbox.contains(b.x1, b.y1) for _, b in boxes)
+    plt.close("all")
