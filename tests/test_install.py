@@ -274,7 +274,7 @@ def test_base_install_works_without_plot_and_sim_extras(tmp_path):
     assert r.returncode == 2 and "pip install '" in r.stderr and "[plot]'" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "rq").exists()
     r = _without_extras(tmp_path, "sim", "ideal", "--quiet")
-    assert r.returncode == 2 and "pip install 'hostd[sim]'" in r.stderr, r.stderr
+    assert r.returncode == 2 and "pip install '" in r.stderr and "[sim]'" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     import numpy as np
 
