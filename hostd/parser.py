@@ -151,6 +151,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="install-service installs it as /usr/local/share/man/man8/hostd.8")
     p.set_defaults(func=commands.cmd_manpage)
 
+    # ---- rooms: each registers its subcommands with its own add_parser(sub); a new room adds
+    # its import and its call here (and nowhere else: docgen, completion and --help follow)
     from hostd.bench.cli import add_parser as add_bench
     from hostd.service.cli import add_parsers as add_service
     from hostd.sim.cli import add_parser as add_sim
