@@ -1,5 +1,6 @@
 """Issue 32: the toolkit and the service as users meet them (completion, man page, hints, API)."""
 
+import os
 import shutil
 import subprocess
 import sys
@@ -100,13 +101,31 @@ def test_fish_completion_completes_files_and_commands(files_here, capsys):
 
 @pytest.mark.skipif(shutil.which("zsh") is None, reason="zsh is not installed (apt-get install zsh)")
 def test_zsh_completion_parses_and_offers_files(tmp_path, capsys):
-    """zsh's completion runs only inside its line editor; checked here: the script parses and every
-    argument that takes a file is completed with _files (shtab's spec), e.g. encode's profile."""
+    """The script parses; a real zsh (its line editor on a pseudo-terminal, tests/zsh_capture.zsh)
+    completes file names for encode's profile and -o, and command names; the spec gives encode's
+    profile _files. (Options after '-' come back empty in this harness even for a hand-written
+    two-option _arguments spec: not checked here.)"""
     assert main(["completion", "zsh"]) == 0
     script = capsys.readouterr().out
     (tmp_path / "_hostd").write_text(script)
     r = subprocess.run(["zsh", "-n", str(tmp_path / "_hostd")], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
+    (tmp_path / "fp").mkdir()
+    (tmp_path / "fp" / "_hostd").write_text(script)
+    (tmp_path / "w").mkdir()
+    for f in ("prof.csv", "pq.vtx"):
+        (tmp_path / "w" / f).write_text("")
+
+    def complete(line):  # a real zsh on a pseudo-terminal, completion system loaded, then TAB
+        r = subprocess.run(["zsh", "-f", str(ROOT / "tests" / "zsh_capture.zsh"), line], cwd=tmp_path / "w",
+                           capture_output=True, text=True, timeout=60,
+                           env={**os.environ, "FPATH_EXTRA": str(tmp_path / "fp"), "TMPDIR_Z": str(tmp_path)})
+        assert r.returncode == 0, r.stderr
+        return {ln.strip() for ln in r.stdout.splitlines() if ln.strip()}
+
+    assert {"prof.csv", "pq.vtx"} <= complete("hostd encode p")
+    assert {"prof.csv", "pq.vtx"} <= complete("hostd encode -o p")
+    assert complete("hostd enc") == {"encode"}
     enc = script.split("_shtab_hostd_encode_options=(", 1)[1].split("\n)", 1)[0]
     assert enc.count(":_files") >= 3 and '":profile file' in enc  # the profile, -o, --thresholds
     pos = [ln for ln in enc.splitlines() if ln.startswith('  ":profile file')]
