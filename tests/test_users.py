@@ -102,9 +102,7 @@ def test_fish_completion_completes_files_and_commands(files_here, capsys):
 @pytest.mark.skipif(shutil.which("zsh") is None, reason="zsh is not installed (apt-get install zsh)")
 def test_zsh_completion_parses_and_offers_files(tmp_path, capsys):
     """The script parses; a real zsh (its line editor on a pseudo-terminal, tests/zsh_capture.zsh)
-    completes file names for encode's profile and -o, and command names; the spec gives encode's
-    profile _files. (Options after '-' come back empty in this harness even for a hand-written
-    two-option _arguments spec: not checked here.)"""
+    completes file names where a command takes a file, commands, options and choices."""
     assert main(["completion", "zsh"]) == 0
     script = capsys.readouterr().out
     (tmp_path / "_hostd").write_text(script)
@@ -126,6 +124,10 @@ def test_zsh_completion_parses_and_offers_files(tmp_path, capsys):
     assert {"prof.csv", "pq.vtx"} <= complete("hostd encode p")
     assert {"prof.csv", "pq.vtx"} <= complete("hostd encode -o p")
     assert complete("hostd enc") == {"encode"}
+    assert complete("hostd completion ") == {"bash", "zsh", "fish"}
+    assert complete("hostd encode --method ") == {"shaped", "quant", "cut"}
+    assert "--target-iobj" in complete("hostd encode --tar")
+    assert "prof.csv" not in complete("hostd list ")  # no file where none is taken
     enc = script.split("_shtab_hostd_encode_options=(", 1)[1].split("\n)", 1)[0]
     assert enc.count(":_files") >= 3 and '":profile file' in enc  # the profile, -o, --thresholds
     pos = [ln for ln in enc.splitlines() if ln.startswith('  ":profile file')]

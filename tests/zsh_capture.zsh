@@ -2,7 +2,7 @@
 # on a pseudo-terminal (zpty) whose compadd prints instead of inserting. Adapted from
 # zsh-capture-completion (Valodim, MIT). tests/test_users.py runs it with FPATH_EXTRA (the
 # directory holding _hostd) and TMPDIR_Z (for compinit's dump).
-# prints the completions zsh offers for the words given (a line typed, then TAB), one per line
+
 zmodload zsh/zpty || exit 3
 zpty z zsh -f -i
 local line
