@@ -3,6 +3,7 @@
 # zsh-capture-completion (Valodim, MIT). tests/test_users.py runs it with FPATH_EXTRA (the
 # directory holding _hostd) and TMPDIR_Z (for compinit's dump).
 
+[[ -n $TMPDIR_Z && -n $FPATH_EXTRA ]] || { echo "set FPATH_EXTRA and TMPDIR_Z" >&2; exit 2 }
 zmodload zsh/zpty || exit 3
 zpty z zsh -f -i
 local line
