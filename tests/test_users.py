@@ -299,15 +299,15 @@ def test_mat_errors_say_what_to_do(mats):
         api.load_profile(mats / "v73.mat")
 
 
-def test_mat_through_the_cli_and_scipy_io_only_for_mat(mats):
+def test_mat_through_the_cli_and_scipy_io_only_for_mat(mats, capsys):
     def run(*a):
-        return subprocess.run([sys.executable, "-m", "hostd", *a], capture_output=True, text=True,
-                              timeout=120, cwd=mats)
+        return main(["encode", *(str(mats / x) if x.endswith((".mat", ".vtx")) else x for x in a)])
 
-    r = run("encode", "two.mat", "--var", "x,z", "-o", "t.vtx", "--method", "quant", "--levels", "14")
-    assert r.returncode == 0, r.stderr
-    r = run("encode", "v73.mat", "-o", "t.vtx", "--method", "quant", "--levels", "14")
-    assert r.returncode == 2 and len(r.stderr.splitlines()) == 1 and "-v7" in r.stderr, r.stderr
+    assert run("two.mat", "--var", "x,z", "-o", "t.vtx", "--method", "quant", "--levels", "14") == 0
+    capsys.readouterr()
+    assert run("v73.mat", "-o", "t.vtx", "--method", "quant", "--levels", "14") == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "-v7" in err, err
     code = ("import sys; from hostd.cli import main; "
             "main(['encode', 'ref.csv', '-o', 'u.vtx', '--method', 'quant', '--levels', '14']); "
             "print('scipy.io.matlab' in sys.modules)")
@@ -315,22 +315,21 @@ def test_mat_through_the_cli_and_scipy_io_only_for_mat(mats):
     assert r.stdout.strip() == "False", r.stderr
 
 
-def test_render_refuses_an_extension_it_cannot_write(tmp_path):
+def test_render_refuses_an_extension_it_cannot_write(tmp_path, capfdbinary):
     vtx = tmp_path / "w.vtx"
     assert main(["encode", "synthetic:wood:1", "-o", str(vtx), "--method", "quant", "--levels", "14"]) == 0
+    capfdbinary.readouterr()
 
     def run(out):
-        return subprocess.run([sys.executable, "-m", "hostd", "render", str(vtx), "-o", out,
-                               "--seconds", "0.05"],
-                              capture_output=True, timeout=120, cwd=tmp_path)
+        return main(["render", str(vtx), "-o", out, "--seconds", "0.05"])
 
-    r = run("out.mp3")
-    err = r.stderr.decode()
-    assert r.returncode == 2 and "writes WAV files only" in err and "out.wav" in err, err
+    assert run(str(tmp_path / "out.mp3")) == 2
+    err = capfdbinary.readouterr().err.decode()
+    assert "writes WAV files only" in err and "out.wav" in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "out.mp3").exists()
-    assert run("out.WAV").returncode == 0 and (tmp_path / "out.WAV").read_bytes()[:4] == b"RIFF"
-    r = run("-")
-    assert r.returncode == 0 and r.stdout[:4] == b"RIFF"
+    assert run(str(tmp_path / "out.WAV")) == 0 and (tmp_path / "out.WAV").read_bytes()[:4] == b"RIFF"
+    capfdbinary.readouterr()
+    assert run("-") == 0 and capfdbinary.readouterr().out[:4] == b"RIFF"
 
 
 # ---------------------------------------------------------------- progress only on a terminal
