@@ -19,6 +19,11 @@ run_scene         a scene simulation: delivered quality per effect
 run_corpus        textures x codecs x settings -> a results table (resumable store; BD-rate
                   reports with `hostd corpus report`); needs the ``corpus`` extra
 
+Errors are hostd.errors classes that are also the built-in exceptions: a missing file raises
+FileNotFoundError, bad input or a bad argument ValueError (one-line messages naming this module's
+keyword arguments). What the CLI prints as a note comes back in the result's ``notes`` and as a
+``hostd.errors.HostdWarning`` (a UserWarning that can be filtered on its own).
+
 See docs/api.md for a worked example.
 """
 
@@ -40,7 +45,8 @@ __all__ = ["Profile", "Stream", "decode", "encode", "fit", "load_profile", "rend
 def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
                  spacing: float | None = None, length_mm: float | None = 10.0,
                  offset_mm: float = 0.0, detrend: str = "none",
-                 columns: tuple[int, ...] | None = None, decimal_comma: bool = False) -> Profile:
+                 columns: tuple[int, ...] | None = None, decimal_comma: bool = False,
+                 var: str | None = None) -> Profile:
     """Load a height profile as micrometres on a uniform grid, cut to a patch.
 
     Parameters
@@ -63,6 +69,9 @@ def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
         0-based columns (x, height) or (height,) of a text file.
     decimal_comma : bool
         Numbers written with a decimal comma (``1,5``).
+    var : str, optional
+        A MATLAB ``.mat`` file's variable holding the profile (needed when it holds several
+        arrays), or ``"X,Y"``: an x and a height vector.
 
     Returns
     -------
@@ -76,7 +85,7 @@ def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
     opts = LoadOptions(x_unit=x_unit, y_unit=y_unit, spacing=spacing, length_mm=length_mm,
                        offset_mm=offset_mm, detrend=detrend,
                        columns=tuple(columns) if columns is not None else None,
-                       decimal_comma=decimal_comma)
+                       decimal_comma=decimal_comma, member=var)
     if synth.is_spec(str(source)):
         prof = synth.from_spec(str(source))
         return cut_patch(prof.heights_um, prof.spacing_um, opts, str(source))
@@ -104,16 +113,20 @@ _ARG_NAMES = (("--target-iobj", "target_iobj="), ("--guard-ssnr-db", "ssnr_db=")
 _ARG_RE = None
 
 
-def _python_names(exc: Exception) -> Exception:
-    """The same error with CLI options renamed to this API's keyword arguments."""
+def _python_text(text: str) -> str:
+    """A message with CLI options renamed to this API's keyword arguments."""
     import re
 
     global _ARG_RE
     if _ARG_RE is None:
         _ARG_RE = re.compile("|".join(re.escape(f) + r"(?![\w-])" for f, _ in _ARG_NAMES))
     table = dict(_ARG_NAMES)
-    msg = _ARG_RE.sub(lambda m: table[m.group(0)], str(exc))
-    return type(exc)(msg)
+    return _ARG_RE.sub(lambda m: table[m.group(0)], text)
+
+
+def _python_names(exc: Exception) -> Exception:
+    """The same error with CLI options renamed to this API's keyword arguments."""
+    return type(exc)(_python_text(str(exc)))
 
 
 def encode(profile: Profile | np.ndarray, *, method: str | None = None, format: str = "v2",
@@ -172,21 +185,40 @@ def encode(profile: Profile | np.ndarray, *, method: str | None = None, format: 
     dict
         ``stream`` (bytes), ``method``, ``levels``, ``b0_db``, ``value_bits``, ``chosen``,
         ``n``, ``n_keep``, ``kept``, ``bytes``, ``ratio_coeffs``, ``ratio_profile``, ``Ip``,
-        ``Ia``, ``Iobj``, ``a``, ``b``, ``spqi``, ``wsnr_db``, ``ssnr_db``, ``notes`` (list of
-        warnings); with `target_iobj` also ``target_iobj``, ``spqi_min``,
+        ``Ia``, ``Iobj``, ``a``, ``b``, ``spqi``, ``wsnr_db``, ``ssnr_db``, ``notes`` (what the
+        CLI prints as warnings and notes, each also raised as a ``hostd.errors.HostdWarning``,
+        a UserWarning: ``warnings.simplefilter("ignore", HostdWarning)`` silences them); with
+        `target_iobj` also ``target_iobj``, ``spqi_min``,
         ``waveform_verified`` (True: SPQI >= spqi_min measured on this stream; False: SPQI
         could not be computed, see notes), ``size_set_by`` ("Iobj" or "waveform": which
-        criterion kept a smaller stream out), ``encodes`` and ``search_cpu_s``.
+        criterion kept a smaller stream out; ``size_note`` says so when it was the waveform),
+        ``encodes`` and ``search_cpu_s``.
     """
     y, length = _heights(profile, length_mm)
     try:
-        return encode_heights(y, length, method=method, fmt=format, target_iobj=target_iobj,
-                              spqi_min=spqi_min, guard_db=guard_db, ssnr_db=ssnr_db, g_db=g_db,
-                              levels=levels, b0_db=b0_db, value_bits=value_bits, coder=coder,
-                              speed_mm_s=speed_mm_s, fmax_hz=fmax_hz, thresholds=thresholds,
-                              ab=(a, b))
+        res = encode_heights(y, length, method=method, fmt=format, target_iobj=target_iobj,
+                             spqi_min=spqi_min, guard_db=guard_db, ssnr_db=ssnr_db, g_db=g_db,
+                             levels=levels, b0_db=b0_db, value_bits=value_bits, coder=coder,
+                             speed_mm_s=speed_mm_s, fmax_hz=fmax_hz, thresholds=thresholds,
+                             ab=(a, b))
     except HostdError as exc:
         raise _python_names(exc) from None
+    if res.get("size_note"):
+        res["size_note"] = _python_text(res["size_note"])
+    res["notes"] = [_python_text(n) for n in res["notes"]] + ([res["size_note"]] if res.get("size_note")
+                                                               else [])
+    _warn(res["notes"])
+    return res
+
+
+def _warn(notes: Iterable[str]) -> None:
+    """Each note the CLI would print, as a HostdWarning (filter with warnings.simplefilter)."""
+    import warnings
+
+    from hostd.errors import HostdWarning
+
+    for n in notes:
+        warnings.warn(n, HostdWarning, stacklevel=3)
 
 
 def encode_heights(y_um: np.ndarray, length_mm: float, *, method: str | None, fmt: str,
@@ -252,6 +284,10 @@ def encode_heights(y_um: np.ndarray, length_mm: float, *, method: str | None, fm
     except HostdError as exc:
         sp = None
         notes.append(f"SPQI not computed: {exc}")
+    if out.get("size_set_by") == "waveform":
+        out["size_note"] = (f"the waveform criterion (SPQI >= {out['spqi_min']:g}), not Iobj, set the "
+                            f"size: Iobj {float(sc.Iobj):.4f} is under --target-iobj {target_iobj:g}; a "
+                            "lower --spqi-min (or --no-guard, Iobj alone) gives a smaller stream")
     out = {"stream": data, "method": s.method, "levels": s.levels, "b0_db": s.b0_db,
            "value_bits": s.value_bits, "n": s.n, "n_keep": s.n_keep, "kept": kept,
            "bytes": s.nbytes, "ratio_coeffs": s.ratio_coeffs, "ratio_profile": s.ratio_profile,
@@ -325,7 +361,9 @@ def score(stream: Stream | bytes | Mapping, reference: Profile | np.ndarray | No
         ref = reference.heights_um if isinstance(reference, Profile) else np.asarray(reference, float)
     try:
         out = score_stream(s, reference_um=ref, a=a, b=b).as_dict()
-        out["reference_mismatch"] = ref is not None and reference_mismatch(s, out["P"], out["A"]) is not None
+        mismatch = reference_mismatch(s, out["P"], out["A"]) if ref is not None else None
+        out["reference_mismatch"] = mismatch is not None
+        out["notes"] = [_python_text(mismatch)] if mismatch else []
         g = guard_report(s, reference_um=ref)
         out.update({k: v for k, v in g.items() if k != "guard_source"})
         if ref is not None:
@@ -334,6 +372,7 @@ def score(stream: Stream | bytes | Mapping, reference: Profile | np.ndarray | No
                                                            s.speed_mm_s)})
     except HostdError as exc:
         raise _python_names(exc) from None
+    _warn(out["notes"])
     return out
 
 
@@ -371,7 +410,9 @@ def fit(records: Iterable[Mapping] | Mapping[str, Iterable], *, nonnegative: boo
                              float(r["score"]), float(r["Ip"]), float(r["Ia"])) for r in records]
     res = _fit.fit(stimuli, nonnegative=nonnegative, scale_min=scale_min, scale_max=scale_max,
                    exclude_saturated=exclude_saturated, n_boot=n_boot)
-    return res.as_dict()
+    out = res.as_dict()
+    _warn(out.get("warnings", []))
+    return out
 
 
 def render_stroke(stream: Stream | bytes, *, speed_mm_s: float = 50.0, seconds: float = 1.0,

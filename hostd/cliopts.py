@@ -9,6 +9,7 @@ profile-loading, geometry and index option groups, and read_profile with its pla
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 
 import numpy as np
@@ -35,7 +36,18 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str):
         message = " ".join(message.split())
+        m = _INVALID_CHOICE.match(message)
+        if m:  # a mistyped command or choice: the closest one, not the whole list
+            import difflib
+
+            choices = re.findall(r"'([^']*)'", m.group(3))
+            close = difflib.get_close_matches(m.group(2), choices, n=1, cutoff=0.6)
+            if close:
+                message = f"{m.group(1)}invalid choice: '{m.group(2)}', did you mean '{close[0]}'?"
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
+
+_INVALID_CHOICE = re.compile(r"^(argument [^:]+: )invalid choice: '(.*?)' \(choose from (.*)\)$")
 
 
 def needs_subcommand(parser: argparse.ArgumentParser, what: str):
@@ -100,9 +112,11 @@ def loader_parent(length_default: float | None = 10.0) -> argparse.ArgumentParse
                    "column Y for heights only (with --spacing). Default: one or two columns")
     g.add_argument("--decimal-comma", action="store_true",
                    help="text files: numbers use a decimal comma (1,5); columns split on ; tab or space")
-    g.add_argument("--member", default=None, metavar="NAME",
-                   help="container files: which array; .hjif/.hmpg: PERCEPTION[/CHANNEL], each an "
-                   "index or id=N (default: the only one, or the texture over space)")
+    g.add_argument("--member", "--var", dest="member", default=None, metavar="NAME",
+                   help="container files: which array. .mat: the variable that holds the profile when "
+                   "there are several (or X,Y: an x and a height vector); .hjif/.hmpg: "
+                   "PERCEPTION[/CHANNEL], each an index or id=N (default: the only one, or the texture "
+                   "over space)")
     return p
 
 
@@ -118,8 +132,8 @@ def geometry_parent(from_stream: bool = False) -> argparse.ArgumentParser:
                    help="band limit at v_ref, Hz (default " + ("the stream's)" if from_stream else "400)"))
     g.add_argument("--thresholds", default=None, metavar="CSV",
                    help="detection-threshold curve (default: the stream's if embedded, else "
-                   "config/thresholds/default.csv)" if from_stream else
-                   "detection-threshold curve (default config/thresholds/default.csv)")
+                   "shipped default curve)" if from_stream else
+                   "detection-threshold curve (default: the shipped default curve, the paper's)")
     return p
 
 
@@ -168,7 +182,7 @@ def read_profile(spec: str, args: argparse.Namespace, length_mm: float | None = 
             ("--spacing", getattr(args, "spacing", None) is not None),
             ("--x-unit", getattr(args, "x_unit", None) is not None),
             ("--columns", getattr(args, "columns", None) is not None),
-            ("--member", getattr(args, "member", None) is not None),
+            ("--member/--var", getattr(args, "member", None) is not None),
             ("--decimal-comma", getattr(args, "decimal_comma", False)),
             ("--y-unit", getattr(args, "y_unit", "um") != "um")) if given]
         if ignored:

@@ -159,7 +159,9 @@ def _daemon_demo(out: Path, seconds_per_texture: float, force_sim: bool, render_
             print(f"  refused corrupt.vtx: {e}")
         print(f"  sent {len(names)} streams; playing each for {seconds_per_texture:g} s under the "
               "paper's metronome strokes")
-        tty = sys.stdout.isatty()
+        from hostd.tty import on_terminal
+
+        tty = on_terminal(sys.stdout)
         for name in names:
             request(str(sock), {"cmd": "select", "name": name})
             t_stop = time.monotonic() + seconds_per_texture

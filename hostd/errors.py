@@ -1,4 +1,11 @@
-"""Error types whose message is one line that tells the user what to do."""
+"""Error types whose message is one line that tells the user what to do.
+
+Each is also the built-in exception a Python caller already catches: bad input or arguments are
+ValueError (StreamError, ProfileError, ThresholdError, ConfigError, CodecError, FitError,
+QualityError), a file that does not exist is FileNotFoundError (ProfileNotFound,
+ThresholdNotFound), so `api.load_profile('/nonexistent')` raises what `open()` would.
+`hostd.api` warns with HostdWarning (a UserWarning) where the CLI prints a note.
+"""
 
 
 class HostdError(Exception):
@@ -7,31 +14,44 @@ class HostdError(Exception):
     exit_code = 2
 
 
-class StreamError(HostdError):
+class HostdWarning(UserWarning):
+    """What `hostd.api` says where the CLI prints a note or a warning (filter it with the warnings
+    module: warnings.simplefilter("ignore", HostdWarning))."""
+
+
+class StreamError(HostdError, ValueError):
     """A .vtx stream is malformed, truncated, corrupt or of an unsupported version."""
 
 
-class ProfileError(HostdError):
+class ProfileError(HostdError, ValueError):
     """A height profile could not be loaded or is unusable."""
 
 
-class ThresholdError(HostdError):
+class ThresholdError(HostdError, ValueError):
     """A detection-threshold curve is malformed."""
 
 
-class ConfigError(HostdError):
+class ProfileNotFound(ProfileError, FileNotFoundError):
+    """The profile file does not exist."""
+
+
+class ThresholdNotFound(ThresholdError, FileNotFoundError):
+    """The threshold-curve file does not exist."""
+
+
+class ConfigError(HostdError, ValueError):
     """A configuration file or parameter is invalid."""
 
 
-class CodecError(HostdError):
+class CodecError(HostdError, ValueError):
     """Codec parameters are invalid (levels, b0, geometry)."""
 
 
-class FitError(HostdError):
+class FitError(HostdError, ValueError):
     """Subjective-score data cannot be fitted (degenerate or malformed)."""
 
 
-class QualityError(HostdError):
+class QualityError(HostdError, ValueError):
     """Non-finite or mismatched input to the quality indices."""
 
 

@@ -6,36 +6,34 @@ import numpy as np
 
 
 def place_labels(ax, items: list[tuple[float, float, str]], fontsize: float = 6.5,
-                 draw: bool = True) -> None:
-    """Annotate points without overlaps: each label takes the first of a few offsets whose box
-    (estimated in pixels) does not overlap an earlier label or point; a label that finds no
-    free place is left out (its point stays, the CSV holds every value). The figure is drawn
-    first for its final pixel scale; draw=False when the caller has just drawn it (several
-    axes of one figure need one draw)."""
+                 draw: bool = True, avoid: list | None = None) -> list:
+    """Annotate points without overlaps: each label takes the first of a few offsets where its
+    box (measured by the renderer, not estimated) stays inside the axes and overlaps no earlier
+    label, no box in `avoid` and no point; a label that finds no free place is left out (its
+    point stays, the CSV holds every value). The figure's layout must be final (draw=True draws
+    it first; draw=False when the caller has laid it out). Returns the boxes placed."""
     fig = ax.figure
     if draw:
         fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
     to_px = ax.transData.transform
-    char_w, line_h = 0.62 * fontsize * fig.dpi / 72, 1.25 * fontsize * fig.dpi / 72
-    placed: list[tuple[float, float, float, float]] = []
+    placed = list(avoid or [])
     points = [tuple(to_px((x, y))) for x, y, _ in items]
-    offsets = ((4, 3), (4, -10), (-8, 5), (-8, -12), (6, 10), (6, -16))
-    for (x, y, text), (px, py) in zip(items, points, strict=True):
-        w = char_w * len(text)
+    offsets = ((4, 3), (4, -4), (-4, 3), (-4, -4), (6, 10), (6, -10))
+    area = ax.bbox
+    for (x, y, text), _p in zip(items, points, strict=True):
         for dx, dy in offsets:
-            x0 = px + dx if dx >= 0 else px + dx - w
-            box = (x0, py + dy, x0 + w, py + dy + line_h)
-            hits_label = any(not (box[2] < b[0] or box[0] > b[2] or box[3] < b[1] or box[1] > b[3])
-                             for b in placed)
-            hits_point = any(box[0] - 2 <= qx <= box[2] + 2 and box[1] - 2 <= qy <= box[3] + 2
-                             for qx, qy in points)
-            inside = (ax.bbox.x0 <= box[0] and box[2] <= ax.bbox.x1
-                      and ax.bbox.y0 <= box[1] and box[3] <= ax.bbox.y1)
-            if inside and not (hits_label or hits_point):
+            ann = ax.annotate(text, (x, y), xytext=(dx, dy), textcoords="offset points", fontsize=fontsize,
+                              ha="left" if dx >= 0 else "right", va="bottom" if dy >= 0 else "top")
+            box = ann.get_window_extent(renderer)
+            inside = (area.x0 <= box.x0 and box.x1 <= area.x1 and area.y0 <= box.y0 and box.y1 <= area.y1)
+            free = inside and not any(box.overlaps(b) for b in placed) and not any(
+                box.x0 - 2 <= qx <= box.x1 + 2 and box.y0 - 2 <= qy <= box.y1 + 2 for qx, qy in points)
+            if free:
                 placed.append(box)
-                ax.annotate(text, (x, y), xytext=(dx if dx >= 0 else dx - w * 72 / fig.dpi, dy),
-                            textcoords="offset points", fontsize=fontsize)
                 break
+            ann.remove()
+    return placed
 
 
 def log_byte_axis(ax, lo: float, hi: float) -> None:

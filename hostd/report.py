@@ -15,7 +15,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from hostd.bench.common import cpu_median_s, one_blas_thread
 from hostd.codec import stream as vtx
@@ -24,6 +23,7 @@ from hostd.errors import HostdError
 from hostd.perception import indices, peer
 from hostd.perception.thresholds import ThresholdCurve
 from hostd.plotting import log_byte_axis, place_labels
+from hostd.tty import progress_bar
 
 TABLE_I_LEVELS = (14, 12, 10, 8, 6, 5, 4)
 TABLE_I_B0 = (-12, -8, -4, 0, 4, 8, 12)
@@ -100,8 +100,8 @@ def sweep(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve,
     jobs += v2_jobs(top)
     rows = []
     with one_blas_thread():  # once: the CPU figures are this thread's work alone
-        for label, kw in tqdm(jobs, desc="rate-quality", unit="stream", disable=not progress,
-                              leave=False):
+        for label, kw in progress_bar(progress, iterable=jobs, desc="rate-quality", unit="stream",
+                                      leave=False):
             rows.append(_row(label, kw, y_um, c, geometry, curve, b_k, ref, ab, with_peers, repeats))
     return rows
 
@@ -240,13 +240,19 @@ def plot(rows: list[dict], path: Path, title: str, raw_coeff_bytes: int,
         plt.close(fig)
 
 
+LABELLED_PANELS = ("Iobj", "spqi")  # the panels whose points carry their setting (L=, dB, g=)
+
+
 def figure(rows: list[dict], title: str, raw_coeff_bytes: int,
            ab: tuple[float, float] | None = None, target_iobj: float = TARGET_IOBJ):
     """Six panels sharing the byte axis (log scale, plain-number ticks): Iobj = a Ip + b Ia
     (target marked, its region shaded), Ip, Ia (all three on one symmetric-log scale where
     the target's region is visible), SPQI (criterion marked), and the encode and decode CPU
     time of each stream. Table I settings of the paper are labelled (L = levels for quant, b0
-    in dB for cut, g for shaped) where there is room; the legend sits below the panels."""
+    in dB for cut, g for shaped) on the Iobj and SPQI panels only, where there is room (Ip and
+    Ia share Iobj's settings; the CSV holds every value); constrained layout keeps titles, tick
+    labels and the legend below the panels apart, and no two texts overlap
+    (tests/test_users.py)."""
     from hostd.extras import need
 
     matplotlib = need("matplotlib", "plot", "the rate-quality figure")
@@ -254,7 +260,7 @@ def figure(rows: list[dict], title: str, raw_coeff_bytes: int,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, grid = plt.subplots(2, 3, figsize=(15, 9.2), dpi=110, sharex=True)
+    fig, grid = plt.subplots(2, 3, figsize=(15, 9.2), dpi=110, sharex=True, layout="constrained")
     axes = list(grid.ravel())
     a_, b_ = ab if ab is not None else (None, None)
     idx_top = 2.0 * (abs(a_) + abs(b_)) * 1.05 if ab is not None else 2.2
@@ -277,8 +283,8 @@ def figure(rows: list[dict], title: str, raw_coeff_bytes: int,
                 continue
             ax.plot([p[0] for p in pts], [p[1] for p in pts], MARKERS.get(series_label, "o-"), ms=3.2,
                     lw=1.0, label=series_label)
-            if series_label == "cut (16-bit survivors)" or key.endswith("_ms"):
-                continue  # one set of setting labels per panel is enough; none on the CPU panels
+            if series_label == "cut (16-bit survivors)" or key not in LABELLED_PANELS:
+                continue  # one set of setting labels per panel, on the Iobj and SPQI panels only
             for bx, iy, r in pts:
                 if r["table_I"]:
                     tag = (f"L={r['levels']}" if r["method"] == "quant"
@@ -317,15 +323,13 @@ def figure(rows: list[dict], title: str, raw_coeff_bytes: int,
             if n not in names:
                 handles.append(h)
                 names.append(n)
-    fig.legend(handles, names, loc="lower center", ncol=min(len(names), 7), fontsize=8,
+    fig.legend(handles, names, loc="outside lower center", ncol=min(len(names), 7), fontsize=8,
                frameon=False)
     fig.suptitle(f"Rate-quality: {title}", fontsize=11)
-    # fixed margins (tight_layout measured every tick label: ~1 s of CPU for six panels)
-    fig.subplots_adjust(left=0.05, right=0.99, top=0.93, bottom=0.115, wspace=0.2, hspace=0.2)
+    # the layout once, then frozen: the labels placed below must not move the panels
+    fig.draw_without_rendering()
+    fig.set_layout_engine("none")
     for ax, labels in zip(axes, all_labels, strict=True):
-        # after the layout the pixel scale is final once the (lazy) autoscaled limits are set:
-        # no full draw is needed before savefig's
-        ax.get_xlim(), ax.get_ylim()
         place_labels(ax, labels, draw=False)
     return fig
 

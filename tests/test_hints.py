@@ -112,7 +112,7 @@ def test_bench_load_and_codec_report_progress_steps():
     assert len(steps) == 5
     bar = common.progress(3, "x")  # stderr is not a terminal under pytest: no bar
     assert bar.disable
-    assert not common.progress(3, "x", enabled=True).disable
+    assert common.progress(3, "x", enabled=True).disable  # asked for, but not a terminal: none (issue 32)
 
 
 def test_sim_table_combined_row_keeps_the_columns(monkeypatch, capsys):
@@ -162,4 +162,18 @@ def test_profile_options_live_below_both_clis():
     assert "from hostd.cli import" not in src and "from hostd.cliopts import read_profile" in src
     r = subprocess.run([sys.executable, "-c", "import sys, hostd.bench.cli, hostd.cliopts; "
                         "print('hostd.cli' in sys.modules)"], capture_output=True, text=True, timeout=120)
+    assert r.stdout.strip() == "False", r.stderr
+
+
+def test_parser_lives_below_cli_and_docgen():
+    """cli.py <-> docgen.py <-> service/install.py: the parser is hostd/parser.py, which cli.py and
+    docgen.py import; generating the man page and completions (install-service) never imports cli.py."""
+    import subprocess
+    import sys
+
+    for mod in ("docgen.py", "parser.py", "commands.py", "service/install.py"):
+        assert "hostd.cli import" not in (ROOT / "hostd" / mod).read_text(), mod
+    r = subprocess.run([sys.executable, "-c", "import sys, hostd.service.install, hostd.docgen as d; "
+                        "d.man_page(); d.completion('bash'); print('hostd.cli' in sys.modules)"],
+                       capture_output=True, text=True, timeout=120)
     assert r.stdout.strip() == "False", r.stderr

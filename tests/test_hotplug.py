@@ -96,7 +96,7 @@ def test_poll_fallback_says_why(tmp_path, monkeypatch):
     ctl.touch()
     monkeypatch.setitem(sys.modules, "pyudev", None)  # not installed
     h = hotplug.watch("usb", control=str(ctl))
-    assert h.mode == "poll" and "pip install 'hostd[device]'" in h.describe()
+    assert h.mode == "poll" and "pip install '" in h.describe() and "[device]'" in h.describe()
 
 
 def _kernel_monitor(spec):

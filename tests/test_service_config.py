@@ -156,3 +156,69 @@ def test_clients_and_daemon_read_the_installed_config_by_default(tmp_path, monke
     from hostd.service.cli import _config
 
     assert _config(build_parser().parse_args(["run"])) == str(env)  # the daemon: the same resolution
+
+
+# ---------------------------------------------------------------- issue 32: two displays on one PC
+
+
+def test_device_serial_picks_one_of_two_displays(monkeypatch):
+    """device.serial: the display with that USB serial number (the identity udev's
+    /dev/hostd/by-serial/ names), on whichever transport finds it; none: the serials seen."""
+    from hostd.device import transport
+    from hostd.errors import DeviceNotFound
+
+    opened = []
+    found = {"hid": [{"spec": "hid:/dev/hidraw3", "node": "/dev/hidraw3", "serial": "A1"},
+                     {"spec": "hid:/dev/hidraw5", "node": "/dev/hidraw5", "serial": "B2"}],
+             "usb": [{"spec": "usb:001/007", "node": "/dev/bus/usb/001/007", "serial": "A1"},
+                     {"spec": "usb:001/009", "node": "/dev/bus/usb/001/009", "serial": "B2"}],
+             "serial": []}
+
+    def attr(kind, which):
+        if which == 2:
+            return lambda: found[kind]
+        return lambda arg: opened.append((kind, arg)) or f"{kind}:{arg}"
+
+    monkeypatch.setattr(transport, "_attr", attr)
+    assert transport.open_transport("auto", serial="B2") == "hid:/dev/hidraw5"
+    assert transport.open_transport("usb", serial="A1") == "usb:001/007"
+    assert opened == [("hid", "/dev/hidraw5"), ("usb", "001/007")]
+    assert [d["spec"] for d in transport.present("auto", "A1")] == ["hid:/dev/hidraw3", "usb:001/007"]
+    with pytest.raises(DeviceNotFound,
+                       match=r"no display with serial number .C3..*hid:/dev/hidraw3 \(serial A1\)"):
+        transport.open_transport("hid", serial="C3")
+
+
+@pytest.mark.parametrize("text, needle", [
+    ('[device]\ntransport = "hid:/dev/hidraw0"\nserial = "A1"\n', "device.serial picks a display"),
+    ('[device]\ntransport = "sim"\nserial = "A1"\n', "device.serial picks a display"),
+    ('[device]\nserial = "../x"\n', "device.serial must be a USB serial number"),
+])
+def test_device_serial_config_errors(tmp_path, text, needle):
+    p = tmp_path / "h.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=needle):
+        load(p)
+
+
+def test_device_serial_loads(tmp_path):
+    p = tmp_path / "h.toml"
+    p.write_text('[device]\ntransport = "auto"\nserial = "0042A1"\n')
+    assert load(p).device.serial == "0042A1"
+
+
+def test_udev_rule_names_each_display_by_its_serial():
+    """Two displays, serials A1 and B2: the rule's names for their hidraw and tty nodes are all
+    different (before: one SYMLINK for both, the second replaced the first)."""
+    import re
+
+    rules = (ROOT / "systemd" / "70-hostd.rules").read_text()
+    names = {}
+    for serial in ("A1", "B2"):
+        for line in rules.splitlines():
+            m = re.search(r'SUBSYSTEM=="(\w+)".*SYMLINK\+="([^"]+)"', line)
+            if m and "$attr{serial}" in m.group(2):
+                assert 'ATTRS{serial}=="?*"' in line  # a display without one gets no empty name
+                names[(m.group(1), serial)] = m.group(2).replace("$attr{serial}", serial)
+    assert names == {("hidraw", "A1"): "hostd/by-serial/hid-A1", ("tty", "A1"): "hostd/by-serial/tty-A1",
+                     ("hidraw", "B2"): "hostd/by-serial/hid-B2", ("tty", "B2"): "hostd/by-serial/tty-B2"}

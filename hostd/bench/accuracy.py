@@ -188,7 +188,7 @@ def measure_device(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, h
 
 def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = True,
         repeats: int = REPEATS) -> list[dict]:
-    from tqdm import tqdm
+    from hostd.tty import progress_bar
 
     hand = Metronome()
     base = RenderConfig()
@@ -197,8 +197,8 @@ def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = 
     done: dict[str, dict] = {}  # the default setting is measured once and reused per knob
     ref_cache: dict = {}
     todo = settings()
-    bar = tqdm(total=len(todo) * len(coeffs), disable=not progress, desc="bench accuracy", unit="run",
-               leave=False)
+    bar = progress_bar(progress, total=len(todo) * len(coeffs), desc="bench accuracy", unit="run",
+                       leave=False)
     for st in todo:
         cfg = st.apply(base)
         key = repr(cfg) + st.where

@@ -85,7 +85,7 @@ def add_parser(sub, parents) -> None:
                            help="only v2 against the peer codecs (MPEG-I Haptics RM, VC-PWQ: a "
                            "research codec, CC BY-NC) built under DIR (or named by HOSTD_PEER_* "
                            "variables; the RM also from its build.sh cache, DIR optional): bytes "
-                           "for SPQI >= 0.9; see docs/benchmarks.md 'Peer codecs'")
+                           "for SPQI >= 0.9")
     from hostd.cliopts import needs_subcommand
 
     p.set_defaults(func=needs_subcommand(p, "a benchmark (all: pipeline, codec and scoring)"))

@@ -356,7 +356,7 @@ def peer_rows(peers_dir: Path | None) -> list[dict]:
 
     if peers_dir is not None and not peers_dir.is_dir():
         raise peers.PeerError(f"--peers {peers_dir}: no such directory (it should hold the peer "
-                              "builds, see docs/benchmarks.md 'Peer codecs')")
+                              "builds: see hostd bench codec --help)")
     found, notes = peers.find(peers_dir)
     rows: list[dict] = [{"bench": "codec_peer_note", "note": n} for n in notes]
     if not found:

@@ -57,12 +57,9 @@ def machine() -> str:
 
 def progress(total: int, desc: str, enabled: bool | None = None):
     """A progress bar on stderr for a benchmark of several steps (tqdm), off when stderr is not a
-    terminal (pipes, CI logs) or with --json; update(1) after each step. The steps are seconds
-    long, so the bar costs nothing measured (the timings are CPU medians inside each step)."""
-    import sys
+    terminal (pipes, CI logs; whatever `enabled` says) or with --json; update(1) after each step.
+    The steps are seconds long, so the bar costs nothing measured (the timings are CPU medians
+    inside each step)."""
+    from hostd.tty import progress_bar
 
-    from tqdm import tqdm
-
-    if enabled is None:
-        enabled = sys.stderr.isatty()
-    return tqdm(total=total, desc=desc, unit="step", file=sys.stderr, leave=False, disable=not enabled)
+    return progress_bar(enabled is not False, total=total, desc=desc, unit="step", leave=False)

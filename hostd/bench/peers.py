@@ -126,8 +126,8 @@ def find(root: Path | None) -> tuple[list[PeerCodec], list[str]]:
                    for (env, rel, _), p in zip(parts, paths, strict=True)
                    if p is None or not (p.is_file() and os.access(p, os.X_OK))]
         if missing:
-            notes.append(f"{name} not run: no executable at {', '.join(missing)} (build it as "
-                         f"docs/benchmarks.md 'Peer codecs' says, then pass --peers DIR or set "
+            notes.append(f"{name} not run: no executable at {', '.join(missing)} (build the peer's "
+                         f"reference software, then pass --peers DIR or set "
                          f"{' / '.join(env for env, _, _ in parts)})")
         else:
             found += make(*paths)

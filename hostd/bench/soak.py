@@ -122,22 +122,18 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
             wake0 = {k: _wakeups(v) for k, v in pids.items() if v}
             st0 = request(sock, {"cmd": "status"})
             t0 = time.monotonic()
-            bar = None
-            if progress:
-                from tqdm import tqdm
+            from hostd.tty import progress_bar
 
-                bar = tqdm(total=int(seconds), unit="s", desc=f"soak ({render})", leave=False)
+            bar = progress_bar(progress, total=int(seconds), unit="s", desc=f"soak ({render})", leave=False)
             while (el := time.monotonic() - t0) < seconds:
                 time.sleep(min(1.0, seconds - el))
-                if bar is not None:
-                    bar.n = int(time.monotonic() - t0)
-                    bar.refresh()
+                bar.n = int(time.monotonic() - t0)
+                bar.refresh()
             wall = time.monotonic() - t0
             cpu1 = {k: _proc_cpu_s(v) for k, v in pids.items() if v}
             wake1 = {k: _wakeups(v) for k, v in pids.items() if v}
             st = request(sock, {"cmd": "status"})
-            if bar is not None:
-                bar.close()
+            bar.close()
         finally:
             hp.close()  # the DAC log ends while the texture still plays
             for h in hogs:

@@ -191,7 +191,9 @@ def _hid():
     try:
         import hid
     except ImportError as e:  # the package or the system library is missing
-        raise DeviceNotFound(f"HID backend unavailable ({e}); pip install 'hostd[device]'") from None
+        from hostd.extras import pip_install
+
+        raise DeviceNotFound(f"HID backend unavailable ({e}); {pip_install('device')}") from None
     return hid
 
 

@@ -158,7 +158,9 @@ def watch(spec: str, source: str = "udev", control: str = UDEV_CONTROL) -> Hotpl
     try:
         import pyudev
     except ImportError:
-        return Hotplug(why_poll="pyudev is not installed (pip install 'hostd[device]')")
+        from hostd.extras import pip_install
+
+        return Hotplug(why_poll=f"pyudev is not installed ({pip_install('device')})")
     try:
         monitor = pyudev.Monitor.from_netlink(pyudev.Context(), source=source)
         for s in subs:  # (filtered in the kernel: other devices' events never wake us)

@@ -43,9 +43,12 @@ def find_displays() -> list[dict]:
     return found
 
 
-def present(spec: str) -> list[dict]:
+def present(spec: str, serial: str | None = None) -> list[dict]:
     """The displays a spec could open, listed without opening anything (sysfs on Linux): the
-    daemon's check, once per device.reconnect_s while it waits, that no udev event was missed."""
+    daemon's check, once per device.reconnect_s while it waits, that no udev event was missed.
+    serial: only the display with this USB serial number (config device.serial)."""
+    if serial:
+        return [d for d in present(spec) if d.get("serial") == serial]
     import os
 
     kind, _, arg = spec.partition(":")
@@ -67,8 +70,23 @@ def find_devices() -> list[str]:
     return [d["spec"] for d in find_displays()]
 
 
-def open_transport(spec: str = "auto", **kw) -> Transport:
-    """Open a transport from a spec: auto | hid[:PATH] | usb[:BUS/ADDR] | serial[:PORT] | sim."""
+def by_serial(spec: str, serial: str) -> str:
+    """The spec of the display whose USB serial number is `serial` among those `spec` could open
+    (two displays on one PC: config device.serial picks one, as udev's /dev/hostd/by-serial/ names)."""
+    found = present(spec)
+    for d in found:
+        if d.get("serial") == serial:
+            return d["spec"]
+    seen = ", ".join(f"{d['spec']} (serial {d.get('serial') or 'none'})" for d in found) or "none"
+    raise DeviceNotFound(f"no display with serial number {serial!r} (device.serial) among {spec}: seen "
+                         f"{seen}; hostd doctor lists the displays and their serial numbers")
+
+
+def open_transport(spec: str = "auto", serial: str | None = None, **kw) -> Transport:
+    """Open a transport from a spec: auto | hid[:PATH] | usb[:BUS/ADDR] | serial[:PORT] | sim;
+    with serial, the display of that USB serial number (auto, hid, usb or serial without a path)."""
+    if serial and not spec.startswith("sim"):
+        spec = by_serial(spec, serial)
     kind, _, arg = spec.partition(":")
     if kind == "sim":
         return _attr("sim", 1)(**kw)

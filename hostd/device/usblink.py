@@ -32,7 +32,9 @@ def _find(find=None, **kw):
         try:
             import libusb_package
         except ImportError as e:
-            raise DeviceNotFound(f"USB backend unavailable ({e}); pip install 'hostd[device]'") from None
+            from hostd.extras import pip_install
+
+            raise DeviceNotFound(f"USB backend unavailable ({e}); {pip_install('device')}") from None
         find = libusb_package.find
     try:
         return find(**kw)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import scipy.optimize
 
-from hostd.errors import FitError
+from hostd.errors import FitError, HostdError
 from hostd.texture import synth
 
 REQUIRED = ("texture", "method", "level", "score")
@@ -286,7 +286,7 @@ def read_scores(path: str | Path, score_one=None) -> list[Stimulus]:
     cols = set(rows[0].keys())
     missing = [c for c in REQUIRED if c not in cols]
     if missing:
-        raise FitError(f"{p}: missing column(s) {', '.join(missing)}; see docs/fitting.md")
+        raise FitError(f"{p}: missing column(s) {', '.join(missing)}; see hostd fit --help")
     has_idx = {"Ip", "Ia"} <= cols
     if not has_idx and "stream" not in cols:
         raise FitError(f"{p}: give Ip and Ia columns, or a stream column (and profile)")
@@ -303,6 +303,8 @@ def read_scores(path: str | Path, score_one=None) -> list[Stimulus]:
                 if prof and not synth.is_spec(prof):
                     prof = str(p.parent / prof)
                 ip, ia = score_one(p.parent / r["stream"], prof)
+        except HostdError:  # (a ValueError too) its own message: the stream or profile named
+            raise
         except (ValueError, TypeError):
             raise FitError(f"{p}:{i}: score, Ip and Ia must be numbers") from None
         out.append(Stimulus(r["texture"], r["method"], r["level"], score, ip, ia))

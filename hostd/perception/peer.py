@@ -20,7 +20,14 @@ import numpy as np
 from hostd.perception import spqi as spqi_mod
 
 FS_HZ = 8000.0
-NOTE_MISSING = "ST-SIM not computed: install the extra with pip install 'hostd[peer]'"
+
+
+def __getattr__(name: str):
+    if name == "NOTE_MISSING":  # names the command that installs the extra from what the user has
+        from hostd.extras import pip_install
+
+        return f"ST-SIM not computed: install the extra with {pip_install('peer')}"
+    raise AttributeError(name)
 
 
 def available() -> bool:

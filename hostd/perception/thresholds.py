@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from hostd import paths
-from hostd.errors import ThresholdError
+from hostd.errors import ThresholdError, ThresholdNotFound
 
 MAX_POINTS = 4096
 
@@ -126,6 +126,8 @@ def load_csv(path: str | Path) -> ThresholdCurve:
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ThresholdNotFound(f"no such threshold curve: {p}") from None
     except OSError as exc:
         raise ThresholdError(f"cannot read threshold curve {p}: {exc.strerror or exc}") from None
     f: list[float] = []

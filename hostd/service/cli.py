@@ -208,7 +208,8 @@ def add_parsers(sub) -> None:
     conn = _conn_parent()
     p = sub.add_parser("run", help="run the daemon (foreground; systemd runs it as a service)")
     p.add_argument("--config", default=None, metavar="FILE",
-                   help="config file (see config/hostd.toml); default: $HOSTD_CONFIG, else "
+                   help="config file (every key with its default: the shipped hostd.toml, which "
+                   "install-service copies to /etc/hostd); default: $HOSTD_CONFIG, else "
                    "/etc/hostd/hostd.toml if it exists, else the built-in defaults")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
                    help="least severe message logged (default info; debug adds per-request detail)")
@@ -226,7 +227,9 @@ def add_parsers(sub) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_status)
     p = sub.add_parser("stop", parents=[conn], help="stop playing (ramp to zero); --daemon stops hostd")
-    p.add_argument("--daemon", action="store_true", help="shut the daemon down")
+    p.add_argument("--daemon", action="store_true",
+                   help="shut the daemon down (root or the daemon's own user only; under systemd: "
+                   "systemctl stop hostd)")
     p.set_defaults(func=cmd_stop)
     p = sub.add_parser("quality", parents=[conn], help="read the quality log (Ip, Ia, Iobj per stream)")
     p.add_argument("--since", default=None, metavar="T",

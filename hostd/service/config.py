@@ -18,6 +18,7 @@ from hostd.perception.indices import DEFAULT_AB
 @dataclass
 class DeviceCfg:
     transport: str = "auto"
+    serial: str = ""  # the display's USB serial number: one of several on this PC ("" = any)
     target_fill: int = 12
     max_fill: int = 90
     host_timeout_ms: int = 50
@@ -189,6 +190,9 @@ def _check(path: str, section: str, key: str, value, default):
         if kind not in TRANSPORT_KINDS or (colon and not path_ok):
             raise ConfigError(f"{where} must be auto, hid, hid:/dev/hidrawN, usb, usb:BUS/ADDR, serial, "
                               f"serial:PORT or sim, not {value!r}")
+    if (section, key) == ("device", "serial") and (any(ord(c) < 32 for c in value) or "/" in value):
+        raise ConfigError(f"{where} must be a USB serial number (as /dev/hostd/by-serial/ names it), "
+                          f"not {value!r}")
     if (section, key) == ("metrics", "listen"):
         from hostd.service.metrics import parse_listen
 
@@ -212,13 +216,20 @@ def resolve_path(given: str | Path | None) -> str | None:
     return DEFAULT_PATH if Path(DEFAULT_PATH).is_file() else None
 
 
+def shipped_config():
+    """The shipped hostd.toml (every key with its default), in the installed package."""
+    from hostd import paths
+
+    return paths.shipped_dir() / "hostd.toml"
+
+
 def load(path: str | Path | None) -> Config:
     """Read and validate a config file (None: the defaults)."""
     cfg = Config()
     if path is None:
         return cfg
     p = Path(path)
-    doc = tomlfile.read(p, "config file", "start from config/hostd.toml")
+    doc = tomlfile.read(p, "config file", f"start from {shipped_config()}")
     cfg.path = str(p)
     sections = {f.name for f in fields(Config) if f.name != "path"}
     for section, table in doc.items():
@@ -237,6 +248,9 @@ def load(path: str | Path | None) -> Config:
                 if value and not Path(value).is_absolute():
                     value = str((p.parent / value).resolve())
             setattr(sub, key, value)
+    if cfg.device.serial and (":" in cfg.device.transport or cfg.device.transport == "sim"):
+        raise ConfigError(f"{p}: device.serial picks a display among those device.transport finds: use it "
+                          f"with transport auto, hid, usb or serial (no path), not {cfg.device.transport!r}")
     cfg.render_config()  # the actuator file must load, too
     if cfg.quality.thresholds:
         from hostd.perception.thresholds import load_csv

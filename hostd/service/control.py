@@ -50,9 +50,10 @@ class ClientConn:
     the whole request and a byte budget; done_reading() once the request is in."""
 
     def __init__(self, conn: socket.socket, budget: int, deadline_s: float = REQUEST_DEADLINE_S,
-                 uid: int = -1) -> None:
+                 uid: int = -1, peer_uid: int | None = None) -> None:
         self.conn = conn
-        self.uid = uid
+        self.uid = uid  # -1: root or the daemon's own user (no share limit); else the limited uid
+        self.peer_uid = peer_uid  # the connected process's uid (SO_PEERCRED); None: not known
         self.started = time.monotonic()
         self.deadline = self.started + deadline_s
         self.budget = budget
@@ -250,7 +251,7 @@ class ControlServer:
                                    "served (a user's share of control.max_clients); try again" if over_share
                               else None)
                 continue
-            self.jobs.put((conn, uid if limited else None))
+            self.jobs.put((conn, uid, limited))
 
     def _evict_slowest(self) -> bool:
         """Under busy_lock: drop the client that has been sending its request the longest, if
@@ -282,8 +283,10 @@ class ControlServer:
             job = self.jobs.get()
             if job is None:
                 return
-            conn, limited_uid = job
-            client = ClientConn(conn, self.budget, uid=-1 if limited_uid is None else limited_uid)
+            conn, uid, limited = job
+            limited_uid = uid if limited else None
+            client = ClientConn(conn, self.budget, uid=-1 if limited_uid is None else limited_uid,
+                                peer_uid=uid)
             with self.busy_lock:
                 self.clients.add(client)
             try:

@@ -483,9 +483,28 @@ class Daemon:
             finally:
                 con.close()
         if cmd == "shutdown":
+            self.may_shut_down(rfile.peer_uid)
             self.stop_event.set()
             return {"shutting_down": True}
         raise BadRequest(f"unknown command {cmd!r:.40}")
+
+    def may_shut_down(self, peer_uid: int | None) -> None:
+        """`hostd stop --daemon`: refused for anyone under systemd (a clean exit is not restarted:
+        systemctl stop is the way), and outside it for anyone but the daemon's user and root (a
+        member of the socket's group sends textures and reads the log; it does not stop hostd)."""
+        from hostd.service.notify import service_unit
+
+        unit = service_unit()
+        if unit:
+            log.warning("control socket: refused to shut down (uid %s): runs as %s", peer_uid, unit)
+            self.refuse(f"hostd runs as the systemd service {unit}: use systemctl stop "
+                        f"{unit.removesuffix('.service')} (hostd stop --daemon would leave it stopped "
+                        "for good)")
+        me = os.geteuid()
+        if peer_uid not in (0, me):
+            log.warning("control socket: refused to shut down for uid %s", peer_uid)
+            self.refuse(f"only root or hostd's own user (uid {me}) may stop the daemon, not uid "
+                        f"{peer_uid}; hostd stop (without --daemon) stops playing")
 
     def latest_quality(self) -> list[dict]:
         """The latest quality row per texture name, with what was delivered (for the metrics)."""

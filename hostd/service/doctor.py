@@ -42,13 +42,13 @@ def doctor(config: str | None, json_out: bool = False) -> int:
             print(f"  note  {msg}")
 
     head("config")
-    from hostd.service.config import load
+    from hostd.service.config import load, shipped_config
 
     try:
         cfg = load(config)
         ok(f"{cfg.path} is valid")
     except HostdError as e:
-        bad(str(e), "correct the key named above (config/hostd.toml documents every key)")
+        bad(str(e), f"correct the key named above ({shipped_config()} documents every key)")
         cfg = load(None)
     head("device")
     from hostd.device.backend import node_owner
@@ -66,7 +66,7 @@ def doctor(config: str | None, json_out: bool = False) -> int:
         displays.append(entry)
         where = (f" ({entry['node']} {entry['owner']}:{entry['group']} {entry['mode']}"
                  f"{'' if entry['access'] else ', NOT accessible to this user'})" if "mode" in entry else "")
-        note(f"display {entry['spec']}{where}")
+        note(f"display {entry['spec']}{where}, serial number {entry['serial'] or 'none'}")
     if kind == "sim":
         ok("transport = sim (simulated display)")
     elif node and kind != "usb":  # hid:/dev/hidrawN or serial:PORT: check exactly that node
@@ -83,8 +83,10 @@ def doctor(config: str | None, json_out: bool = False) -> int:
             ok(f"device.transport = {transport!r}: {node} is accessible")
     else:
         found = [d["spec"] for d in displays]
-        wanted = [f for f in found
-                  if kind == "auto" or f == transport or (f.startswith(kind + ":") and not node)]
+        wanted = [d["spec"] for d in displays
+                  if (kind == "auto" or d["spec"] == transport
+                      or (d["spec"].startswith(kind + ":") and not node))
+                  and (not cfg.device.serial or d["serial"] == cfg.device.serial)]
         if wanted:
             ok(f"device.transport = {transport!r}: found {', '.join(wanted)}")
             for d in displays:
@@ -94,6 +96,7 @@ def doctor(config: str | None, json_out: bool = False) -> int:
                         "to group 'hostd', then replug the display")
         else:
             bad(f"device.transport = {transport!r}: no display {pr.USB_VID:04x}:{pr.USB_PID:04x} found"
+                + (f" with serial number {cfg.device.serial!r} (device.serial)" if cfg.device.serial else "")
                 + (f" (found only {', '.join(found)})" if found else ""),
                 "plug it in; or set [device] transport = \"sim\" in the config to run without one")
     hot = watch(transport)
@@ -179,7 +182,8 @@ def doctor(config: str | None, json_out: bool = False) -> int:
                 ok(f"rendered on the {st['render_at']}: {st['render_reason']}")
             if st["texture"] and st["played_fraction"] < 0.99:
                 note("the display played less than 99 % of the time: see `hostd status`; host stalls "
-                     "are what it recovers from (docs/daemon.md, real-time settings)")
+                     "are what it recovers from (the real-time checks above; hostd bench soak "
+                     "measures it)")
         except HostdError as e:
             bad(str(e), "systemctl restart hostd")
     else:

@@ -37,8 +37,15 @@ CONFIG_DEST = "etc/hostd/hostd.toml"
 SHIPPED_EXEC = "/opt/hostd/bin/hostd"
 # hidden from the service by the unit's sandbox (ProtectHome=yes, PrivateTmp=yes)
 HIDDEN_DIRS = ("/home", "/root", "/run/user", "/tmp", "/var/tmp")
-FIX = ("install hostd into a venv under /opt (sudo python3 -m venv /opt/hostd && sudo /opt/hostd/bin/pip "
-       "install 'hostd[device]') and run sudo /opt/hostd/bin/hostd install-service")
+
+
+def fix() -> str:
+    """What to run instead: a venv under /opt with this hostd installed from what the user has
+    (the checkout or the wheel it came from: hostd.extras.pip_install)."""
+    from hostd.extras import pip_install
+
+    return ("install hostd into a venv under /opt: sudo python3 -m venv /opt/hostd && sudo "
+            f"{pip_install('device', pip='/opt/hostd/bin/pip')} && sudo /opt/hostd/bin/hostd install-service")
 
 
 def exec_problem(exe: Path, interpreter: Path | None = None) -> str | None:
@@ -66,9 +73,7 @@ def hostd_executable() -> Path:
     found = shutil.which("hostd")
     if found:
         return Path(found).absolute()
-    raise HostdError("cannot find this installation's `hostd` script: install hostd into a venv "
-                     "(python3 -m venv /opt/hostd && /opt/hostd/bin/pip install hostd-*.whl) and run "
-                     "/opt/hostd/bin/hostd install-service")
+    raise HostdError(f"cannot find this installation's `hostd` script: {fix()}")
 
 
 def unit_text(exe: Path) -> str:
@@ -144,7 +149,7 @@ def install(prefix: str = "/", dry_run: bool = False, run_commands: bool | None 
         exe = hostd_executable()
         why = exec_problem(exe, Path(sys.executable).resolve())
     if why:
-        raise HostdError(f"refusing to install a unit that cannot start: {why}; {FIX}")
+        raise HostdError(f"refusing to install a unit that cannot start: {why}; {fix()}")
     steps = plan(root, exe)
     say = "would install" if dry_run else "installed"
     for dest, data, mode, overwrite in steps:

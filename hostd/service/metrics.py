@@ -100,8 +100,10 @@ def start(listen: tuple[str, int], status, quality_rows):
     try:
         from prometheus_client import CollectorRegistry, start_http_server
     except ImportError:
+        from hostd.extras import pip_install
+
         raise ConfigError("metrics.listen is set but prometheus_client is not installed: "
-                          "pip install 'hostd[metrics]' (or leave metrics.listen empty)") from None
+                          f"{pip_install('metrics')} (or leave metrics.listen empty)") from None
     reg = CollectorRegistry(auto_describe=False)
     reg.register(DaemonCollector(status, quality_rows))
     try:

@@ -17,6 +17,28 @@ log = logging.getLogger("hostd")
 START_WATCHDOG_S = 120.0  # the watchdog's allowance until READY=1
 
 
+def service_unit(cgroup_file: str = "/proc/self/cgroup", environ=None) -> str | None:
+    """The systemd service this process is the main process of ("hostd.service"), or None: its
+    cgroup is a .service (a shell's is a .scope or a session) and systemd gave it an
+    INVOCATION_ID. `hostd stop --daemon` is refused then: systemd would not start a cleanly
+    exited service again (Restart=on-failure), so only `systemctl stop` may stop it."""
+    environ = os.environ if environ is None else environ
+    if not environ.get("INVOCATION_ID"):
+        return None
+    try:
+        lines = open(cgroup_file, encoding="utf-8").read().splitlines()
+    except OSError:
+        return None
+    for line in lines:  # cgroup v2 ("0::/system.slice/hostd.service"), else v1's name=systemd
+        hid, _, rest = line.partition(":")
+        controllers, _, path = rest.partition(":")
+        if (hid == "0" and controllers == "") or controllers == "name=systemd":
+            leaf = path.rstrip("/").rsplit("/", 1)[-1]
+            if leaf.endswith(".service"):
+                return leaf
+    return None
+
+
 class Notifier:
     """sd_notify, a no-op outside systemd (no NOTIFY_SOCKET)."""
 

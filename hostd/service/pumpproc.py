@@ -353,7 +353,8 @@ def pump_main(cfg, conn, stats) -> None:
                     return
                 if not adds and now >= t_end:
                     t_end = now + cfg.device.reconnect_s
-                    listed = present(cfg.device.transport)
+                    listed = (present(cfg.device.transport, cfg.device.serial) if cfg.device.serial
+                              else present(cfg.device.transport))
                     usb_only = all(d["spec"].startswith("usb:") for d in listed)
                     if listed and (spec_kind != "auto" or not usb_only or listed_usb):
                         info["missed"] = info.get("missed", 0) + 1
@@ -402,7 +403,8 @@ def pump_main(cfg, conn, stats) -> None:
         # ---- connect
         transport = None
         try:
-            transport = open_transport(cfg.device.transport)
+            transport = (open_transport(cfg.device.transport, serial=cfg.device.serial) if cfg.device.serial
+                         else open_transport(cfg.device.transport))
             link = DeviceLink(transport, target_fill=cfg.device.target_fill)
             ident = link.handshake(timeout_s=2.0)
             link.set_limits(min(limit_code, ident["limit_code"]), min(max_step, ident["max_step_code"]))

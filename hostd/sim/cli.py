@@ -15,7 +15,8 @@ def run_label(effects: list[str], width: int = 40) -> str:
 
 def add_parser(sub) -> None:
     p = sub.add_parser("sim", help="simulate a scene (only the effects it names); quality per effect")
-    p.add_argument("scene", help="scene TOML (config/scenes/*.toml) or a shipped scene's name")
+    p.add_argument("scene", help="scene TOML, or a shipped scene's name (ideal, worst-case, "
+                   "usb-jitter, clock-drift, paper-experiment)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--plot", metavar="DIR", help="write stroke and error-spectrum PNGs here")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

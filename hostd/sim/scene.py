@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hostd import tomlfile
-from hostd.errors import ConfigError, ProfileError
+from hostd import paths, tomlfile
+from hostd.errors import ConfigError, HostdError, ProfileError
 
 SETTLE_S = 0.15  # soft start (50 ms) and filters settle before delivered samples count
 FS = 3000.0
@@ -55,7 +55,7 @@ class Scene:
 
 def load(path: str | Path) -> Scene:
     p = Path(path)
-    doc = tomlfile.read(p, "scene", "shipped ones are in config/scenes/")
+    doc = tomlfile.read(p, "scene", f"shipped ones are in {paths.scenes_dir()}")
     allowed = {"name", "description", "duration_s", "seed", "texture", "hand", "effects"}
     for k in doc:
         if k not in allowed:
@@ -78,6 +78,8 @@ def load(path: str | Path) -> Scene:
         from hostd.sim import effects as fx
 
         fx.build(sc.effects, sc.seed)
+    except HostdError:  # (a ValueError too) already names what to change
+        raise
     except (ValueError, KeyError, TypeError) as e:
         raise ConfigError(f"{p}: {e}") from None
     return sc
@@ -237,11 +239,12 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False, shared
         n_arrive = len(arrive_sorted)
         last_t = -1.0
         r.start()
-        from tqdm import tqdm
+        from hostd.tty import progress_bar
 
         on_encoder, plan, render_um = r.on_encoder, r.plan, r.render_um
-        for j, th in enumerate(tqdm(t_host.tolist(), disable=not progress, unit="ms", leave=False,
-                                    desc=f"{sc.name} {'+'.join(names) or 'ideal'}", mininterval=0.5)):
+        for j, th in enumerate(progress_bar(progress, iterable=t_host.tolist(), unit="ms", leave=False,
+                                            desc=f"{sc.name} {'+'.join(names) or 'ideal'}",
+                                            mininterval=0.5)):
             while m < n_arrive and arrive_sorted[m] <= th + 1e-12:
                 if t_dev_sorted[m] > last_t:  # a report older than one already seen adds nothing
                     on_encoder(t_dev_sorted[m], counts_sorted[m])

@@ -76,6 +76,8 @@ _BUILTIN: tuple[Format, ...] = (
            "one or two numeric columns; instrument preambles skipped (--columns, --decimal-comma)"),
     Format("MPEG-I Haptics", (".hjif", ".hmpg"), "hostd.texture.hjif:read",
            "ISO/IEC 23090-31 (.hmpg through the reference Decoder): one channel (--member P[/C])"),
+    Format("matlab", (".mat",), "hostd.texture.matfile:read_mat",
+           "MATLAB v4-v7 (v7.3 is HDF5: save with -v7); --var NAME picks an array, --var X,Y two vectors"),
 )
 TEXT = _BUILTIN[1]  # any suffix not registered is read as text
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostd.errors import ProfileError
+from hostd.errors import ProfileError, ProfileNotFound
 from hostd.texture.formats import LoadOptions
 
 UNITS_TO_UM = {"m": 1e6, "mm": 1e3, "um": 1.0, "µm": 1.0, "nm": 1e-3}
@@ -148,6 +148,8 @@ def read_columns(path: Path, columns: tuple[int, ...] | None = None, decimal_com
     try:
         size = path.stat().st_size
         fh = path.open("r", encoding="latin-1", newline="")
+    except FileNotFoundError:
+        raise ProfileNotFound(f"no such profile file: {path}") from None
     except OSError as exc:
         raise ProfileError(f"cannot read {path}: {exc.strerror or exc}") from None
     with fh:
@@ -171,12 +173,12 @@ def read_columns(path: Path, columns: tuple[int, ...] | None = None, decimal_com
             raise ProfileError(
                 f"{path} holds about {est_rows:,} rows ({size / 2**20:.0f} MiB), more than the "
                 f"{MAX_ROWS:,} a profile may have: take a patch with --length-mm (and --offset-mm)")
-        from tqdm import tqdm
+        from hostd.tty import progress_bar
 
         for attempt_stop in ((stop_x, None) if stop_x is not None else (None,)):
             fh.seek(offset)
-            with tqdm(total=size - offset, unit="B", unit_scale=True, desc=f"reading {path.name}",
-                      disable=not (progress and size >= PROGRESS_BYTES), leave=False) as bar:
+            with progress_bar(progress and size >= PROGRESS_BYTES, total=size - offset, unit="B",
+                              unit_scale=True, desc=f"reading {path.name}", leave=False) as bar:
                 src = _Source(fh, bar, None if delim is None else delim.decode(),
                               usecols[0] if len(usecols) == 2 else None, attempt_stop)
                 arr = _parse(src, delim, usecols, first_line)
@@ -285,7 +287,7 @@ def read_npy(p: Path, opts: LoadOptions) -> np.ndarray:
     try:
         arr = np.load(p, allow_pickle=False, mmap_mode="r")
     except FileNotFoundError:
-        raise ProfileError(f"no such profile file: {p}") from None
+        raise ProfileNotFound(f"no such profile file: {p}") from None
     except (OSError, ValueError) as exc:
         raise ProfileError(f"cannot read {p} as .npy: {exc}") from None
     if np.iscomplexobj(arr):
@@ -312,7 +314,7 @@ def read_npy(p: Path, opts: LoadOptions) -> np.ndarray:
 def read_text(p: Path, opts: LoadOptions) -> np.ndarray:
     """The text reader of the format registry: any suffix no other format claims."""
     if not p.exists():
-        raise ProfileError(f"no such profile file: {p}")
+        raise ProfileNotFound(f"no such profile file: {p}")
     stop_x = None
     if opts.length_mm is not None and math.isfinite(opts.length_mm):
         # a patch of a two-column file: read no further than it needs (plus a margin)
