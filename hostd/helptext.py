@@ -22,7 +22,7 @@ hostd iobj REFERENCE_PROFILE IN.vtx --json                      # sender side: a
 hostd fit SCORES.csv [--json] [--nonnegative] [--exclude-saturated] [--bootstrap N]   # (a, b), SE, intervals
 hostd report rate-quality PROFILE -o DIR [--json]               # CSV, Markdown, PNG: Iobj, Ip, Ia, SPQI, CPU
 hostd render IN.vtx --speed 50 --seconds 5 -o OUT.wav           # what a hand at 50 mm/s feels, as a WAV file
-hostd export IN.vtx|PROFILE -o OUT.hjif [--speed-mm-s 80]       # MPEG-I Haptics .hjif for the standard's players
+hostd export IN.vtx|PROFILE -o OUT.hjif [--speed-mm-s 80]       # MPEG-I Haptics .hjif (the standard)
 hostd bench accuracy [--json] [--plot F.png]                    # every render knob: error vs CPU
 hostd bench pipeline | latency | codec | scoring | sim | load | offline   # real-time cost, link latency, ...
 hostd bench soak [--minutes 10] [--load]                        # the daemon for minutes: played fraction
