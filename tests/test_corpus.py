@@ -440,6 +440,8 @@ def test_without_the_corpus_extra_runs_work_and_the_rest_names_the_extra(tmp_pat
                  ["export", db, "-o", str(tmp_path / "r.parquet")],
                  ["run", "synthetic:wood:1", "--dask", "local", "-o", db]):
         r = hostd(*args)
-        assert r.returncode == 2 and "pip install 'hostd[corpus]'" in r.stderr, (args, r.stderr)
+        from hostd.extras import pip_install
+
+        assert r.returncode == 2 and pip_install("corpus") in r.stderr, (args, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "rep").exists()

@@ -188,7 +188,9 @@ def _dask(tex, plan, scoring, d, w: int, batch: int | None, bare_ms: float) -> d
     try:
         from distributed import LocalCluster
     except ImportError:
-        return {"dask_note": "distributed not installed: pip install 'hostd[corpus]'"}
+        from hostd.extras import pip_install
+
+        return {"dask_note": f"distributed not installed: {pip_install('corpus')}"}
     from hostd.corpus import run as crun
 
     os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")  # as --dask local

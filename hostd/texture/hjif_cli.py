@@ -48,7 +48,7 @@ def texture_export(spec: str, args: argparse.Namespace):
 
     prov: dict = {"tool": f"hostd {__version__}", "source": Path(spec).name}
     if _is_stream(spec):
-        from hostd.cli import _read_stream
+        from hostd.commands import _read_stream
         from hostd.quality import score_stream
 
         s = _read_stream(spec)
