@@ -29,7 +29,7 @@ def add_parser(sub, parents) -> None:
 
     p = sub.add_parser("corpus", help="evaluate codecs over a texture database: sweep, results store, "
                        "BD-rate (needs hostd[corpus])",
-                       description="Corpus-scale codec evaluation (docs/corpus.md): every texture x codec x "
+                       description="Corpus-scale codec evaluation: every texture x codec x "
                        "setting x geometry -> one row in a resumable SQLite store; BD-rate reports.")
     csub = p.add_subparsers(dest="corpus", metavar="WHAT")
     p.set_defaults(func=needs_subcommand(p, "run, report or export"))

@@ -209,7 +209,7 @@ class MpegRm(_TimeSignalPeer):
 
     def _how(self) -> str:
         return (f"set {MPEG_ENCODER_ENV} / {MPEG_SYNTH_ENV}, or build the reference software "
-                "(docs/interchange.md: build.sh caches it in ~/.cache/mpeg-haptics-rm/bin)")
+                "(its build.sh caches it in ~/.cache/mpeg-haptics-rm/bin)")
 
     def curve(self, setting: dict) -> str:
         return " ".join(self.options)
@@ -250,7 +250,7 @@ class VcPwq(_TimeSignalPeer):
         return (Path(env) if env else None,)
 
     def _how(self) -> str:
-        return f"set {VCPWQ_ENV} (build it as docs/benchmarks.md 'Peer codecs' says)"
+        return f"set {VCPWQ_ENV} to the VC_PWQ program built from its sources (cmake)"
 
     def _code(self, signal: np.ndarray, work: Path, *, budget: int, **_: Any) -> tuple[bytes, np.ndarray]:
         (exe,) = self._paths()

@@ -11,7 +11,6 @@ keeps every row already written.
 from __future__ import annotations
 
 import os
-import sys
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -374,12 +373,11 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
     t0 = time.monotonic()
     st = Store(store_path)
     summ = Summary(str(store_path), total=len(textures) * plan.per_texture)
-    show = sys.stderr.isatty() if progress is None else progress
-    bar = None
-    if show:
-        from tqdm import tqdm
+    from hostd.tty import progress_bar
 
-        bar = tqdm(total=summ.total, unit="job", desc="corpus", file=sys.stderr, smoothing=0.05)
+    # shown only on a terminal (hostd.tty), also when asked for: a log or a pipe gets no \r lines
+    bar = progress_bar(progress is not False, total=summ.total, unit="job", desc="corpus",
+                       smoothing=0.05)
 
     def skipped(k: int) -> None:
         summ.skipped += k

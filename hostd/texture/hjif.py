@@ -102,8 +102,8 @@ def rm_dir() -> Path | None:
     return None
 
 
-RM_HOW = (f"build the MPEG-I Haptics reference software (docs/interchange.md: build.sh of "
-          f"mpeg-haptics-rm caches it in ~/.cache/mpeg-haptics-rm/bin) or set {RM_ENV} to the "
+RM_HOW = (f"build the MPEG-I Haptics reference software (its build.sh "
+          f"caches it in ~/.cache/mpeg-haptics-rm/bin) or set {RM_ENV} to the "
           f"directory holding Encoder, Decoder and Synthesizer")
 
 

@@ -124,8 +124,7 @@ def add_parser(sub) -> None:
                        help="a texture (profile or .vtx stream) as MPEG-I Haptics .hjif",
                        description="Write a texture as MPEG-I Haptics (ISO/IEC 23090-31) .hjif: a "
                        "'Vibrotactile Texture' perception (the heights over space) and a 'Vibrotactile' "
-                       "perception (the texture as played at --speed-mm-s), with hostd's provenance. "
-                       "See docs/interchange.md.")
+                       "perception (the texture as played at --speed-mm-s), with hostd's provenance.")
     p.add_argument("source", help="a profile (csv/txt/npy/hjif, synthetic:wood[:SEED]) or a .vtx stream")
     p.add_argument("-o", "--output", required=True, help="output .hjif file")
     p.add_argument("--speed-mm-s", type=_positive, default=None,
