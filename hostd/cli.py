@@ -461,12 +461,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_manpage)
 
     from hostd.bench.cli import add_parser as add_bench
+    from hostd.experiment.cli import add_parser as add_experiment
     from hostd.service.cli import add_parsers as add_service
     from hostd.sim.cli import add_parser as add_sim
 
     add_bench(sub, [loader_parent(None)])
     add_service(sub)
     add_sim(sub)
+    add_experiment(sub)
     return ap
 
 
