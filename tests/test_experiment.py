@@ -11,13 +11,13 @@ import pytest
 
 pytest.importorskip("questplus")
 
-from hostd.cli import main  # noqa: E402
-from hostd.errors import ExperimentError  # noqa: E402
-from hostd.experiment.display import Reach, SimDisplay, Sinusoid  # noqa: E402
-from hostd.experiment.runner import SimilaritySession, ThresholdSession  # noqa: E402
-from hostd.experiment.session import Store  # noqa: E402
-from hostd.experiment.threshold import ThresholdConfig, ThresholdRun, db, thresholds_csv  # noqa: E402
-from hostd.perception import thresholds as th  # noqa: E402
+from hostd.cli import main
+from hostd.errors import ExperimentError
+from hostd.experiment.display import Reach, SimDisplay, Sinusoid
+from hostd.experiment.runner import SimilaritySession, ThresholdSession
+from hostd.experiment.session import Store
+from hostd.experiment.threshold import ThresholdConfig, ThresholdRun, db, thresholds_csv
+from hostd.perception import thresholds as th
 
 
 @pytest.fixture(scope="module")
