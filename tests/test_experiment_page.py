@@ -12,11 +12,11 @@ import pytest
 
 pytest.importorskip("questplus")
 
-from hostd.experiment.display import SimDisplay  # noqa: E402
-from hostd.experiment.runner import SimilaritySession, ThresholdSession  # noqa: E402
-from hostd.experiment.server import ExperimentServer  # noqa: E402
-from hostd.experiment.session import Store  # noqa: E402
-from hostd.experiment.threshold import ThresholdConfig  # noqa: E402
+from hostd.experiment.display import SimDisplay
+from hostd.experiment.runner import SimilaritySession, ThresholdSession
+from hostd.experiment.server import ExperimentServer
+from hostd.experiment.session import Store
+from hostd.experiment.threshold import ThresholdConfig
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 DRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
@@ -131,7 +131,8 @@ def test_similarity_session_in_chromium_with_a_reload_and_pause(browser, tmp_pat
 
     d = tmp_path / "design.toml"
     d.write_text('seconds = 1\nrepetitions = 1\nlength_mm = 1\n[textures]\nwood = "synthetic:wood:1"\n'
-                 '[[methods]]\nmethod = "quant"\nsettings = [4, 8]\n[[methods]]\nmethod = "cut"\nsettings = [0]\n')
+                 '[[methods]]\nmethod = "quant"\nsettings = [4, 8]\n'
+                 '[[methods]]\nmethod = "cut"\nsettings = [0]\n')
     plan = make_plan(read_design(d), tmp_path / "o")
     st = Store(tmp_path / "s.sqlite")
     st.create("tok2", "similarity", plan)
