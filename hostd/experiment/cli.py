@@ -278,6 +278,8 @@ def cmd_bench(args) -> int:
     out = {"runs": args.runs, "trials_per_frequency": args.trials, "threshold": {}}
     for kind in ("weibull", "logistic"):
         for n in (2, 3):
+            if args.runs <= 0:
+                continue
             t0 = time.process_time()
             e = simulate_thresholds(kind, n, args.runs, args.trials, seed=2026)
             r = {"within_2db": float(np.mean(np.abs(e) <= 2.0)), "bias_db": float(np.mean(e)),
@@ -288,15 +290,20 @@ def cmd_bench(args) -> int:
                 print(f"QUEST+ {n}AFC {kind:<8} within ±2 dB: {r['within_2db']:.1%}  "
                       f"bias {r['bias_db']:+.2f} dB  "
                       f"90th pct |error| {r['p90_abs_err_db']:.2f} dB  ({r['cpu_s_per_run']:.2f} s CPU/run)")
-    f = simulate_fit(0.581, 0.464, 0.6, n_sims=args.fit_sims)
-    out["fit"] = f
+    out["fit"] = []
+    for sd in (0.3, 0.5, 0.8):
+        f = simulate_fit(0.581, 0.464, sd, n_sims=args.fit_sims)
+        out["fit"].append(f)
+        if not args.json:
+            print(f"hostd fit, (a, b) = (0.581, 0.464), grade noise {sd}, {f['sims']} labs of "
+                  f"{f['answers_per_stimulus']} answers x {f['stimuli']} stimuli: bootstrap 95% covers "
+                  f"a {f['coverage_a']:.0%}, b {f['coverage_b']:.0%}, both {f['coverage_both']:.0%} "
+                  f"(width a {f['mean_width_a']:.3f}, b {f['mean_width_b']:.3f}); t interval of the "
+                  f"standard errors covers both {f['se_t_interval_coverage_both']:.0%} "
+                  f"(width a {f['se_t_interval_mean_width_a']:.3f})")
     if args.json:
-        json.dump(out, sys.stdout, indent=1)
+        json.dump(out, sys.stdout, indent=1, default=float)
         print()
-    else:
-        print(f"hostd fit coverage of (a, b) = (0.581, 0.464), {f['sims']} simulated labs of 8 participants: "
-              f"a {f['coverage_a']:.0%}, b {f['coverage_b']:.0%}; mean 95% interval width "
-              f"a {f['mean_width_a']:.3f}, b {f['mean_width_b']:.3f}")
     return 0
 
 
