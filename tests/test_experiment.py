@@ -228,3 +228,16 @@ def test_similarity_session_answers_once_and_repeats_a_lost_texture(tmp_path):
 
 def test_db_scale():
     assert db(1.0) == 0.0 and abs(db(0.1) + 20.0) < 1e-12
+
+
+def test_the_daemon_and_encode_do_not_import_the_experiment_dependencies(tmp_path):
+    import subprocess
+    import sys
+
+    code = ("import sys; from hostd.cli import main; from hostd.service import daemon; "
+            f"main(['encode', 'synthetic:wood:1', '--length-mm', '1', '-o', {str(tmp_path / 'x.vtx')!r}, "
+            "'--method', 'quant', '--levels', '8']); "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('questplus', 'xarray', 'selenium')))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "[]"
