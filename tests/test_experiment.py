@@ -241,3 +241,47 @@ def test_the_daemon_and_encode_do_not_import_the_experiment_dependencies(tmp_pat
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_the_experimenters_terminal_shows_progress_aborts_and_resumes(tmp_path):
+    """The command as an experimenter runs it: the page's address and the progress on stderr,
+    Ctrl-C aborts keeping every answer, --resume goes on with the same plan."""
+    import json as _json
+    import re
+    import signal
+    import subprocess
+    import sys
+    import urllib.request
+
+    out = tmp_path / "o"
+    args = [sys.executable, "-m", "hostd", "experiment", "threshold", "--out", str(out), "--token", "p1",
+            "--frequencies", "40,250", "--trials", "3"]
+    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stderr.readline()
+        m = re.search(r"(http://127\.0\.0\.1:\d+/s/p1)", line)
+        assert m, line
+        api = m.group(1).replace("/s/", "/api/")
+        for _ in range(2):
+            t = _json.load(urllib.request.urlopen(api + "/trial", timeout=60))["trial"]
+            req = urllib.request.Request(api + "/answer", data=_json.dumps({"index": t["index"], "value": 1})
+                                         .encode(), headers={"Content-Type": "application/json"})
+            assert _json.load(urllib.request.urlopen(req, timeout=60)) == {"ok": True}
+        progress = ""
+        while "2/6 answered" not in progress:
+            progress += proc.stderr.readline()
+        proc.send_signal(signal.SIGINT)
+        err = proc.stderr.read()
+        assert proc.wait(60) == 1 and "aborted at 2 answers" in err and "--resume" in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    st = Store(out / "session.sqlite")
+    assert st.state("p1") == "aborted" and len(st.answers("p1")) == 2
+    first = [a["stimulus"] for a in st.answers("p1")]
+    r = subprocess.run([*args, "--resume", "--simulate", "weibull"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    rows = st.answers("p1")
+    assert len(rows) == 6 and [a["stimulus"] for a in rows[:2]] == first
+    assert th.load_csv(out / "thresholds.csv").freq_hz.size == 2
