@@ -48,7 +48,8 @@ def add_parser(sub, parents=()) -> None:
                    help="default: those of the shipped b(f) table (config/thresholds/default.csv)")
     t.add_argument("--prior", default=None, metavar="CSV",
                    help="the prior's centre per frequency (default: the shipped b(f))")
-    t.add_argument("--afc", type=int, choices=[2, 3], default=2, help="intervals per trial (default 2)")
+    t.add_argument("--afc", type=int, choices=[2, 3], default=3,
+                   help="intervals per trial (default 3: within ±2 dB in 30 trials more often than 2)")
     t.add_argument("--trials", type=int, default=30, help="trial budget per frequency (default 30)")
     t.add_argument("--stop-width-db", type=float, default=0.0,
                    help="stop a frequency once its 95%% interval is this narrow, dB (default 0: budget only)")
