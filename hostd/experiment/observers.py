@@ -94,8 +94,6 @@ def simulate_fit(a: float, b: float, noise_sd: float, n_sims: int = 50, reps: in
     ia = np.concatenate([np.linspace(0.2, 1.6, 6), np.linspace(0.1, 0.7, 6), [0.0]])
     ip = ip * rng0.uniform(0.9, 1.1, ip.size)
     ia = ia * rng0.uniform(0.9, 1.1, ia.size)
-    import scipy.stats
-
     cover_a = cover_b = both = se_cover = 0
     wa, wb, se_w = [], [], []
     for s in range(n_sims):
@@ -112,9 +110,9 @@ def simulate_fit(a: float, b: float, noise_sd: float, n_sims: int = 50, reps: in
         both += res.ci_a[0] <= a <= res.ci_a[1] and res.ci_b[0] <= b <= res.ci_b[1]
         wa.append(res.ci_a[1] - res.ci_a[0])
         wb.append(res.ci_b[1] - res.ci_b[0])
-        k = scipy.stats.t.ppf(0.975, ip.size - 2)  # the standard errors' t interval, for comparison
-        se_cover += abs(res.a - a) <= k * res.se_a and abs(res.b - b) <= k * res.se_b
-        se_w.append(2 * k * res.se_a)
+        ta, tb = res.t_interval_a, res.t_interval_b  # hostd fit's t interval of its standard errors
+        se_cover += ta[0] <= a <= ta[1] and tb[0] <= b <= tb[1]
+        se_w.append(ta[1] - ta[0])
     return {"coverage_a": cover_a / n_sims, "coverage_b": cover_b / n_sims, "coverage_both": both / n_sims,
             "mean_width_a": float(np.mean(wa)), "mean_width_b": float(np.mean(wb)), "sims": n_sims,
             "stimuli": int(ip.size), "answers_per_stimulus": participants * reps, "noise_sd": noise_sd,
