@@ -85,6 +85,9 @@ async function call(path, body) {
 }
 async function load() {
   busy = true;
+  current = null;  // the display plays the trial while this request is out: say so, take no answer
+  $("prompt").textContent = "Feel the display now: the trial is playing";
+  for (const b of document.querySelectorAll("#choices button")) b.disabled = true;
   try { show(await call("/trial")); }
   catch (e) { $("message").textContent = "No answer from hostd (" + e.message + "): retrying";
               setTimeout(load, 2000); }
