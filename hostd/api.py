@@ -385,8 +385,9 @@ def fit(records: Iterable[Mapping] | Mapping[str, Iterable], *, nonnegative: boo
     Parameters
     ----------
     records : list of dicts, or a dict of columns (e.g. ``DataFrame.to_dict("list")``)
-        Each stimulus: ``score`` and ``Ip``, ``Ia``; optionally ``texture``, ``method``,
-        ``level``. ``df.to_dict("records")`` works as is.
+        Each stimulus: ``score`` and ``Ip``, ``Ia`` (or ``ip``, ``ia``); optionally ``texture``,
+        ``method``, ``level``. A control (``method="none"``, the reference against itself) may
+        leave out Ip and Ia: they are 0. ``df.to_dict("records")`` works as is.
     nonnegative : bool
         Constrain a, b >= 0.
     scale_min, scale_max : float
@@ -400,14 +401,30 @@ def fit(records: Iterable[Mapping] | Mapping[str, Iterable], *, nonnegative: boo
         a, b, se_a, se_b (standard errors), ci_a, ci_b (bootstrap 95 % intervals), n_used,
         warnings, metrics (r2_pearson and r2_fit of Iobj, Ip, Ia), excluded.
     """
+    from hostd.errors import FitError
     from hostd.perception import fit as _fit
 
     if isinstance(records, Mapping):
         keys = list(records)
         cols = [list(records[k]) for k in keys]
         records = [dict(zip(keys, row, strict=True)) for row in zip(*cols, strict=True)]
-    stimuli = [_fit.Stimulus(str(r.get("texture", "")), str(r.get("method", "")), str(r.get("level", "")),
-                             float(r["score"]), float(r["Ip"]), float(r["Ia"])) for r in records]
+    stimuli = []
+    try:
+        for i, r in enumerate(records):
+            where = f"record {i}"
+            if "score" not in r:
+                raise FitError(f"{where}: no score")
+            idx = _fit.indices_of(r, where)
+            if idx is None:
+                raise FitError(f"{where}: no Ip and Ia (only a control, method 'none', may leave them out)")
+            try:
+                score = float(r["score"])
+            except (TypeError, ValueError):
+                raise FitError(f"{where}: score must be a number, not {r['score']!r:.20}") from None
+            stimuli.append(_fit.Stimulus(str(r.get("texture", "")), str(r.get("method", "")),
+                                         str(r.get("level", "")), score, *idx))
+    except HostdError as exc:
+        raise _python_names(exc) from None
     res = _fit.fit(stimuli, nonnegative=nonnegative, scale_min=scale_min, scale_max=scale_max,
                    exclude_saturated=exclude_saturated, n_boot=n_boot)
     out = res.as_dict()

@@ -144,13 +144,37 @@ def index_parent() -> argparse.ArgumentParser:
                    help="(a, b) fitted in the paper (default both: 0.581, 0.464)")
     g.add_argument("--a", type=_finite, default=None, help="weight of Ip (overrides --preset)")
     g.add_argument("--b", type=_finite, default=None, help="weight of Ia (overrides --preset)")
+    g.add_argument("--calibration", action=CalibrationAction, default=None, metavar="FILE",
+                   help="a display's calibration (hostd experiment calibration): its (a, b) and, "
+                   "unless --thresholds is given, its threshold curve")
     return p
+
+
+class CalibrationAction(argparse.Action):
+    """--calibration FILE: loaded (one-line error if bad) and, unless --thresholds was given,
+    its curve becomes the command's --thresholds (every reader of that option reads a
+    calibration file as-is); _ab takes its (a, b) unless --a/--b say otherwise."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        from hostd.errors import HostdError
+        from hostd.perception import calibration
+
+        try:
+            cal = calibration.load(value)
+        except HostdError as e:
+            parser.error(f"--calibration: {e}")
+        setattr(namespace, self.dest, cal)
+        if hasattr(namespace, "thresholds") and getattr(namespace, "thresholds", None) is None:
+            namespace.thresholds = value
 
 
 def _ab(args: argparse.Namespace) -> tuple[float, float]:
     from hostd.perception.indices import PRESETS
 
     a, b = PRESETS[args.preset]
+    cal = getattr(args, "calibration", None)
+    if cal is not None:
+        a, b = cal.a, cal.b
     return (args.a if args.a is not None else a, args.b if args.b is not None else b)
 
 

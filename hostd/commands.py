@@ -217,10 +217,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
     print(f"Iobj = {num(res.a)} Ip {sign} {num(abs(res.b))} Ia   ({res.n_used} stimuli"
           f"{', a, b >= 0' if res.nonnegative else ''})")
     pct = f"{100 * res.ci_level:g}%"
-    for name, v, se, ci in (("a", res.a, res.se_a, res.ci_a), ("b", res.b, res.se_b, res.ci_b)):
+    for name, v, se, ci, ti in (("a", res.a, res.se_a, res.ci_a, res.t_interval_a),
+                                ("b", res.b, res.se_b, res.ci_b, res.t_interval_b)):
         se_s = "n/a" if se is None else num(se)
         ci_s = "n/a" if ci is None else f"[{num(ci[0])}, {num(ci[1])}]"
-        print(f"  {name} = {num(v)}   standard error {se_s}   bootstrap {pct} interval {ci_s}")
+        ti_s = "" if ti is None else f"   t {pct} interval [{num(ti[0])}, {num(ti[1])}]"
+        print(f"  {name} = {num(v)}   standard error {se_s}   bootstrap {pct} interval {ci_s}{ti_s}")
     print(f"{'index':<6} {'r2_pearson':>11} {'r2_fit':>8}")
     for name, m in res.metrics.items():
         rp = "n/a" if m["r2_pearson"] is None else f"{m['r2_pearson']:.3f}"

@@ -85,3 +85,8 @@ class DeviceBusy(DeviceError):
 class DeviceTimeout(DeviceError):
     """The device did not answer a request in time: it may be slow (an emulated or starved
     host), which is not a refusal; the caller may ask once more."""
+
+
+class ExperimentError(HostdError, ValueError):
+    """An experiment's design, session or stimulus is unusable (unknown texture, reused token,
+    a stimulus beyond the display's reach)."""

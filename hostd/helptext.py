@@ -20,6 +20,7 @@ hostd inspect IN.vtx --json                                     # header, sizes,
 hostd iobj IN.vtx --json                                        # receiver side: index from the stream alone
 hostd iobj REFERENCE_PROFILE IN.vtx --json                      # sender side: against the original
 hostd fit SCORES.csv [--json] [--nonnegative] [--exclude-saturated] [--bootstrap N]   # (a, b), SE, intervals
+hostd experiment threshold|similarity|calibration|bench ...   # calibrate Iobj on your display (browser page)
 hostd report rate-quality PROFILE -o DIR [--json]               # CSV, Markdown, PNG: Iobj, Ip, Ia, SPQI, CPU
 hostd render IN.vtx --speed 50 --seconds 5 -o OUT.wav           # what a hand at 50 mm/s feels, as a WAV file
 hostd export IN.vtx|PROFILE -o OUT.hjif [--speed-mm-s 80]       # MPEG-I Haptics .hjif (the standard)

@@ -155,6 +155,7 @@ def build_parser() -> argparse.ArgumentParser:
     # its import and its call here (and nowhere else: docgen, completion and --help follow)
     from hostd.bench.cli import add_parser as add_bench
     from hostd.corpus.cli import add_parser as add_corpus
+    from hostd.experiment.cli import add_parser as add_experiment
     from hostd.service.cli import add_parsers as add_service
     from hostd.sim.cli import add_parser as add_sim
     from hostd.texture.hjif_cli import add_parser as add_export
@@ -164,6 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_corpus(sub, [loader_parent(10.0)])
     add_service(sub)
     add_sim(sub)
+    add_experiment(sub)
 
     from hostd.helptext import add_epilogs
 

@@ -122,30 +122,58 @@ def from_bytes(data: bytes, name: str = "embedded") -> ThresholdCurve:
 
 
 def load_csv(path: str | Path) -> ThresholdCurve:
-    """Load a curve from CSV: lines 'frequency_hz,threshold_um'; '#' comments and a header line."""
+    """Load a curve from CSV: lines 'frequency_hz,threshold_um'; '#' comments and a header line.
+
+    A header that names its columns (frequency_hz, threshold_um, and others such as the
+    interval ci_low_um, ci_high_um that `hostd experiment threshold` writes) selects those two
+    by name and ignores the rest. A calibration file (.toml, hostd.perception.calibration) gives
+    its curve: every `--thresholds` reads one as-is."""
     p = Path(path)
+    if str(p).endswith(".toml"):
+        from hostd.perception import calibration
+
+        return calibration.load(p).curve
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ThresholdNotFound(f"no such threshold curve: {p}") from None
     except OSError as exc:
         raise ThresholdError(f"cannot read threshold curve {p}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise ThresholdError(f"{p}: not a text file (a CSV 'frequency_hz,threshold_um' expected)") from None
     f: list[float] = []
     b: list[float] = []
+    named: tuple[int, int] | None = None
+    width = 2
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.split("#", 1)[0].strip()
         if not line:
             continue
         parts = [s.strip() for s in line.replace(";", ",").replace("\t", ",").split(",")]
-        parts = [s for s in parts if s]
-        if len(parts) != 2:
+        if named is None:
+            parts = [s for s in parts if s]
+        if named is None and not f and "frequency_hz" in parts and "threshold_um" in parts:
+            named = (parts.index("frequency_hz"), parts.index("threshold_um"))
+            width = len(parts)
+            continue
+        if named is not None:
+            if len(parts) != width:
+                raise ThresholdError(f"{p}:{lineno}: expected {width} columns as the header names")
+            parts = [parts[named[0]], parts[named[1]]]
+            if not parts[1]:
+                raise ThresholdError(f"{p}:{lineno}: missing threshold_um at {parts[0] or '?'} Hz: "
+                                     "give a number > 0, or remove the row")
+        elif len(parts) != 2:
             raise ThresholdError(f"{p}:{lineno}: expected 'frequency_hz,threshold_um'")
         try:
             fv, bv = float(parts[0]), float(parts[1])
         except ValueError:
-            if not f:  # a header line before the first point
+            if not f and named is None:  # a header line before the first point
                 continue
             raise ThresholdError(f"{p}:{lineno}: not a number: {line!r}") from None
+        if not (bv > 0):
+            raise ThresholdError(f"{p}:{lineno}: threshold {parts[1]} µm at {parts[0]} Hz: thresholds "
+                                 "must be > 0 µm")
         f.append(fv)
         b.append(bv)
     return ThresholdCurve(np.array(f), np.array(b), name=p.stem)

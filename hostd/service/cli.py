@@ -172,13 +172,16 @@ def cmd_quality(args) -> int:
     for r in rows:  # machine-readable output: ISO 8601 times with the zone
         if args.json or args.csv:
             r["received_at"], r["scored_at"] = iso_time(r["received_at"]), iso_time(r["scored_at"])
+    # machine-readable output spells the indices Ip, Ia, Iobj, as `hostd iobj --json` and `hostd fit`
+    spelt = {"ip": "Ip", "ia": "Ia", "iobj": "Iobj"}
     if args.json:
-        json.dump(rows, sys.stdout, indent=1)
+        json.dump([{spelt.get(k, k): v for k, v in r.items()} for r in rows], sys.stdout, indent=1)
         print()
     elif args.csv:
-        w = csv.DictWriter(sys.stdout, fieldnames=list(qualitylog.COLUMNS + qualitylog.DELIVERED))
+        w = csv.DictWriter(sys.stdout, fieldnames=[spelt.get(k, k) for k in
+                                                   qualitylog.COLUMNS + qualitylog.DELIVERED])
         w.writeheader()
-        w.writerows(rows)
+        w.writerows({spelt.get(k, k): v for k, v in r.items()} for r in rows)
     else:
         print(f"{'received':<20} {'name':<22} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8} "
               f"{'a':>6} {'b':>6} {'played':>8} {'for':>8} {'underruns':>9}")

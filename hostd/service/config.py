@@ -53,6 +53,7 @@ class QualityCfg:
     a: float = _A
     b: float = _B
     thresholds: str = ""
+    calibration: str = ""  # a calibration file: its curve and (a, b) instead of the three above
 
 
 @dataclass
@@ -244,7 +245,8 @@ def load(path: str | Path | None) -> Config:
                 raise ConfigError(f"{p}: unknown key {section}.{key} (expected one of "
                                   f"{', '.join(sorted(known))})")
             value = _check(str(p), section, key, value, getattr(sub, key))
-            if (section, key) in PATHS or (section, key) == ("quality", "thresholds"):
+            if (section, key) in PATHS or (section, key) in (("quality", "thresholds"),
+                                                             ("quality", "calibration")):
                 if value and not Path(value).is_absolute():
                     value = str((p.parent / value).resolve())
             setattr(sub, key, value)
@@ -252,6 +254,19 @@ def load(path: str | Path | None) -> Config:
         raise ConfigError(f"{p}: device.serial picks a display among those device.transport finds: use it "
                           f"with transport auto, hid, usb or serial (no path), not {cfg.device.transport!r}")
     cfg.render_config()  # the actuator file must load, too
+    if cfg.quality.calibration:
+        q = doc.get("quality", {})
+        clash = [k for k, dflt in (("a", _A), ("b", _B), ("thresholds", "")) if q.get(k, dflt) != dflt]
+        if clash:  # two sources for one number: say which to drop rather than pick one silently
+            raise ConfigError(f"{p}: quality.calibration gives the curve and (a, b): remove quality."
+                              f"{', quality.'.join(clash)} (or the calibration)")
+        from hostd.perception import calibration
+
+        try:
+            cal = calibration.load(cfg.quality.calibration)
+        except Exception as e:
+            raise ConfigError(f"{p}: quality.calibration: {e}") from None
+        cfg.quality.a, cfg.quality.b = cal.a, cal.b
     if cfg.quality.thresholds:
         from hostd.perception.thresholds import load_csv
 

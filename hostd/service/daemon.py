@@ -114,7 +114,13 @@ class Daemon:
         except (OSError, sqlite3.Error, HostdError) as e:
             raise ConfigError(f"{cfg.path}: cannot set up the library, spool or quality log: {e}") from None
         self.curve = None
-        if cfg.quality.thresholds:
+        self.calibration = None  # NAME@ID recorded with each quality row (quality.calibration)
+        if cfg.quality.calibration:
+            from hostd.perception import calibration
+
+            cal = calibration.load(cfg.quality.calibration)
+            self.curve, self.calibration = cal.curve, cal.label
+        elif cfg.quality.thresholds:
             from hostd.perception.thresholds import load_csv
 
             self.curve = load_csv(cfg.quality.thresholds)
@@ -277,7 +283,7 @@ class Daemon:
                 name, data, sha, t = item
                 try:
                     q = self.cfg.quality
-                    row = qualitylog.score_row(data, name, sha, t, q.a, q.b, self.curve)
+                    row = qualitylog.score_row(data, name, sha, t, q.a, q.b, self.curve, self.calibration)
                     self.quality_pending.append(row)
                 except Exception as e:  # a scoring failure must not stop the service
                     log.error("quality scoring of %s failed: %s", name, e)

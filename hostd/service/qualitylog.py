@@ -37,6 +37,7 @@ CREATE TABLE IF NOT EXISTS streams (
     iobj REAL NOT NULL,
     a REAL NOT NULL,
     b REAL NOT NULL,
+    calibration TEXT,               -- NAME@ID of the calibration that scored it (NULL: none)
     UNIQUE (name, sha256)   -- one row per stored (name, content); re-sending it adds none
 );
 CREATE INDEX IF NOT EXISTS streams_received ON streams(received_at);
@@ -59,7 +60,7 @@ CREATE INDEX IF NOT EXISTS plays_stream ON plays(name, sha256);
 
 COLUMNS = ("id", "sha256", "name", "received_at", "scored_at", "bytes", "method", "levels", "b0_db",
            "n", "n_keep", "length_mm", "speed_mm_s", "curve_id", "ratio_coeffs", "ratio_profile",
-           "ip", "ia", "iobj", "a", "b")
+           "ip", "ia", "iobj", "a", "b", "calibration")
 
 
 def connect(path: str | Path) -> sqlite3.Connection:
@@ -69,11 +70,17 @@ def connect(path: str | Path) -> sqlite3.Connection:
     con.execute("PRAGMA journal_mode=WAL")
     con.execute("PRAGMA synchronous=FULL")
     con.executescript(SCHEMA)
+    if "calibration" not in _stream_columns(con):  # a log written before calibrations: add it
+        con.execute("ALTER TABLE streams ADD COLUMN calibration TEXT")
     return con
 
 
+def _stream_columns(con: sqlite3.Connection) -> set[str]:
+    return {r[1] for r in con.execute("PRAGMA table_info(streams)")}
+
+
 def score_row(data: bytes, name: str, sha: str, received_at: float, a: float, b: float,
-              curve=None) -> dict:
+              curve=None, calibration: str | None = None) -> dict:
     """Ip, Ia, Iobj of a received stream from its header's reference (the receiver has no
     original; the peer metrics ST-SIM and SPQI need one, so they are not logged here)."""
     from hostd.codec import stream as vtx
@@ -86,7 +93,8 @@ def score_row(data: bytes, name: str, sha: str, received_at: float, a: float, b:
            "b0_db": getattr(s, "b0_db", None), "n": s.n, "n_keep": s.n_keep,
            "length_mm": s.length_mm, "speed_mm_s": s.speed_mm_s, "curve_id": s.threshold_id.hex(),
            "ratio_coeffs": s.ratio_coeffs, "ratio_profile": s.ratio_profile,
-           "ip": float(sc.Ip), "ia": float(sc.Ia), "iobj": float(sc.Iobj), "a": a, "b": b}
+           "ip": float(sc.Ip), "ia": float(sc.Ia), "iobj": float(sc.Iobj), "a": a, "b": b,
+           "calibration": calibration}
     return row
 
 
@@ -123,7 +131,9 @@ def query(con: sqlite3.Connection, since: float | None = None) -> list[dict]:
         extra = "COALESCE(p.plays, 0), p.played_s, p.played_fraction, p.underruns"
     else:
         delivered, extra = "", "0, NULL, NULL, NULL"
-    sql = f"SELECT {', '.join('s.' + c for c in COLUMNS)}, {extra} FROM streams s {delivered}"
+    have = _stream_columns(con)  # a log older than a column (read-only: not added) reads it as NULL
+    sel = ", ".join(f"s.{c}" if c in have else "NULL" for c in COLUMNS)
+    sql = f"SELECT {sel}, {extra} FROM streams s {delivered}"
     args: list = []
     if since is not None:
         sql += " WHERE s.received_at >= ?"

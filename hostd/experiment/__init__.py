@@ -1,0 +1,9 @@
+"""Experiments that calibrate Iobj on one's own display (issue 31): detection thresholds
+(`hostd experiment threshold`, QUEST+ from the questplus package) and the paper's Section IV
+similarity test (`hostd experiment similarity`), answered on a loopback web page, written to
+SQLite answer by answer, giving the thresholds CSV and the scores CSV that `hostd fit` reads,
+and a calibration file (hostd.perception.calibration) every command uses.
+
+This room uses perception/, codec/, render/ and the daemon's control socket; nothing outside
+it imports it. Its dependency (questplus) is imported only by the threshold procedure.
+"""

@@ -1,0 +1,120 @@
+"""Simulated observers and participants: the statistics of the procedures, checked against
+a known truth (tests/test_experiment_stats.py, `hostd experiment bench`).
+
+Threshold observers answer an n-AFC trial correctly with probability P(x), x in dB re 1 µm:
+- WeibullObserver: the procedure's own model, P = 1 - δ - (1 - γ - δ) exp(-10^(β (x - t)/20));
+- LogisticObserver: another shape, P = γ + (1 - γ - δ) / (1 + exp(-(x - m) / s)), whose
+  threshold t is defined as the procedure's is: the level detected with probability 1 - 1/e
+  beyond guessing, t = m + s ln(e - 1).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+LN_E_MINUS_1 = math.log(math.e - 1.0)
+# The simulated observers' ranges. Steepness at threshold, dP/dx per dB (over 1 - γ - δ):
+# Weibull 0.368 β ln10 / 20 = 0.042 β; logistic (1 - 1/e)(1/e) / s = 0.233 / s. So spreads of
+# 1.2..2.2 dB are as steep as Weibull shapes 2.5..4.6: the two observers differ in shape (the
+# logistic's tails), not in how much a trial can tell.
+WEIBULL_SLOPES = (2.5, 5.0)
+LOGISTIC_SPREADS_DB = (1.2, 2.2)
+
+
+@dataclass(frozen=True)
+class WeibullObserver:
+    threshold_db: float
+    slope: float = 3.5
+    lapse: float = 0.02
+    n_afc: int = 2
+
+    def p_correct(self, x_db: float) -> float:
+        g = 1.0 / self.n_afc
+        z = 10 ** (self.slope * (x_db - self.threshold_db) / 20)
+        return 1 - self.lapse - (1 - g - self.lapse) * math.exp(-z)
+
+
+@dataclass(frozen=True)
+class LogisticObserver:
+    threshold_db: float
+    spread_db: float = 3.0
+    lapse: float = 0.02
+    n_afc: int = 2
+
+    def p_correct(self, x_db: float) -> float:
+        g = 1.0 / self.n_afc
+        m = self.threshold_db - self.spread_db * LN_E_MINUS_1
+        return g + (1 - g - self.lapse) / (1 + math.exp(-(x_db - m) / self.spread_db))
+
+
+def make_observer(kind: str, rng: np.random.Generator, centre_db: float, n_afc: int):
+    """A random observer: its threshold within ±8 dB of the prior's centre, its slope or spread
+    and lapse rate drawn too (the procedure knows none of them)."""
+    t = centre_db + rng.uniform(-8.0, 8.0)
+    lapse = rng.uniform(0.0, 0.04)
+    if kind == "weibull":
+        return WeibullObserver(t, slope=rng.uniform(*WEIBULL_SLOPES), lapse=lapse, n_afc=n_afc)
+    if kind == "logistic":
+        return LogisticObserver(t, spread_db=rng.uniform(*LOGISTIC_SPREADS_DB), lapse=lapse, n_afc=n_afc)
+    raise ValueError(kind)
+
+
+def simulate_thresholds(kind: str, n_afc: int, runs: int, max_trials: int = 30, seed: int = 0,
+                        centre_um: float = 0.1, reach_um: float = 30.0) -> np.ndarray:
+    """Errors (estimate - truth, dB) of `runs` seeded single-frequency QUEST+ runs."""
+    from hostd.experiment.threshold import ThresholdConfig, ThresholdRun, db
+
+    errs = np.empty(runs)
+    for r in range(runs):
+        rng = np.random.default_rng([seed, r])
+        obs = make_observer(kind, rng, db(centre_um), n_afc)
+        run = ThresholdRun(ThresholdConfig([250.0], [centre_um], [reach_um], n_afc=n_afc,
+                                           max_trials=max_trials, seed=int(rng.integers(1 << 31))))
+        while (t := run.next_trial()) is not None:
+            correct = rng.random() < obs.p_correct(t.level_db)
+            run.answer(t.index, t.target if correct else (t.target % n_afc) + 1)
+        errs[r] = db(run.results()[0].threshold_um) - obs.threshold_db
+    return errs
+
+
+def simulate_fit(a: float, b: float, noise_sd: float, n_sims: int = 50, reps: int = 4,
+                 participants: int = 8, seed: int = 0, n_boot: int = 500) -> dict:
+    """Simulated participants whose scores are a Ip + b Ia plus noise (per answer, on the paper's
+    0..3 scale: rounded and clipped like a grade), over the paper's wood design (6 quant + 6 cut
+    levels + the control, `reps` repetitions, `participants` people, mean score per stimulus).
+    Returns the coverage of the 95 % bootstrap intervals of `hostd fit` and their mean widths."""
+    from hostd.perception import fit
+
+    rng0 = np.random.default_rng(seed)
+    # (Ip, Ia) of a design like the paper's: quantization raises Ia faster, cut raises Ip
+    ip = np.concatenate([np.linspace(0.1, 1.4, 6), np.linspace(0.05, 1.0, 6), [0.0]])
+    ia = np.concatenate([np.linspace(0.2, 1.6, 6), np.linspace(0.1, 0.7, 6), [0.0]])
+    ip = ip * rng0.uniform(0.9, 1.1, ip.size)
+    ia = ia * rng0.uniform(0.9, 1.1, ia.size)
+    cover_a = cover_b = both = se_cover = 0
+    wa, wb, se_w = [], [], []
+    for s in range(n_sims):
+        rng = np.random.default_rng([seed, s])
+        true = a * ip + b * ia
+        noise = rng.normal(0, noise_sd, (participants * reps, ip.size))
+        grades = np.clip(np.rint(true[None, :] + noise), 0, 3)
+        mean = grades.mean(axis=0)
+        stim = [fit.Stimulus("wood", "none" if k == ip.size - 1 else "m", str(k), float(mean[k]),
+                             float(ip[k]), float(ia[k])) for k in range(ip.size)]
+        res = fit.fit(stim, n_boot=n_boot, scale_max=3.0, scale_min=0.0)
+        cover_a += res.ci_a[0] <= a <= res.ci_a[1]
+        cover_b += res.ci_b[0] <= b <= res.ci_b[1]
+        both += res.ci_a[0] <= a <= res.ci_a[1] and res.ci_b[0] <= b <= res.ci_b[1]
+        wa.append(res.ci_a[1] - res.ci_a[0])
+        wb.append(res.ci_b[1] - res.ci_b[0])
+        ta, tb = res.t_interval_a, res.t_interval_b  # hostd fit's t interval of its standard errors
+        se_cover += ta[0] <= a <= ta[1] and tb[0] <= b <= tb[1]
+        se_w.append(ta[1] - ta[0])
+    return {"coverage_a": cover_a / n_sims, "coverage_b": cover_b / n_sims, "coverage_both": both / n_sims,
+            "mean_width_a": float(np.mean(wa)), "mean_width_b": float(np.mean(wb)), "sims": n_sims,
+            "stimuli": int(ip.size), "answers_per_stimulus": participants * reps, "noise_sd": noise_sd,
+            "se_t_interval_coverage_both": se_cover / n_sims,
+            "se_t_interval_mean_width_a": float(np.mean(se_w))}

@@ -1,0 +1,244 @@
+"""Detection thresholds by QUEST+ (the questplus package), nAFC, frequencies interleaved.
+
+Intensities are in dB re 1 µm peak displacement, x = 20 log10(A / 1 µm). The model is
+questplus' Weibull on that scale, P(correct) = 1 - δ - (1 - γ - δ) exp(-10^(β (x - t) / 20)),
+with γ = 1/n (n-AFC), δ the lapse rate and t the threshold: the displacement at which the
+observer detects the stimulus with probability 1 - 1/e (63 %) beyond guessing. Per frequency
+the stimulus grid runs from PRIOR_SPAN_DB below the prior (the shipped b(f), or a curve given)
+up to the display's reach and never beyond it (hostd.experiment.display: the host refuses
+anything above); the threshold grid runs PRIOR_SPAN_DB either side of the prior, so a threshold
+above the reach is estimated as such and reported with status "above_reach", never clipped.
+
+The estimate is the posterior mean of t; its interval the central 95 % of t's marginal
+posterior. A frequency stops at its trial budget or when that interval is narrower than
+stop_width_db. Trials of the frequencies still running are interleaved at random (seeded).
+A run is a pure function of (config, seed, answers): resuming replays the answers recorded.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from hostd.errors import ExperimentError
+
+PRIOR_SPAN_DB = 30.0
+GRID_STEP_DB = 1.0
+SLOPES = (2.0, 3.5, 6.0)  # β (dB form, = the Weibull shape in amplitude), marginalised over
+LAPSE = (0.0, 0.04)
+PRIOR_SD_DB = 6.0  # the prior on t: normal about the prior curve, 6 dB (0: flat)
+
+
+def db(um: float) -> float:
+    return 20.0 * math.log10(um)
+
+
+def um(x_db: float) -> float:
+    return 10.0 ** (x_db / 20.0)
+
+
+@dataclass
+class ThresholdConfig:
+    frequencies_hz: list[float]
+    prior_um: list[float]  # the prior's centre per frequency (the shipped b(f) by default)
+    reach_um: list[float]  # the display's reach per frequency (hostd.experiment.display.Reach)
+    n_afc: int = 2
+    max_trials: int = 30  # per frequency
+    stop_width_db: float = 0.0  # stop a frequency when its 95 % interval is narrower (0: never)
+    seed: int = 0
+    duration_s: float = 0.5  # each interval's stimulus
+    gap_s: float = 0.4  # silence between the intervals
+
+    def __post_init__(self) -> None:
+        if self.n_afc not in (2, 3):
+            raise ExperimentError(f"--afc {self.n_afc}: 2 or 3 intervals")
+        if not self.frequencies_hz:
+            raise ExperimentError("no frequencies to measure")
+        if len({len(self.frequencies_hz), len(self.prior_um), len(self.reach_um)}) != 1:
+            raise ExperimentError("one prior and one reach per frequency")
+        for f, p, r in zip(self.frequencies_hz, self.prior_um, self.reach_um, strict=True):
+            if not (math.isfinite(f) and f > 0 and math.isfinite(p) and p > 0 and math.isfinite(r) and r > 0):
+                raise ExperimentError(f"{f} Hz: frequency, prior and reach must be finite and > 0")
+        if not 1 <= self.max_trials <= 1000:
+            raise ExperimentError("--trials: 1..1000 per frequency")
+
+
+@dataclass
+class ThresholdResult:
+    frequency_hz: float
+    threshold_um: float
+    ci_low_um: float
+    ci_high_um: float
+    trials: int
+    reach_um: float
+    status: str  # "ok", or "above_reach": the estimate is above what the display can play
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class Staircase:
+    """One frequency's QUEST+ (questplus.QuestPlus, Weibull on the dB scale)."""
+
+    def __init__(self, frequency_hz: float, prior_um: float, reach_um: float, n_afc: int) -> None:
+        import questplus
+
+        self.frequency_hz = frequency_hz
+        self.reach_um = reach_um
+        centre = db(prior_um)
+        top = db(reach_um)
+        lo = centre - PRIOR_SPAN_DB
+        stim = np.arange(lo, top + 1e-9, GRID_STEP_DB)  # never above the reach
+        if stim.size < 2:
+            stim = np.array([top - GRID_STEP_DB, top])
+        self.stim = stim
+        self.thresholds = np.arange(lo, max(centre + PRIOR_SPAN_DB, top + 6.0) + 1e-9, GRID_STEP_DB)
+        prior = None
+        if PRIOR_SD_DB > 0:
+            prior = {"threshold": np.exp(-0.5 * ((self.thresholds - centre) / PRIOR_SD_DB) ** 2)}
+        self.qp = questplus.QuestPlus(
+            stim_domain={"intensity": stim}, prior=prior,
+            param_domain={"threshold": self.thresholds, "slope": np.array(SLOPES),
+                          "lower_asymptote": np.array([1.0 / n_afc]), "lapse_rate": np.array(LAPSE)},
+            outcome_domain={"response": ["Correct", "Incorrect"]},
+            func="weibull", stim_scale="dB", stim_selection_method="min_entropy")
+        self.n = 0
+
+    def next_db(self) -> float:
+        return float(self.qp.next_stim["intensity"])
+
+    def update(self, x_db: float, correct: bool) -> None:
+        self.qp.update(stim={"intensity": float(x_db)},
+                       outcome={"response": "Correct" if correct else "Incorrect"})
+        self.n += 1
+
+    def marginal(self) -> np.ndarray:
+        return np.asarray(self.qp.marginal_posterior["threshold"], dtype=np.float64)
+
+    def estimate_db(self) -> float:
+        m = self.marginal()
+        return float(np.sum(m * self.thresholds) / np.sum(m))
+
+    def interval_db(self, level: float = 0.95) -> tuple[float, float]:
+        m = self.marginal()
+        c = np.cumsum(m) / np.sum(m)
+        lo = float(np.interp((1 - level) / 2, c, self.thresholds))
+        hi = float(np.interp((1 + level) / 2, c, self.thresholds))
+        return lo, hi
+
+    def result(self) -> ThresholdResult:
+        t = self.estimate_db()
+        lo, hi = self.interval_db()
+        status = "above_reach" if t > db(self.reach_um) else "ok"
+        return ThresholdResult(self.frequency_hz, um(t), um(lo), um(hi), self.n, self.reach_um, status)
+
+
+@dataclass
+class Trial:
+    """One nAFC trial: the frequency, the level, the interval (1..n) holding the stimulus."""
+
+    index: int
+    frequency_hz: float
+    amplitude_um: float
+    level_db: float
+    target: int  # 1..n_afc
+    n_afc: int
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class ThresholdRun:
+    """Interleaved staircases; next_trial() then answer(trial, chosen interval), in order."""
+
+    cfg: ThresholdConfig
+    stairs: list[Staircase] = field(init=False)
+    rng: np.random.Generator = field(init=False)
+    index: int = field(init=False, default=0)
+    pending: Trial | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        c = self.cfg
+        self.stairs = [Staircase(f, p, r, c.n_afc)
+                       for f, p, r in zip(c.frequencies_hz, c.prior_um, c.reach_um, strict=True)]
+        self.rng = np.random.default_rng(c.seed)
+
+    def running(self) -> list[int]:
+        out = []
+        for i, s in enumerate(self.stairs):
+            if s.n >= self.cfg.max_trials:
+                continue
+            if self.cfg.stop_width_db > 0 and s.n >= 5:
+                lo, hi = s.interval_db()
+                if hi - lo <= self.cfg.stop_width_db:
+                    continue
+            out.append(i)
+        return out
+
+    @property
+    def done(self) -> bool:
+        return self.pending is None and not self.running()
+
+    @property
+    def planned_trials(self) -> int:
+        return self.cfg.max_trials * len(self.stairs)
+
+    def next_trial(self) -> Trial | None:
+        """The trial to present (the same one again until it is answered)."""
+        if self.pending is not None:
+            return self.pending
+        live = self.running()
+        if not live:
+            return None
+        i = live[int(self.rng.integers(len(live)))]
+        x = self.stairs[i].next_db()
+        target = int(self.rng.integers(1, self.cfg.n_afc + 1))
+        self.pending = Trial(self.index, self.stairs[i].frequency_hz, um(x), x, target, self.cfg.n_afc)
+        return self.pending
+
+    def answer(self, trial_index: int, chosen: int) -> bool:
+        """Record the chosen interval of the pending trial; returns whether it was correct."""
+        t = self.pending
+        if t is None or t.index != trial_index:
+            raise ExperimentError(f"answer to trial {trial_index}, but trial "
+                                  f"{'none' if t is None else t.index} is the one presented")
+        if not 1 <= chosen <= t.n_afc:
+            raise ExperimentError(f"answer {chosen}: choose an interval 1..{t.n_afc}")
+        correct = chosen == t.target
+        i = self.cfg.frequencies_hz.index(t.frequency_hz)
+        self.stairs[i].update(t.level_db, correct)
+        self.pending = None
+        self.index += 1
+        return correct
+
+    def results(self) -> list[ThresholdResult]:
+        return [s.result() for s in self.stairs]
+
+
+def thresholds_csv(results: list[ThresholdResult], provenance: str = "") -> str:
+    """The thresholds CSV every `--thresholds` reads as-is (columns by name; the interval and
+    the counts are extra columns). A frequency whose threshold is above the display's reach is
+    a comment line saying so, not a row: it is not clipped into the curve."""
+    out = io.StringIO()
+    out.write("# Detection thresholds measured with hostd experiment threshold (QUEST+, Weibull):\n")
+    out.write("# threshold_um = posterior mean, ci_*_um = central 95 % of the posterior, µm peak.\n")
+    if provenance:
+        for line in provenance.splitlines():
+            out.write(f"# {line}\n")
+    for r in results:
+        if r.status != "ok":
+            out.write(f"# {r.frequency_hz:g} Hz: ABOVE THE DISPLAY'S REACH: estimate {r.threshold_um:.4g} µm "
+                      f"(95 % {r.ci_low_um:.4g}..{r.ci_high_um:.4g}) > reach {r.reach_um:.4g} µm; "
+                      "not in the curve\n")
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(["frequency_hz", "threshold_um", "ci_low_um", "ci_high_um", "trials", "reach_um"])
+    for r in results:
+        if r.status == "ok":
+            w.writerow([f"{r.frequency_hz:g}", f"{r.threshold_um:.6g}", f"{r.ci_low_um:.6g}",
+                        f"{r.ci_high_um:.6g}", r.trials, f"{r.reach_um:.6g}"])
+    return out.getvalue()

@@ -1,0 +1,287 @@
+"""hostd experiment: safety of stimuli, the session store (one session per token, every answer
+once), resume with the same plan, a display lost mid-trial, bad designs, and the outputs that
+`--thresholds`, `hostd fit` and `--calibration` read as-is."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("questplus")
+
+from hostd.cli import main
+from hostd.errors import ExperimentError
+from hostd.experiment.display import Reach, SimDisplay, Sinusoid
+from hostd.experiment.runner import SimilaritySession, ThresholdSession
+from hostd.experiment.session import Store
+from hostd.experiment.threshold import ThresholdConfig, ThresholdRun, db, thresholds_csv
+from hostd.perception import thresholds as th
+
+
+@pytest.fixture(scope="module")
+def reach():
+    return Reach()
+
+
+def test_the_host_refuses_any_stimulus_beyond_the_reach(reach):
+    d = SimDisplay(reach)
+    for f in (40.0, 250.0, 500.0):
+        r = reach.reach_um(f)
+        d.play(Sinusoid(f, r))  # at the reach: played, unlimited by the output stage
+        assert np.max(np.abs(d.last_um)) <= reach.stage.limit_um
+        with pytest.raises(ExperimentError, match="refused"):
+            d.play(Sinusoid(f, r * 1.001))
+    # the reach is what the output stage can play without limiting: 20 % past the margin it limits
+    from hostd.render.output import OutputStage
+
+    f = 40.0  # the displacement limit binds here
+    cmd = Sinusoid(f, reach.reach_um(f) / 0.9 * 1.2).samples_um(reach.gain(f))
+    st = OutputStage(reach.stage.cfg)
+    st.start()
+    st.envelope = 1.0
+    assert not np.allclose(st.process(cmd), cmd)
+    with pytest.raises(ExperimentError):
+        d.play(Sinusoid(f, float("nan")))
+
+
+def test_no_procedure_step_asks_beyond_the_reach_and_above_reach_is_reported(reach):
+    # an observer who never detects anything: the staircase climbs to the top of its grid
+    cfg = ThresholdConfig([250.0], [0.1], [0.5], n_afc=2, max_trials=25, seed=3)
+    run = ThresholdRun(cfg)
+    while (t := run.next_trial()) is not None:
+        assert t.amplitude_um <= 0.5 * (1 + 1e-12)
+        run.answer(t.index, t.target % 2 + 1)  # always wrong
+    res = run.results()[0]
+    assert res.status == "above_reach" and res.threshold_um > 0.5
+    text = thresholds_csv(run.results())
+    assert "ABOVE THE DISPLAY'S REACH" in text and "\n250," not in text  # not clipped into the curve
+
+
+def test_thresholds_csv_reads_as_is(tmp_path):
+    cfg = ThresholdConfig([40.0, 250.0], [3.9, 0.1], [30.0, 20.0], max_trials=4, seed=1)
+    run = ThresholdRun(cfg)
+    while (t := run.next_trial()) is not None:
+        run.answer(t.index, t.target)
+    f = tmp_path / "t.csv"
+    f.write_text(thresholds_csv(run.results()))
+    c = th.load_csv(f)
+    assert list(c.freq_hz) == [40.0, 250.0]
+    assert np.allclose(c.threshold_um, [r.threshold_um for r in run.results()], rtol=1e-5)
+
+
+def test_one_session_per_token_and_one_answer_per_trial(tmp_path):
+    st = Store(tmp_path / "s.sqlite")
+    st.create("abc", "threshold", {"x": 1})
+    with pytest.raises(ExperimentError, match="token abc is already"):
+        st.create("abc", "similarity", {})
+    with pytest.raises(ExperimentError, match="token"):
+        st.create("a b", "threshold", {})
+    assert st.record("abc", 0, 1, {}, None) and not st.record("abc", 0, 2, {}, None)
+    assert [a["answer"] for a in st.answers("abc")] == [1]
+
+
+def _cfg():
+    return ThresholdConfig([40.0, 250.0], [3.9, 0.1], [30.0, 20.0], n_afc=3, max_trials=6, seed=7)
+
+
+def _answer(sess, rng):
+    s = sess.state()
+    if s["done"] or s.get("retry"):
+        return s
+    t = sess.current()
+    sess.answer(t["index"], t["target"] if rng.random() < 0.7 else t["target"] % 3 + 1)
+    return s
+
+
+def test_resume_meets_the_same_trials_and_a_lost_display_repeats_the_trial(tmp_path):
+    rng = np.random.default_rng(0)
+    st = Store(tmp_path / "s.sqlite")
+    st.create("tok", "threshold", {})
+    # the display disconnects during plays 4 and 5 (the second trial's stimulus, then its retry)
+    d = SimDisplay(fail_on={4, 5})
+    a = ThresholdSession(st, "tok", d, _cfg())
+    seen = []
+    for _ in range(5):
+        s = _answer(a, rng)
+        seen.append(bool(s.get("retry")))
+    assert any(seen)
+    ev = [e["kind"] for e in st.events("tok")]
+    assert ev.count("display_lost") >= 1
+    rows = st.answers("tok")
+    assert [r["trial"] for r in rows] == list(range(len(rows)))  # nothing twice, nothing skipped
+    # a crash: a new process resumes from the store, with the same plan
+    b = ThresholdSession(st, "tok", SimDisplay(), _cfg())
+    b.resume()
+    assert b.answered() == len(rows)
+    ref = ThresholdRun(_cfg())  # the same answers replayed by hand reach the same next trial
+    for r in rows:
+        t = ref.next_trial()
+        assert t.level_db == r["stimulus"]["level_db"]
+        ref.answer(t.index, r["answer"])
+    assert ref.next_trial().as_dict() == b.current()
+    while not _answer(b, rng)["done"]:
+        pass
+    assert len(st.answers("tok")) == 12 and st.state("tok") == "done"
+
+
+def test_resume_refuses_a_plan_that_no_longer_matches(tmp_path):
+    st = Store(tmp_path / "s.sqlite")
+    st.create("tok", "threshold", {})
+    a = ThresholdSession(st, "tok", SimDisplay(), _cfg())
+    _answer(a, np.random.default_rng(0))
+    other = ThresholdConfig([40.0, 250.0], [3.9, 0.1], [30.0, 20.0], n_afc=3, max_trials=6, seed=8)
+    with pytest.raises(ExperimentError, match="does not match the plan"):
+        ThresholdSession(st, "tok", SimDisplay(), other).resume()
+
+
+DESIGN = """seconds = 1
+repetitions = 2
+length_mm = 1
+seed = 3
+[textures]
+wood = "synthetic:wood:1"
+[[methods]]
+method = "quant"
+settings = [4, 8, 16]
+[[methods]]
+method = "cut"
+settings = [-4, 0, 8]
+"""
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (("settings = [4, 8, 16]", "settings = [4, 1.5]"), "quant setting 1.5"),
+    (("settings = [-4, 0, 8]", "settings = [-4, 0, 8]\ntextures = [\"oak\"]"), "unknown texture 'oak'"),
+    (('method = "cut"', 'method = "zip"'), "method must be one of"),
+    (('wood = "synthetic:wood:1"', 'wood = "nothere.csv"'), "texture wood"),
+    (("seed = 3", "sed = 3"), "unknown key(s) sed"),
+])
+def test_a_bad_design_is_one_line(tmp_path, capsys, edit, needle):
+    d = tmp_path / "design.toml"
+    d.write_text(DESIGN.replace(*edit))
+    assert main(["experiment", "similarity", str(d), "--out", str(tmp_path / "o"), "--token", "x",
+                 "--simulate", "linear"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and "\n" not in err
+
+
+def test_similarity_plan_scores_fit_and_calibration_end_to_end(tmp_path, capsys):
+    d = tmp_path / "design.toml"
+    d.write_text(DESIGN)
+    out = tmp_path / "sim"
+    assert main(["experiment", "similarity", str(d), "--out", str(out), "--token", "s1",
+                 "--simulate", "linear"]) == 0
+    st = Store(out / "session.sqlite")
+    plan = st.load("s1", "similarity")
+    assert len(plan["trials"]) == 2 * (1 + 3 + 3)  # controls included
+    order = [(t["method"], t["level"]) for t in plan["trials"]]
+    assert order != sorted(order)  # randomised
+    import csv
+
+    rows = list(csv.DictReader(line for line in (out / "scores.csv").open() if not line.startswith("#")))
+    ctl = [r for r in rows if r["method"] == "none"]
+    assert len(ctl) == 1 and ctl[0]["stream"] == "" and ctl[0]["Ip"] == "" and ctl[0]["n"] == "2"
+    assert all((out / r["stream"]).is_file() for r in rows if r["method"] != "none")
+    capsys.readouterr()
+    assert main(["fit", str(out / "scores.csv"), "--json", "--bootstrap", "100"]) == 0
+    fit = json.loads(capsys.readouterr().out)
+    assert fit["n_used"] == 7
+    (tmp_path / "fit.json").write_text(json.dumps(fit))
+    # the same session token again: refused, nothing overwritten
+    before = (out / "scores.csv").read_bytes()
+    assert main(["experiment", "similarity", str(d), "--out", str(out), "--token", "s1",
+                 "--simulate", "linear"]) == 2
+    assert "already" in capsys.readouterr().err and (out / "scores.csv").read_bytes() == before
+    tout = tmp_path / "thr"
+    assert main(["experiment", "threshold", "--out", str(tout), "--token", "t", "--frequencies", "40,250",
+                 "--trials", "5", "--simulate", "weibull"]) == 0
+    cal = tmp_path / "lab.toml"
+    assert main(["experiment", "calibration", "-o", str(cal), "--thresholds", str(tout / "thresholds.csv"),
+                 "--fit", str(tmp_path / "fit.json")]) == 0
+    capsys.readouterr()
+    s = tmp_path / "x.vtx"
+    assert main(["encode", "synthetic:wood:1", "--length-mm", "1", "-o", str(s), "--method", "cut",
+                 "--b0", "0", "--calibration", str(cal),
+                 "--json"]) == 0
+    enc = json.loads(capsys.readouterr().out)
+    assert (enc["a"], enc["b"]) == (fit["a"], fit["b"])
+
+
+def test_similarity_session_answers_once_and_repeats_a_lost_texture(tmp_path):
+    from hostd.experiment.similarity import make_plan, read_design
+
+    d = tmp_path / "design.toml"
+    d.write_text(DESIGN.replace("repetitions = 2", "repetitions = 1"))
+    plan = make_plan(read_design(d), tmp_path / "o")
+    st = Store(tmp_path / "s.sqlite")
+    st.create("k", "similarity", plan)
+    sess = SimilaritySession(st, "k", SimDisplay(fail_on={1}), plan)
+    s = sess.state()
+    assert s.get("retry") and st.events("k")[-1]["kind"] == "display_lost"
+    s = sess.state()
+    idx = s["trial"]["index"]
+    assert sess.answer(idx, 2) == {"ok": True} and sess.answer(idx, 3) == {"ignored": True}
+    assert [a["answer"] for a in st.answers("k")] == [2]
+
+
+def test_db_scale():
+    assert db(1.0) == 0.0 and abs(db(0.1) + 20.0) < 1e-12
+
+
+def test_the_daemon_and_encode_do_not_import_the_experiment_dependencies(tmp_path):
+    import subprocess
+    import sys
+
+    code = ("import sys; from hostd.cli import main; from hostd.service import daemon; "
+            f"main(['encode', 'synthetic:wood:1', '--length-mm', '1', '-o', {str(tmp_path / 'x.vtx')!r}, "
+            "'--method', 'quant', '--levels', '8']); "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('questplus', 'xarray', 'selenium')))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_the_experimenters_terminal_shows_progress_aborts_and_resumes(tmp_path):
+    """The command as an experimenter runs it: the page's address and the progress on stderr,
+    Ctrl-C aborts keeping every answer, --resume goes on with the same plan."""
+    import json as _json
+    import re
+    import signal
+    import subprocess
+    import sys
+    import urllib.request
+
+    out = tmp_path / "o"
+    args = [sys.executable, "-m", "hostd", "experiment", "threshold", "--out", str(out), "--token", "p1",
+            "--frequencies", "40,250", "--trials", "3"]
+    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stderr.readline()
+        m = re.search(r"(http://127\.0\.0\.1:\d+/s/p1)", line)
+        assert m, line
+        api = m.group(1).replace("/s/", "/api/")
+        for _ in range(2):
+            t = _json.load(urllib.request.urlopen(api + "/trial", timeout=60))["trial"]
+            req = urllib.request.Request(api + "/answer", data=_json.dumps({"index": t["index"], "value": 1})
+                                         .encode(), headers={"Content-Type": "application/json"})
+            assert _json.load(urllib.request.urlopen(req, timeout=60)) == {"ok": True}
+        progress = ""
+        while "2/6 answered" not in progress:
+            progress += proc.stderr.readline()
+        proc.send_signal(signal.SIGINT)
+        err = proc.stderr.read()
+        assert proc.wait(60) == 1 and "aborted at 2 answers" in err and "--resume" in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    st = Store(out / "session.sqlite")
+    assert st.state("p1") == "aborted" and len(st.answers("p1")) == 2
+    first = [a["stimulus"] for a in st.answers("p1")]
+    r = subprocess.run([*args, "--resume", "--simulate", "weibull"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    rows = st.answers("p1")
+    assert len(rows) == 6 and [a["stimulus"] for a in rows[:2]] == first
+    assert th.load_csv(out / "thresholds.csv").freq_hz.size == 2
