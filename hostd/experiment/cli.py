@@ -23,8 +23,7 @@ def _freqs(v: str) -> list[float]:
 
 
 def add_parser(sub, parents=()) -> None:
-    p = sub.add_parser("experiment", help="calibrate Iobj on your display: thresholds, similarity test "
-                       "(docs/experiments.md)")
+    p = sub.add_parser("experiment", help="calibrate Iobj on your display: thresholds, similarity test")
     esub = p.add_subparsers(dest="experiment", metavar="EXPERIMENT")
     from hostd.cliopts import needs_subcommand
 
@@ -45,7 +44,7 @@ def add_parser(sub, parents=()) -> None:
 
     t = esub.add_parser("threshold", parents=[session], help="detection thresholds (QUEST+, n-AFC)")
     t.add_argument("--frequencies", type=_freqs, default=None, metavar="HZ,...",
-                   help="default: those of the shipped b(f) table (config/thresholds/default.csv)")
+                   help="default: those of the shipped b(f) table (hostd's default thresholds)")
     t.add_argument("--prior", default=None, metavar="CSV",
                    help="the prior's centre per frequency (default: the shipped b(f))")
     t.add_argument("--afc", type=int, choices=[2, 3], default=3,

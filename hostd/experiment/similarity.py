@@ -40,7 +40,7 @@ def read_design(path: str | Path) -> dict:
     from hostd.tomlfile import read
 
     p = Path(path)
-    doc = read(p, "design file", "see docs/experiments.md", exc=ExperimentError)
+    doc = read(p, "design file", "see hostd experiment similarity --help", exc=ExperimentError)
     unknown = set(doc) - KEYS
     if unknown:
         raise ExperimentError(f"{p}: unknown key(s) {', '.join(sorted(unknown))} (expected "

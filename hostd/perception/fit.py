@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import scipy.optimize
 
-from hostd.errors import FitError, HostdError
+from hostd.errors import FitError
 from hostd.texture import synth
 
 REQUIRED = ("texture", "method", "level", "score")

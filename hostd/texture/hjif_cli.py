@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 from pathlib import Path
@@ -68,9 +67,8 @@ def texture_export(spec: str, args: argparse.Namespace):
                     n_keep=n_keep)
         speed_ref = args.speed
     speed = args.speed_mm_s if args.speed_mm_s is not None else speed_ref
-    cal = args.calibration
-    if cal is not None and Path(cal).is_file():
-        cal = f"{Path(cal).name} sha256:{hashlib.sha256(Path(cal).read_bytes()).hexdigest()[:16]}"
+    cal = getattr(args, "calibration", None)  # --calibration FILE (the index options): NAME@ID
+    cal = None if cal is None else cal.label
     # None: hostd's streams and profiles carry no actuator calibration; last, as the first key
     # dropped should the description run past 255 bytes
     prov["calibration"] = cal
@@ -135,9 +133,6 @@ def add_parser(sub) -> None:
                    "Synthesizer's; at most 48000)")
     p.add_argument("--full-scale-um", type=_positive, default=None,
                    help="displacement of amplitude 1.0, µm (default: the peak of the texture)")
-    p.add_argument("--calibration", default=None,
-                   help="an actuator calibration to record in the provenance (a file: its name and "
-                   "SHA-256; else the text)")
     p.add_argument("--perceptions", choices=["both", "texture", "time"], default="both",
                    help="both (default), the texture over space only, or the texture as played only "
                    "(the reference Encoder/Decoder at 2de9ff1 carry only this one through .hmpg)")
