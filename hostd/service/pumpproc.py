@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import gc
 import os
+import sys
 import time
 
 # Counters published in shared memory (float64 each). The device_* fields and
@@ -101,6 +102,7 @@ def pump_main(cfg, conn, stats) -> None:
     from hostd.render import Renderer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
+    parent = os.getppid()
     _die_with_parent()
 
     def log(msg: str, warn: bool | None = None) -> None:
@@ -316,9 +318,20 @@ def pump_main(cfg, conn, stats) -> None:
             f"(link up at +{t_up - t_event:.3f} s)")
         tell(last_reconnect_s=round(now - t_event, 4), reconnected=info["reconnected"] + 1)
 
+    daemon_gone = [False]
+
+    def commands() -> None:
+        """The daemon's commands. EOF: the daemon died (kill -9 outside systemd): stop, with one
+        line at exit instead of multiprocessing's traceback of the EOFError."""
+        nonlocal quit_
+        try:
+            while conn.poll():
+                command(conn.recv())
+        except (EOFError, OSError):
+            daemon_gone[0] = quit_ = True
+
     def each_cycle() -> None:
-        while conn.poll():
-            command(conn.recv())
+        commands()
         if dev is not None and pump.renderer is None:
             dev.tick()
         hotplug_cycle()
@@ -371,8 +384,7 @@ def pump_main(cfg, conn, stats) -> None:
             wait_ticks += 1
             put("wait_ticks", wait_ticks)
             if conn in ready:
-                while conn.poll():
-                    command(conn.recv())
+                commands()
 
     last_pub = [0.0]
 
@@ -381,8 +393,7 @@ def pump_main(cfg, conn, stats) -> None:
     def each_wake(ready) -> None:  # device mode: a wake-up of the sleeping loop
         pump.stats.cycles += 1  # progress the daemon's watchdog sees
         if ready is None or conn_fd in ready:  # (conn.poll() builds a selector per call)
-            while conn.poll():
-                command(conn.recv())
+            commands()
         if dev is not None and pump.renderer is None:
             dev.tick()
         hotplug_cycle()
@@ -474,3 +485,6 @@ def pump_main(cfg, conn, stats) -> None:
             except Exception:
                 pass
     put("state", STATE_CODES["stopped"])
+    if daemon_gone[0] or os.getppid() != parent:  # its pipe is closed: the journal hears it from stderr
+        sys.stderr.write("hostd-pump: daemon gone; pump exiting\n")
+        sys.stderr.flush()
