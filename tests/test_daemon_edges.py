@@ -130,3 +130,39 @@ def _drain(ns: socket.socket) -> list[bytes]:
             out.append(ns.recv(4096))
     except BlockingIOError:
         return out
+
+
+def _counters(**kw) -> dict:
+    c = {"device_time_s": 100.0, "played_fraction": 1.0, "render_at": "host", "device_samples_played": 0,
+         "samples": 0, "device_underruns": 0}
+    c.update(kw)
+    return c
+
+
+def test_forged_device_counters_are_bounded_by_what_the_host_knows():
+    """A device that claims 601.6 s played after 3 s of play (issue 29), a clock that runs back or
+    far ahead, more samples played than were sent and buffered, a fraction above 1, underruns that
+    go back: the plays row holds what the host can vouch for, and each claim is named."""
+    from hostd.device.protocol import BUFFER_CAPACITY, SAMPLE_RATE_HZ
+    from hostd.service.daemon import bound_play
+
+    honest, bad = bound_play(_counters(), _counters(device_time_s=103.0, device_samples_played=9000,
+                                                   samples=9100, device_underruns=1), 3.0)
+    assert not bad and honest["played_s"] == 3.0 and honest["device_s"] == 3.0 and honest["underruns"] == 1
+
+    forged = 601.6 * SAMPLE_RATE_HZ
+    row, bad = bound_play(_counters(), _counters(device_time_s=701.6, device_samples_played=forged,
+                                                 samples=9000), 3.0)
+    assert row["played_s"] <= (9000 + BUFFER_CAPACITY) / SAMPLE_RATE_HZ and row["device_s"] == 3.0
+    assert any("of its clock in 3.0 s" in b for b in bad) and any("sent and buffered" in b for b in bad)
+
+    row, bad = bound_play(_counters(device_time_s=5e9, device_underruns=7),
+                          _counters(device_time_s=2.0, device_underruns=2), 3.0)  # back, or wrapped
+    assert row["device_s"] == 0.0 and row["underruns"] == 0 and len(bad) == 2
+
+    row, bad = bound_play(_counters(), _counters(device_time_s=103.0, render_at="device",
+                                                 played_fraction=7.5), 3.0)
+    assert row["played_fraction"] == 1.0 and row["played_s"] == 3.0 and bad == ["a played fraction of 7.5"]
+
+    row, bad = bound_play(_counters(), _counters(device_time_s=float("nan"), device_underruns=10**9), 3.0)
+    assert row["device_s"] == 0.0 and row["underruns"] <= 3.0 * 1.01 * SAMPLE_RATE_HZ and len(bad) == 2

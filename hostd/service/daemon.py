@@ -27,7 +27,7 @@ from pathlib import Path
 
 from hostd.device.health import STATE_NAMES as DEVICE_STATES
 from hostd.device.health import fault_names
-from hostd.device.protocol import SAMPLE_RATE_HZ
+from hostd.device.protocol import BUFFER_CAPACITY, SAMPLE_RATE_HZ
 from hostd.errors import ConfigError, HostdError
 from hostd.fileio import open_dir, read_regular_at, write_at
 from hostd.service import qualitylog
@@ -95,6 +95,58 @@ class PumpWriter:
             self.closed = True
             self.cv.notify()
         self.thread.join(timeout_s)
+
+
+# what a device's counters may claim over a play, beyond the host's own clock: the device's
+# clock runs at most this much fast (crystal tolerance, with margin), plus its report's age
+CLOCK_TOLERANCE = 0.01
+REPORT_SLACK_S = 0.5
+
+
+def bound_play(c0: dict, c1: dict, host_s: float) -> tuple[dict, list[str]]:
+    """What a play delivered, from the device's counters at its start (c0) and end (c1), bounded by
+    what the host knows: its own clock (host_s elapsed), the samples it sent and the device's
+    buffer. Returns the plays row's device_s, played_s, played_fraction and underruns, and the
+    counters that claimed the impossible (empty when none did), each said in a few words."""
+    bad: list[str] = []
+    limit_s = max(host_s, 0.0) * (1 + CLOCK_TOLERANCE) + REPORT_SLACK_S
+    device_s = c1["device_time_s"] - c0["device_time_s"]
+    if not math.isfinite(device_s) or device_s < 0:
+        bad.append(f"its clock went from {c0['device_time_s']:.3f} s to {c1['device_time_s']:.3f} s")
+        device_s = 0.0
+    elif device_s > limit_s:
+        bad.append(f"{device_s:.1f} s of its clock in {host_s:.1f} s")
+        device_s = max(host_s, 0.0)
+    fraction = c1["played_fraction"] if device_s > 0 else None
+    if fraction is not None and not (math.isfinite(fraction) and 0.0 <= fraction <= 1.0):
+        bad.append(f"a played fraction of {fraction}")
+        fraction = min(max(fraction, 0.0), 1.0) if math.isfinite(fraction) else None
+    if c1["render_at"] == "device":  # the display renders: nothing is played from its buffer,
+        played_s = (fraction or 0.0) * device_s  # the share of device time it reported rendering
+    else:
+        played = c1["device_samples_played"] - c0["device_samples_played"]
+        # at most what was sent meanwhile, plus what the buffer held at the start
+        most = max(c1["samples"] - c0["samples"], 0) + BUFFER_CAPACITY
+        if played < 0:
+            bad.append(f"samples played went back by {-played}")
+            played = 0
+        elif played > most:
+            bad.append(f"{played} samples played of at most {most} sent and buffered")
+            played = most
+        played_s = played / SAMPLE_RATE_HZ
+        if played_s > limit_s:
+            bad.append(f"{played_s:.1f} s played in {host_s:.1f} s")
+            played_s = max(host_s, 0.0)
+    underruns = c1["device_underruns"] - c0["device_underruns"]
+    most_underruns = int(limit_s * SAMPLE_RATE_HZ / 2) + 1  # an episode: a sample missed, one played
+    if underruns < 0:
+        bad.append(f"underruns went back by {-underruns}")
+        underruns = 0
+    elif underruns > most_underruns:
+        bad.append(f"{underruns} underruns in {host_s:.1f} s")
+        underruns = most_underruns
+    return {"device_s": device_s, "played_s": played_s, "played_fraction": fraction,
+            "underruns": underruns}, bad
 
 
 class Daemon:
@@ -223,15 +275,13 @@ class Daemon:
             return
         name, sha, started, c0 = play
         c1 = self.counters()
-        device_s = max(c1["device_time_s"] - c0["device_time_s"], 0.0)
-        fraction = c1["played_fraction"] if device_s > 0 else None
-        if c1["render_at"] == "device":  # the display renders: nothing is played from its buffer,
-            played_s = (fraction or 0.0) * device_s  # the share of device time it reported rendering
-        else:
-            played_s = max(c1["device_samples_played"] - c0["device_samples_played"], 0) / SAMPLE_RATE_HZ
-        row = {"name": name, "sha256": sha, "started_at": started, "ended_at": time.time(),
-               "device_s": device_s, "played_s": played_s, "played_fraction": fraction,
-               "underruns": max(c1["device_underruns"] - c0["device_underruns"], 0)}
+        ended = time.time()
+        row, impossible = bound_play(c0, c1, ended - started)
+        row.update({"name": name, "sha256": sha, "started_at": started, "ended_at": ended})
+        if impossible:  # one line per play: what the device said, and what the host logged instead
+            log.warning("device %s reported the impossible while playing %s: %s; logged within what the "
+                        "host knows", self.pump_info.get("transport") or self.cfg.device.transport, name,
+                        "; ".join(impossible))
         try:
             con = qualitylog.connect(self.db_path)
             try:
@@ -261,6 +311,8 @@ class Daemon:
         st["render_reason"] = RENDER_REASONS[st["render_reason"]] if 0 <= st["render_reason"] < len(
             RENDER_REASONS) else "?"  # and why there ([render] where, the display's version and CAPS)
         st["target_fill_ms"] = round(st["target_fill"] / SAMPLE_RATE_HZ * 1e3, 2)
+        pf = st["played_fraction"]  # a share: whatever a device says, shown within [0, 1]
+        st["played_fraction"] = min(max(pf, 0.0), 1.0) if math.isfinite(pf) else 0.0
         return st
 
     def status(self) -> dict:
