@@ -166,3 +166,37 @@ def test_forged_device_counters_are_bounded_by_what_the_host_knows():
 
     row, bad = bound_play(_counters(), _counters(device_time_s=float("nan"), device_underruns=10**9), 3.0)
     assert row["device_s"] == 0.0 and row["underruns"] <= 3.0 * 1.01 * SAMPLE_RATE_HZ and len(bad) == 2
+
+
+def test_a_device_that_changes_identity_mid_session_is_a_new_device():
+    """An IDENT with another protocol version (or CAPS that differ) after the handshake ends the
+    link with DeviceGone naming the device and the change (the pump then identifies it again as
+    on a replug); the same IDENT again (an answer to a repeated IDENTIFY) changes nothing."""
+    import pytest
+
+    from hostd.device import protocol as pr
+    from hostd.device.link import DeviceLink
+    from hostd.device.simdev import SimDevice, SimTransport
+    from hostd.errors import DeviceGone
+
+    t = SimTransport(SimDevice(protocol_version=2), realtime=False)
+    link = DeviceLink(t)
+    link.handshake(timeout_s=1.0)
+    assert link.await_caps() is not None
+    t.device.outbox.append(t.device.ident())  # the same identity again
+    link.poll()
+    assert link.ident["protocol_version"] == 2
+    t.device.protocol_version = 1
+    t.device.outbox.append(t.device.ident())
+    with pytest.raises(DeviceGone,
+                       match=r"sim.* changed its identity mid-session \(IDENT: protocol_version 2 -> 1"):
+        link.poll()
+    t2 = SimTransport(SimDevice(protocol_version=2), realtime=False)
+    link2 = DeviceLink(t2)
+    link2.handshake(timeout_s=1.0)
+    link2.await_caps()
+    caps = pr.decode(t2.device.caps())[1]
+    forged = {k: v for k, v in caps.items() if k != "id"} | {"render": 0}
+    t2.device.outbox.append(pr.encode("CAPS", **forged))
+    with pytest.raises(DeviceGone, match=r"\(CAPS: render 1 -> 0\)"):
+        link2.poll()
