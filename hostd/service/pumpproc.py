@@ -10,6 +10,7 @@ it calls gc.freeze(); the steady-state loop allocates only numpy temporaries of 
 from __future__ import annotations
 
 import gc
+import math
 import os
 import sys
 import time
@@ -243,7 +244,19 @@ def pump_main(cfg, conn, stats) -> None:
 
     last_pct = [0.0]
 
+    bad_seen = [0, -math.inf]  # bad frames and messages of this link: counted, time of the last one
+
     def publish() -> None:
+        # a device's garbage, cut, oversized or unknown messages: dropped (bad CRC, bad layout),
+        # never acted on; one line per burst (the first bad one after a quiet second), naming it
+        framer = getattr(transport, "deframer", None)
+        bad = link.stats.bad_messages_received + (framer.bad_frames if framer is not None else 0)
+        if bad > bad_seen[0]:
+            t_bad = time.monotonic()
+            if t_bad - bad_seen[1] >= 1.0:
+                log(f"device: {transport.describe()} sent bad frames or messages (garbage, cut, oversized "
+                    f"or unknown; {bad} on this link); dropped, the rest of the burst silently")
+            bad_seen[:] = [bad, t_bad]
         s = link.stats.last_status
         if s:
             put("fill", s["buffer_fill"])
@@ -430,6 +443,7 @@ def pump_main(cfg, conn, stats) -> None:
             put("reconnects", reconnects)
             continue
         connected = True
+        bad_seen[:] = [0, -math.inf]
         put("connected", 1)
         if arrival[0] is not None:
             arrival[1] = time.monotonic()
