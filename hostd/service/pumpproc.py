@@ -337,11 +337,15 @@ def pump_main(cfg, conn, stats) -> None:
         """The daemon's commands. EOF: the daemon died (kill -9 outside systemd): stop, with one
         line at exit instead of multiprocessing's traceback of the EOFError."""
         nonlocal quit_
-        try:
-            while conn.poll():
-                command(conn.recv())
-        except (EOFError, OSError):
-            daemon_gone[0] = quit_ = True
+        while True:
+            try:  # only the pipe: an error of a command itself is not the daemon's death
+                if not conn.poll():
+                    return
+                msg = conn.recv()
+            except (EOFError, OSError):
+                daemon_gone[0] = quit_ = True
+                return
+            command(msg)
 
     def each_cycle() -> None:
         commands()
