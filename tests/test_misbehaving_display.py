@@ -45,6 +45,8 @@ class Cable(threading.Thread):
         link.unlink(missing_ok=True)
         link.symlink_to(self.slave_path)
         self.pending: list[bytes] = []
+        self.stall_s = 0.0  # stall() asks for a stall mid-frame this long
+        self.stalls = 0  # stalls done
         self.lock = threading.Lock()
         self.stop_flag = False
         self.start()
@@ -53,14 +55,36 @@ class Cable(threading.Thread):
         with self.lock:
             self.pending.append(data)
 
+    def stall(self, seconds: float) -> None:
+        """The display stops mid-frame: part of a frame goes through, then nothing for `seconds`
+        (what it sends meanwhile waits in the cable, as in its own buffer), then the rest."""
+        with self.lock:
+            self.stall_s = seconds
+
     def run(self) -> None:
         held = b""  # device bytes after the last delimiter: injections go between frames
+        hold_until = 0.0
         while not self.stop_flag:
             try:
                 r, _, _ = select.select([self.master, self.dev], [], [], 0.01)
                 if self.dev in r:
                     held += os.read(self.dev, 65536)
+                    if time.monotonic() < hold_until:
+                        continue
                     cut = held.rfind(b"\0") + 1
+                    with self.lock:
+                        stall, self.stall_s = self.stall_s, 0.0
+                    if stall and cut and held.count(b"\0", 0, cut) >= 2:  # a frame's first half, then nothing
+                        first = held.find(b"\0") + 1
+                        half = first + (held.find(b"\0", first) - first) // 2
+                        _write_all(self.master, held[:half])
+                        held = held[half:]
+                        hold_until = time.monotonic() + stall
+                        self.stalls += 1
+                        continue
+                    if stall:
+                        with self.lock:
+                            self.stall_s = stall
                     if cut:
                         _write_all(self.master, held[:cut])
                         held = held[cut:]
@@ -149,6 +173,13 @@ def test_a_misbehaving_display_is_named_dropped_or_reconnected_and_the_daemon_ke
             time.sleep(2.0)  # the next burst is another event (after a quiet second)
         said = _lines(log, at, "bad frames or messages")
         assert len(said) == len(bursts) and all(str(link) in ln for ln in said), said
+        # a stall mid-frame (0.5 s): the frame completes late; nothing is bad, nothing is lost
+        at = len(log.read_text().splitlines())
+        cable.stall(0.5)
+        wait_for(lambda: cable.stalls == 1, 10, "the stall")
+        time.sleep(2.0)
+        assert not _lines(log, at, "bad frames or messages") and not _lines(log, at, "device lost"), \
+            log.read_text().splitlines()[at:]
         st = request(sock, {"cmd": "status"})  # (recovering: underruns of a loaded machine)
         assert st["connected"] and st["state"] in ("playing", "recovering") and st["texture"] == "wood", st
 
