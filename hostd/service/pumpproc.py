@@ -245,6 +245,7 @@ def pump_main(cfg, conn, stats) -> None:
     last_pct = [0.0]
 
     bad_seen = [0, -math.inf]  # bad frames and messages of this link: counted, time of the last one
+    resets_seen = [0, -math.inf]  # the device's counter resets (health.resets), time of the last one
 
     def publish() -> None:
         # a device's garbage, cut, oversized or unknown messages: dropped (bad CRC, bad layout),
@@ -263,6 +264,12 @@ def pump_main(cfg, conn, stats) -> None:
             put("malformed", s["malformed"])
             put("device_time_s", link.device_time_s)  # the device's clock, unwrapped
         h = pump.health
+        if h.resets > resets_seen[0]:  # counters or clock went back or leapt: one line per burst
+            t_reset = time.monotonic()
+            if t_reset - resets_seen[1] >= 1.0:
+                log(f"device: {transport.describe()} reported counters or a clock that went back or leapt "
+                    f"(a reset, or a device that lies; {h.resets} in all); counted from a new baseline")
+            resets_seen[:] = [h.resets, t_reset]
         put("device_state", h.state)
         put("device_fault_bits", h.recent_fault_bits())
         put("device_underruns", h.underruns)
