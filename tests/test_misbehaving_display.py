@@ -7,6 +7,7 @@ pump's memory bounded, and never drives the piezo past its limits (the DAC log o
 
 from __future__ import annotations
 
+import itertools
 import os
 import random
 import select
@@ -127,6 +128,12 @@ def _pump_rss_kib(daemon_pid: int) -> int:
     raise AssertionError("no VmRSS")
 
 
+def _log_time(line: str) -> float:
+    from datetime import datetime
+
+    return datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+
+
 def _streaming(sock: str) -> bool:
     st = request(sock, {"cmd": "status"})
     return st["connected"] and st["state"] in ("playing", "recovering")
@@ -178,7 +185,12 @@ def test_a_misbehaving_display_is_named_dropped_or_reconnected_and_the_daemon_ke
             wait_for(lambda n=n_before: len(_lines(log, at, "bad frames or messages")) > n, 30, "the line")
             time.sleep(2.0)  # the next burst is another event (after a quiet second)
         said = _lines(log, at, "bad frames or messages")
-        assert len(said) == len(bursts) and all(str(link) in ln for ln in said), said
+        # each burst said once: a line for every burst, never two within a second (a burst's own
+        # bad frames are one event). More lines than bursts happen only under heavy load: the
+        # host's own stalls (a recovery after a host timeout) cut a frame of their own.
+        t_said = [_log_time(ln) for ln in said]
+        assert len(said) >= len(bursts) and all(str(link) in ln for ln in said), said
+        assert all(b - a >= 1.0 for a, b in itertools.pairwise(t_said)), said
         # a stall mid-frame (0.5 s): the frame completes late (or, if the host dropped what it
         # held while it recovered from the silence, it is one cut frame: one line); not a loss
         at = len(log.read_text().splitlines())
