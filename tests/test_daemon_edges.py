@@ -29,6 +29,13 @@ def _children(pid: int) -> list[int]:
         return []
 
 
+def _comm(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        return ""
+
+
 def _alive(pid: int) -> bool:
     try:
         return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
@@ -56,7 +63,9 @@ def test_kill_9_of_the_daemon_in_device_rendering_leaves_one_line_from_the_pump(
         wait_for(lambda: "renders the texture from its own encoder" in log.read_text(), 30,
                  "device rendering")
         assert request(sock, {"cmd": "status"})["render_at"] == "device"
-        pump = next(iter(_children(daemon.pid)))
+        # the pump names itself (PR_SET_NAME); the daemon may have other children (multiprocessing's
+        # resource tracker)
+        pump = next(c for c in _children(daemon.pid) if _comm(c) == "hostd-pump")
         daemon.kill()
         daemon.wait(10)
         wait_for(lambda: not _alive(pump), 30, "the orphaned pump to exit")
