@@ -27,15 +27,17 @@ def run(n: int) -> float:
                            "--length-mm", "2"]) == 0
         for i in range(n):
             shutil.copy(src, lib / f"t{i}.vtx")
-        (d / "h.toml").write_text('[device]\ntransport = "sim"\n[render]\nwhere = "host"\n[library]\ndir = "lib"\n'
-                                  'spool = "spool"\n[control]\nsocket = "hostd.sock"\ngroup = ""\n'
+        (d / "h.toml").write_text('[device]\ntransport = "sim"\n[render]\nwhere = "host"\n'
+                                  '[library]\ndir = "lib"\nspool = "spool"\n'
+                                  '[control]\nsocket = "hostd.sock"\ngroup = ""\n'
                                   '[quality]\ndb = "q.sqlite"\n')
         ns = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         ns.bind(str(d / "notify"))
         ns.settimeout(600)
         t0 = time.monotonic()
+        env = dict(os.environ, NOTIFY_SOCKET=str(d / "notify"))
         p = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(d / "h.toml")], cwd=d,
-                             stderr=open(d / "log.txt", "w"), env=dict(os.environ, NOTIFY_SOCKET=str(d / "notify")))
+                             stderr=open(d / "log.txt", "w"), env=env)
         got = b""
         while b"READY=1" not in got:
             got = ns.recv(4096)
