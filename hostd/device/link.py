@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 from hostd.device import fastlink
 from hostd.device import protocol as pr
-from hostd.errors import DeviceBusy, DeviceError, DeviceVersion
+from hostd.errors import DeviceBusy, DeviceError, DeviceGone, DeviceVersion
 
 
 @dataclass
@@ -35,6 +35,11 @@ class LinkStats:
     bad_messages_received: int = 0
     last_status: dict = field(default_factory=dict)
     io_retries: int = 0  # transient write errors retried
+
+
+# what names a display in its IDENT (limit_code and max_step_code follow SET_LIMITS: not identity)
+IDENTITY = ("protocol_version", "fw_major", "fw_minor", "fw_patch", "dac_bits", "sample_rate_hz",
+            "buffer_capacity", "max_samples", "um_per_count_nm")
 
 
 class DeviceLink:
@@ -184,14 +189,27 @@ class DeviceLink:
         if name == "STATUS":
             self._status(f, fresh)
         elif name == "IDENT":
+            if self.ident is not None and any(f[k] != self.ident[k] for k in IDENTITY):
+                self._changed_identity("IDENT", self.ident, f)
             self.ident = f
         elif name == "CAPS":
+            if self.caps is not None and f != self.caps:
+                self._changed_identity("CAPS", self.caps, f)
             self.caps = f  # protocol v2: what the display can render (after IDENT)
         elif name == "RENDER_STATUS":
             self.render_status = f
             if self.on_render_status is not None:
                 self.on_render_status(f)
         return name
+
+    def _changed_identity(self, what: str, old: dict, new: dict) -> None:
+        """Another IDENT or CAPS mid-session (another firmware, a swapped board behind the same
+        port, a device that lies): a new device. Nothing it said before is believed: the link
+        ends (DeviceGone) and the pump identifies it again as on a replug."""
+        diff = ", ".join(f"{k} {old.get(k)} -> {new.get(k)}" for k in new
+                         if (k in IDENTITY or what == "CAPS") and k != "id" and new.get(k) != old.get(k))
+        raise DeviceGone(f"{self.t.describe()} changed its identity mid-session ({what}: {diff}): a new "
+                         "device; identifying it again as on a replug")
 
     FRESH = 32  # statuses of one poll whose encoder readings are used (the motion window's 16, +)
 

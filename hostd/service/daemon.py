@@ -9,6 +9,7 @@ signals). The real-time pump is a separate process (pumpproc).
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import logging
 import math
@@ -26,7 +27,7 @@ from pathlib import Path
 
 from hostd.device.health import STATE_NAMES as DEVICE_STATES
 from hostd.device.health import fault_names
-from hostd.device.protocol import SAMPLE_RATE_HZ
+from hostd.device.protocol import BUFFER_CAPACITY, SAMPLE_RATE_HZ
 from hostd.errors import ConfigError, HostdError
 from hostd.fileio import open_dir, read_regular_at, write_at
 from hostd.service import qualitylog
@@ -96,6 +97,58 @@ class PumpWriter:
         self.thread.join(timeout_s)
 
 
+# what a device's counters may claim over a play, beyond the host's own clock: the device's
+# clock runs at most this much fast (crystal tolerance, with margin), plus its report's age
+CLOCK_TOLERANCE = 0.01
+REPORT_SLACK_S = 0.5
+
+
+def bound_play(c0: dict, c1: dict, host_s: float) -> tuple[dict, list[str]]:
+    """What a play delivered, from the device's counters at its start (c0) and end (c1), bounded by
+    what the host knows: its own clock (host_s elapsed), the samples it sent and the device's
+    buffer. Returns the plays row's device_s, played_s, played_fraction and underruns, and the
+    counters that claimed the impossible (empty when none did), each said in a few words."""
+    bad: list[str] = []
+    limit_s = max(host_s, 0.0) * (1 + CLOCK_TOLERANCE) + REPORT_SLACK_S
+    device_s = c1["device_time_s"] - c0["device_time_s"]
+    if not math.isfinite(device_s) or device_s < 0:
+        bad.append(f"its clock went from {c0['device_time_s']:.3f} s to {c1['device_time_s']:.3f} s")
+        device_s = 0.0
+    elif device_s > limit_s:
+        bad.append(f"{device_s:.1f} s of its clock in {host_s:.1f} s")
+        device_s = max(host_s, 0.0)
+    fraction = c1["played_fraction"] if device_s > 0 else None
+    if fraction is not None and not (math.isfinite(fraction) and 0.0 <= fraction <= 1.0):
+        bad.append(f"a played fraction of {fraction}")
+        fraction = min(max(fraction, 0.0), 1.0) if math.isfinite(fraction) else None
+    if c1["render_at"] == "device":  # the display renders: nothing is played from its buffer,
+        played_s = (fraction or 0.0) * device_s  # the share of device time it reported rendering
+    else:
+        played = c1["device_samples_played"] - c0["device_samples_played"]
+        # at most what was sent meanwhile, plus what the buffer held at the start
+        most = max(c1["samples"] - c0["samples"], 0) + BUFFER_CAPACITY
+        if played < 0:
+            bad.append(f"samples played went back by {-played}")
+            played = 0
+        elif played > most:
+            bad.append(f"{played} samples played of at most {most} sent and buffered")
+            played = most
+        played_s = played / SAMPLE_RATE_HZ
+        if played_s > limit_s:
+            bad.append(f"{played_s:.1f} s played in {host_s:.1f} s")
+            played_s = max(host_s, 0.0)
+    underruns = c1["device_underruns"] - c0["device_underruns"]
+    most_underruns = int(limit_s * SAMPLE_RATE_HZ / 2) + 1  # an episode: a sample missed, one played
+    if underruns < 0:
+        bad.append(f"underruns went back by {-underruns}")
+        underruns = 0
+    elif underruns > most_underruns:
+        bad.append(f"{underruns} underruns in {host_s:.1f} s")
+        underruns = most_underruns
+    return {"device_s": device_s, "played_s": played_s, "played_fraction": fraction,
+            "underruns": underruns}, bad
+
+
 class Daemon:
     def __init__(self, cfg: Config, notifier: Notifier | None = None) -> None:
         self.cfg = cfg
@@ -128,6 +181,22 @@ class Daemon:
         self.select_lock = threading.Lock()  # one select or stop at a time
         self.selected_sha: str | None = None
         self.quality_pending: deque = deque()  # scored rows not yet written (disk full, I/O error)
+        # rows the last run could not write: written first (then the pending-rows file is removed)
+        self.pending_paths = qualitylog.pending_paths(self.db_path, cfg.library.dir)
+        kept = []
+        for p in self.pending_paths:
+            try:
+                kept += [r for r in qualitylog.load_pending(p) if r not in kept]
+            except OSError as e:
+                log.warning("quality log: cannot read the pending-rows file %s (%s); its streams are scored "
+                            "again", p, e.strerror or e)
+        self.quality_pending.extend(kept)
+        self.pending_file_rows = len(kept)
+        self.pending_keys = {(r["name"], r["sha256"]) for r in kept}
+        self.scoring: set[tuple[str, str]] = set(self.pending_keys)  # queued or pending, not yet written
+        if kept:
+            log.info("quality log: %d rows pending from the last run (%s); writing them first", len(kept),
+                     ", ".join(str(p) for p in self.pending_paths if p.exists()))
         self.stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
         self.conn, self.child_conn = ctx.Pipe()
         self.proc = ctx.Process(target=pump_main, args=(cfg, self.child_conn, self.stats),
@@ -175,7 +244,7 @@ class Daemon:
             raise
         with self.lock:
             self.accepted += 1
-        self.quality_q.put((name, data, sha, time.time()))
+        self.queue_for_scoring(name, data, sha, time.time())
         log.info("accepted %s from %s: %d bytes, %s, N'=%d", name, source, len(data), s.method, s.n_keep)
         return {"name": name, "sha256": sha, "bytes": len(data), "method": s.method, "n_keep": s.n_keep}
 
@@ -212,15 +281,13 @@ class Daemon:
             return
         name, sha, started, c0 = play
         c1 = self.counters()
-        device_s = max(c1["device_time_s"] - c0["device_time_s"], 0.0)
-        fraction = c1["played_fraction"] if device_s > 0 else None
-        if c1["render_at"] == "device":  # the display renders: nothing is played from its buffer,
-            played_s = (fraction or 0.0) * device_s  # the share of device time it reported rendering
-        else:
-            played_s = max(c1["device_samples_played"] - c0["device_samples_played"], 0) / SAMPLE_RATE_HZ
-        row = {"name": name, "sha256": sha, "started_at": started, "ended_at": time.time(),
-               "device_s": device_s, "played_s": played_s, "played_fraction": fraction,
-               "underruns": max(c1["device_underruns"] - c0["device_underruns"], 0)}
+        ended = time.time()
+        row, impossible = bound_play(c0, c1, ended - started)
+        row.update({"name": name, "sha256": sha, "started_at": started, "ended_at": ended})
+        if impossible:  # one line per play: what the device said, and what the host logged instead
+            log.warning("device %s reported the impossible while playing %s: %s; logged within what the "
+                        "host knows", self.pump_info.get("transport") or self.cfg.device.transport, name,
+                        "; ".join(impossible))
         try:
             con = qualitylog.connect(self.db_path)
             try:
@@ -250,6 +317,8 @@ class Daemon:
         st["render_reason"] = RENDER_REASONS[st["render_reason"]] if 0 <= st["render_reason"] < len(
             RENDER_REASONS) else "?"  # and why there ([render] where, the display's version and CAPS)
         st["target_fill_ms"] = round(st["target_fill"] / SAMPLE_RATE_HZ * 1e3, 2)
+        pf = st["played_fraction"]  # a share: whatever a device says, shown within [0, 1]
+        st["played_fraction"] = min(max(pf, 0.0), 1.0) if math.isfinite(pf) else 0.0
         return st
 
     def status(self) -> dict:
@@ -263,15 +332,23 @@ class Daemon:
 
     # ------------------------------------------------------------ workers
     def quality_worker(self) -> None:
-        """Score each accepted stream and write its row. A row that cannot be written (disk full,
-        I/O error, a locked or unopenable database) stays in quality_pending and is retried,
-        back-off doubling from 0.5 s to 30 s, until it is written; one log line when writing
-        fails and one when it works again. What is still pending at exit is scored again at
-        the next start (a stored stream without a row)."""
-        con = None
+        """Score each accepted stream and write its row. Rows are written in batches (at most
+        qualitylog.BATCH_ROWS per transaction). A batch that cannot be written (disk full, I/O
+        error, a locked or unopenable database) stays in quality_pending and is retried, back-off
+        doubling from 0.5 s to 30 s, and at once when the database's file system has 16 kB more
+        free than at the failure; after a full-disk error the -wal is checkpointed and cut to zero
+        bytes (its frames would squat the space freed). One log line when writing fails and one
+        when it works again. What is still pending at exit goes to the pending-rows file, which
+        the next start writes first (or, if even that cannot be written, the streams are scored
+        again at the next start: a stored stream without a row)."""
+        try:  # opened now, while there is space: its -shm (32 kB) is not made again on a full disk
+            con = qualitylog.connect(self.db_path)
+        except sqlite3.Error:
+            con = None
         failing_since = None
         retry_at = 0.0
         backoff = QUALITY_RETRY_S[0]
+        free_at_fail = None
         while True:
             stopping = self.stop_event.is_set()
             try:
@@ -286,13 +363,14 @@ class Daemon:
                     row = qualitylog.score_row(data, name, sha, t, q.a, q.b, self.curve, self.calibration)
                     self.quality_pending.append(row)
                 except Exception as e:  # a scoring failure must not stop the service
+                    self.scoring.discard((name, sha))
                     log.error("quality scoring of %s failed: %s", name, e)
                 continue
             if not self.quality_pending:
                 if stopping:
                     break
                 continue
-            if time.monotonic() < retry_at:
+            if time.monotonic() < retry_at and not self._db_space_grew(free_at_fail):
                 if stopping and time.monotonic() > self._stop_deadline:
                     break
                 continue
@@ -300,48 +378,109 @@ class Daemon:
                 if con is None:
                     con = qualitylog.connect(self.db_path)
                 while self.quality_pending:
-                    row = self.quality_pending[0]
-                    qualitylog.insert(con, row)
-                    self.quality_pending.popleft()
-                    log.info("quality %s: Ip=%.4f Ia=%.4f Iobj=%.4f", row["name"], row["ip"], row["ia"],
-                             row["iobj"])
+                    batch = list(itertools.islice(self.quality_pending, qualitylog.BATCH_ROWS))
+                    qualitylog.insert_batch(con, batch)
+                    for row in batch:
+                        self.quality_pending.popleft()
+                        self.scoring.discard((row["name"], row["sha256"]))
+                        log.info("quality %s: Ip=%.4f Ia=%.4f Iobj=%.4f", row["name"], row["ip"], row["ia"],
+                                 row["iobj"])
+                if self.pending_file_rows:  # every row of the pending-rows files is in the log now
+                    for p in self.pending_paths:
+                        p.unlink(missing_ok=True)
+                    self.pending_file_rows = 0
                 if failing_since is not None:
+                    qualitylog.checkpoint(con)  # the -wal back to zero bytes
                     log.warning("quality log: writing again after %.0f s; every pending row is written",
                                 time.monotonic() - failing_since)
-                failing_since, backoff = None, QUALITY_RETRY_S[0]
+                failing_since, backoff, free_at_fail = None, QUALITY_RETRY_S[0], None
             except (sqlite3.Error, OSError) as e:
+                full = qualitylog.is_full(e)
+                if con is not None and full:
+                    qualitylog.checkpoint(con)  # gives back what the -wal holds beyond its last commit
                 if failing_since is None:
                     failing_since = time.monotonic()
                     log.error("quality log: cannot write to %s (%s); %d rows kept pending and retried until "
-                              "written (free disk space)", self.db_path, e, len(self.quality_pending))
-                if con is not None:
+                              "written (%s)", self.db_path, e, len(self.quality_pending),
+                              "free 64 kB or more on its file system" if full else "see the error")
+                if con is not None and not full:  # (full: kept open, with its -shm)
                     con.close()
                     con = None
+                free_at_fail = self._db_free_bytes()
                 retry_at = time.monotonic() + backoff
                 backoff = min(backoff * 2, QUALITY_RETRY_S[1])
                 if stopping and time.monotonic() > self._stop_deadline:
                     break
-        if self.quality_pending:
-            log.error("quality log: %d rows not written at exit; their streams are scored again at the "
-                      "next start", len(self.quality_pending))
         if con is not None:
             con.close()
+        if self.quality_pending:
+            self.keep_pending_rows()
+
+    def queue_for_scoring(self, name: str, data: bytes, sha: str, received_at: float) -> bool:
+        """Once per (name, content) until its row is written: an upload during the start-up's
+        look for unscored streams is not scored twice."""
+        with self.lock:
+            if (name, sha) in self.scoring:
+                return False
+            self.scoring.add((name, sha))
+        self.quality_q.put((name, data, sha, received_at))
+        return True
+
+    def keep_pending_rows(self) -> None:
+        """At exit: rows not written go to the pending-rows file for the next start."""
+        rows = list(self.quality_pending)
+        why = []
+        for path in self.pending_paths:
+            try:
+                qualitylog.save_pending(path, rows)
+                log.error("quality log: %d rows not written at exit; kept in %s, written at the next start",
+                          len(rows), path)
+                return
+            except OSError as e:
+                why.append(f"{path}: {e.strerror or e}")
+        log.error("quality log: %d rows not written at exit and not kept (%s); their streams are scored "
+                  "again at the next start", len(rows), "; ".join(why))
+
+    def _db_free_bytes(self) -> int | None:
+        try:
+            st = os.statvfs(Path(self.db_path).parent)
+            return st.f_bavail * st.f_frsize
+        except OSError:
+            return None
+
+    def _db_space_grew(self, free_at_fail: int | None) -> bool:
+        """True when the database's file system has 16 kB more free than at the last failure."""
+        if free_at_fail is None:
+            return False
+        free = self._db_free_bytes()
+        return free is not None and free >= free_at_fail + 16 * 1024
 
     def rescore_missing(self) -> None:
-        """Streams stored before a crash but not yet logged are scored now."""
+        """Streams stored before a crash but not yet logged are scored (after READY=1, in its own
+        thread: a large library takes seconds to read; a stop request ends it)."""
+        t0 = time.monotonic()
         con = qualitylog.connect(self.db_path)
-        known = qualitylog.known(con)
-        con.close()
+        try:
+            known = qualitylog.known(con)
+        finally:
+            con.close()
+        queued = 0
         for name in self.library.names():
+            if self.stop_event.is_set() or self.signalled:
+                return
             try:
                 data = self.library.read(name)
                 sha = hashlib.sha256(data).hexdigest()
                 if (name, sha) in known:
                     continue
                 self.library.decode(data)  # within today's limits, or it would fail every start
-                self.quality_q.put((name, data, sha, self.library.mtime(name)))
+                if self.queue_for_scoring(name, data, sha, self.library.mtime(name)):
+                    queued += 1
             except (HostdError, OSError) as e:
                 log.warning("library: %s not scored: %s", name, e)
+        if queued:
+            log.info("library: %d stored streams without a quality row queued for scoring (%.1f s)", queued,
+                     time.monotonic() - t0)
 
     def spool_watcher(self) -> None:
         """Take in .vtx files dropped into the spool once their writer is done: size and mtime
@@ -483,7 +622,7 @@ class Daemon:
             if since is not None and (not isinstance(since, int | float) or isinstance(since, bool)
                                       or not math.isfinite(since)):
                 raise BadRequest(f"bad request: since must be unix seconds (a number), not {since!r:.40}")
-            con = qualitylog.connect(self.db_path)
+            con = qualitylog.connect_readonly(self.db_path)  # answers with the disk full, too
             try:
                 return {"rows": qualitylog.query(con, since)}
             finally:
@@ -615,6 +754,9 @@ class Daemon:
             self.proc.join(2.0)
 
     def run(self) -> int:
+        # first: a stop request during the start is a clean stop (the flag is read by the main loop)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, self.on_signal)
         self.serve_metrics()  # a wrong or busy metrics.listen stops the start, before the pump runs
         self.proc.start()
         self.pump_writer = PumpWriter(self.conn)
@@ -626,9 +768,6 @@ class Daemon:
         self.start_worker("control", self.control.accept_loop)
         self.start_worker("quality", self.quality_worker)
         self.start_worker("spool", self.spool_watcher)
-        self.rescore_missing()
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, self.on_signal)
         ready = False
         last_cycles = -1.0
         try:
@@ -651,6 +790,10 @@ class Daemon:
                 if not ready and state in ("waiting", "idle", "playing"):
                     self.notifier.ready()
                     ready = True
+                    log.info("ready")
+                    # the library's streams without a row are looked for after READY=1, in the
+                    # background (5,644 stored streams took 18 s to read before READY=1)
+                    threading.Thread(target=self.rescore_missing, name="rescore", daemon=True).start()
                 # the watchdog is fed only when the real-time loop made progress (cycles, or
                 # reconnection attempts or wake-ups while it waits for a device) and every worker thread is
                 # alive, never by a timer alone

@@ -146,6 +146,18 @@ def doctor(config: str | None, json_out: bool = False) -> int:
                                                                                f"integrity {res}, {n} rows")
         except sqlite3.Error as e:
             bad(f"quality log {db}: {e}", f"move {db} away; hostd creates a new one")
+    from hostd.service import qualitylog
+
+    for pending in qualitylog.pending_paths(db, cfg.library.dir):
+        try:
+            kept = qualitylog.load_pending(pending)
+        except OSError as e:
+            bad(f"quality log: cannot read its pending-rows file {pending}: {e}",
+                "let the daemon's user read it")
+            continue
+        if kept:
+            note(f"quality log: {len(kept)} rows pending in {pending} (not written when hostd last stopped; "
+                 "the next start writes them once the disk has space)")
     head("codec")
     from hostd.codec import rangecoder
 
@@ -178,6 +190,10 @@ def doctor(config: str | None, json_out: bool = False) -> int:
                f"played {st['played_fraction']:.2%} of the current texture, device underruns "
                f"{st['device_underruns']}, host stalls {st['stalls']} (longest "
                f"{st['longest_stall_ms']:.0f} ms), recoveries {st['recoveries']}")
+            if st.get("quality_pending"):
+                note(f"quality log: {st['quality_pending']} rows pending in the running daemon "
+                     "(retried until written: free 64 kB or more on the quality log's file system if "
+                     "the disk is full)")
             if "render_reason" in st:
                 ok(f"rendered on the {st['render_at']}: {st['render_reason']}")
             if st["texture"] and st["played_fraction"] < 0.99:

@@ -10,7 +10,9 @@ it calls gc.freeze(); the steady-state loop allocates only numpy temporaries of 
 from __future__ import annotations
 
 import gc
+import math
 import os
+import sys
 import time
 
 # Counters published in shared memory (float64 each). The device_* fields and
@@ -101,6 +103,7 @@ def pump_main(cfg, conn, stats) -> None:
     from hostd.render import Renderer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
+    parent = os.getppid()
     _die_with_parent()
 
     def log(msg: str, warn: bool | None = None) -> None:
@@ -241,13 +244,32 @@ def pump_main(cfg, conn, stats) -> None:
 
     last_pct = [0.0]
 
+    bad_seen = [0, -math.inf]  # bad frames and messages of this link: counted, time of the last one
+    resets_seen = [0, -math.inf]  # the device's counter resets (health.resets), time of the last one
+
     def publish() -> None:
+        # a device's garbage, cut, oversized or unknown messages: dropped (bad CRC, bad layout),
+        # never acted on; one line per burst (the first bad one after a quiet second), naming it
+        framer = getattr(transport, "deframer", None)
+        bad = link.stats.bad_messages_received + (framer.bad_frames if framer is not None else 0)
+        if bad > bad_seen[0]:
+            t_bad = time.monotonic()
+            if t_bad - bad_seen[1] >= 1.0:
+                log(f"device: {transport.describe()} sent bad frames or messages (garbage, cut, oversized "
+                    f"or unknown; {bad} on this link); dropped, the rest of the burst silently")
+            bad_seen[:] = [bad, t_bad]
         s = link.stats.last_status
         if s:
             put("fill", s["buffer_fill"])
             put("malformed", s["malformed"])
             put("device_time_s", link.device_time_s)  # the device's clock, unwrapped
         h = pump.health
+        if h.resets > resets_seen[0]:  # counters or clock went back or leapt: one line per burst
+            t_reset = time.monotonic()
+            if t_reset - resets_seen[1] >= 1.0:
+                log(f"device: {transport.describe()} reported counters or a clock that went back or leapt "
+                    f"(a reset, or a device that lies; {h.resets} in all); counted from a new baseline")
+            resets_seen[:] = [h.resets, t_reset]
         put("device_state", h.state)
         put("device_fault_bits", h.recent_fault_bits())
         put("device_underruns", h.underruns)
@@ -316,9 +338,24 @@ def pump_main(cfg, conn, stats) -> None:
             f"(link up at +{t_up - t_event:.3f} s)")
         tell(last_reconnect_s=round(now - t_event, 4), reconnected=info["reconnected"] + 1)
 
+    daemon_gone = [False]
+
+    def commands() -> None:
+        """The daemon's commands. EOF: the daemon died (kill -9 outside systemd): stop, with one
+        line at exit instead of multiprocessing's traceback of the EOFError."""
+        nonlocal quit_
+        while True:
+            try:  # only the pipe: an error of a command itself is not the daemon's death
+                if not conn.poll():
+                    return
+                msg = conn.recv()
+            except (EOFError, OSError):
+                daemon_gone[0] = quit_ = True
+                return
+            command(msg)
+
     def each_cycle() -> None:
-        while conn.poll():
-            command(conn.recv())
+        commands()
         if dev is not None and pump.renderer is None:
             dev.tick()
         hotplug_cycle()
@@ -372,8 +409,7 @@ def pump_main(cfg, conn, stats) -> None:
             wait_ticks += 1
             put("wait_ticks", wait_ticks)
             if conn in ready:
-                while conn.poll():
-                    command(conn.recv())
+                commands()
 
     last_pub = [0.0]
 
@@ -382,8 +418,7 @@ def pump_main(cfg, conn, stats) -> None:
     def each_wake(ready) -> None:  # device mode: a wake-up of the sleeping loop
         pump.stats.cycles += 1  # progress the daemon's watchdog sees
         if ready is None or conn_fd in ready:  # (conn.poll() builds a selector per call)
-            while conn.poll():
-                command(conn.recv())
+            commands()
         if dev is not None and pump.renderer is None:
             dev.tick()
         hotplug_cycle()
@@ -421,6 +456,7 @@ def pump_main(cfg, conn, stats) -> None:
             put("reconnects", reconnects)
             continue
         connected = True
+        bad_seen[:] = [0, -math.inf]
         put("connected", 1)
         if arrival[0] is not None:
             arrival[1] = time.monotonic()
@@ -476,3 +512,6 @@ def pump_main(cfg, conn, stats) -> None:
             except Exception:
                 pass
     put("state", STATE_CODES["stopped"])
+    if daemon_gone[0] or os.getppid() != parent:  # its pipe is closed: the journal hears it from stderr
+        sys.stderr.write("hostd-pump: daemon gone; pump exiting\n")
+        sys.stderr.flush()

@@ -4,10 +4,18 @@ Rows are written off the real-time path by the daemon's quality worker. A row is
 before it counts as logged; WAL with synchronous=FULL makes every commit durable across a
 kill -9 or power loss, and the daemon re-scores at start-up any stored stream that has no
 row yet, so an accepted stream is never left unlogged.
+
+A full disk: the write-ahead log is bounded (journal_size_limit, an automatic checkpoint every
+WAL_AUTOCHECKPOINT_PAGES, a checkpoint(TRUNCATE) after a full-disk error), rows are written in
+batches of at most BATCH_ROWS per transaction (each commit writes its B-tree pages once, not once
+per row), and rows still pending when the daemon stops are kept in the pending-rows file beside
+the database (PENDING_SUFFIX), which the next start writes first.
 """
 
 from __future__ import annotations
 
+import json
+import os
 import sqlite3
 import time
 from pathlib import Path
@@ -63,12 +71,20 @@ COLUMNS = ("id", "sha256", "name", "received_at", "scored_at", "bytes", "method"
            "ip", "ia", "iobj", "a", "b", "calibration")
 
 
+JOURNAL_LIMIT_BYTES = 16 * 1024  # the -wal is cut back to this when a writer restarts it
+WAL_AUTOCHECKPOINT_PAGES = 16   # (SQLite's default, 1000 pages = 4 MB, is never reached on a small disk)
+BATCH_ROWS = 16                 # rows per transaction: bounded so that a batch fits in 64 kB free
+PENDING_SUFFIX = ".pending"     # rows not written when the daemon stopped, one JSON object per line
+
+
 def connect(path: str | Path) -> sqlite3.Connection:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     con = sqlite3.connect(p, timeout=10.0, isolation_level=None)
     con.execute("PRAGMA journal_mode=WAL")
     con.execute("PRAGMA synchronous=FULL")
+    con.execute(f"PRAGMA journal_size_limit={JOURNAL_LIMIT_BYTES}")
+    con.execute(f"PRAGMA wal_autocheckpoint={WAL_AUTOCHECKPOINT_PAGES}")
     con.executescript(SCHEMA)
     if "calibration" not in _stream_columns(con):  # a log written before calibrations: add it
         con.execute("ALTER TABLE streams ADD COLUMN calibration TEXT")
@@ -77,6 +93,89 @@ def connect(path: str | Path) -> sqlite3.Connection:
 
 def _stream_columns(con: sqlite3.Connection) -> set[str]:
     return {r[1] for r in con.execute("PRAGMA table_info(streams)")}
+
+
+def is_full(e: BaseException) -> bool:
+    """A full disk (SQLITE_FULL, or ENOSPC/EDQUOT from the file system)."""
+    if isinstance(e, sqlite3.Error):
+        return getattr(e, "sqlite_errorcode", None) == sqlite3.SQLITE_FULL or "full" in str(e)
+    return isinstance(e, OSError) and e.errno in (28, 122)  # ENOSPC, EDQUOT
+
+
+def checkpoint(con: sqlite3.Connection) -> bool:
+    """Copy the -wal into the database and cut the -wal to zero bytes (after a full-disk error
+    its frames squat the space that was freed). False when it could not (still full, a reader)."""
+    try:
+        busy, _, _ = con.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
+        return busy == 0
+    except sqlite3.Error:
+        return False
+
+
+def insert_batch(con: sqlite3.Connection, rows: list[dict]) -> None:
+    """Rows in one transaction: all of them are written or none. Then a passive checkpoint (it
+    waits for no reader): the next batch starts the -wal from its beginning, cut to
+    JOURNAL_LIMIT_BYTES, so the -wal stays at about one batch rather than growing with every row."""
+    con.execute("BEGIN IMMEDIATE")
+    try:
+        for row in rows:
+            insert(con, row)
+        con.execute("COMMIT")
+    except BaseException:
+        try:
+            con.execute("ROLLBACK")
+        except sqlite3.Error:
+            pass
+        raise
+    try:
+        con.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+    except sqlite3.Error:
+        pass  # committed; the -wal is checkpointed by a later batch
+
+
+def pending_paths(db: str | Path, library_dir: str | Path) -> list[Path]:
+    """Where rows not written at exit are kept: beside the database, else (its file system is the
+    one that is full) in the library's directory (a dot-file: not a texture)."""
+    p = Path(db)
+    return [p.with_name(p.name + PENDING_SUFFIX), Path(library_dir) / (".quality" + PENDING_SUFFIX)]
+
+
+def save_pending(p: Path, rows: list[dict]) -> Path:
+    """Keep rows not yet written (with those already in the file) for the next start: written to a
+    temporary file, flushed and renamed over the pending-rows file p, so it is whole or unchanged.
+    OSError (the disk is full) propagates."""
+    keep = {(r["name"], r["sha256"]): r for r in load_pending(p) + list(rows)}.values()
+    tmp = p.with_name(p.name + ".tmp")
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o640)
+        with os.fdopen(fd, "w") as f:
+            for row in keep:
+                f.write(json.dumps(row) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, p)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
+    return p
+
+
+def load_pending(p: Path) -> list[dict]:
+    """The rows of the pending-rows file p ([] when there is none); a line that is not a row (a file
+    cut short) is skipped: its stream is scored again from the library."""
+    try:
+        text = p.read_text()
+    except FileNotFoundError:
+        return []
+    rows = []
+    for line in text.splitlines():
+        try:
+            row = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(row, dict) and isinstance(row.get("name"), str) and isinstance(row.get("sha256"), str):
+            rows.append({c: row.get(c) for c in COLUMNS if c != "id"})
+    return rows
 
 
 def score_row(data: bytes, name: str, sha: str, received_at: float, a: float, b: float,
