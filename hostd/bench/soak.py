@@ -60,6 +60,36 @@ def _wakeups(pid: int) -> int:
     return n
 
 
+def pss_kb(pid: int) -> int:
+    """Proportional set size of a process in kB (/proc/PID/smaps_rollup): its private pages plus
+    its share of the pages it maps with other processes (a shared library mapped by the daemon and
+    its pump counts half in each)."""
+    for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+        if line.startswith("Pss:"):
+            return int(line.split()[1])
+    raise OSError(f"no Pss in /proc/{pid}/smaps_rollup")
+
+
+def threads(pid: int) -> int:
+    """Threads of a process (/proc/PID/task)."""
+    return len(os.listdir(f"/proc/{pid}/task"))
+
+
+def mapped_libs(pid: int, packages: tuple[str, ...] = ("scipy", "matplotlib", "PIL", "finufft")) -> list[str]:
+    """The packages among `packages` with a shared library mapped into the process (what it
+    imported beyond numpy), from /proc/PID/maps."""
+    found = set()
+    try:
+        for line in Path(f"/proc/{pid}/maps").read_text().splitlines():
+            path = line.split(None, 5)[-1] if line.count(" ") >= 5 else ""
+            for pkg in packages:
+                if f"/site-packages/{pkg}/" in path or f"/site-packages/{pkg}." in path:
+                    found.add(pkg)
+    except OSError:
+        pass
+    return sorted(found)
+
+
 def _pump_pid(daemon_pid: int) -> int | None:
     """The daemon's pump process (a multiprocessing 'spawn' child)."""
     for c in child_pids(daemon_pid):
@@ -73,7 +103,9 @@ def _pump_pid(daemon_pid: int) -> int | None:
 
 def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progress: bool = True,
         render: str = "host", host_cycle_ms: int = 1) -> dict:
-    """One run. render: host | device | auto ([render] where); host_cycle_ms: [device] host_cycle_ms."""
+    """One run. render: host | device | auto ([render] where); host_cycle_ms: [device] host_cycle_ms.
+    Footprint: the peak PSS and thread count of the daemon and of its pump over the run (sampled
+    once a second), and the packages beyond numpy whose libraries each has mapped."""
     from hostd.codec import stream as vtx
     from hostd.codec import transform
     from hostd.perception import thresholds
@@ -127,14 +159,20 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
                 from tqdm import tqdm
 
                 bar = tqdm(total=int(seconds), unit="s", desc=f"soak ({render})", leave=False)
+            peak_pss = dict.fromkeys(cpu0, 0)
+            peak_threads = dict.fromkeys(cpu0, 0)
             while (el := time.monotonic() - t0) < seconds:
                 time.sleep(min(1.0, seconds - el))
+                for k in cpu0:  # the footprint's peak over the run, sampled once a second
+                    peak_pss[k] = max(peak_pss[k], pss_kb(pids[k]))
+                    peak_threads[k] = max(peak_threads[k], threads(pids[k]))
                 if bar is not None:
                     bar.n = int(time.monotonic() - t0)
                     bar.refresh()
             wall = time.monotonic() - t0
             cpu1 = {k: _proc_cpu_s(v) for k, v in pids.items() if v}
             wake1 = {k: _wakeups(v) for k, v in pids.items() if v}
+            libs = {k: mapped_libs(pids[k]) for k in cpu0}
             st = request(sock, {"cmd": "status"})
             if bar is not None:
                 bar.close()
@@ -157,6 +195,14 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
         "daemon_cpu_share": share.get("daemon"), "pump_cpu_share": share.get("pump"),
         "cpu_share": round(sum(share.values()), 5),
         "daemon_wakeups_s": wakes.get("daemon"), "pump_wakeups_s": wakes.get("pump"),
+        # the pump's loop runs (device mode: wake-ups of its sleeping loop; host: 1 ms cycles)
+        "pump_loop_runs_s": round(cycles / wall, 1),
+        "daemon_pss_mb": round(peak_pss.get("daemon", 0) / 1024, 1),
+        "pump_pss_mb": round(peak_pss.get("pump", 0) / 1024, 1),
+        "pss_mb": round(sum(peak_pss.values()) / 1024, 1),
+        "daemon_threads": peak_threads.get("daemon"), "pump_threads": peak_threads.get("pump"),
+        "threads": sum(peak_threads.values()),
+        "daemon_libs": ",".join(libs.get("daemon", [])), "pump_libs": ",".join(libs.get("pump", [])),
         # the pump process's CPU per cycle (a loaded machine skips cycles: the share alone hides it)
         "pump_cpu_us_per_cycle": round((cpu1["pump"] - cpu0["pump"]) / max(1, cycles) * 1e6, 1)
         if "pump" in cpu1 else None,

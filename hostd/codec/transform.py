@@ -12,7 +12,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft
 
 from hostd.errors import CodecError
 
@@ -84,6 +83,8 @@ def n_keep_for(length_mm: float, speed_mm_s: float, fmax_hz: float) -> int:
 
 def amplitudes(y_um: np.ndarray) -> np.ndarray:
     """All N DCT-II amplitudes C_0..C_{N-1} = (2/N) sum_n y_n cos(pi k (2n+1)/(2N))."""
+    import scipy.fft
+
     y = _checked_profile(y_um)
     return roundoff_to_zero(scipy.fft.dct(y, type=2) / y.size, y)
 
@@ -110,6 +111,8 @@ def analyze(y_um: np.ndarray, n_keep: int) -> np.ndarray:
     n = np.asarray(y_um).size
     if not (1 <= n_keep < n):
         raise CodecError(f"N' must be in 1..N-1 = 1..{n - 1}, got {n_keep}")
+    import scipy.fft
+
     y = _checked_profile(y_um)
     return roundoff_to_zero(scipy.fft.dct(y, type=2)[1 : n_keep + 1] / n, y)
 
@@ -124,6 +127,8 @@ def synthesize(coeffs_um: np.ndarray, n: int) -> np.ndarray:
     # 1/2 is applied to the N' inputs instead of the N outputs (a power of two: the same bits)
     # and the DCT works in place: one N-point array allocated in all.
     np.multiply(c, 0.5, out=full[1 : c.size + 1])
+    import scipy.fft
+
     return scipy.fft.dct(full, type=3, overwrite_x=True)
 
 

@@ -32,6 +32,7 @@ from hostd.fileio import open_dir, read_regular_at, write_at
 from hostd.service import qualitylog
 from hostd.service.config import Config, check_paths
 from hostd.service.control import REQUEST_DEADLINE_S, ClientConn, ControlServer
+from hostd.service.lean import children_with_one_blas_thread
 from hostd.service.library import Library, check_name
 from hostd.service.logsetup import CONTROL_CHARS
 from hostd.service.notify import Notifier
@@ -591,7 +592,8 @@ class Daemon:
 
     def run(self) -> int:
         self.serve_metrics()  # a wrong or busy metrics.listen stops the start, before the pump runs
-        self.proc.start()
+        with children_with_one_blas_thread():  # the pump imports numpy anew: no BLAS threads
+            self.proc.start()
         self.pump_writer = PumpWriter(self.conn)
         # our copy of the pump's end: closed, so a dead pump reads as EOF (a pending recv() or a
         # send into a full pipe would otherwise wait forever for a peer that no longer exists)
