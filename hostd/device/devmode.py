@@ -44,9 +44,10 @@ class DeviceMode:
     REPORTS_PER_WAKE = 3  # report pairs per wake-up while rendering (150 ms; 3 x 66 bytes < VMIN's 255)
 
     def __init__(self, link: DeviceLink, cfg, log, host_lost_ms: int = 1000,
-                 timeout_ms: int = 50) -> None:
+                 timeout_ms: int = 50, params: dict | None = None) -> None:
         self.link = link
         self.cfg = cfg  # RenderConfig
+        self._params = params  # devrender.device_params(cfg), designed on first use if not given
         self.log = log
         self.host_lost_ms = int(host_lost_ms)
         self.timeout_ms = int(timeout_ms)
@@ -71,9 +72,16 @@ class DeviceMode:
         self.wakeups = 0
         self._started_at = 0.0
 
+    @property
+    def params(self) -> dict:
+        """What the display needs besides the texture (devrender.device_params), once."""
+        if self._params is None:
+            self._params = devrender.device_params(self.cfg)
+        return self._params
+
     def check(self, coeffs) -> None:
         """Raise DeviceVersion (what to do) unless this display can render this texture."""
-        sos = devrender.device_params(self.cfg)["sos"]
+        sos = self.params["sos"]
         pr.require_render(self.link.ident or {}, self.link.caps, len(coeffs),
                           0 if sos is None else len(sos), who=self.link.t.describe())
 
@@ -87,7 +95,7 @@ class DeviceMode:
             self.slot = 2 if self.slot == 1 else 1
             msgs = pr.texture_messages(self.slot, c, n, length_mm)
         else:
-            msgs = devrender.setup_messages(c, n, length_mm, self.cfg, slot=self.slot)
+            msgs = devrender.setup_messages(c, n, length_mm, self.cfg, slot=self.slot, params=self.params)
             msgs.append(pr.encode("START_RENDER", host_lost_ms=self.host_lost_ms))
         try:
             devrender.send_and_confirm(self.link.t, msgs, on_other=self.link._take)

@@ -46,6 +46,12 @@ def _signal():
     return scipy.signal
 
 
+def preload() -> None:
+    """Import what designing and running an equalizer needs (scipy.signal) now, not at the first
+    texture: a process that will render on the host (the pump, host rendering) pays it up front."""
+    _signal()
+
+
 @dataclass(eq=False)
 class ActuatorModel:
     corner_hz: float = 270.0

@@ -158,6 +158,7 @@ class ControlServer:
         self.busy_lock = threading.Lock()
         self.refused_busy = 0
         self.threads: list[threading.Thread] = []
+        self.handlers = 0  # handler threads alive, under busy_lock (started on demand, start_pool)
         d = self.path.parent
         d.mkdir(parents=True, exist_ok=True, mode=0o750)
         check_socket_dir(d)
@@ -205,12 +206,23 @@ class ControlServer:
             os.close(dfd)
 
     # ------------------------------------------------------------ serving
+    HANDLER_IDLE_S = 30.0  # a handler thread idle this long ends (one stays while none is busy)
+
     def start_pool(self) -> None:
-        """The handler threads; the caller runs accept_loop (the daemon supervises it)."""
-        for i in range(self.max_clients):
-            t = threading.Thread(target=self._worker, name=f"control-{i}", daemon=True)
-            t.start()
-            self.threads.append(t)
+        """The first handler thread; the caller runs accept_loop (the daemon supervises it). The
+        pool grows on demand up to max_clients threads, a thread for each client being served
+        when all are busy, and shrinks again when they idle: a daemon nobody talks to holds one
+        handler, not max_clients."""
+        with self.busy_lock:
+            self._add_handler()
+
+    def _add_handler(self) -> None:
+        """Under busy_lock: one more handler thread."""
+        self.threads = [t for t in self.threads if t.is_alive()]
+        t = threading.Thread(target=self._worker, name=f"control-{len(self.threads)}", daemon=True)
+        self.handlers += 1
+        t.start()
+        self.threads.append(t)
 
     def accept_loop(self) -> None:
         backoff = 0.0
@@ -242,6 +254,8 @@ class ControlServer:
                     full = False
                 if not full:
                     self.busy += 1
+                    if self.busy > self.handlers:  # every handler is serving someone: one more
+                        self._add_handler()
                     if limited:
                         self.per_user[uid] = self.per_user.get(uid, 0) + 1
             if full:
@@ -279,7 +293,14 @@ class ControlServer:
 
     def _worker(self) -> None:
         while True:
-            job = self.jobs.get()
+            try:
+                job = self.jobs.get(timeout=self.HANDLER_IDLE_S)
+            except queue.Empty:
+                with self.busy_lock:  # idle: end unless every other handler is needed
+                    if self.busy < self.handlers and self.handlers > 1 and not self.stopping.is_set():
+                        self.handlers -= 1
+                        return
+                continue
             if job is None:
                 return
             conn, limited_uid = job

@@ -84,13 +84,22 @@ def _die_with_parent() -> None:
         pass
 
 
+def preload_host_rendering() -> None:
+    """Import the host renderer and scipy.signal (its equalizer) now: a pump that will render on
+    the host loads them before it plays; device mode never does."""
+    from hostd.render import equalizer, pipeline  # noqa: F401
+
+    equalizer.preload()
+
+
 def pump_main(cfg, conn, stats) -> None:
     """Entry point of the pump process. cfg: hostd.service.config.Config."""
     import signal
+    import sys
 
     import numpy as np
 
-    from hostd.device import devrender, fastpump
+    from hostd.device import devrender
     from hostd.device import protocol as pr
     from hostd.device.devmode import RENDERING, DeviceMode
     from hostd.device.hotplug import watch
@@ -98,7 +107,6 @@ def pump_main(cfg, conn, stats) -> None:
     from hostd.device.pump import JitterConfig, Pump
     from hostd.device.transport import open_transport, present
     from hostd.errors import DeviceBusy, DeviceError, DeviceGone, DeviceNotFound
-    from hostd.render import Renderer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
     _die_with_parent()
@@ -163,6 +171,9 @@ def pump_main(cfg, conn, stats) -> None:
                           max_fill=max(cfg.device.target_fill, cfg.device.max_fill))
 
     where = cfg.render.where  # auto (the default), device or host
+    if where == "host":
+        preload_host_rendering()  # before the first connection: a selection plays at once
+    dev_params = None  # devrender.device_params(rcfg): the equalizer's design, for the display
     dev = None  # DeviceMode while the display can render (protocol v2 with CAPS)
     logged_choice: list = [None]  # (render_at, reason) last logged: each choice is logged once
 
@@ -182,7 +193,7 @@ def pump_main(cfg, conn, stats) -> None:
     def start_device(coeffs) -> bool:
         """Upload to the display and render there when it can hold the texture; False (and
         the reason published) when the host must render it."""
-        sos = devrender.device_params(rcfg)["sos"]
+        sos = dev.params["sos"]
         link.await_caps(1.0)  # (asked again if it was lost at the connection)
         why = pr.render_refusal(link.ident or {}, link.caps, len(coeffs), 0 if sos is None else len(sos),
                                 who=link.t.describe())
@@ -212,6 +223,8 @@ def pump_main(cfg, conn, stats) -> None:
         _, coeffs, n, length = texture
         link.poll(0.01)
         if dev is None or not start_device(coeffs):
+            from hostd.render import Renderer  # (host rendering only: device mode never loads it)
+
             r = Renderer(np.asarray(coeffs), n, length, rcfg)
             r.start()
             pump.begin(r)  # pre-fill, then start the device (soft start)
@@ -277,7 +290,8 @@ def pump_main(cfg, conn, stats) -> None:
             put("device_reuploads", dev.recoveries)
             put("wakeups", dev.wakeups)
         put("target_fill", pump.target_fill)
-        put("compiled_cycles", fastpump.compiled_cycles())
+        fastpump = sys.modules.get("hostd.device.fastpump")  # loaded by host rendering only
+        put("compiled_cycles", fastpump.compiled_cycles() if fastpump is not None else 0)
         now = time.monotonic()
         if pump.renderer is not None and now - last_pct[0] >= 5.0:
             # percentiles of the host-rendering cycle every 5 s (a sort of 65536 cycles: ~1 ms)
@@ -438,12 +452,16 @@ def pump_main(cfg, conn, stats) -> None:
             link.await_caps()  # a v2 display sends CAPS right after IDENT
             why = pr.render_refusal(link.ident, link.caps, 1, 0, who=transport.describe())
             if why is None:
+                if dev_params is None:  # designed once per process, scipy kept out of it
+                    dev_params = devrender.device_params_apart(rcfg)
                 dev = DeviceMode(link, rcfg, log, host_lost_ms=cfg.render.host_lost_ms,
-                                 timeout_ms=cfg.device.host_timeout_ms)
+                                 timeout_ms=cfg.device.host_timeout_ms, params=dev_params)
                 if texture is None:
                     choose(True, 7)
             else:
                 choose(False, _REASON_OF_REFUSAL[why[0]], why[1])
+        if dev is None:  # the host renders: its renderer's imports now, not at the first texture
+            preload_host_rendering()
         try:
             if texture is not None:
                 begin()
