@@ -1,7 +1,8 @@
 """The device-mode sleeping loop's cheap receive path over serial (issue 22, ≤ 0.5 % of a core):
-the port wakes once per few report pairs (Transport.wake_after: the line discipline's VMIN),
-one read takes every message waiting (Transport.drain), and everything else still wakes at the
-first byte. The CPU figure itself is `hostd bench soak --render auto` (docs/benchmarks.md)."""
+each arrival is read as it wakes the loop and the messages are taken in once a few report pairs
+are in (Transport.gather), one read takes every message waiting (Transport.drain), and
+everything else still wakes at the first byte. The CPU figure itself is
+`hostd bench soak --render auto` (docs/benchmarks.md)."""
 
 from __future__ import annotations
 
@@ -31,46 +32,61 @@ def _pair() -> bytes:
             + pr.frame(pr.encode("RENDER_STATUS", render_state=2)))
 
 
-def _readable(t) -> bool:
+def _poller(t, *fds):
     p = select.poll()
-    p.register(t.fileno(), select.POLLIN)
-    return bool(p.poll(50))
+    for fd in (t.fileno(), *fds):
+        p.register(fd, select.POLLIN)
+    return p
 
 
-def test_wakes_once_per_report_pairs_and_drains_them_in_one_pass(port):
+def test_gathers_report_pairs_reading_each_arrival_and_counts_its_wake_ups(port):
+    """Each arrival wakes the loop once and is read at once (a wake-up is a run of the loop);
+    the messages are handed over once REPORTS_PER_WAKE pairs are in."""
     master, t = port
-    sizes = (pr.LAYOUTS["STATUS"].size, pr.LAYOUTS["RENDER_STATUS"].size) * DeviceMode.REPORTS_PER_WAKE
-    t.wake_after(sizes)
-    for _ in range(DeviceMode.REPORTS_PER_WAKE - 1):
+    want = 2 * DeviceMode.REPORTS_PER_WAKE
+    for _ in range(DeviceMode.REPORTS_PER_WAKE):
         os.write(master, _pair())
-        assert not _readable(t)  # the kernel counts the bytes: no wake-up per report
-    os.write(master, _pair())
-    assert _readable(t)
-    t.wake_after(None)
+    others, runs = t.gather(_poller(t), 1000, want)
+    assert others == set() and 1 <= runs <= DeviceMode.REPORTS_PER_WAKE
     msgs = t.drain()
     assert [pr.decode(m)[0] for m in msgs] == ["STATUS", "RENDER_STATUS"] * DeviceMode.REPORTS_PER_WAKE
     assert t.drain() == []
 
 
+def test_gather_returns_at_once_for_a_command_and_keeps_what_arrived(port):
+    master, t = port
+    r, w = os.pipe()
+    try:
+        os.write(master, _pair())
+        os.write(w, b"x")  # a command from the daemon
+        others, runs = t.gather(_poller(t, r), 1000, 2 * DeviceMode.REPORTS_PER_WAKE)
+        assert others == {r} and runs == 1
+        assert [pr.decode(m)[0] for m in t.drain()] == ["STATUS", "RENDER_STATUS"]
+    finally:
+        os.close(r)
+        os.close(w)
+
+
 def test_a_stopped_display_s_1ms_statuses_fill_the_count_within_a_few_ms(port):
     master, t = port
-    pair = (pr.LAYOUTS["STATUS"].size, pr.LAYOUTS["RENDER_STATUS"].size)
-    t.wake_after(pair * DeviceMode.REPORTS_PER_WAKE)
     status = pr.frame(pr.encode("STATUS", state=pr.STATES["IDLE"]))
-    n = 0
-    while not _readable(t):
-        os.write(master, status)  # one per ms from a display that is not rendering
-        n += 1
-        assert n <= 8
-    t.wake_after(None)
-    assert len(t.drain()) == n
+    want = 2 * DeviceMode.REPORTS_PER_WAKE
+    for _ in range(want):  # one per ms from a display that is not rendering
+        os.write(master, status)
+    others, _runs = t.gather(_poller(t), 1000, want)
+    assert others == set() and len(t.drain()) == want
 
 
-def test_outside_the_sleep_every_byte_wakes_as_before(port):
+def test_gather_times_out_with_fewer_messages_and_hands_them_over(port):
     master, t = port
-    t.wake_after((200,))
-    t.wake_after(None)  # the loop resets it after its poll(): acknowledgements, stream mode
+    os.write(master, _pair())
+    others, runs = t.gather(_poller(t), 30, 2 * DeviceMode.REPORTS_PER_WAKE)
+    assert others == set() and runs >= 1
+    assert len(t.drain()) == 2
+
+
+def test_outside_the_loop_every_message_wakes_as_before(port):
+    master, t = port
     os.write(master, pr.frame(pr.encode("ACK", for_id=pr.IDS["LOAD_END"])))
-    assert _readable(t)
     m = t.recv(0.1)
     assert m is not None and pr.decode(m)[0] == "ACK"

@@ -195,8 +195,10 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
         "daemon_cpu_share": share.get("daemon"), "pump_cpu_share": share.get("pump"),
         "cpu_share": round(sum(share.values()), 5),
         "daemon_wakeups_s": wakes.get("daemon"), "pump_wakeups_s": wakes.get("pump"),
-        # the pump's loop runs (device mode: wake-ups of its sleeping loop; host: 1 ms cycles)
-        "pump_loop_runs_s": round(cycles / wall, 1),
+        # the pump's loop runs (device mode: runs of its sleeping loop, DeviceMode.wakeups; host
+        # rendering: its cycles), to set against its wake-ups (the kernel's count)
+        "pump_loop_runs_s": round(((st["wakeups"] - st0["wakeups"]) if st["render_at"] == "device"
+                                   else cycles) / wall, 1),
         "daemon_pss_mb": round(peak_pss.get("daemon", 0) / 1024, 1),
         "pump_pss_mb": round(peak_pss.get("pump", 0) / 1024, 1),
         "pss_mb": round(sum(peak_pss.values()) / 1024, 1),

@@ -73,8 +73,6 @@ class SerialTransport(Transport):
         # does, so every empty read asks this (made once, not per read)
         self._hup_poll = select.poll()
         self._hup_poll.register(self.ser.fd, select.POLLIN)
-        self._vmin = 0  # the line discipline's VMIN (wake_after)
-        self._attrs = None
 
     def _gone(self, e: Exception) -> DeviceGone:
         return DeviceGone(f"serial port {self.port} went away ({e}); hostd reconnects when it returns")
@@ -143,24 +141,34 @@ class SerialTransport(Transport):
             self.wait(left)  # sleeps in select() until bytes arrive, not in a polling loop
         return self._queue.pop(0)
 
-    def wake_after(self, sizes) -> None:
-        """The line discipline's VMIN (VTIME 0): poll() reports the port readable only once
-        that many bytes wait (a frame is its message + 4 bytes: COBS overhead, CRC, delimiter),
-        at most 255. The sleeping device-mode loop sets it around its poll() only (two ioctls),
-        so every other read (handshake, upload acknowledgements, stream mode) sees VMIN 0."""
-        vmin = 0 if sizes is None else min(255, sum(n + 4 for n in sizes))
-        if vmin == self._vmin:
-            return
-        import termios
+    gathers = True
 
-        if self._attrs is None:
-            self._attrs = termios.tcgetattr(self.ser.fd)
-        self._attrs[6][termios.VMIN] = vmin
-        try:
-            termios.tcsetattr(self.ser.fd, termios.TCSANOW, self._attrs)
-        except termios.error as e:
-            raise self._gone(e) from None
-        self._vmin = vmin
+    def gather(self, poller, timeout_ms: int, count: int) -> tuple[set[int], int]:
+        """Transport.gather: asleep in poller.poll(); each wake-up by the port reads what arrived
+        (one read) and deframes it into the queue, until `count` messages wait, another
+        descriptor is readable, or timeout_ms has passed."""
+        import math
+
+        fd = self.ser.fd
+        deadline = time.monotonic() + timeout_ms / 1000.0
+        runs = 0
+        while True:
+            events = poller.poll(timeout_ms)
+            runs += 1
+            others = set()
+            port = False
+            for f, _ in events:
+                if f == fd:
+                    port = True
+                else:
+                    others.add(f)
+            if port:  # readable or hung up: the read says which
+                self._queue = self.drain()  # (what was queued, then what arrived)
+            if others or not events or len(self._queue) >= count:
+                return others, runs
+            timeout_ms = max(0, math.ceil((deadline - time.monotonic()) * 1000.0))
+            if timeout_ms == 0:
+                return others, runs
 
     READ_SIZE = 4096
 
