@@ -102,7 +102,7 @@ def _pump_pid(daemon_pid: int) -> int | None:
 
 
 def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progress: bool = True,
-        render: str = "host", host_cycle_ms: int = 1) -> dict:
+        render: str = "host", host_cycle_ms: int = 1, seconds: float | None = None) -> dict:
     """One run. render: host | device | auto ([render] where); host_cycle_ms: [device] host_cycle_ms.
     Footprint: the peak PSS and thread count of the daemon and of its pump over the run (sampled
     once a second), and the packages beyond numpy whose libraries each has mapped."""
@@ -112,7 +112,8 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
     from hostd.service.client import ClientError, request, send_file
     from hostd.texture import synth
 
-    seconds = minutes * 60.0
+    seconds = minutes * 60.0 if seconds is None else float(seconds)
+    minutes = seconds / 60.0
     hogs: list[subprocess.Popen] = []
     with tempfile.TemporaryDirectory(prefix="hostd-soak-") as tmp:
         d = Path(tmp)
@@ -189,6 +190,7 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
     share = {k: round((cpu1[k] - cpu0[k]) / wall, 5) for k in cpu1}
     wakes = {k: round((wake1[k] - wake0[k]) / wall, 1) for k in wake1}
     cycles = st["cycles"] - st0["cycles"]
+    loop_runs = (st["wakeups"] - st0["wakeups"]) if st["render_at"] == "device" else cycles
     row = {
         "render": render, "render_at": st["render_at"], "minutes": minutes, "load": load,
         "host_cycle_ms": int(host_cycle_ms),
@@ -197,8 +199,9 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
         "daemon_wakeups_s": wakes.get("daemon"), "pump_wakeups_s": wakes.get("pump"),
         # the pump's loop runs (device mode: runs of its sleeping loop, DeviceMode.wakeups; host
         # rendering: its cycles), to set against its wake-ups (the kernel's count)
-        "pump_loop_runs_s": round(((st["wakeups"] - st0["wakeups"]) if st["render_at"] == "device"
-                                   else cycles) / wall, 1),
+        "pump_loop_runs_s": round(loop_runs / wall, 1),
+        "pump_wakeups_per_run": round((wake1["pump"] - wake0["pump"]) / max(1, loop_runs), 3)
+        if "pump" in wake1 else None,
         "daemon_pss_mb": round(peak_pss.get("daemon", 0) / 1024, 1),
         "pump_pss_mb": round(peak_pss.get("pump", 0) / 1024, 1),
         "pss_mb": round(sum(peak_pss.values()) / 1024, 1),
