@@ -16,12 +16,12 @@ from dataclasses import dataclass
 @dataclass(frozen=True)
 class Guard:
     name: str  # the figure's key in the bench's row
-    goal: float
-    ci: float
+    goal: float | None  # None: not held to a goal (only to the CI bound)
+    ci: float | None  # None: not held in CI (a figure that a busy machine moves too far)
     upper: bool = True  # the figure must stay at or below the bound (False: at or above)
     unit: str = ""
 
-    def bound(self, level: str) -> float:
+    def bound(self, level: str) -> float | None:
         return self.ci if level == "ci" else self.goal
 
 
@@ -36,8 +36,12 @@ DEVICE_WAKEUPS_PER_RUN = Guard("pump_wakeups_per_run", 1.05, 1.05)
 CLI_ENCODE_CPU_S = Guard("cpu_s", 0.4, 0.8, unit="s")
 # `hostd bench scoring`: indices.score, N' = 160, every batch size
 SCORING_PER_S = Guard("scores_per_s", 1.0e6, 0.5e6, upper=False, unit="scores/s")
-# `hostd bench cycle --compiled-only`: the compiled host-rendering cycle, thread CPU per 1 ms cycle
-CYCLE_US = Guard("cpu_us_per_cycle", 50.0, 100.0, unit="µs")
+# `hostd bench cycle --compiled-only`: the compiled host-rendering cycle. Thread CPU per 1 ms
+# cycle, wake-up and handed-over cycles included (5 % of a core): on a quiet machine only, since
+# under load fewer cycles run, more of them are handed to the Python reference and each wake-up
+# costs more; in CI the median CPU time of the compiled step itself, which load moves little
+CYCLE_US = Guard("cpu_us_per_cycle", 50.0, None, unit="µs")
+CYCLE_STEP_P50_US = Guard("step_p50_us", 15.0, 30.0, unit="µs")
 
 
 def check(rows: list[dict], guards: list[Guard], level: str, what: str) -> int:
@@ -49,6 +53,8 @@ def check(rows: list[dict], guards: list[Guard], level: str, what: str) -> int:
             if v is None:
                 continue
             b = g.bound(level)
+            if b is None:
+                continue
             ok = v <= b if g.upper else v >= b
             failed += not ok
             label = f"{what} {g.name}" + (f" ({row['variants']} variants)" if "variants" in row else "")

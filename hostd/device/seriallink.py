@@ -73,6 +73,7 @@ class SerialTransport(Transport):
         # does, so every empty read asks this (made once, not per read)
         self._hup_poll = select.poll()
         self._hup_poll.register(self.ser.fd, select.POLLIN)
+        self._vmin = 0  # the line discipline's VMIN: left at 0 (the compiled cycle checks it)
 
     def _gone(self, e: Exception) -> DeviceGone:
         return DeviceGone(f"serial port {self.port} went away ({e}); hostd reconnects when it returns")
