@@ -51,6 +51,10 @@ class Transport:
 
     gathers = False  # a byte stream: gather() takes each arrival in and counts its messages
 
+    def take(self) -> list[bytes]:
+        """The messages read already (gather), without reading."""
+        return []
+
     def gather(self, poller, timeout_ms: int, count: int) -> tuple[set[int], int]:
         """Sleep in `poller` (a select.poll with fileno() and other descriptors registered)
         until `count` messages wait here, another descriptor is readable or timeout_ms passed;

@@ -167,7 +167,7 @@ class DeviceMode:
                 # are taken (decoded, acted on) once REPORTS_PER_WAKE pairs are in
                 ready, runs = t.gather(all_poll, _ms(timeout), self._wake_count)
                 self.wakeups += runs - 1
-                link.poll()
+                link.poll(read=False)
             elif all_poll is not None and not t.pending():
                 ready = {fd for fd, _ in all_poll.poll(_ms(timeout))}
                 if tfd in ready:  # (a hang-up too: the read raises DeviceGone)

@@ -144,6 +144,10 @@ class SerialTransport(Transport):
 
     gathers = True
 
+    def take(self) -> list[bytes]:
+        out, self._queue = self._queue, []
+        return out
+
     def gather(self, poller, timeout_ms: int, count: int) -> tuple[set[int], int]:
         """Transport.gather: asleep in poller.poll(); each wake-up by the port reads what arrived
         (one read) and deframes it into the queue, until `count` messages wait, another
