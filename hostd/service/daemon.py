@@ -654,6 +654,11 @@ class Daemon:
         stop_event.set() here would then wait for itself forever."""
         self.signalled = True
 
+    def start_pump(self) -> None:
+        """Start the pump process: it imports numpy anew, with one BLAS thread (hostd.service.lean)."""
+        with children_with_one_blas_thread():
+            self.proc.start()
+
     def send_to_pump(self, msg: tuple, timeout_s: float = 1.0) -> bool:
         """Send a command unless the pipe stays full for timeout_s (a pump that stopped reading)."""
         import select
@@ -686,8 +691,7 @@ class Daemon:
 
     def run(self) -> int:
         self.serve_metrics()  # a wrong or busy metrics.listen stops the start, before the pump runs
-        with children_with_one_blas_thread():  # the pump imports numpy anew: no BLAS threads
-            self.proc.start()
+        self.start_pump()
         self.pump_writer = PumpWriter(self.conn)
         # our copy of the pump's end: closed, so a dead pump reads as EOF (a pending recv() or a
         # send into a full pipe would otherwise wait forever for a peer that no longer exists)
