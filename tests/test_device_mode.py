@@ -151,8 +151,11 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
             daemon.wait(20)
     journal = (tmp_path / "hostd.log").read_text()
     assert a["render_at"] == "device" and "CAPS" in a["render_reason"], (a, journal[-1500:])
-    assert footprint["pump_libs"] == [] and footprint["daemon_libs"] == [], footprint
-    assert footprint["pump_threads"] == 1 and footprint["daemon_threads"] <= 6, footprint
+    # (the daemon's quality scoring may load the codec's DCT: scipy.fft's pocketfft alone)
+    assert footprint["pump_libs"] == [] and set(footprint["daemon_libs"]) <= {"scipy.fft"}, footprint
+    # the daemon: main, pump writer, control accept, quality, spool, a control handler per client
+    # being served (this test's requests: one at a time, plus one that may still be ending)
+    assert footprint["pump_threads"] == 1 and footprint["daemon_threads"] <= 7, footprint
     assert a["played_fraction"] > 0.99
     # asleep between reports: a wake-up per report (50 ms) plus commands, not one per ms
     assert (b["wakeups"] - a["wakeups"]) / (t_b - t_a - 2.5) < 60, (a["wakeups"], b["wakeups"])

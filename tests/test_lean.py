@@ -80,7 +80,8 @@ def test_hostd_encode_loads_only_what_it_uses():
     code = ("import sys\nfrom hostd.cli import main\n"
             "assert main(['encode', 'synthetic:wood:3', '-o', '/dev/null', '--target-iobj', '0.05']) == 0\n"
             "print(sorted(m for m in sys.modules if m in ('scipy.signal', 'scipy.optimize', 'scipy.linalg', "
-            "'scipy.stats', 'matplotlib', 'tqdm', 'hostd.render.pipeline', 'hostd.sim.scene', "
+            "'scipy.stats', 'scipy.fft', 'scipy.special', 'matplotlib', 'tqdm', 'hostd.render.pipeline', "
+            "'hostd.sim.scene', "
             "'hostd.sim.chain', 'finufft')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(),
                          timeout=120)
@@ -168,3 +169,36 @@ def test_the_control_pool_holds_one_handler_at_rest_and_grows_on_demand(tmp_path
     finally:
         release.set()
         srv.close()
+
+
+def test_pocketfft_is_scipy_fft_bit_for_bit_and_scipy_fft_still_loads_after_it():
+    """hostd.pocketfft calls scipy.fft's own routine without scipy.fft's import; in a fresh
+    process: loaded first, then scipy.fft imported (it takes the same module), every transform
+    the codec, SPQI, synth and the chirp-z use equals scipy.fft's."""
+    code = """
+import sys
+import numpy as np
+from hostd import pocketfft as p
+assert p.IMPLEMENTATION == "pypocketfft" and "scipy.fft" not in sys.modules
+import scipy.fft as f
+rng = np.random.default_rng(3)
+for n in (2, 7, 160, 1000, 20000, 20001):
+    x = rng.normal(size=n)
+    assert np.array_equal(p.dct(x, type=2), f.dct(x, type=2)), n
+    y = x.copy(); z = x.copy()
+    assert np.array_equal(p.dct(y, type=3, overwrite_x=True), f.dct(z, type=3, overwrite_x=True)), n
+    c = x + 1j * rng.normal(size=n)
+    for m in (None, n, n + 5, 2 * n + 3, max(1, n // 2)):
+        assert np.array_equal(p.fft(c, m), f.fft(c, m)), (n, m)
+        assert np.array_equal(p.ifft(c, m), f.ifft(c, m)), (n, m)
+    for m in (2 * n - 2, 2 * n - 1, n, 4 * n):
+        if m >= 1:
+            assert np.array_equal(p.irfft(c, m), f.irfft(c, m)), (n, m)
+    assert p.next_fast_len(n) == f.next_fast_len(n)
+b = rng.normal(size=(9, 1024))
+assert np.array_equal(p.dct(b, type=2, norm="ortho", axis=1), f.dct(b, type=2, norm="ortho", axis=1))
+print("ok")
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(),
+                         timeout=120)
+    assert out.stdout.strip() == "ok", out.stderr[-1500:]

@@ -92,15 +92,23 @@ def threads(pid: int) -> int:
 
 
 def mapped_libs(pid: int, packages: tuple[str, ...] = ("scipy", "matplotlib", "PIL", "finufft")) -> list[str]:
-    """The packages among `packages` with a shared library mapped into the process (what it
-    imported beyond numpy), from /proc/PID/maps."""
+    """What the process imported beyond numpy, from the shared libraries it maps
+    (/proc/PID/maps): each of `packages` with a library mapped, scipy by subpackage (scipy.fft is
+    the codec's pocketfft, hostd.pocketfft; scipy.libs its own BLAS, loaded by scipy.linalg)."""
     found = set()
     try:
         for line in Path(f"/proc/{pid}/maps").read_text().splitlines():
             path = line.split(None, 5)[-1] if line.count(" ") >= 5 else ""
             for pkg in packages:
-                if f"/site-packages/{pkg}/" in path or f"/site-packages/{pkg}." in path:
-                    found.add(pkg)
+                i = path.find(f"/site-packages/{pkg}")
+                if i < 0:
+                    continue
+                rest = path[i + len("/site-packages/"):]
+                top, _, sub = rest.partition("/")
+                if top == pkg and pkg == "scipy" and "/" in sub:
+                    found.add(f"scipy.{sub.split('/')[0]}")
+                elif top == pkg or top.startswith(pkg + "."):
+                    found.add(top)
     except OSError:
         pass
     return sorted(found)

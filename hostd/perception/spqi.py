@@ -40,6 +40,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from hostd import pocketfft
 from hostd.errors import QualityError
 from hostd.perception.indices import pow2_scale
 
@@ -80,10 +81,8 @@ def _as_signal(x: np.ndarray, name: str) -> np.ndarray:
 
 
 def _block_powers(x: np.ndarray, scale: float, n_blocks: int, w: np.ndarray) -> np.ndarray:
-    import scipy.fft
-
     blocks = (x[: n_blocks * BLOCK] * scale).reshape(n_blocks, BLOCK)
-    X = scipy.fft.dct(blocks, type=2, norm="ortho", axis=1)
+    X = pocketfft.dct(blocks, type=2, norm="ortho", axis=1)
     return np.multiply(np.multiply(X, X), w)
 
 

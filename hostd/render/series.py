@@ -225,13 +225,14 @@ def _czt(n: int, count: int, dtheta: float) -> _Czt:
 
 class _Czt:
     """scipy.signal.CZT(n, m, w, a=1.0), operation for operation (the same bits,
-    tests/test_render_series.py), on scipy.fft alone: importing scipy.signal costs a command
-    line call such as `hostd encode --target-iobj` (its SPQI check plays the signal through
-    here) more CPU than all its work. Bluestein's algorithm: the chirps and their FFT are made
-    once; a call is one FFT of the input, one product and one inverse FFT."""
+    tests/test_lean.py), on scipy.fft's transforms alone (hostd.pocketfft): importing
+    scipy.signal costs a command line call such as `hostd encode --target-iobj` (its SPQI check
+    plays the signal through here) more CPU than all its work. Bluestein's algorithm: the
+    chirps and their FFT are made once; a call is one FFT of the input, one product and one
+    inverse FFT."""
 
     def __init__(self, n: int, m: int, w: complex) -> None:
-        from scipy.fft import fft, next_fast_len
+        from hostd.pocketfft import fft, next_fast_len
 
         if n < 1 or m < 1:
             raise ValueError(f"chirp-z transform of {n} points to {m}: both must be >= 1")
@@ -247,7 +248,7 @@ class _Czt:
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """The transform along the last axis."""
-        from scipy.fft import fft, ifft
+        from hostd.pocketfft import fft, ifft
 
         x = np.asarray(x)
         if x.shape[-1] != self.n:
