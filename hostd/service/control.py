@@ -7,7 +7,8 @@
   control.group through the checked directory's file descriptor (no symlink followed).
 - Up to control.max_clients connections are served at once by a pool of threads that grows on
   demand (one handler at rest, one more per client being served, each ending after
-  HANDLER_IDLE_S idle); one more is answered with a one-line refusal and closed. The listen backlog is SOMAXCONN.
+  HANDLER_IDLE_S idle); one more is answered with a one-line refusal and closed. The listen
+  backlog is SOMAXCONN.
 - accept() failing with EMFILE/ENFILE (out of file descriptors) backs off (50 ms doubling to
   1 s) with one log line per episode, instead of spinning.
 - Every request has a deadline for the whole of it (REQUEST_DEADLINE_S, not per read) and a
