@@ -55,13 +55,13 @@ class Transport:
         """The messages read already (gather), without reading."""
         return []
 
-    def gather(self, poller, timeout_ms: int, count: int) -> tuple[set[int], int]:
-        """Sleep in `poller` (a select.poll with fileno() and other descriptors registered)
-        until `count` messages wait here, another descriptor is readable or timeout_ms passed;
-        every arrival that wakes it is read and deframed at once. Returns the other descriptors
-        that are readable and how many wake-ups it took. Only where `gathers` (a byte stream,
-        whose reader the kernel wakes at each arrival: a tty's VMIN spares the read, not the
-        wake-up); HID and raw USB deliver one report per read and the loop runs per report."""
+    def gather(self, fds: tuple[int, ...], timeout_ms: int, count: int) -> tuple[set[int], int]:
+        """Sleep on fileno() and `fds` until `count` messages wait here, one of `fds` is readable
+        or timeout_ms passed; every arrival that wakes it is read at once. Returns the
+        descriptors of `fds` that are readable and how many wake-ups it took. Only where
+        `gathers` (a byte stream, whose reader the kernel wakes at each arrival: a tty's VMIN
+        spares the read, not the wake-up); HID and raw USB deliver one report per read and the
+        loop runs per report."""
         raise NotImplementedError
 
     POLL_S = 0.001  # the fallback's poll period (a backend without a descriptor)

@@ -165,7 +165,7 @@ class DeviceMode:
             elif all_poll is not None and t.gathers:
                 # a byte stream (serial): each arrival is read as it wakes the loop, the messages
                 # are taken (decoded, acted on) once REPORTS_PER_WAKE pairs are in
-                ready, runs = t.gather(all_poll, _ms(timeout), self._wake_count)
+                ready, runs = t.gather(fds, _ms(timeout), self._wake_count)
                 self.wakeups += runs - 1
                 link.poll(read=False)
             elif all_poll is not None and not t.pending():

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import time
 
+from hostd.device import fastlink
 from hostd.device import protocol as pr
 from hostd.device.backend import Transport, os_error, permission_error
 from hostd.errors import DeviceBusy, DeviceGone, DeviceNotFound, DevicePermission
@@ -148,17 +149,39 @@ class SerialTransport(Transport):
         out, self._queue = self._queue, []
         return out
 
-    def gather(self, poller, timeout_ms: int, count: int) -> tuple[set[int], int]:
-        """Transport.gather: asleep in poller.poll(); each wake-up by the port reads what arrived
-        (one read) and deframes it into the queue, until `count` messages wait, another
-        descriptor is readable, or timeout_ms has passed."""
-        import math
+    def gather(self, fds: tuple[int, ...], timeout_ms: int, count: int) -> tuple[set[int], int]:
+        """Transport.gather: asleep in poll(); each wake-up by the port reads what arrived, until
+        `count` messages wait, a descriptor of `fds` is readable, or timeout_ms has passed. The
+        compiled loop (hostd/device/_fastlink.c: a wake-up costs a poll() and a read, no Python)
+        collects the bytes, which are deframed once at the end; else the same loop in Python."""
+        want = count - len(self._queue)
+        if want <= 0:  # (a run of the loop that need not sleep)
+            return set(), 1
+        if fastlink.GATHER is not None:
+            raw = bytearray()
+            ready, runs, hung_up = fastlink.GATHER(self.ser.fd, tuple(fds), timeout_ms, want, raw)
+            if raw:
+                self._queue += self.deframer.feed(bytes(raw))
+            if hung_up:  # (or a read error): the read says which, DeviceGone when it is gone
+                self._queue = self.drain()
+            return set(ready), runs
+        return self._gather_py(fds, timeout_ms, count)
 
+    def _gather_py(self, fds, timeout_ms: int, count: int) -> tuple[set[int], int]:
+        import math
+        import select
+
+        key = tuple(fds)
+        if getattr(self, "_gather_key", None) != key:
+            self._gather_poll = select.poll()
+            for f in (self.ser.fd, *key):
+                self._gather_poll.register(f, select.POLLIN)
+            self._gather_key = key
         fd = self.ser.fd
         deadline = time.monotonic() + timeout_ms / 1000.0
         runs = 0
         while True:
-            events = poller.poll(timeout_ms)
+            events = self._gather_poll.poll(timeout_ms)
             runs += 1
             others = set()
             port = False
