@@ -24,7 +24,7 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "io_retries", "io_dropped", "batch_p50_us", "batch_p99_us", "batch_p999_us",
                "device_time_s", "render_at", "device_uploads", "wait_ticks", "render_reason",
                "device_host_lost", "device_reuploads", "device_rendered_s", "device_faded_s",
-               "device_idle_s", "wakeups", "compiled_cycles")
+               "device_idle_s", "wakeups", "compiled_cycles", "voluntary_switches")
 STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
                 "batch_p50_us", "batch_p99_us", "batch_p999_us", "device_rendered_s", "device_faded_s",
@@ -94,6 +94,7 @@ def preload_host_rendering() -> None:
 
 def pump_main(cfg, conn, stats) -> None:
     """Entry point of the pump process. cfg: hostd.service.config.Config."""
+    import resource
     import signal
     import sys
 
@@ -289,6 +290,9 @@ def pump_main(cfg, conn, stats) -> None:
             put("device_uploads", dev.uploads)
             put("device_reuploads", dev.recoveries)
             put("wakeups", dev.wakeups)
+            # the kernel's count of the pump's sleeps, read at the same instant (bench soak sets
+            # the loop's runs against it: a wake-up that is not a run would show here)
+            put("voluntary_switches", resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw)
         put("target_fill", pump.target_fill)
         fastpump = sys.modules.get("hostd.device.fastpump")  # loaded by host rendering only
         put("compiled_cycles", fastpump.compiled_cycles() if fastpump is not None else 0)
