@@ -172,9 +172,14 @@ def pump_main(cfg, conn, stats) -> None:
                           max_fill=max(cfg.device.target_fill, cfg.device.max_fill))
 
     where = cfg.render.where  # auto (the default), device or host
+    dev_params = None  # devrender.device_params(rcfg): the equalizer's design, for the display
     if where == "host":
         preload_host_rendering()  # before the first connection: a selection plays at once
-    dev_params = None  # devrender.device_params(rcfg): the equalizer's design, for the display
+    else:  # designed now (in a child, ~1 s of scipy), not between a display's arrival and playing
+        try:
+            dev_params = devrender.device_params_apart(rcfg)
+        except ValueError:  # (a setting the display cannot render: said when one connects, as before)
+            dev_params = None
     dev = None  # DeviceMode while the display can render (protocol v2 with CAPS)
     logged_choice: list = [None]  # (render_at, reason) last logged: each choice is logged once
 
