@@ -29,9 +29,11 @@ class Guard:
 DEVICE_PSS_MB = Guard("pss_mb", 60.0, 60.0, unit="MB")
 DEVICE_THREADS = Guard("threads", 12, 12)
 DEVICE_CPU_SHARE = Guard("cpu_share", 0.0015, 0.0030, unit="of a core")
-# the pump's wake-ups (the kernel's count, getrusage) per run of its loop, both published by the
-# pump at the same instant; 5 % for a sleep outside the loop (a write that waits, a log line)
-DEVICE_WAKEUPS_PER_RUN = Guard("pump_wakeups_per_run", 1.05, 1.05)
+# the pump's voluntary context switches (the kernel's count, getrusage) per run of its loop, both
+# published by the pump at the same instant. Every poll() return is a run (strace: each followed
+# by its read); the switches beyond the runs (2-5 % here) are waits inside the loop's own read and
+# write of the tty, on its locks while the display writes: 10 % allowed for them
+DEVICE_WAKEUPS_PER_RUN = Guard("pump_wakeups_per_run", 1.10, 1.10)
 # `hostd bench cli`: CPU time of `hostd encode synthetic:wood:3 -o /dev/null --target-iobj 0.05`
 CLI_ENCODE_CPU_S = Guard("cpu_s", 0.4, 0.8, unit="s")
 # `hostd bench scoring`: indices.score, N' = 160, every batch size

@@ -32,24 +32,37 @@ from hostd.errors import HostdError
 HOG = "import os, sys\nos.sched_setaffinity(0, {int(sys.argv[1])})\nwhile True:\n    pass\n"
 
 
-def _proc_cpu_s(pid: int) -> float:
-    """CPU time of a process in seconds: the time on a CPU of every thread, in ns
-    (/proc/PID/task/*/schedstat; a thread that ended meanwhile is missed), else utime + stime
-    (/proc/PID/stat, counted in 10 ms ticks: 0.125 % of a core over 8 s, too coarse for
-    device mode's 0.15 % goal in a short run)."""
-    try:
-        ns = 0
-        for task in Path(f"/proc/{pid}/task").iterdir():
-            try:
-                ns += int((task / "schedstat").read_text().split()[0])
-            except (OSError, IndexError, ValueError):
-                pass
-        if ns:
-            return ns * 1e-9
-    except OSError:
-        pass
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+def _task_cpu_ns(pid: int) -> dict[int, int]:
+    """Every thread's time on a CPU so far, in ns (/proc/PID/task/*/schedstat)."""
+    out = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            out[int(task.name)] = int((task / "schedstat").read_text().split()[0])
+        except (OSError, IndexError, ValueError):
+            pass
+    return out
+
+
+class CpuClock:
+    """A process's CPU time over a run, in ns from every thread's schedstat (utime + stime come in
+    10 ms ticks: 0.125 % of a core over 8 s, too coarse for device mode's 0.15 % goal). A thread
+    that ends takes its schedstat with it, so each thread's latest value is kept (sample() once a
+    second): one that ends loses at most its last second (a control handler idle 30 s: nothing)."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.base = _task_cpu_ns(pid)
+        self.seen = dict(self.base)
+
+    def sample(self) -> None:
+        try:
+            self.seen.update(_task_cpu_ns(self.pid))
+        except OSError:
+            pass
+
+    def elapsed_s(self) -> float:
+        self.sample()
+        return (sum(self.seen.values()) - sum(self.base.values())) * 1e-9
 
 
 def child_pids(pid: int) -> list[int]:
@@ -181,7 +194,8 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
             time.sleep(1.0)  # the upload or the priming is not the steady state
             pump = _pump_pid(daemon.pid)
             pids = {"pump": pump, "daemon": daemon.pid}
-            cpu0 = {k: _proc_cpu_s(v) for k, v in pids.items() if v}
+            clocks = {k: CpuClock(v) for k, v in pids.items() if v}
+            cpu0 = dict.fromkeys(clocks, 0.0)
             wake0 = {k: _wakeups(v) for k, v in pids.items() if v}
             st0 = request(sock, {"cmd": "status"})
             t0 = time.monotonic()
@@ -195,13 +209,14 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
             while (el := time.monotonic() - t0) < seconds:
                 time.sleep(min(1.0, seconds - el))
                 for k in cpu0:  # the footprint's peak over the run, sampled once a second
+                    clocks[k].sample()
                     peak_pss[k] = max(peak_pss[k], pss_kb(pids[k]))
                     peak_threads[k] = max(peak_threads[k], threads(pids[k]))
                 if bar is not None:
                     bar.n = int(time.monotonic() - t0)
                     bar.refresh()
             wall = time.monotonic() - t0
-            cpu1 = {k: _proc_cpu_s(v) for k, v in pids.items() if v}
+            cpu1 = {k: c.elapsed_s() for k, c in clocks.items()}
             wake1 = {k: _wakeups(v) for k, v in pids.items() if v}
             libs = {k: mapped_libs(pids[k]) for k in cpu0}
             st = request(sock, {"cmd": "status"})
