@@ -53,16 +53,23 @@ class CpuClock:
         self.pid = pid
         self.base = _task_cpu_ns(pid)
         self.seen = dict(self.base)
+        self.wake_base = _task_wakeups(pid)  # (the same for the threads' voluntary switches)
+        self.wake_seen = dict(self.wake_base)
 
     def sample(self) -> None:
         try:
             self.seen.update(_task_cpu_ns(self.pid))
+            self.wake_seen.update(_task_wakeups(self.pid))
         except OSError:
             pass
 
     def elapsed_s(self) -> float:
         self.sample()
         return (sum(self.seen.values()) - sum(self.base.values())) * 1e-9
+
+    def wakeups(self) -> int:
+        """Voluntary context switches of all its threads since the start (after elapsed_s)."""
+        return sum(self.wake_seen.values()) - sum(self.wake_base.values())
 
 
 def child_pids(pid: int) -> list[int]:
@@ -76,17 +83,22 @@ def child_pids(pid: int) -> list[int]:
     return out
 
 
-def _wakeups(pid: int) -> int:
-    """Voluntary context switches of every thread of a process: the times it went to sleep."""
-    n = 0
+def _task_wakeups(pid: int) -> dict[int, int]:
+    """Voluntary context switches of each thread of a process: the times it went to sleep."""
+    out = {}
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
             for line in (task / "status").read_text().splitlines():
                 if line.startswith("voluntary_ctxt_switches:"):
-                    n += int(line.split()[1])
+                    out[int(task.name)] = int(line.split()[1])
         except OSError:
             pass
-    return n
+    return out
+
+
+def _wakeups(pid: int) -> int:
+    """Voluntary context switches of every thread of a process, now."""
+    return sum(_task_wakeups(pid).values())
 
 
 def pss_kb(pid: int) -> int:
@@ -196,7 +208,7 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
             pids = {"pump": pump, "daemon": daemon.pid}
             clocks = {k: CpuClock(v) for k, v in pids.items() if v}
             cpu0 = dict.fromkeys(clocks, 0.0)
-            wake0 = {k: _wakeups(v) for k, v in pids.items() if v}
+            wake0 = dict.fromkeys(clocks, 0)
             st0 = request(sock, {"cmd": "status"})
             t0 = time.monotonic()
             bar = None
@@ -217,7 +229,7 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
                     bar.refresh()
             wall = time.monotonic() - t0
             cpu1 = {k: c.elapsed_s() for k, c in clocks.items()}
-            wake1 = {k: _wakeups(v) for k, v in pids.items() if v}
+            wake1 = {k: c.wakeups() for k, c in clocks.items()}  # (after cpu1: sampled there)
             libs = {k: mapped_libs(pids[k]) for k in cpu0}
             st = request(sock, {"cmd": "status"})
             if bar is not None:
