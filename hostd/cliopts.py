@@ -9,10 +9,9 @@ profile-loading, geometry and index option groups, and read_profile with its pla
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import sys
-
-import numpy as np
 
 
 class Parser(argparse.ArgumentParser):
@@ -77,7 +76,7 @@ def _positive(v: str) -> float:
         x = float(v)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {v!r}") from None
-    if not (np.isfinite(x) and x > 0):
+    if not (math.isfinite(x) and x > 0):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0: {v!r}")
     return x
 
@@ -87,7 +86,7 @@ def _finite(v: str) -> float:
         x = float(v)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {v!r}") from None
-    if not np.isfinite(x):
+    if not math.isfinite(x):
         raise argparse.ArgumentTypeError(f"must be finite: {v!r}")
     return x
 
@@ -217,6 +216,8 @@ def read_profile(spec: str, args: argparse.Namespace, length_mm: float | None = 
     prof = load_profile(spec, load_opts(args, length_mm))
     if prof.note:
         warn(command, f"{spec}: {prof.note}")
+    import numpy as np
+
     rms_um = float(np.std(prof.heights_um))
     if not RMS_PLAUSIBLE_UM[0] <= rms_um <= RMS_PLAUSIBLE_UM[1]:
         warn(command, f"{spec}: height RMS {rms_um:.3g} µm is implausible for a texture (1 nm to 1 mm): "

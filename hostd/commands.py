@@ -10,8 +10,6 @@ import math
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from hostd.cliopts import _ab, read_profile, warn
 
 
@@ -114,7 +112,7 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     s = _read_iobj_stream(stream_path, ref_spec)
     for opt, given, header, unit in (("--speed", args.speed, s.speed_mm_s, "mm/s"),
                                      ("--fmax", args.fmax, s.fmax_hz, "Hz")):
-        if given is not None and not np.isclose(given, header, rtol=1e-9):
+        if given is not None and not math.isclose(given, header, rel_tol=1e-9):
             warn("iobj", f"{opt} {given:g} ignored: the stream was made for {header:g} {unit} (its "
                  "header's geometry defines the components scored)")
     curve = thresholds.load_csv(args.thresholds) if args.thresholds else None
@@ -164,7 +162,7 @@ def format_fields(out: dict) -> str:
     width = max(map(len, out))
 
     def fmt(v) -> str:
-        if isinstance(v, float | np.floating):
+        if isinstance(v, float) or type(v).__name__.startswith("float"):  # (numpy floats too)
             return f"{float(v):.6g}"
         return str(v)
 
@@ -260,6 +258,7 @@ def cmd_report_rate_quality(args: argparse.Namespace) -> int:
 def cmd_render(args: argparse.Namespace) -> int:
     import io
 
+    import numpy as np
     import scipy.io.wavfile
 
     from hostd.api import render_stroke

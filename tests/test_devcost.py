@@ -1,13 +1,13 @@
 """The device-mode sleeping loop's cheap receive path over serial (issue 22, ≤ 0.5 % of a core):
-the port wakes once per few report pairs (Transport.wake_after: the line discipline's VMIN),
-one read takes every message waiting (Transport.drain), and everything else still wakes at the
-first byte. The CPU figure itself is `hostd bench soak --render auto` (docs/benchmarks.md)."""
+each arrival is read as it wakes the loop and the messages are taken in once a few report pairs
+are in (Transport.gather), one read takes every message waiting (Transport.drain), and
+everything else still wakes at the first byte. The CPU figure itself is
+`hostd bench soak --render auto` (docs/benchmarks.md)."""
 
 from __future__ import annotations
 
 import os
 import pty
-import select
 
 import pytest
 
@@ -31,46 +31,104 @@ def _pair() -> bytes:
             + pr.frame(pr.encode("RENDER_STATUS", render_state=2)))
 
 
-def _readable(t) -> bool:
-    p = select.poll()
-    p.register(t.fileno(), select.POLLIN)
-    return bool(p.poll(50))
+@pytest.fixture(params=["compiled", "python"])
+def impl(request, monkeypatch):
+    """Transport.gather compiled (hostd/device/_fastlink.c) and its Python twin."""
+    from hostd.device import fastlink
+
+    if request.param == "compiled" and fastlink.GATHER is None:
+        pytest.skip("the compiled link module is not built")
+    if request.param == "python":
+        monkeypatch.setattr(fastlink, "GATHER", None)
+    return request.param
 
 
-def test_wakes_once_per_report_pairs_and_drains_them_in_one_pass(port):
+def test_gathers_report_pairs_reading_each_arrival_and_counts_its_wake_ups(port, impl):
+    """Each arrival wakes the loop once and is read at once (a wake-up is a run of the loop);
+    the messages are handed over once REPORTS_PER_WAKE pairs are in."""
     master, t = port
-    sizes = (pr.LAYOUTS["STATUS"].size, pr.LAYOUTS["RENDER_STATUS"].size) * DeviceMode.REPORTS_PER_WAKE
-    t.wake_after(sizes)
-    for _ in range(DeviceMode.REPORTS_PER_WAKE - 1):
+    want = 2 * DeviceMode.REPORTS_PER_WAKE
+    for _ in range(DeviceMode.REPORTS_PER_WAKE):
         os.write(master, _pair())
-        assert not _readable(t)  # the kernel counts the bytes: no wake-up per report
-    os.write(master, _pair())
-    assert _readable(t)
-    t.wake_after(None)
+    others, runs = t.gather((), 1000, want)
+    assert others == set() and 1 <= runs <= DeviceMode.REPORTS_PER_WAKE
     msgs = t.drain()
     assert [pr.decode(m)[0] for m in msgs] == ["STATUS", "RENDER_STATUS"] * DeviceMode.REPORTS_PER_WAKE
     assert t.drain() == []
 
 
-def test_a_stopped_display_s_1ms_statuses_fill_the_count_within_a_few_ms(port):
+def test_gather_returns_at_once_for_a_command_and_keeps_what_arrived(port, impl):
     master, t = port
-    pair = (pr.LAYOUTS["STATUS"].size, pr.LAYOUTS["RENDER_STATUS"].size)
-    t.wake_after(pair * DeviceMode.REPORTS_PER_WAKE)
+    r, w = os.pipe()
+    try:
+        os.write(master, _pair())
+        os.write(w, b"x")  # a command from the daemon
+        others, runs = t.gather((r,), 1000, 2 * DeviceMode.REPORTS_PER_WAKE)
+        assert others == {r} and runs == 1
+        assert [pr.decode(m)[0] for m in t.drain()] == ["STATUS", "RENDER_STATUS"]
+    finally:
+        os.close(r)
+        os.close(w)
+
+
+def test_a_stopped_display_s_1ms_statuses_fill_the_count_within_a_few_ms(port, impl):
+    master, t = port
     status = pr.frame(pr.encode("STATUS", state=pr.STATES["IDLE"]))
-    n = 0
-    while not _readable(t):
-        os.write(master, status)  # one per ms from a display that is not rendering
-        n += 1
-        assert n <= 8
-    t.wake_after(None)
-    assert len(t.drain()) == n
+    want = 2 * DeviceMode.REPORTS_PER_WAKE
+    for _ in range(want):  # one per ms from a display that is not rendering
+        os.write(master, status)
+    others, _runs = t.gather((), 1000, want)
+    assert others == set() and len(t.drain()) == want
 
 
-def test_outside_the_sleep_every_byte_wakes_as_before(port):
+def test_gather_times_out_with_fewer_messages_and_hands_them_over(port, impl):
     master, t = port
-    t.wake_after((200,))
-    t.wake_after(None)  # the loop resets it after its poll(): acknowledgements, stream mode
+    os.write(master, _pair())
+    others, runs = t.gather((), 30, 2 * DeviceMode.REPORTS_PER_WAKE)
+    assert others == set() and runs >= 1
+    assert len(t.drain()) == 2
+
+
+def test_outside_the_loop_every_message_wakes_as_before(port):
+    master, t = port
     os.write(master, pr.frame(pr.encode("ACK", for_id=pr.IDS["LOAD_END"])))
-    assert _readable(t)
     m = t.recv(0.1)
     assert m is not None and pr.decode(m)[0] == "ACK"
+
+
+def test_gather_counts_one_wake_up_per_arrival(port, impl):
+    """Arrivals spaced in time wake the loop at most once each, and each wake-up reads what
+    arrived: the loop's runs are its wake-ups (the figure bench soak sets against /proc)."""
+    import threading
+    import time
+
+    master, t = port
+    n = DeviceMode.REPORTS_PER_WAKE
+
+    def feed() -> None:
+        for _ in range(n):
+            time.sleep(0.03)
+            os.write(master, _pair())
+
+    th = threading.Thread(target=feed)
+    th.start()
+    others, runs = t.gather((), 5000, 2 * n)
+    th.join()
+    # at most one wake-up per arrival (a write lands whole on a pty; on a busy machine two
+    # arrivals can come before the loop runs, and one read takes both)
+    assert others == set() and 1 <= runs <= n
+    assert len(t.drain()) == 2 * n
+
+
+def test_gather_says_a_hung_up_port_is_gone(impl):
+    from hostd.errors import DeviceGone
+
+    master, slave = pty.openpty()
+    t = SerialTransport(os.ttyname(slave))
+    try:
+        os.close(master)
+        with pytest.raises(DeviceGone):
+            t.gather((), 1000, 6)
+    finally:
+        t.close()
+        os.close(slave)

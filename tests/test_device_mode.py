@@ -18,6 +18,7 @@ import time
 import numpy as np
 import pytest
 
+from hostd.bench import soak
 from hostd.cli import main
 from hostd.device import hostport
 from hostd.device import protocol as pr
@@ -125,6 +126,12 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
         wait_for(lambda: request(sock, {"cmd": "status"})["device_state"] == "rendering", 30, "rendering")
         a = request(sock, {"cmd": "status"})
         t_a = time.monotonic()
+        # a lean supervisor (issue 28): the pump renders nothing, so it maps no scipy (its
+        # equalizer is designed in a child) nor anything else beyond numpy, runs one thread (no
+        # BLAS pool), and the daemon's threads sleep until needed (one control handler at rest)
+        pump = soak._pump_pid(daemon.pid)
+        footprint = {"pump_libs": soak.mapped_libs(pump), "daemon_libs": soak.mapped_libs(daemon.pid),
+                     "pump_threads": soak.threads(pump), "daemon_threads": soak.threads(daemon.pid)}
         # stop the daemon just after a jump, for 2.5 s: lost after 1 s, the hand has rested
         # 0.5 s by then, so the display fades out and idles until the daemon is back
         t_jump = hp.t0 + (int((time.monotonic() - hp.t0) / period) + 1) * period
@@ -144,6 +151,11 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
             daemon.wait(20)
     journal = (tmp_path / "hostd.log").read_text()
     assert a["render_at"] == "device" and "CAPS" in a["render_reason"], (a, journal[-1500:])
+    # (the daemon's quality scoring may load the codec's DCT: scipy.fft's pocketfft alone)
+    assert footprint["pump_libs"] == [] and set(footprint["daemon_libs"]) <= {"scipy.fft"}, footprint
+    # the daemon: main, pump writer, control accept, quality, spool, a control handler per client
+    # being served (this test's requests: one at a time, plus one that may still be ending)
+    assert footprint["pump_threads"] == 1 and footprint["daemon_threads"] <= 7, footprint
     assert a["played_fraction"] > 0.99
     # asleep between reports: a wake-up per report (50 ms) plus commands, not one per ms
     assert (b["wakeups"] - a["wakeups"]) / (t_b - t_a - 2.5) < 60, (a["wakeups"], b["wakeups"])

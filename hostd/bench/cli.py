@@ -44,11 +44,24 @@ def add_parser(sub, parents) -> None:
     so.add_argument("--load", action="store_true", help="a CPU hog on the other core meanwhile")
     so.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS",
                     help="the daemon's [device] host_cycle_ms (1..10, default 1)")
+    so.add_argument("--seconds", type=float, default=None, metavar="S",
+                    help="how long each run lasts, instead of --minutes (the device-mode goal: --runs 3 "
+                    "--seconds 40)")
+    _check_opt(so, "device rendering: PSS <= 60 MB, <= 12 threads, <= 0.15 %% of a core for daemon + pump, "
+               "pump wake-ups <= its loop runs")
     cy = bsub.add_parser("cycle", help="the host-rendering pump's CPU time per cycle on the firmware's "
                          "host port: the Python reference part by part, then the compiled cycle")
     cy.add_argument("--json", action="store_true")
     cy.add_argument("--seconds", type=float, default=8.0, metavar="S", help="how long (default 8)")
     cy.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS", help="pump cycle (1..10)")
+    cy.add_argument("--compiled-only", action="store_true",
+                    help="only the compiled cycle (the guarded figure)")
+    _check_opt(cy, "the compiled cycle <= 50 µs of thread CPU per 1 ms cycle, its step's median <= 15 µs")
+    cl = bsub.add_parser("cli", help="CPU time of a command-line call (hostd encode --target-iobj), "
+                         "median of runs")
+    cl.add_argument("--json", action="store_true")
+    cl.add_argument("--runs", type=int, default=5, metavar="N", help="runs (default 5)")
+    _check_opt(cl, "hostd encode synthetic:wood:3 --target-iobj 0.05 <= 0.4 s CPU")
     so.add_argument("--render", choices=["host", "device", "auto"], default="auto",
                     help="who renders: [render] where for the run (default auto: the display, protocol v2)")
     so.add_argument("--runs", type=int, default=1, metavar="N", help="repeat N times, report medians")
@@ -72,6 +85,8 @@ def add_parser(sub, parents) -> None:
                       ("all", "pipeline, codec and scoring (accuracy is run on its own)")):
         b = bsub.add_parser(name, help=hlp)
         b.add_argument("--json", action="store_true")
+        if name == "scoring":
+            _check_opt(b, ">= 1 M scores per second at every batch size")
         if name == "codec":
             b.add_argument("--tune-deadzone", action="store_true",
                            help="only the shaped quantizer's dead-zone / reconstruction table")
@@ -91,6 +106,12 @@ def add_parser(sub, parents) -> None:
     p.set_defaults(func=needs_subcommand(p, "a benchmark (all: pipeline, codec and scoring)"))
     for b in bsub.choices.values():
         b.set_defaults(func=cmd_bench)
+
+
+def _check_opt(p, goal: str) -> None:
+    p.add_argument("--check", nargs="?", const="goal", choices=["goal", "ci"], default=None,
+                   help=f"exit 1 past the goal ({goal}); `--check ci`: the CI bound (docs/benchmarks.md, "
+                   "Guards)")
 
 
 def _print_rows(rows: list[dict]) -> None:
@@ -168,9 +189,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
                 raise SystemExit("hostd bench soak: error: --host-cycle-ms must be 1..10")
             if not 1 <= args.runs <= 100:
                 raise SystemExit("hostd bench soak: error: --runs must be 1..100")
+            if args.seconds is not None and not 1 <= args.seconds <= 24 * 3600:
+                raise SystemExit("hostd bench soak: error: --seconds must be 1..86400")
             rows.append(soak.run_many(args.runs, minutes=args.minutes, load=args.load,
                                       progress=not args.json, render=args.render,
-                                      host_cycle_ms=args.host_cycle_ms))
+                                      host_cycle_ms=args.host_cycle_ms, seconds=args.seconds))
         except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench soak: error: {e}") from None
     if what == "cycle":
@@ -179,7 +202,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not (1.0 <= args.seconds <= 3600 and 1 <= args.host_cycle_ms <= 10):
             raise SystemExit("hostd bench cycle: error: --seconds must be 1..3600 and --host-cycle-ms 1..10")
         try:
-            rows += cycle.run_both(args.seconds, args.host_cycle_ms)
+            rows += ([cycle.run(args.seconds, args.host_cycle_ms, compiled=True)] if args.compiled_only
+                     else cycle.run_both(args.seconds, args.host_cycle_ms))
         except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench cycle: error: {e}") from None
     if what == "corpus":
@@ -192,6 +216,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                          batch=args.batch))
         except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench corpus: error: {e}") from None
+    if what == "cli":
+        from hostd.bench import clicost
+
+        if not 1 <= args.runs <= 100:
+            raise SystemExit("hostd bench cli: error: --runs must be 1..100")
+        rows.append(clicost.run(args.runs))
     if what == "sim":
         from hostd.bench import simbench
 
@@ -244,4 +274,31 @@ def cmd_bench(args: argparse.Namespace) -> int:
     else:
         print(f"machine: {common.machine()}")
         _print_rows(rows)
+    level = getattr(args, "check", None)
+    return _check(what, rows, level) if level else 0
+
+
+def _check(what: str, rows: list[dict], level: str) -> int:
+    """--check: the guarded figures of this bench against their goal or CI bound (bench.guards)."""
+    from hostd.bench import guards as g
+
+    if what == "soak":
+        device = [r for r in rows if r.get("render_at") == "device"]
+        if len(device) != len(rows):
+            print("hostd bench soak: --check holds device rendering to its goals: run it with --render "
+                  "device (or auto on a v2 display)", file=sys.stderr)
+            return 1
+        return g.check(rows, [g.DEVICE_PSS_MB, g.DEVICE_THREADS, g.DEVICE_CPU_SHARE,
+                              g.DEVICE_WAKEUPS_PER_RUN], level, "soak")
+    if what == "cycle":
+        compiled = [r for r in rows if r.get("cycle") == "compiled"]
+        if not compiled:
+            print("hostd bench cycle: --check needs the compiled cycle, which is not built here",
+                  file=sys.stderr)
+            return 1
+        return g.check(compiled, [g.CYCLE_US, g.CYCLE_STEP_P50_US], level, "cycle")
+    if what == "cli":
+        return g.check(rows, [g.CLI_ENCODE_CPU_S], level, "cli encode")
+    if what == "scoring":
+        return g.check(rows, [g.SCORING_PER_S], level, "scoring")
     return 0

@@ -7,9 +7,11 @@ tick by tick) and the device's own counters, never from the host's bookkeeping: 
 fraction (host rendering: ticks played from the buffer; device rendering: ticks rendered at
 full gain, the log's FULL_GAIN flag), underrun episodes (device rendering: its host-lost
 episodes and the silences), the longest silence. The host side adds what only it can know: the
-stalls it measured on itself, the daemon's and the pump process's CPU share (utime + stime from
-/proc over the run), their wake-ups per second (voluntary context switches of every thread,
-/proc/PID/task/*/status), and the CPU time of one host-rendering cycle (p50/p99/p99.9).
+stalls it measured on itself, the daemon's and the pump process's CPU share (every thread's time
+on a CPU, /proc/PID/task/*/schedstat, over the run), their wake-ups per second (voluntary
+context switches of every thread, /proc/PID/task/*/status), their footprint (PSS from
+/proc/PID/smaps_rollup and threads, the peak over the run), and the CPU time of one
+host-rendering cycle (p50/p99/p99.9).
 """
 
 from __future__ import annotations
@@ -30,10 +32,44 @@ from hostd.errors import HostdError
 HOG = "import os, sys\nos.sched_setaffinity(0, {int(sys.argv[1])})\nwhile True:\n    pass\n"
 
 
-def _proc_cpu_s(pid: int) -> float:
-    """utime + stime of a process, in seconds (from /proc)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+def _task_cpu_ns(pid: int) -> dict[int, int]:
+    """Every thread's time on a CPU so far, in ns (/proc/PID/task/*/schedstat)."""
+    out = {}
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            out[int(task.name)] = int((task / "schedstat").read_text().split()[0])
+        except (OSError, IndexError, ValueError):
+            pass
+    return out
+
+
+class CpuClock:
+    """A process's CPU time over a run, in ns from every thread's schedstat (utime + stime come in
+    10 ms ticks: 0.125 % of a core over 8 s, too coarse for device mode's 0.15 % goal). A thread
+    that ends takes its schedstat with it, so each thread's latest value is kept (sample() once a
+    second): one that ends loses at most its last second (a control handler idle 30 s: nothing)."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid = pid
+        self.base = _task_cpu_ns(pid)
+        self.seen = dict(self.base)
+        self.wake_base = _task_wakeups(pid)  # (the same for the threads' voluntary switches)
+        self.wake_seen = dict(self.wake_base)
+
+    def sample(self) -> None:
+        try:
+            self.seen.update(_task_cpu_ns(self.pid))
+            self.wake_seen.update(_task_wakeups(self.pid))
+        except OSError:
+            pass
+
+    def elapsed_s(self) -> float:
+        self.sample()
+        return (sum(self.seen.values()) - sum(self.base.values())) * 1e-9
+
+    def wakeups(self) -> int:
+        """Voluntary context switches of all its threads since the start (after elapsed_s)."""
+        return sum(self.wake_seen.values()) - sum(self.wake_base.values())
 
 
 def child_pids(pid: int) -> list[int]:
@@ -47,17 +83,60 @@ def child_pids(pid: int) -> list[int]:
     return out
 
 
-def _wakeups(pid: int) -> int:
-    """Voluntary context switches of every thread of a process: the times it went to sleep."""
-    n = 0
+def _task_wakeups(pid: int) -> dict[int, int]:
+    """Voluntary context switches of each thread of a process: the times it went to sleep."""
+    out = {}
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
             for line in (task / "status").read_text().splitlines():
                 if line.startswith("voluntary_ctxt_switches:"):
-                    n += int(line.split()[1])
+                    out[int(task.name)] = int(line.split()[1])
         except OSError:
             pass
-    return n
+    return out
+
+
+def _wakeups(pid: int) -> int:
+    """Voluntary context switches of every thread of a process, now."""
+    return sum(_task_wakeups(pid).values())
+
+
+def pss_kb(pid: int) -> int:
+    """Proportional set size of a process in kB (/proc/PID/smaps_rollup): its private pages plus
+    its share of the pages it maps with other processes (a shared library mapped by the daemon and
+    its pump counts half in each)."""
+    for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+        if line.startswith("Pss:"):
+            return int(line.split()[1])
+    raise OSError(f"no Pss in /proc/{pid}/smaps_rollup")
+
+
+def threads(pid: int) -> int:
+    """Threads of a process (/proc/PID/task)."""
+    return len(os.listdir(f"/proc/{pid}/task"))
+
+
+def mapped_libs(pid: int, packages: tuple[str, ...] = ("scipy", "matplotlib", "PIL", "finufft")) -> list[str]:
+    """What the process imported beyond numpy, from the shared libraries it maps
+    (/proc/PID/maps): each of `packages` with a library mapped, scipy by subpackage (scipy.fft is
+    the codec's pocketfft, hostd.pocketfft; scipy.libs its own BLAS, loaded by scipy.linalg)."""
+    found = set()
+    try:
+        for line in Path(f"/proc/{pid}/maps").read_text().splitlines():
+            path = line.split(None, 5)[-1] if line.count(" ") >= 5 else ""
+            for pkg in packages:
+                i = path.find(f"/site-packages/{pkg}")
+                if i < 0:
+                    continue
+                rest = path[i + len("/site-packages/"):]
+                top, _, sub = rest.partition("/")
+                if top == pkg and pkg == "scipy" and "/" in sub:
+                    found.add(f"scipy.{sub.split('/')[0]}")
+                elif top == pkg or top.startswith(pkg + "."):
+                    found.add(top)
+    except OSError:
+        pass
+    return sorted(found)
 
 
 def _pump_pid(daemon_pid: int) -> int | None:
@@ -72,15 +151,18 @@ def _pump_pid(daemon_pid: int) -> int | None:
 
 
 def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progress: bool = True,
-        render: str = "host", host_cycle_ms: int = 1) -> dict:
-    """One run. render: host | device | auto ([render] where); host_cycle_ms: [device] host_cycle_ms."""
+        render: str = "host", host_cycle_ms: int = 1, seconds: float | None = None) -> dict:
+    """One run. render: host | device | auto ([render] where); host_cycle_ms: [device] host_cycle_ms.
+    Footprint: the peak PSS and thread count of the daemon and of its pump over the run (sampled
+    once a second), and the packages beyond numpy whose libraries each has mapped."""
     from hostd.codec import stream as vtx
     from hostd.codec import transform
     from hostd.perception import thresholds
     from hostd.service.client import ClientError, request, send_file
     from hostd.texture import synth
 
-    seconds = minutes * 60.0
+    seconds = minutes * 60.0 if seconds is None else float(seconds)
+    minutes = seconds / 60.0
     hogs: list[subprocess.Popen] = []
     with tempfile.TemporaryDirectory(prefix="hostd-soak-") as tmp:
         d = Path(tmp)
@@ -115,23 +197,37 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
             if load:
                 cpu = max(os.sched_getaffinity(0))
                 hogs.append(subprocess.Popen([sys.executable, "-c", HOG, str(cpu)]))
+            t_ready = time.monotonic() + 30  # playing, and where it was asked to render (the upload's
+            while time.monotonic() < t_ready:  # acknowledgements can take seconds on a busy machine)
+                st = request(sock, {"cmd": "status"})
+                if st["state"] == "playing" and (render != "device" or st["render_at"] == "device"):
+                    break
+                time.sleep(0.1)
             time.sleep(1.0)  # the upload or the priming is not the steady state
             pump = _pump_pid(daemon.pid)
             pids = {"pump": pump, "daemon": daemon.pid}
-            cpu0 = {k: _proc_cpu_s(v) for k, v in pids.items() if v}
-            wake0 = {k: _wakeups(v) for k, v in pids.items() if v}
+            clocks = {k: CpuClock(v) for k, v in pids.items() if v}
+            cpu0 = dict.fromkeys(clocks, 0.0)
+            wake0 = dict.fromkeys(clocks, 0)
             st0 = request(sock, {"cmd": "status"})
             t0 = time.monotonic()
             from hostd.tty import progress_bar
 
             bar = progress_bar(progress, total=int(seconds), unit="s", desc=f"soak ({render})", leave=False)
+            peak_pss = dict.fromkeys(cpu0, 0)
+            peak_threads = dict.fromkeys(cpu0, 0)
             while (el := time.monotonic() - t0) < seconds:
                 time.sleep(min(1.0, seconds - el))
+                for k in cpu0:  # the footprint's peak over the run, sampled once a second
+                    clocks[k].sample()
+                    peak_pss[k] = max(peak_pss[k], pss_kb(pids[k]))
+                    peak_threads[k] = max(peak_threads[k], threads(pids[k]))
                 bar.n = int(time.monotonic() - t0)
                 bar.refresh()
             wall = time.monotonic() - t0
-            cpu1 = {k: _proc_cpu_s(v) for k, v in pids.items() if v}
-            wake1 = {k: _wakeups(v) for k, v in pids.items() if v}
+            cpu1 = {k: c.elapsed_s() for k, c in clocks.items()}
+            wake1 = {k: c.wakeups() for k, c in clocks.items()}  # (after cpu1: sampled there)
+            libs = {k: mapped_libs(pids[k]) for k in cpu0}
             st = request(sock, {"cmd": "status"})
             bar.close()
         finally:
@@ -147,12 +243,28 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
     share = {k: round((cpu1[k] - cpu0[k]) / wall, 5) for k in cpu1}
     wakes = {k: round((wake1[k] - wake0[k]) / wall, 1) for k in wake1}
     cycles = st["cycles"] - st0["cycles"]
+    loop_runs = (st["wakeups"] - st0["wakeups"]) if st["render_at"] == "device" else cycles
     row = {
         "render": render, "render_at": st["render_at"], "minutes": minutes, "load": load,
         "host_cycle_ms": int(host_cycle_ms),
         "daemon_cpu_share": share.get("daemon"), "pump_cpu_share": share.get("pump"),
         "cpu_share": round(sum(share.values()), 5),
         "daemon_wakeups_s": wakes.get("daemon"), "pump_wakeups_s": wakes.get("pump"),
+        # the pump's loop runs (device mode: runs of its sleeping loop, DeviceMode.wakeups; host
+        # rendering: its cycles), to set against its wake-ups (the kernel's count)
+        "pump_loop_runs_s": round(loop_runs / wall, 1),
+        # the pump's own count of its sleeps (getrusage) against its loop's runs, both published at
+        # the same instant (the /proc figure above and the status are read some ms apart, and the
+        # status is up to 0.25 s old: a few % of a short run)
+        "pump_wakeups_per_run": round((st["voluntary_switches"] - st0["voluntary_switches"])
+                                      / max(1, loop_runs), 3) if st["render_at"] == "device"
+        else round((wake1["pump"] - wake0["pump"]) / max(1, loop_runs), 3) if "pump" in wake1 else None,
+        "daemon_pss_mb": round(peak_pss.get("daemon", 0) / 1024, 1),
+        "pump_pss_mb": round(peak_pss.get("pump", 0) / 1024, 1),
+        "pss_mb": round(sum(peak_pss.values()) / 1024, 1),
+        "daemon_threads": peak_threads.get("daemon"), "pump_threads": peak_threads.get("pump"),
+        "threads": sum(peak_threads.values()),
+        "daemon_libs": ",".join(libs.get("daemon", [])), "pump_libs": ",".join(libs.get("pump", [])),
         # the pump process's CPU per cycle (a loaded machine skips cycles: the share alone hides it)
         "pump_cpu_us_per_cycle": round((cpu1["pump"] - cpu0["pump"]) / max(1, cycles) * 1e6, 1)
         if "pump" in cpu1 else None,

@@ -12,8 +12,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft
 
+from hostd import pocketfft
 from hostd.errors import CodecError
 
 MAX_SAMPLES = 1 << 22
@@ -85,7 +85,7 @@ def n_keep_for(length_mm: float, speed_mm_s: float, fmax_hz: float) -> int:
 def amplitudes(y_um: np.ndarray) -> np.ndarray:
     """All N DCT-II amplitudes C_0..C_{N-1} = (2/N) sum_n y_n cos(pi k (2n+1)/(2N))."""
     y = _checked_profile(y_um)
-    return roundoff_to_zero(scipy.fft.dct(y, type=2) / y.size, y)
+    return roundoff_to_zero(pocketfft.dct(y, type=2) / y.size, y)
 
 
 def roundoff_to_zero(c: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -111,7 +111,7 @@ def analyze(y_um: np.ndarray, n_keep: int) -> np.ndarray:
     if not (1 <= n_keep < n):
         raise CodecError(f"N' must be in 1..N-1 = 1..{n - 1}, got {n_keep}")
     y = _checked_profile(y_um)
-    return roundoff_to_zero(scipy.fft.dct(y, type=2)[1 : n_keep + 1] / n, y)
+    return roundoff_to_zero(pocketfft.dct(y, type=2)[1 : n_keep + 1] / n, y)
 
 
 def synthesize(coeffs_um: np.ndarray, n: int) -> np.ndarray:
@@ -124,7 +124,7 @@ def synthesize(coeffs_um: np.ndarray, n: int) -> np.ndarray:
     # 1/2 is applied to the N' inputs instead of the N outputs (a power of two: the same bits)
     # and the DCT works in place: one N-point array allocated in all.
     np.multiply(c, 0.5, out=full[1 : c.size + 1])
-    return scipy.fft.dct(full, type=3, overwrite_x=True)
+    return pocketfft.dct(full, type=3, overwrite_x=True)
 
 
 def direct_amplitudes(y_um: np.ndarray, k: np.ndarray) -> np.ndarray:

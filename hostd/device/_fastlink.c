@@ -16,11 +16,22 @@
  *       SAMPLES = id:u8 flags:u8 seq:u16 count:u8 codes:i16[]; codes: an int16 buffer of at
  *       most max_samples items (set by init)
  *   init(samples_id, max_samples)
+ *   gather(fd, other_fds, timeout_ms, count, buf) -> (ready_other_fds, wake_ups, hung_up)
+ *       device mode's sleep over a byte stream (hostd.device.seriallink.SerialTransport.gather):
+ *       poll() on fd and other_fds, the GIL released, until `count` frame delimiters (0x00)
+ *       have arrived, another descriptor is readable or timeout_ms has passed; each wake-up by
+ *       fd reads what arrived (non-blocking fd) onto the bytearray buf. hung_up: fd reported
+ *       POLLHUP/POLLERR or its read ended (0 bytes) or failed (not EAGAIN): the caller's next
+ *       read says what happened. No REVISION change: fastlink looks the function up by name.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include <errno.h>
+#include <poll.h>
 #include <stdint.h>
 #include <string.h>
+#include <time.h>
+#include <unistd.h>
 
 #define REVISION 1 /* fastlink.C_REVISION must equal this */
 
@@ -153,7 +164,121 @@ done:
     return out;
 }
 
+static double now_ms(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return ts.tv_sec * 1e3 + ts.tv_nsec * 1e-6;
+}
+
+#define GATHER_MAX_FDS 8
+
+static PyObject *fl_gather(PyObject *self, PyObject *args) {
+    int fd, timeout_ms, count;
+    PyObject *others, *buf;
+    if (!PyArg_ParseTuple(args, "iO!iiO!", &fd, &PyTuple_Type, &others, &timeout_ms, &count,
+                          &PyByteArray_Type, &buf))
+        return NULL;
+    Py_ssize_t n_others = PyTuple_GET_SIZE(others);
+    if (n_others > GATHER_MAX_FDS - 1) {
+        PyErr_SetString(PyExc_ValueError, "gather: too many descriptors");
+        return NULL;
+    }
+    struct pollfd pfd[GATHER_MAX_FDS];
+    pfd[0].fd = fd;
+    pfd[0].events = POLLIN;
+    for (Py_ssize_t i = 0; i < n_others; i++) {
+        long v = PyLong_AsLong(PyTuple_GET_ITEM(others, i));
+        if (v == -1 && PyErr_Occurred())
+            return NULL;
+        pfd[i + 1].fd = (int)v;
+        pfd[i + 1].events = POLLIN;
+    }
+    int nfds = (int)n_others + 1, runs = 0, hup = 0, frames = 0, ready_other = 0;
+    double deadline = now_ms() + (timeout_ms > 0 ? timeout_ms : 0);
+    unsigned char chunk[4096];
+    for (;;) {
+        int r, err = 0;
+        Py_BEGIN_ALLOW_THREADS
+        r = poll(pfd, (nfds_t)nfds, timeout_ms);
+        if (r < 0)
+            err = errno;
+        Py_END_ALLOW_THREADS
+        runs++;
+        if (r < 0) {
+            if (err != EINTR) {
+                errno = err;
+                return PyErr_SetFromErrno(PyExc_OSError);
+            }
+            if (PyErr_CheckSignals() < 0)
+                return NULL;
+            r = 0;
+        }
+        if (r > 0 && pfd[0].revents) {
+            for (;;) { /* what arrived, until the fd has no more (one read, normally) */
+                ssize_t got;
+                int rerr = 0;
+                Py_BEGIN_ALLOW_THREADS
+                got = read(fd, chunk, sizeof chunk);
+                if (got < 0)
+                    rerr = errno;
+                Py_END_ALLOW_THREADS
+                if (got > 0) {
+                    Py_ssize_t old = PyByteArray_GET_SIZE(buf);
+                    if (PyByteArray_Resize(buf, old + got) < 0)
+                        return NULL;
+                    memcpy(PyByteArray_AS_STRING(buf) + old, chunk, (size_t)got);
+                    if (got == (ssize_t)sizeof chunk)
+                        continue;
+                    break;
+                }
+                if (got < 0 && (rerr == EAGAIN || rerr == EWOULDBLOCK) &&
+                    !(pfd[0].revents & (POLLHUP | POLLERR)))
+                    break;
+                hup = 1; /* the end, an error, or a hang-up with nothing left: the caller finds out */
+                break;
+            }
+        }
+        for (int i = 1; i < nfds; i++)
+            if (pfd[i].revents)
+                ready_other = 1;
+        if (hup || ready_other || r == 0)
+            break;
+        /* count the delimiters gathered so far (frames of the messages waiting) */
+        {
+            Py_ssize_t len = PyByteArray_GET_SIZE(buf);
+            const char *b = PyByteArray_AS_STRING(buf);
+            int delims = 0;
+            for (Py_ssize_t i = 0; i < len; i++)
+                delims += b[i] == 0;
+            frames = delims;
+        }
+        if (frames >= count)
+            break;
+        double left = deadline - now_ms();
+        if (left <= 0)
+            break;
+        timeout_ms = (int)(left + 0.999);
+    }
+    PyObject *ready = PyList_New(0);
+    if (!ready)
+        return NULL;
+    for (int i = 1; i < nfds; i++) {
+        if (!pfd[i].revents)
+            continue;
+        PyObject *v = PyLong_FromLong(pfd[i].fd);
+        if (!v || PyList_Append(ready, v) < 0) {
+            Py_XDECREF(v);
+            Py_DECREF(ready);
+            return NULL;
+        }
+        Py_DECREF(v);
+    }
+    return Py_BuildValue("(Nii)", ready, runs, hup);
+}
+
 static PyMethodDef methods[] = {
+    {"gather", fl_gather, METH_VARARGS,
+     "gather(fd, other_fds, timeout_ms, count, buf) -> (ready_other_fds, wake_ups, hung_up)"},
     {"init", fl_init, METH_VARARGS, "init(samples_id, max_samples)"},
     {"decode_fixed", fl_decode_fixed, METH_VARARGS, "decode_fixed(msg, fmt, names) -> dict | None"},
     {"encode_samples", fl_encode_samples, METH_VARARGS, "encode_samples(seq, int16 codes) -> bytes | None"},

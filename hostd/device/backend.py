@@ -49,11 +49,20 @@ class Transport:
             out.append(m)
         return out
 
-    def wake_after(self, sizes) -> None:
-        """Until the next wake_after(None): make fileno() readable only once messages of these
-        byte sizes (as the device sends them) have arrived, not at the first byte; None: at the
-        first byte (the default, for everything else that reads). A backend that cannot (one
-        report per read: HID, raw USB) ignores it and wakes per message."""
+    gathers = False  # a byte stream: gather() takes each arrival in and counts its messages
+
+    def take(self) -> list[bytes]:
+        """The messages read already (gather), without reading."""
+        return []
+
+    def gather(self, fds: tuple[int, ...], timeout_ms: int, count: int) -> tuple[set[int], int]:
+        """Sleep on fileno() and `fds` until `count` messages wait here, one of `fds` is readable
+        or timeout_ms passed; every arrival that wakes it is read at once. Returns the
+        descriptors of `fds` that are readable and how many wake-ups it took. Only where
+        `gathers` (a byte stream, whose reader the kernel wakes at each arrival: a tty's VMIN
+        spares the read, not the wake-up); HID and raw USB deliver one report per read and the
+        loop runs per report."""
+        raise NotImplementedError
 
     POLL_S = 0.001  # the fallback's poll period (a backend without a descriptor)
 

@@ -15,11 +15,14 @@ it flags the host as lost and still renders while the hand moves (docs/protocol.
 The host sleeps meanwhile (`run`): no periodic loop, it blocks on the transport until the
 display reports (STATUS and RENDER_STATUS every 50 ms while it renders), a command arrives
 (the daemon's pipe, a hotplug monitor: any descriptor in `fds`) or the next keep-alive is due.
-Over serial it wakes once per three report pairs (150 ms: the line discipline's VMIN counts
-their bytes, Transport.wake_after), reads them with one read and decodes them all (the
-counters are cumulative, every STATUS's fault bits count); a display that stops rendering
-sends its 1 ms STATUS again, which reaches that count within a few ms. A keep-alive that falls
-due before the next wake-up goes out with it, so the keep-alive adds no wake-up of its own.
+Over serial the kernel wakes the loop at each report's arrival (a tty's VMIN would spare
+the read, not the wake-up): the loop reads each arrival when it wakes (one read, deframed:
+Transport.gather) and takes the messages in (decodes them, acts, calls each_wake) once three
+report pairs are in (150 ms; the counters are cumulative, every STATUS's fault bits count); a
+display that stops rendering sends its 1 ms STATUS again, which reaches that count within a
+few ms. Every wake-up is a run of the loop (`wakeups`, the figure `hostd bench soak` sets
+against the process's own count of wake-ups). A keep-alive that falls due before the next
+wake-up goes out with it, so the keep-alive adds no wake-up of its own.
 """
 
 from __future__ import annotations
@@ -41,12 +44,13 @@ RENDERING = pr.STATES["RENDERING"]
 class DeviceMode:
     IDLE_WAIT_S = 0.05  # nothing to render: read the display's 1 ms statuses in batches
     RETRY_ACK_S = 3.0  # an upload not answered within 1 s is sent once more with this long to wait
-    REPORTS_PER_WAKE = 3  # report pairs per wake-up while rendering (150 ms; 3 x 66 bytes < VMIN's 255)
+    REPORTS_PER_WAKE = 3  # report pairs taken in at once while rendering (150 ms)
 
     def __init__(self, link: DeviceLink, cfg, log, host_lost_ms: int = 1000,
-                 timeout_ms: int = 50) -> None:
+                 timeout_ms: int = 50, params: dict | None = None) -> None:
         self.link = link
         self.cfg = cfg  # RenderConfig
+        self._params = params  # devrender.device_params(cfg), designed on first use if not given
         self.log = log
         self.host_lost_ms = int(host_lost_ms)
         self.timeout_ms = int(timeout_ms)
@@ -58,22 +62,28 @@ class DeviceMode:
         # any valid message at least this often: well within host_lost_ms (the v1 host timeout
         # applies only while streaming, never while the display renders or idles)
         self._keepalive_s = self.host_lost_ms / 3000.0
-        # wake once per REPORTS_PER_WAKE report pairs (STATUS + RENDER_STATUS) where the
-        # transport can count bytes for us (serial); a display that stops rendering sends its
+        # take the messages in once per REPORTS_PER_WAKE report pairs (STATUS + RENDER_STATUS)
+        # where the transport gathers them (serial); a display that stops rendering sends its
         # 1 ms STATUS, which fills the same count within a few ms: supervision stays prompt
-        pair = (pr.LAYOUTS["STATUS"].size, pr.LAYOUTS["RENDER_STATUS"].size)
-        self._wake_sizes = pair * self.REPORTS_PER_WAKE
+        self._wake_count = 2 * self.REPORTS_PER_WAKE  # messages (STATUS + RENDER_STATUS each)
         # a keep-alive due within this much of a wake-up goes out with it (the wake-up period)
         self._early_s = min(self.REPORTS_PER_WAKE * pr.R["status_period_ticks"] / pr.SAMPLE_RATE_HZ,
                             self._keepalive_s / 2)
         self._last_keepalive = time.monotonic()
         self._keepalive_msg = pr.encode("SET_TIMEOUT", timeout_ms=self.timeout_ms)  # a same-value one
-        self.wakeups = 0
+        self.wakeups = 0  # runs of the sleeping loop: one per wake-up (gathered arrivals included)
         self._started_at = 0.0
+
+    @property
+    def params(self) -> dict:
+        """What the display needs besides the texture (devrender.device_params), once."""
+        if self._params is None:
+            self._params = devrender.device_params(self.cfg)
+        return self._params
 
     def check(self, coeffs) -> None:
         """Raise DeviceVersion (what to do) unless this display can render this texture."""
-        sos = devrender.device_params(self.cfg)["sos"]
+        sos = self.params["sos"]
         pr.require_render(self.link.ident or {}, self.link.caps, len(coeffs),
                           0 if sos is None else len(sos), who=self.link.t.describe())
 
@@ -87,7 +97,7 @@ class DeviceMode:
             self.slot = 2 if self.slot == 1 else 1
             msgs = pr.texture_messages(self.slot, c, n, length_mm)
         else:
-            msgs = devrender.setup_messages(c, n, length_mm, self.cfg, slot=self.slot)
+            msgs = devrender.setup_messages(c, n, length_mm, self.cfg, slot=self.slot, params=self.params)
             msgs.append(pr.encode("START_RENDER", host_lost_ms=self.host_lost_ms))
         try:
             devrender.send_and_confirm(self.link.t, msgs, on_other=self.link._take)
@@ -132,8 +142,8 @@ class DeviceMode:
         render the display's 1 ms statuses are read in batches every IDLE_WAIT_S.
 
         One poll() on the transport's descriptor and `fds` per wake-up, set up once: the
-        transport is read only when its descriptor is readable (once: Transport.drain), the
-        commands only when theirs is."""
+        transport is read only when its descriptor is readable (once: Transport.drain or
+        Transport.gather), the commands only when theirs is."""
         link = self.link
         t = link.t
         tfd = t.fileno()
@@ -152,12 +162,14 @@ class DeviceMode:
                 # nothing to supervise: only commands wake us before the batch
                 ready = {fd for fd, _ in cmd_poll.poll(_ms(min(timeout, self.IDLE_WAIT_S)))}
                 link.poll()
+            elif all_poll is not None and t.gathers:
+                # a byte stream (serial): each arrival is read as it wakes the loop, the messages
+                # are taken (decoded, acted on) once REPORTS_PER_WAKE pairs are in
+                ready, runs = t.gather(fds, _ms(timeout), self._wake_count)
+                self.wakeups += runs - 1
+                link.poll(read=False)
             elif all_poll is not None and not t.pending():
-                t.wake_after(self._wake_sizes)  # (serial: the kernel counts the bytes for us)
-                try:
-                    ready = {fd for fd, _ in all_poll.poll(_ms(timeout))}
-                finally:
-                    t.wake_after(None)
+                ready = {fd for fd, _ in all_poll.poll(_ms(timeout))}
                 if tfd in ready:  # (a hang-up too: the read raises DeviceGone)
                     ready.discard(tfd)
                     link.poll()

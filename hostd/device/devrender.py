@@ -46,11 +46,46 @@ def device_params(cfg: RenderConfig | None = None) -> dict:
     }
 
 
+def device_params_apart(cfg: RenderConfig | None = None) -> dict:
+    """device_params(cfg), designed in a short-lived child process (fork) unless scipy.signal is
+    loaded already: the equalizer's design (scipy.signal: cont2discrete, butter, tf2sos,
+    group_delay) is all device mode needs of scipy, once per pump process, and importing
+    scipy.signal would add ~50 MB and a second of CPU to a process that only supervises. The
+    same numbers (the same code runs in the child); an error is raised here, by designing in
+    this process, when the child could not say why."""
+    import os
+    import pickle
+    import sys
+
+    if "scipy.signal" in sys.modules or not hasattr(os, "fork"):
+        return device_params(cfg)
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: design, hand the result over, leave without running any cleanup
+        code = 1
+        try:
+            os.close(r)
+            data = pickle.dumps(device_params(cfg))
+            with os.fdopen(w, "wb") as fh:
+                fh.write(data)
+            code = 0
+        finally:
+            os._exit(code)
+    os.close(w)
+    with os.fdopen(r, "rb") as fh:
+        data = fh.read()
+    _, status = os.waitpid(pid, 0)
+    if status != 0 or not data:
+        return device_params(cfg)  # raises what went wrong (a bad setting), or designs here
+    return pickle.loads(data)
+
+
 def setup_messages(coeffs, n: int, length_mm: float, cfg: RenderConfig | None = None,
-                   slot: int = 1) -> list[bytes]:
+                   slot: int = 1, params: dict | None = None) -> list[bytes]:
     """Limits, equalizer, band, scale, delay, then the texture (LOAD_TEXTURE ... LOAD_END). Each
-    render message is answered by an ACK (LOAD_CHUNK only when refused): result 0 = accepted."""
-    p = device_params(cfg)
+    render message is answered by an ACK (LOAD_CHUNK only when refused): result 0 = accepted.
+    params: device_params(cfg), when the caller has them already."""
+    p = device_params(cfg) if params is None else params
     msgs = [pr.encode("SET_LIMITS", limit_code=p["limit_code"], max_step_code=p["max_step_code"])]
     msgs += pr.eq_messages(p["sos"])
     msgs.append(pr.encode("SET_BAND", f_stop_hz=p["f_stop_hz"], fade_start=p["fade_start"]))

@@ -213,15 +213,18 @@ class DeviceLink:
 
     FRESH = 32  # statuses of one poll whose encoder readings are used (the motion window's 16, +)
 
-    def poll(self, timeout_s: float = 0.0) -> int:
-        """Take in every message waiting; returns how many STATUS arrived."""
+    def poll(self, timeout_s: float = 0.0, read: bool = True) -> int:
+        """Take in every message waiting; returns how many STATUS arrived. read=False: only those
+        the transport has read already (Transport.gather did; a tty's read that finds nothing
+        first waits for the kernel's buffer work, a wake-up of its own)."""
         msgs = []
         if timeout_s > 0:
             m = self.t.recv(timeout_s)
             if m is None:
                 return 0
             msgs.append(m)
-        msgs += self.t.drain()  # one read of a byte stream, not one per message plus an empty one
+        # one read of a byte stream, not one per message plus an empty one
+        msgs += self.t.drain() if read else self.t.take()
         stale = len(msgs) - self.FRESH
         n = 0
         for i, m in enumerate(msgs):

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import time
 
+from hostd.device import fastlink
 from hostd.device import protocol as pr
 from hostd.device.backend import Transport, os_error, permission_error
 from hostd.errors import DeviceBusy, DeviceGone, DeviceNotFound, DevicePermission
@@ -73,8 +74,7 @@ class SerialTransport(Transport):
         # does, so every empty read asks this (made once, not per read)
         self._hup_poll = select.poll()
         self._hup_poll.register(self.ser.fd, select.POLLIN)
-        self._vmin = 0  # the line discipline's VMIN (wake_after)
-        self._attrs = None
+        self._vmin = 0  # the line discipline's VMIN: left at 0 (the compiled cycle checks it)
 
     def _gone(self, e: Exception) -> DeviceGone:
         return DeviceGone(f"serial port {self.port} went away ({e}); hostd reconnects when it returns")
@@ -143,24 +143,60 @@ class SerialTransport(Transport):
             self.wait(left)  # sleeps in select() until bytes arrive, not in a polling loop
         return self._queue.pop(0)
 
-    def wake_after(self, sizes) -> None:
-        """The line discipline's VMIN (VTIME 0): poll() reports the port readable only once
-        that many bytes wait (a frame is its message + 4 bytes: COBS overhead, CRC, delimiter),
-        at most 255. The sleeping device-mode loop sets it around its poll() only (two ioctls),
-        so every other read (handshake, upload acknowledgements, stream mode) sees VMIN 0."""
-        vmin = 0 if sizes is None else min(255, sum(n + 4 for n in sizes))
-        if vmin == self._vmin:
-            return
-        import termios
+    gathers = True
 
-        if self._attrs is None:
-            self._attrs = termios.tcgetattr(self.ser.fd)
-        self._attrs[6][termios.VMIN] = vmin
-        try:
-            termios.tcsetattr(self.ser.fd, termios.TCSANOW, self._attrs)
-        except termios.error as e:
-            raise self._gone(e) from None
-        self._vmin = vmin
+    def take(self) -> list[bytes]:
+        out, self._queue = self._queue, []
+        return out
+
+    def gather(self, fds: tuple[int, ...], timeout_ms: int, count: int) -> tuple[set[int], int]:
+        """Transport.gather: asleep in poll(); each wake-up by the port reads what arrived, until
+        `count` messages wait, a descriptor of `fds` is readable, or timeout_ms has passed. The
+        compiled loop (hostd/device/_fastlink.c: a wake-up costs a poll() and a read, no Python)
+        collects the bytes, which are deframed once at the end; else the same loop in Python."""
+        want = count - len(self._queue)
+        if want <= 0:  # (a run of the loop that need not sleep)
+            return set(), 1
+        if fastlink.GATHER is not None:
+            raw = bytearray()
+            ready, runs, hung_up = fastlink.GATHER(self.ser.fd, tuple(fds), timeout_ms, want, raw)
+            if raw:
+                self._queue += self.deframer.feed(bytes(raw))
+            if hung_up:  # (or a read error): the read says which, DeviceGone when it is gone
+                self._queue = self.drain()
+            return set(ready), runs
+        return self._gather_py(fds, timeout_ms, count)
+
+    def _gather_py(self, fds, timeout_ms: int, count: int) -> tuple[set[int], int]:
+        import math
+        import select
+
+        key = tuple(fds)
+        if getattr(self, "_gather_key", None) != key:
+            self._gather_poll = select.poll()
+            for f in (self.ser.fd, *key):
+                self._gather_poll.register(f, select.POLLIN)
+            self._gather_key = key
+        fd = self.ser.fd
+        deadline = time.monotonic() + timeout_ms / 1000.0
+        runs = 0
+        while True:
+            events = self._gather_poll.poll(timeout_ms)
+            runs += 1
+            others = set()
+            port = False
+            for f, _ in events:
+                if f == fd:
+                    port = True
+                else:
+                    others.add(f)
+            if port:  # readable or hung up: the read says which
+                self._queue = self.drain()  # (what was queued, then what arrived)
+            if others or not events or len(self._queue) >= count:
+                return others, runs
+            timeout_ms = max(0, math.ceil((deadline - time.monotonic()) * 1000.0))
+            if timeout_ms == 0:
+                return others, runs
 
     READ_SIZE = 4096
 

@@ -123,7 +123,13 @@ def scaled_weights(threshold_um: np.ndarray) -> tuple[np.ndarray, np.ndarray, in
 
 def scale_exponent(coeffs_um: np.ndarray, w1: np.ndarray) -> int:
     """s such that max |C_k 2^-s| / b_k is near 1 (0 when no scaling is needed)."""
-    c = np.abs(np.asarray(coeffs_um, dtype=np.float64))
+    c = np.asarray(coeffs_um, dtype=np.float64)
+    if c.ndim > 1 and c.size:
+        # many variants: the largest |C_k| of each component first (two reductions, no temporary
+        # of the variants' size); the scaling below is monotonic, so its maximum is the same
+        c = np.maximum(c.max(axis=tuple(range(c.ndim - 1))), -c.min(axis=tuple(range(c.ndim - 1))))
+    else:
+        c = np.abs(c)
     cmax = float(c.max()) if c.size else 0.0
     if cmax == 0.0:
         return 0
@@ -142,7 +148,11 @@ def scaled_sums(coeffs_um: np.ndarray, threshold_um: np.ndarray) -> WeightedSums
     variants takes the BLAS path (~1e-16 relative), with one exponent for all of them.
     """
     c = np.asarray(coeffs_um, dtype=np.float64)
-    _finite("coefficients", c)
+    if c.ndim > 1:  # (NaN and Inf reach the largest and smallest values: no mask of c's size)
+        if c.size and not (np.isfinite(c.max()) and np.isfinite(c.min())):
+            _finite("coefficients", c)
+    else:
+        _finite("coefficients", c)
     w2, w1, t = scaled_weights(threshold_um)
     if c.shape[-1] != w1.shape[-1]:
         raise QualityError(f"{c.shape[-1]} coefficients but {w1.shape[-1]} thresholds")
@@ -151,8 +161,11 @@ def scaled_sums(coeffs_um: np.ndarray, threshold_um: np.ndarray) -> WeightedSums
         c = np.ldexp(c, -s)
     if c.ndim > 1:
         # Bulk scoring of many variants (benchmarks, sweeps): BLAS, ~1e-16 relative, and the
-        # last bit may depend on the CPU. Nothing written into a stream comes from here.
-        p, a = np.multiply(c, c) @ w2, np.abs(c) @ w1
+        # last bit may depend on the CPU. Nothing written into a stream comes from here. One
+        # temporary of the variants' size, used twice (C^2, then |C|).
+        tmp = np.multiply(c, c)
+        p = tmp @ w2
+        a = np.abs(c, out=tmp) @ w1
     else:
         p = exact_sum(np.multiply(np.multiply(c, c), w2))
         a = exact_sum(np.multiply(np.abs(c), w1))

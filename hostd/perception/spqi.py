@@ -39,8 +39,8 @@ import math
 from functools import lru_cache
 
 import numpy as np
-import scipy.fft
 
+from hostd import pocketfft
 from hostd.errors import QualityError
 from hostd.perception.indices import pow2_scale
 
@@ -82,7 +82,7 @@ def _as_signal(x: np.ndarray, name: str) -> np.ndarray:
 
 def _block_powers(x: np.ndarray, scale: float, n_blocks: int, w: np.ndarray) -> np.ndarray:
     blocks = (x[: n_blocks * BLOCK] * scale).reshape(n_blocks, BLOCK)
-    X = scipy.fft.dct(blocks, type=2, norm="ortho", axis=1)
+    X = pocketfft.dct(blocks, type=2, norm="ortho", axis=1)
     return np.multiply(np.multiply(X, X), w)
 
 

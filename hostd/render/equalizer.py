@@ -33,11 +33,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import scipy.optimize
-import scipy.signal
 
 SMALL_BATCH = 32  # at or below this many samples, filter in scalar Python
 DENORMAL_GUARD = 1e-30  # µm: filter state below this is flushed to zero
+
+
+def _signal():
+    """scipy.signal, imported on first use: a process that only reads an equalizer's settings
+    (the device-mode pump, hostd encode) does not load it."""
+    import scipy.signal
+
+    return scipy.signal
+
+
+def preload() -> None:
+    """Import what designing and running an equalizer needs (scipy.signal) now, not at the first
+    texture: a process that will render on the host (the pump, host rendering) pays it up front."""
+    _signal()
 
 
 @dataclass(eq=False)
@@ -68,7 +80,7 @@ class ActuatorModel:
         """The model's complex response (displacement per command), delay included."""
         f = np.asarray(f_hz, dtype=np.float64)
         b, a = self.analog_ba()
-        h = scipy.signal.freqs(b, a, worN=2 * np.pi * f)[1]
+        h = _signal().freqs(b, a, worN=2 * np.pi * f)[1]
         return h * np.exp(-2j * np.pi * f * self.delay_s)
 
     def measured(self, f_hz: np.ndarray) -> np.ndarray:
@@ -101,6 +113,8 @@ class ActuatorModel:
 
         guess_fc = float(np.interp(-3.0 + db[0], db[::-1], f[::-1])) if db.min() < db[0] - 3 else f[-1]
         p0 = [math.log(max(guess_fc, 1.0)), math.log(0.7), math.log(10 ** (db[0] / 20)), 0.0]
+        import scipy.optimize
+
         sol = scipy.optimize.least_squares(resid, p0, bounds=([-np.inf, math.log(0.05), -np.inf, 0.0],
                                                               [np.inf, math.log(5.0), np.inf, 10.0]))
         return cls(corner_hz=math.exp(sol.x[0]), damping=math.exp(sol.x[1]), dc_gain=math.exp(sol.x[2]),
@@ -160,7 +174,7 @@ def design(model: ActuatorModel, cfg: EqualizerConfig) -> np.ndarray:
     if not 2 <= cfg.reg_order <= 8:
         raise ValueError("equalizer.reg_order must be 2..8")
     b_act, a_act = model.analog_ba()
-    bd, ad, _dt = scipy.signal.cont2discrete((b_act, a_act), 1.0 / fs, method="zoh")
+    bd, ad, _dt = _signal().cont2discrete((b_act, a_act), 1.0 / fs, method="zoh")
     bd = np.ravel(bd)
     if bd[0] != 0.0 and abs(bd[0]) > 1e-12 * np.abs(bd).max():
         raise ValueError("equalizer: the sampled actuator has no sample of delay; unsupported model")
@@ -169,10 +183,10 @@ def design(model: ActuatorModel, cfg: EqualizerConfig) -> np.ndarray:
     if zeros.size and np.abs(zeros).max() >= 0.98:
         raise ValueError("equalizer: the sampled actuator's zero lies on or outside the unit circle "
                          f"(|z| = {np.abs(zeros).max():.3f}); raise the output rate or lower reg_hz")
-    b_reg, a_reg = scipy.signal.butter(cfg.reg_order, cfg.reg_hz, fs=fs)
+    b_reg, a_reg = _signal().butter(cfg.reg_order, cfg.reg_hz, fs=fs)
     num = np.polymul(np.ravel(ad), b_reg)
     den = np.polymul(zero_poly, a_reg)
-    return scipy.signal.tf2sos(num / den[0], den / den[0])
+    return _signal().tf2sos(num / den[0], den / den[0])
 
 
 class Equalizer:
@@ -187,14 +201,14 @@ class Equalizer:
 
     def reset(self, value_um: float = 0.0) -> None:
         if self.sos is not None:
-            self.zi = scipy.signal.sosfilt_zi(self.sos) * value_um
+            self.zi = _signal().sosfilt_zi(self.sos) * value_um
 
     def __call__(self, x_um: np.ndarray) -> np.ndarray:
         x = np.asarray(x_um, dtype=np.float64)
         if self.sos is None:
             return x
         if x.size > SMALL_BATCH:
-            y, zi = scipy.signal.sosfilt(self.sos, x, zi=self.zi)
+            y, zi = _signal().sosfilt(self.sos, x, zi=self.zi)
             zi[np.abs(zi) < DENORMAL_GUARD] = 0.0
             self.zi = zi
             return y
@@ -220,7 +234,7 @@ class Equalizer:
         f = np.asarray(f_hz, dtype=np.float64)
         fs = self.cfg.sample_rate_hz
         zoh = np.sinc(f / fs) * np.exp(-1j * np.pi * f / fs)
-        eq = (scipy.signal.sosfreqz(self.sos, worN=f, fs=fs)[1] if self.sos is not None
+        eq = (_signal().sosfreqz(self.sos, worN=f, fs=fs)[1] if self.sos is not None
               else np.ones_like(f, dtype=complex))
         act = self.model.measured(f) if measured else self.model.response(f)
         act = act * np.exp(2j * np.pi * f * self.model.delay_s)
@@ -236,8 +250,8 @@ class Equalizer:
         """Group delay the equalizer adds at f_hz (ms); negative is a phase lead."""
         if self.sos is None:
             return 0.0
-        b, a = scipy.signal.sos2tf(self.sos)
-        _w, gd = scipy.signal.group_delay((b, a), w=[f_hz], fs=self.cfg.sample_rate_hz)
+        b, a = _signal().sos2tf(self.sos)
+        _w, gd = _signal().group_delay((b, a), w=[f_hz], fs=self.cfg.sample_rate_hz)
         return float(gd[0]) / self.cfg.sample_rate_hz * 1e3
 
     def chain_delay_ms(self, f_hz: float = 100.0) -> float:

@@ -26,7 +26,6 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.fft
 
 from hostd.render.series import evaluate as series_evaluate
 from hostd.render.series import phase_rad as series_phase
@@ -146,6 +145,8 @@ class HeightEvaluator:
             v = self._bucket_speed(b)
             spec = np.zeros(self.m // 2 + 1)
             spec[1 : self.c.size + 1] = self.c * self.gains(v) * (self.m / 2)
+            import scipy.fft
+
             y = scipy.fft.irfft(spec, self.m)  # y_j = sum_k w_k cos(2 pi k j / M)
             tab = np.concatenate([y, y[:3]]).astype(self.dtype)
             self._tables[b] = tab

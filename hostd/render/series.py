@@ -19,8 +19,6 @@ import math
 import threading
 
 import numpy as np
-import scipy.linalg
-import scipy.signal
 
 from hostd.render import fastrender
 
@@ -219,10 +217,44 @@ def evaluate_faded(coeffs: np.ndarray, theta: np.ndarray, speed: np.ndarray, f_p
 
 
 @functools.lru_cache(maxsize=8)
-def _czt(n: int, count: int, dtheta: float) -> scipy.signal.CZT:
+def _czt(n: int, count: int, dtheta: float) -> _Czt:
     """The chirp-z transform sum_j x_j w^(m j), w = exp(i dtheta): its chirps and their FFT are
     built once per (size, count, step) and reused (a sweep synthesizes many signals alike)."""
-    return scipy.signal.CZT(n, m=count, w=np.exp(1j * dtheta), a=1.0)
+    return _Czt(n, count, np.exp(1j * dtheta))
+
+
+class _Czt:
+    """scipy.signal.CZT(n, m, w, a=1.0), operation for operation (the same bits,
+    tests/test_lean.py), on scipy.fft's transforms alone (hostd.pocketfft): importing
+    scipy.signal costs a command line call such as `hostd encode --target-iobj` (its SPQI check
+    plays the signal through here) more CPU than all its work. Bluestein's algorithm: the
+    chirps and their FFT are made once; a call is one FFT of the input, one product and one
+    inverse FFT."""
+
+    def __init__(self, n: int, m: int, w: complex) -> None:
+        from hostd.pocketfft import fft, next_fast_len
+
+        if n < 1 or m < 1:
+            raise ValueError(f"chirp-z transform of {n} points to {m}: both must be >= 1")
+        k = np.arange(max(m, n), dtype=np.min_scalar_type(-max(m, n) ** 2))
+        wk2 = w ** (k**2 / 2.0)
+        a = 1.0
+        self.n = n
+        self._nfft = next_fast_len(n + m - 1)
+        self._Awk2 = a ** -k[:n] * wk2[:n]
+        self._Fwk2 = fft(1 / np.hstack((wk2[n - 1 : 0 : -1], wk2[:m])), self._nfft)
+        self._wk2 = wk2[:m]
+        self._yidx = slice(n - 1, n + m - 1)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        """The transform along the last axis."""
+        from hostd.pocketfft import fft, ifft
+
+        x = np.asarray(x)
+        if x.shape[-1] != self.n:
+            raise ValueError(f"chirp-z transform defined for length {self.n}, not {x.shape[-1]}")
+        y = ifft(self._Fwk2 * fft(x * self._Awk2, self._nfft))
+        return y[..., self._yidx] * self._wk2
 
 
 def evaluate_uniform(coeffs: np.ndarray, theta0: float, dtheta: float, count: int,
@@ -251,6 +283,8 @@ class Projector:
     """
 
     def __init__(self, theta: np.ndarray, n_keep: int) -> None:
+        import scipy.linalg
+
         self.theta = np.asarray(theta, dtype=np.float64)
         self.n_keep = K = int(n_keep)
         m = _nufft_sums(self.theta, np.ones(self.theta.size), 2 * K).real
@@ -280,6 +314,8 @@ class Projector:
         """c_0..c_K for samples y at the projector's phases."""
         r = _nufft_sums(self.theta, np.asarray(y, dtype=np.float64), self.n_keep).real
         if self._cho is not None:
+            import scipy.linalg
+
             return scipy.linalg.cho_solve(self._cho, r)
         vec, inv = self._eig
         return vec @ (inv * (vec.T @ r))

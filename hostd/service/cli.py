@@ -34,6 +34,9 @@ def _sock(args) -> str:
 
 
 def cmd_run(args) -> int:
+    from hostd.service.lean import one_blas_thread_env
+
+    one_blas_thread_env()  # before numpy loads: a supervisor needs no BLAS threads (nor its pump)
     from hostd.service.notify import Notifier
 
     notifier = Notifier()

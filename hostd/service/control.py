@@ -5,8 +5,10 @@
   our clients). Clients check who holds the socket (SO_PEERCRED, hostd.service.client).
 - The socket is created 0660 by bind() itself (umask), so it is never more open, and given to
   control.group through the checked directory's file descriptor (no symlink followed).
-- Up to control.max_clients connections are served at once by a fixed pool of threads; one
-  more is answered with a one-line refusal and closed. The listen backlog is SOMAXCONN.
+- Up to control.max_clients connections are served at once by a pool of threads that grows on
+  demand (one handler at rest, one more per client being served, each ending after
+  HANDLER_IDLE_S idle); one more is answered with a one-line refusal and closed. The listen
+  backlog is SOMAXCONN.
 - accept() failing with EMFILE/ENFILE (out of file descriptors) backs off (50 ms doubling to
   1 s) with one log line per episode, instead of spinning.
 - Every request has a deadline for the whole of it (REQUEST_DEADLINE_S, not per read) and a
@@ -159,6 +161,7 @@ class ControlServer:
         self.busy_lock = threading.Lock()
         self.refused_busy = 0
         self.threads: list[threading.Thread] = []
+        self.handlers = 0  # handler threads alive, under busy_lock (started on demand, start_pool)
         d = self.path.parent
         d.mkdir(parents=True, exist_ok=True, mode=0o750)
         check_socket_dir(d)
@@ -206,12 +209,23 @@ class ControlServer:
             os.close(dfd)
 
     # ------------------------------------------------------------ serving
+    HANDLER_IDLE_S = 30.0  # a handler thread idle this long ends (one stays while none is busy)
+
     def start_pool(self) -> None:
-        """The handler threads; the caller runs accept_loop (the daemon supervises it)."""
-        for i in range(self.max_clients):
-            t = threading.Thread(target=self._worker, name=f"control-{i}", daemon=True)
-            t.start()
-            self.threads.append(t)
+        """The first handler thread; the caller runs accept_loop (the daemon supervises it). The
+        pool grows on demand up to max_clients threads, a thread for each client being served
+        when all are busy, and shrinks again when they idle: a daemon nobody talks to holds one
+        handler, not max_clients."""
+        with self.busy_lock:
+            self._add_handler()
+
+    def _add_handler(self) -> None:
+        """Under busy_lock: one more handler thread."""
+        self.threads = [t for t in self.threads if t.is_alive()]
+        t = threading.Thread(target=self._worker, name=f"control-{len(self.threads)}", daemon=True)
+        self.handlers += 1
+        t.start()
+        self.threads.append(t)
 
     def accept_loop(self) -> None:
         backoff = 0.0
@@ -243,6 +257,8 @@ class ControlServer:
                     full = False
                 if not full:
                     self.busy += 1
+                    if self.busy > self.handlers:  # every handler is serving someone: one more
+                        self._add_handler()
                     if limited:
                         self.per_user[uid] = self.per_user.get(uid, 0) + 1
             if full:
@@ -280,7 +296,14 @@ class ControlServer:
 
     def _worker(self) -> None:
         while True:
-            job = self.jobs.get()
+            try:
+                job = self.jobs.get(timeout=self.HANDLER_IDLE_S)
+            except queue.Empty:
+                with self.busy_lock:  # idle: end unless every other handler is needed
+                    if self.busy < self.handlers and self.handlers > 1 and not self.stopping.is_set():
+                        self.handlers -= 1
+                        return
+                continue
             if job is None:
                 return
             conn, uid, limited = job

@@ -33,6 +33,7 @@ from hostd.fileio import open_dir, read_regular_at, write_at
 from hostd.service import qualitylog
 from hostd.service.config import Config, check_paths
 from hostd.service.control import REQUEST_DEADLINE_S, ClientConn, ControlServer
+from hostd.service.lean import children_with_one_blas_thread
 from hostd.service.library import Library, check_name
 from hostd.service.logsetup import CONTROL_CHARS
 from hostd.service.notify import Notifier
@@ -42,6 +43,40 @@ log = logging.getLogger("hostd")
 MAX_HEADER = 4096
 RESTARTS_PER_MINUTE = 3  # a worker that dies more often stays dead and the watchdog starves
 QUALITY_RETRY_S = (0.5, 30.0)  # a quality row that cannot be written is retried, back-off doubling
+
+
+IN_MODIFY, IN_ATTRIB, IN_CLOSE_WRITE, IN_MOVED_TO, IN_CREATE = 0x2, 0x4, 0x8, 0x80, 0x100
+
+
+def _spool_events(dir_fd: int) -> int | None:
+    """An inotify descriptor that turns readable when an entry of the directory `dir_fd` is
+    created, written, closed, moved in or changes its attributes (Linux; the directory by its
+    descriptor, so a rename of the path changes nothing); None where there is none (the
+    watcher then scans every period)."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        fd = libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
+        if fd < 0:
+            return None
+        mask = IN_MODIFY | IN_ATTRIB | IN_CLOSE_WRITE | IN_MOVED_TO | IN_CREATE
+        if libc.inotify_add_watch(fd, f"/proc/self/fd/{dir_fd}".encode(), mask) < 0:
+            os.close(fd)
+            return None
+        return fd
+    except (OSError, AttributeError):
+        return None
+
+
+def _drain(fd: int) -> None:
+    """Read whatever is waiting on a non-blocking descriptor (the events themselves do not matter:
+    any change means a look at the directory)."""
+    try:
+        while os.read(fd, 4096):
+            pass
+    except BlockingIOError:
+        pass
 
 
 class BadRequest(HostdError):
@@ -206,6 +241,10 @@ class Daemon:
         self.signalled = False  # set by the SIGTERM/SIGINT handler, which must take no lock
         self.quality_q: queue.Queue = queue.Queue()
         self.stop_event = threading.Event()
+        # the threads sleep on descriptors, not on timers: stop_r turns readable (for good) at the
+        # stop; wake_r wakes the main loop (a signal through set_wakeup_fd, a worker that ended)
+        self.stop_r, self.stop_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        self.wake_r, self.wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
         self.selected: str | None = None
         self.play: tuple[str, str, float, dict] | None = None  # name, sha256, started, counters
         self.accepted = 0
@@ -350,12 +389,12 @@ class Daemon:
         backoff = QUALITY_RETRY_S[0]
         free_at_fail = None
         while True:
-            stopping = self.stop_event.is_set()
             try:
-                # idle: one wake-up a second; a pending row is retried sooner
-                item = self.quality_q.get(timeout=0.05 if self.quality_pending else 1.0)
+                # idle: asleep until a stream arrives or the stop (a None); a pending row is retried
+                item = self.quality_q.get(timeout=0.05 if self.quality_pending else None)
             except queue.Empty:
                 item = None
+            stopping = self.stop_event.is_set()
             if item is not None:
                 name, data, sha, t = item
                 try:
@@ -489,60 +528,82 @@ class Daemon:
         Every operation is relative to the spool's and rejected/'s descriptors (opened and
         checked at start-up) and follows no link: a member who renames rejected/ or plants
         links changes nothing the daemon writes or reads."""
+        import select
+
         settle = self.cfg.library.spool_settle_s
         limit = self.cfg.library.max_stream_bytes
         seen: dict[str, tuple[tuple[int, int], float]] = {}  # name -> (size, mtime_ns), since
-        while not self.stop_event.wait(min(0.3, settle / 2)):
-            try:
-                with os.scandir(self.spool_fd) as it:
-                    entries = list(it)
-            except OSError as e:
-                log.error("spool: cannot list %s: %s", self.spool, e.strerror)
+        events = _spool_events(self.spool_fd)  # inotify where there is one, else a scan per period
+        period = min(0.3, settle / 2)
+        first = True
+        try:
+            while not self.stop_event.is_set():
+                if not first:
+                    # asleep until the spool changes (or the stop); a timer only while a file settles
+                    wait = [self.stop_r] + ([events] if events is not None else [])
+                    ready = select.select(wait, [], [], period if seen or events is None else None)[0]
+                    if self.stop_event.is_set():
+                        break
+                    if events is not None and events in ready:
+                        _drain(events)
+                first = False
+                self._scan_spool(seen, settle, limit)
+        finally:
+            if events is not None:
+                os.close(events)
+
+    def _scan_spool(self, seen: dict, settle: float, limit: int) -> None:
+        """One look at the spool (spool_watcher)."""
+        try:
+            with os.scandir(self.spool_fd) as it:
+                entries = list(it)
+        except OSError as e:
+            log.error("spool: cannot list %s: %s", self.spool, e.strerror)
+            return
+        now = time.time()
+        for ent in entries:
+            name = ent.name
+            if not name.endswith(".vtx") or name.startswith("."):
                 continue
-            now = time.time()
-            for ent in entries:
-                name = ent.name
-                if not name.endswith(".vtx") or name.startswith("."):
-                    continue
-                try:
-                    st = ent.stat(follow_symlinks=False)
-                except FileNotFoundError:
-                    continue
-                if not stat.S_ISREG(st.st_mode):
-                    self._reject_spool(name, "not a regular file (symlink, FIFO, device or directory): the "
-                                             "spool takes regular files only")
-                    continue
-                if st.st_size > limit:
-                    self._reject_spool(name, f"stream of {st.st_size} bytes exceeds the limit of {limit} "
-                                             "(library.max_stream_bytes)")
-                    continue
-                sig = (st.st_size, st.st_mtime_ns)
-                prev = seen.get(name)
-                if prev is None or prev[0] != sig:
-                    seen[name] = (sig, now)  # (still) being written: wait until it holds still
-                    continue
-                if now - prev[1] < settle or now - st.st_mtime_ns / 1e9 < settle:
-                    continue
-                seen.pop(name, None)
-                try:
-                    data = read_regular_at(self.spool_fd, name, limit, expect=sig)
-                except BlockingIOError:
-                    continue
-                except HostdError as e:  # NotRegular (swapped since the stat), too big
-                    self._reject_spool(name, str(e))
-                    continue
-                except OSError as e:
-                    log.error("spool: cannot take in %s: %s", name, e.strerror or e)
-                    continue
-                try:
-                    self.accept(name[:-4], data, "spool")
-                    os.unlink(name, dir_fd=self.spool_fd)
-                except HostdError as e:
-                    self._reject_spool(name, str(e))
-                except OSError:
-                    pass  # taken in; its writer removed or replaced it meanwhile
-            for name in set(seen) - {e.name for e in entries}:
-                seen.pop(name, None)
+            try:
+                st = ent.stat(follow_symlinks=False)
+            except FileNotFoundError:
+                continue
+            if not stat.S_ISREG(st.st_mode):
+                self._reject_spool(name, "not a regular file (symlink, FIFO, device or directory): the "
+                                         "spool takes regular files only")
+                continue
+            if st.st_size > limit:
+                self._reject_spool(name, f"stream of {st.st_size} bytes exceeds the limit of {limit} "
+                                         "(library.max_stream_bytes)")
+                continue
+            sig = (st.st_size, st.st_mtime_ns)
+            prev = seen.get(name)
+            if prev is None or prev[0] != sig:
+                seen[name] = (sig, now)  # (still) being written: wait until it holds still
+                continue
+            if now - prev[1] < settle or now - st.st_mtime_ns / 1e9 < settle:
+                continue
+            seen.pop(name, None)
+            try:
+                data = read_regular_at(self.spool_fd, name, limit, expect=sig)
+            except BlockingIOError:
+                continue
+            except HostdError as e:  # NotRegular (swapped since the stat), too big
+                self._reject_spool(name, str(e))
+                continue
+            except OSError as e:
+                log.error("spool: cannot take in %s: %s", name, e.strerror or e)
+                continue
+            try:
+                self.accept(name[:-4], data, "spool")
+                os.unlink(name, dir_fd=self.spool_fd)
+            except HostdError as e:
+                self._reject_spool(name, str(e))
+            except OSError:
+                pass  # taken in; its writer removed or replaced it meanwhile
+        for name in set(seen) - {e.name for e in entries}:
+            seen.pop(name, None)
 
     def _reject_spool(self, name: str, why: str) -> None:
         try:  # the reason first, so that whoever sees the rejected file finds why
@@ -629,7 +690,7 @@ class Daemon:
                 con.close()
         if cmd == "shutdown":
             self.may_shut_down(rfile.peer_uid)
-            self.stop_event.set()
+            self.stop()
             return {"shutting_down": True}
         raise BadRequest(f"unknown command {cmd!r:.40}")
 
@@ -679,6 +740,8 @@ class Daemon:
                 target()
             except Exception as e:
                 log.error("worker %s failed: %s: %s", name, type(e).__name__, e)
+            finally:
+                self._wake()  # the main loop restarts it (supervise), not a timer
 
         t = threading.Thread(target=body, name=name, daemon=True)
         prev = self.workers.get(name)
@@ -702,8 +765,9 @@ class Daemon:
             self.start_worker(name, target)
         return not self.dead_workers
 
-    def pump_messages(self) -> None:
-        """Log the pump's lines and take its info (transport, hotplug, reconnection time)."""
+    def pump_messages(self) -> bool:
+        """Log the pump's lines and take its info (transport, hotplug, reconnection time); False
+        when the pump's end of the pipe is closed."""
         try:
             while self.conn.poll():
                 kind, msg = self.conn.recv()
@@ -714,14 +778,50 @@ class Daemon:
                 # warnings (journald priority 4), the rest information
                 log.log(logging.WARNING if kind == "warn" else logging.INFO, "%s", msg)
         except (EOFError, OSError):
-            pass  # the pump is gone: the main loop says so
+            return False  # the pump is gone: the main loop says so
+        return True
 
     # ------------------------------------------------------------ main
+    def _wake(self) -> None:
+        """Wake the main loop."""
+        try:
+            os.write(self.wake_w, b"w")
+        except OSError:  # full: it is awake anyway
+            pass
+
+    def stop(self) -> None:
+        """Every thread stops: the event, the descriptor the sleeping ones wait on, and the quality
+        worker's queue."""
+        self.stop_event.set()
+        try:
+            os.write(self.stop_w, b"s")
+        except OSError:
+            pass
+        self.quality_q.put(None)
+
+    def main_period_s(self, ready: bool) -> float:
+        """How long the main loop may sleep when nothing wakes it: 0.5 s until READY=1, then a
+        third of systemd's watchdog timeout (WatchdogSec=5: 1.7 s), or 5 s without a watchdog
+        (STATUS= lines and the worker threads' supervision; a signal, a pump line, a pump's
+        exit, a worker's end and the stop wake it at once)."""
+        if not ready:
+            return 0.5
+        usec = self.notifier.watchdog_usec
+        try:
+            return max(0.5, min(5.0, int(usec) / 3e6)) if usec else 5.0
+        except ValueError:
+            return 0.5
+
     def on_signal(self, *_) -> None:
         """SIGTERM/SIGINT: only a flag. The handler runs in the main thread between two bytecodes,
         possibly while that thread holds stop_event's internal lock (inside Event.wait); calling
         stop_event.set() here would then wait for itself forever."""
         self.signalled = True
+
+    def start_pump(self) -> None:
+        """Start the pump process: it imports numpy anew, with one BLAS thread (hostd.service.lean)."""
+        with children_with_one_blas_thread():
+            self.proc.start()
 
     def send_to_pump(self, msg: tuple, timeout_s: float = 1.0) -> bool:
         """Send a command unless the pipe stays full for timeout_s (a pump that stopped reading)."""
@@ -758,7 +858,7 @@ class Daemon:
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self.on_signal)
         self.serve_metrics()  # a wrong or busy metrics.listen stops the start, before the pump runs
-        self.proc.start()
+        self.start_pump()
         self.pump_writer = PumpWriter(self.conn)
         # our copy of the pump's end: closed, so a dead pump reads as EOF (a pending recv() or a
         # send into a full pipe would otherwise wait forever for a peer that no longer exists)
@@ -768,19 +868,26 @@ class Daemon:
         self.start_worker("control", self.control.accept_loop)
         self.start_worker("quality", self.quality_worker)
         self.start_worker("spool", self.spool_watcher)
+        from multiprocessing.connection import wait
+
+        signal.set_wakeup_fd(self.wake_w, warn_on_full_buffer=False)  # a signal wakes the loop
         ready = False
         last_cycles = -1.0
         try:
             while not (self.signalled or self.stop_event.is_set()):
-                # asleep until the pump writes a line, or 0.5 s (watchdog, STATUS=): a daemon
-                # playing a texture wakes a few times a second (docs/daemon.md, bench soak)
+                # asleep until the pump writes a line (or exits), a signal, a worker's end or the
+                # stop; else main_period_s (watchdog, STATUS=): docs/daemon.md, bench soak
                 try:
-                    self.conn.poll(0.5)
+                    woken = wait([self.conn, self.wake_r, self.stop_r], self.main_period_s(ready))
                 except (EOFError, OSError):
+                    woken = []
                     self.stop_event.wait(0.2)  # the pump is gone (said just below): no busy loop
+                if self.wake_r in woken:
+                    _drain(self.wake_r)
                 if self.signalled or self.stop_event.is_set():
                     break
-                self.pump_messages()
+                if not self.pump_messages():
+                    self.proc.join(0.2)  # the pump's end of the pipe closed: it is exiting
                 if not self.proc.is_alive():
                     log.error("the real-time pump exited (code %s); stopping", self.proc.exitcode)
                     return 1
@@ -810,7 +917,7 @@ class Daemon:
                 self.end_play()
             self.stop_pump()
             self.pump_messages()  # its last lines (a recovery just before the stop) reach the log
-            self.stop_event.set()
+            self.stop()
             if self.metrics is not None:
                 self.metrics.shutdown()
             if self.control is not None:
@@ -822,5 +929,6 @@ class Daemon:
                 # is retried for 5 s (TimeoutStopSec=10), the rest is scored at the next start
                 self._stop_deadline = time.monotonic() + 5.0
                 quality[1].join(8.0)
+            signal.set_wakeup_fd(-1)
             log.info("stopped")
         return 0

@@ -26,7 +26,7 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "io_retries", "io_dropped", "batch_p50_us", "batch_p99_us", "batch_p999_us",
                "device_time_s", "render_at", "device_uploads", "wait_ticks", "render_reason",
                "device_host_lost", "device_reuploads", "device_rendered_s", "device_faded_s",
-               "device_idle_s", "wakeups", "compiled_cycles")
+               "device_idle_s", "wakeups", "compiled_cycles", "voluntary_switches")
 STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
                 "batch_p50_us", "batch_p99_us", "batch_p999_us", "device_rendered_s", "device_faded_s",
@@ -86,13 +86,22 @@ def _die_with_parent() -> None:
         pass
 
 
+def preload_host_rendering() -> None:
+    """Import the host renderer and scipy.signal (its equalizer) now: a pump that will render on
+    the host loads them before it plays; device mode never does."""
+    from hostd.render import equalizer, pipeline  # noqa: F401
+
+    equalizer.preload()
+
+
 def pump_main(cfg, conn, stats) -> None:
     """Entry point of the pump process. cfg: hostd.service.config.Config."""
+    import resource
     import signal
 
     import numpy as np
 
-    from hostd.device import devrender, fastpump
+    from hostd.device import devrender
     from hostd.device import protocol as pr
     from hostd.device.devmode import RENDERING, DeviceMode
     from hostd.device.hotplug import watch
@@ -100,7 +109,6 @@ def pump_main(cfg, conn, stats) -> None:
     from hostd.device.pump import JitterConfig, Pump
     from hostd.device.transport import open_transport, present
     from hostd.errors import DeviceBusy, DeviceError, DeviceGone, DeviceNotFound
-    from hostd.render import Renderer
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
     parent = os.getppid()
@@ -166,6 +174,14 @@ def pump_main(cfg, conn, stats) -> None:
                           max_fill=max(cfg.device.target_fill, cfg.device.max_fill))
 
     where = cfg.render.where  # auto (the default), device or host
+    dev_params = None  # devrender.device_params(rcfg): the equalizer's design, for the display
+    if where == "host":
+        preload_host_rendering()  # before the first connection: a selection plays at once
+    else:  # designed now (in a child, ~1 s of scipy), not between a display's arrival and playing
+        try:
+            dev_params = devrender.device_params_apart(rcfg)
+        except ValueError:  # (a setting the display cannot render: said when one connects, as before)
+            dev_params = None
     dev = None  # DeviceMode while the display can render (protocol v2 with CAPS)
     logged_choice: list = [None]  # (render_at, reason) last logged: each choice is logged once
 
@@ -185,7 +201,7 @@ def pump_main(cfg, conn, stats) -> None:
     def start_device(coeffs) -> bool:
         """Upload to the display and render there when it can hold the texture; False (and
         the reason published) when the host must render it."""
-        sos = devrender.device_params(rcfg)["sos"]
+        sos = dev.params["sos"]
         link.await_caps(1.0)  # (asked again if it was lost at the connection)
         why = pr.render_refusal(link.ident or {}, link.caps, len(coeffs), 0 if sos is None else len(sos),
                                 who=link.t.describe())
@@ -215,6 +231,8 @@ def pump_main(cfg, conn, stats) -> None:
         _, coeffs, n, length = texture
         link.poll(0.01)
         if dev is None or not start_device(coeffs):
+            from hostd.render import Renderer  # (host rendering only: device mode never loads it)
+
             r = Renderer(np.asarray(coeffs), n, length, rcfg)
             r.start()
             pump.begin(r)  # pre-fill, then start the device (soft start)
@@ -298,8 +316,12 @@ def pump_main(cfg, conn, stats) -> None:
             put("device_uploads", dev.uploads)
             put("device_reuploads", dev.recoveries)
             put("wakeups", dev.wakeups)
+            # the kernel's count of the pump's sleeps, read at the same instant (bench soak sets
+            # the loop's runs against it: a wake-up that is not a run would show here)
+            put("voluntary_switches", resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw)
         put("target_fill", pump.target_fill)
-        put("compiled_cycles", fastpump.compiled_cycles())
+        fastpump = sys.modules.get("hostd.device.fastpump")  # loaded by host rendering only
+        put("compiled_cycles", fastpump.compiled_cycles() if fastpump is not None else 0)
         now = time.monotonic()
         if pump.renderer is not None and now - last_pct[0] >= 5.0:
             # percentiles of the host-rendering cycle every 5 s (a sort of 65536 cycles: ~1 ms)
@@ -476,12 +498,16 @@ def pump_main(cfg, conn, stats) -> None:
             link.await_caps()  # a v2 display sends CAPS right after IDENT
             why = pr.render_refusal(link.ident, link.caps, 1, 0, who=transport.describe())
             if why is None:
+                if dev_params is None:  # designed once per process, scipy kept out of it
+                    dev_params = devrender.device_params_apart(rcfg)
                 dev = DeviceMode(link, rcfg, log, host_lost_ms=cfg.render.host_lost_ms,
-                                 timeout_ms=cfg.device.host_timeout_ms)
+                                 timeout_ms=cfg.device.host_timeout_ms, params=dev_params)
                 if texture is None:
                     choose(True, 7)
             else:
                 choose(False, _REASON_OF_REFUSAL[why[0]], why[1])
+        if dev is None:  # the host renders: its renderer's imports now, not at the first texture
+            preload_host_rendering()
         try:
             if texture is not None:
                 begin()

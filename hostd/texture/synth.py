@@ -9,8 +9,8 @@ sandpaper: a random field of abrasive grains (half-ellipsoid bumps) whose mean s
 from __future__ import annotations
 
 import numpy as np
-import scipy.fft
 
+from hostd import pocketfft
 from hostd.errors import ProfileError
 from hostd.texture.load import Profile
 
@@ -24,11 +24,11 @@ GRIT_UM = {
 def _colored_noise(rng: np.random.Generator, n: int, dx_um: float, beta: float,
                    corner_um: float) -> np.ndarray:
     """Gaussian noise with power ~ 1/(1 + (lambda_c f)^2)^(beta/2): 1/f^beta above a corner."""
-    f = scipy.fft.rfftfreq(n, d=dx_um)  # cycles per µm
+    f = np.fft.rfftfreq(n, d=dx_um)  # cycles per µm (scipy.fft.rfftfreq is numpy's)
     shape = (1.0 + (corner_um * f) ** 2) ** (-beta / 4.0)
     shape[0] = 0.0
     spec = shape * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
-    y = scipy.fft.irfft(spec, n)
+    y = pocketfft.irfft(spec, n)
     return y / (np.std(y) or 1.0)
 
 

@@ -1,0 +1,65 @@
+"""The goals of the benchmarks that guard a figure, and the bounds `--check` holds them to.
+
+`--check` (the default, `--check goal`) holds a figure to its goal, measured on a quiet machine;
+`--check ci` to the CI bound: about twice the goal for a figure that moves with the machine's
+load (CPU time), the goal itself for one that does not (memory, threads, a ratio of counts), so
+that `.ci/run` catches a regression the day it lands without failing on a busy machine.
+docs/benchmarks.md ("Guards") states these numbers and the commands; change them there too.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Guard:
+    name: str  # the figure's key in the bench's row
+    goal: float | None  # None: not held to a goal (only to the CI bound)
+    ci: float | None  # None: not held in CI (a figure that a busy machine moves too far)
+    upper: bool = True  # the figure must stay at or below the bound (False: at or above)
+    unit: str = ""
+
+    def bound(self, level: str) -> float | None:
+        return self.ci if level == "ci" else self.goal
+
+
+# device rendering, `hostd bench soak --render device`: daemon + pump together
+DEVICE_PSS_MB = Guard("pss_mb", 60.0, 60.0, unit="MB")
+DEVICE_THREADS = Guard("threads", 12, 12)
+DEVICE_CPU_SHARE = Guard("cpu_share", 0.0015, 0.0030, unit="of a core")
+# the pump's voluntary context switches (the kernel's count, getrusage) per run of its loop, both
+# published by the pump at the same instant. Every poll() return is a run (strace: each followed
+# by its read); the switches beyond the runs (2-5 % here) are waits inside the loop's own read and
+# write of the tty, on its locks while the display writes: 10 % allowed for them
+DEVICE_WAKEUPS_PER_RUN = Guard("pump_wakeups_per_run", 1.10, 1.10)
+# `hostd bench cli`: CPU time of `hostd encode synthetic:wood:3 -o /dev/null --target-iobj 0.05`
+CLI_ENCODE_CPU_S = Guard("cpu_s", 0.4, 0.8, unit="s")
+# `hostd bench scoring`: indices.score, N' = 160, every batch size
+SCORING_PER_S = Guard("scores_per_s", 1.0e6, 0.5e6, upper=False, unit="scores/s")
+# `hostd bench cycle --compiled-only`: the compiled host-rendering cycle. Thread CPU per 1 ms
+# cycle, wake-up and handed-over cycles included (5 % of a core): on a quiet machine only, since
+# under load fewer cycles run, more of them are handed to the Python reference and each wake-up
+# costs more; in CI the median CPU time of the compiled step itself, which load moves little
+CYCLE_US = Guard("cpu_us_per_cycle", 50.0, None, unit="µs")
+CYCLE_STEP_P50_US = Guard("step_p50_us", 15.0, 30.0, unit="µs")
+
+
+def check(rows: list[dict], guards: list[Guard], level: str, what: str) -> int:
+    """Print each guarded figure against its bound; 1 (to exit with) when one is past it."""
+    failed = 0
+    for row in rows:
+        for g in guards:
+            v = row.get(g.name)
+            if v is None:
+                continue
+            b = g.bound(level)
+            if b is None:
+                continue
+            ok = v <= b if g.upper else v >= b
+            failed += not ok
+            label = f"{what} {g.name}" + (f" ({row['variants']} variants)" if "variants" in row else "")
+            print(f"{'ok  ' if ok else 'FAIL'} {label} = {v:.4g} {g.unit}, {'<=' if g.upper else '>='} "
+                  f"{b:.4g} ({level})", file=sys.stderr)
+    return 1 if failed else 0
