@@ -7,16 +7,20 @@ import argparse
 import json
 import sys
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from hostd.cliopts import _positive, geometry_parent, index_parent, loader_parent, read_profile
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 def played_um(coeffs_um: np.ndarray, n: int, length_mm: float, speed_mm_s: float,
               rate_hz: float) -> np.ndarray:
     """One crossing of the patch (L / v seconds from x = 0) as hostd renders it (`hostd render`,
     hostd.api.render_stroke): the series with the renderer's band gains at rate_hz."""
+    import numpy as np
+
     from hostd.render import series
     from hostd.render.height import BandLimitConfig, band_gains
 
