@@ -230,11 +230,10 @@ def encode_heights(y_um: np.ndarray, length_mm: float, *, method: str | None, fm
     from hostd.codec import ratecontrol, stream, transform
     from hostd.codec.stream import v2 as stream2
     from hostd.errors import CodecError
-    from hostd.perception import guard, peer
-    from hostd.perception import thresholds as th
+    from hostd.perception import calibration, guard, peer
     from hostd.quality import score_stream
 
-    curve = th.resolve(thresholds)
+    curve = calibration.resolve_curve(thresholds)
     geom = transform.Geometry(y_um.size, length_mm, speed_mm_s, fmax_hz)
     if fmt not in ratecontrol.FORMATS:
         raise CodecError(f"unknown stream format {fmt!r}: use --format v2 or v1")

@@ -18,14 +18,9 @@ def _dump(obj) -> None:
 
 
 def _read_stream(path: str):
-    from hostd.codec.stream import decode
-    from hostd.errors import StreamError
+    from hostd.fileio import read_stream
 
-    try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
-        raise StreamError(f"cannot read {path}: {exc.strerror or exc}") from None
-    return decode(data)
+    return read_stream(path)
 
 
 def _write_bytes_atomic(path: str, data: bytes) -> None:
@@ -102,7 +97,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
 
 
 def cmd_iobj(args: argparse.Namespace) -> int:
-    from hostd.perception import thresholds
+    from hostd.perception import calibration
     from hostd.quality import score_stream
 
     if args.stream is None:
@@ -115,7 +110,7 @@ def cmd_iobj(args: argparse.Namespace) -> int:
         if given is not None and not math.isclose(given, header, rel_tol=1e-9):
             warn("iobj", f"{opt} {given:g} ignored: the stream was made for {header:g} {unit} (its "
                  "header's geometry defines the components scored)")
-    curve = thresholds.load_csv(args.thresholds) if args.thresholds else None
+    curve = calibration.load_curve(args.thresholds) if args.thresholds else None
     ref = None
     if ref_spec is not None:
         ref = read_profile(ref_spec, args, length_mm=s.length_mm).heights_um
@@ -236,12 +231,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
 def cmd_report_rate_quality(args: argparse.Namespace) -> int:
     from hostd.codec import transform
     from hostd.extras import need
-    from hostd.perception import thresholds
+    from hostd.perception import calibration
     from hostd.report import rate_quality
 
     need("matplotlib", "plot", "hostd report rate-quality (its PNG)")  # before the sweep
     prof = read_profile(args.profile, args)
-    curve = thresholds.resolve(args.thresholds)
+    curve = calibration.resolve_curve(args.thresholds)
     geom = transform.Geometry(prof.n, prof.length_mm, args.speed, args.fmax)
     res = rate_quality(prof.heights_um, geom, curve, args.out, title=Path(args.profile).name,
                        ab=_ab(args), progress=not (args.no_progress or args.json))
@@ -329,12 +324,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def cmd_completion(args: argparse.Namespace) -> int:
     from hostd.docgen import completion
 
-    sys.stdout.write(completion(args.shell))
+    sys.stdout.write(completion(args.shell, args.root_parser))
     return 0
 
 
 def cmd_manpage(args: argparse.Namespace) -> int:
     from hostd.docgen import man_page
 
-    sys.stdout.write(man_page())
+    sys.stdout.write(man_page(args.root_parser))
     return 0

@@ -48,13 +48,11 @@ def walk(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
                 yield from walk(sub, (*path, name))
 
 
-def _parser():
-    """The parser with every path argument marked for shtab (`.complete`)."""
+def _parser(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The parser (hostd.parser.build_parser's, passed in: this module generates from it and
+    does not import it) with every path argument marked for shtab (`.complete`)."""
     import shtab
 
-    from hostd.parser import build_parser
-
-    ap = build_parser()
     for _path, p in walk(ap):
         for a in p._actions:
             kind = path_kind(a)
@@ -133,16 +131,15 @@ every command's \fB\-\-help\fR, with examples
 """
 
 
-def man_page() -> str:
+def man_page(ap: argparse.ArgumentParser) -> str:
     """hostd(8) in roff: argparse-manpage's page, made safe for groff (text lines that begin with
     '.' or \"'\" are escaped, a section name on the line after its .SH is joined to it), with
     EXIT STATUS, ENVIRONMENT, FILES and SEE ALSO sections."""
     from argparse_manpage.manpage import Manpage
 
     from hostd import __version__
-    from hostd.parser import build_parser
 
-    text = str(Manpage(build_parser(), _data={
+    text = str(Manpage(ap, _data={
         "manual_section": "8", "manual_title": "hostd manual", "version": __version__,
         "project_name": "hostd",
         "description": "vibrotactile texture display daemon, codec and quality index (Iobj)"}))
@@ -177,12 +174,12 @@ def fix_roff(text: str) -> str:
 # ---------------------------------------------------------------- completions
 
 
-def completion(shell: str) -> str:
+def completion(shell: str, ap: argparse.ArgumentParser) -> str:
     if shell == "fish":
-        return fish_completion(_parser())
+        return fish_completion(_parser(ap))
     import shtab
 
-    text = shtab.complete(_parser(), shell)
+    text = shtab.complete(_parser(ap), shell)
     if shell == "bash":  # an argument without its own completion falls back to file names
         text, n = re.subn(r"^complete -o bashdefault -F", "complete -o bashdefault -o default -F",
                           text, flags=re.M)

@@ -230,3 +230,16 @@ def write_at(dir_fd: int, name: str, data: bytes, mode: int = 0o640, durable: bo
                 os.unlink(tmp, dir_fd=dir_fd)
             except OSError:
                 pass
+
+
+def read_stream(path: str | Path):
+    """A .vtx stream file, decoded (hostd.codec.stream.decode); a file that cannot be read is a
+    StreamError naming it (one line, exit 2)."""
+    from hostd.codec.stream import decode
+    from hostd.errors import StreamError
+
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise StreamError(f"cannot read {path}: {exc.strerror or exc}") from None
+    return decode(data)

@@ -146,10 +146,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "hostd completion fish > ~/.config/fish/completions/hostd.fish; "
                        "hostd completion zsh > ~/.zfunc/_hostd (a directory on $fpath)")
     p.add_argument("shell", choices=["bash", "zsh", "fish"])
-    p.set_defaults(func=commands.cmd_completion)
+    p.set_defaults(func=commands.cmd_completion, root_parser=ap)
     p = sub.add_parser("manpage", help="print the man page hostd(8) (roff), generated from this parser",
                        description="install-service installs it as /usr/local/share/man/man8/hostd.8")
-    p.set_defaults(func=commands.cmd_manpage)
+    p.set_defaults(func=commands.cmd_manpage, root_parser=ap)
 
     # ---- rooms: each registers its subcommands with its own add_parser(sub); a new room adds
     # its import and its call here (and nowhere else: docgen, completion and --help follow)
@@ -164,6 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench(sub, [loader_parent(None)])
     add_corpus(sub, [loader_parent(10.0)])
     add_service(sub)
+    # generated from the whole parser (docgen does not import this module: it is handed the parser)
+    sub.choices["install-service"].set_defaults(root_parser=ap)
     add_sim(sub)
     add_experiment(sub)
 

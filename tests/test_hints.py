@@ -174,6 +174,7 @@ def test_parser_lives_below_cli_and_docgen():
     for mod in ("docgen.py", "parser.py", "commands.py", "service/install.py"):
         assert "hostd.cli import" not in (ROOT / "hostd" / mod).read_text(), mod
     r = subprocess.run([sys.executable, "-c", "import sys, hostd.service.install, hostd.docgen as d; "
-                        "d.man_page(); d.completion('bash'); print('hostd.cli' in sys.modules)"],
+                        "from hostd.parser import build_parser as b; "
+                        "d.man_page(b()); d.completion('bash', b()); print('hostd.cli' in sys.modules)"],
                        capture_output=True, text=True, timeout=120)
     assert r.stdout.strip() == "False", r.stderr

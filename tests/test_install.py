@@ -356,9 +356,11 @@ def test_man_page_and_completions_come_from_the_parser(tmp_path, capsys):
         (tmp_path / "c.sh").write_text(capsys.readouterr().out)
         r = subprocess.run(["bash", "-n", str(tmp_path / "c.sh")], capture_output=True, text=True)
         assert r.returncode == 0, r.stderr
+    from hostd.parser import build_parser
     from hostd.service.install import plan
 
-    dests = {str(d.relative_to(tmp_path)) for d, *_ in plan(tmp_path, Path("/opt/hostd/bin/hostd"))}
+    dests = {str(d.relative_to(tmp_path)) for d, *_ in plan(tmp_path, Path("/opt/hostd/bin/hostd"),
+                                                             build_parser())}
     assert {"usr/local/share/man/man8/hostd.8", "usr/local/share/bash-completion/completions/hostd",
             "usr/local/share/zsh/site-functions/_hostd",
             "usr/local/share/fish/vendor_completions.d/hostd.fish"} <= dests

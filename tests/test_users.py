@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 @pytest.mark.skipif(shutil.which("groff") is None, reason="no groff (apt-get install groff-base)")
 def test_man_page_is_clean_for_groff():
-    man = docgen.man_page()
+    man = docgen.man_page(build_parser())
     r = subprocess.run(["groff", "-ww", "-man", "-Tutf8"], input=man, capture_output=True, text=True)
     assert r.returncode == 0 and r.stderr == "", r.stderr
     lines = man.splitlines()
@@ -191,7 +191,7 @@ def test_install_refusal_names_a_command_that_works_from_the_checkout(tmp_path):
     from hostd.service import install
 
     with pytest.raises(HostdError) as e:
-        install.install(prefix=str(tmp_path), exec_path="/home/u/venv/bin/hostd")
+        install.install(build_parser(), prefix=str(tmp_path), exec_path="/home/u/venv/bin/hostd")
     msg = str(e.value)
     assert f"/opt/hostd/bin/pip install '{ROOT}[device]'" in msg, msg  # this checkout, with the extra
     assert "'hostd[device]'" not in msg

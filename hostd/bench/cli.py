@@ -110,8 +110,8 @@ def add_parser(sub, parents) -> None:
 
 def _check_opt(p, goal: str) -> None:
     p.add_argument("--check", nargs="?", const="goal", choices=["goal", "ci"], default=None,
-                   help=f"exit 1 past the goal ({goal}); `--check ci`: the CI bound (docs/benchmarks.md, "
-                   "Guards)")
+                   help=f"exit 1 past the goal ({goal}); `--check ci`: the CI bound (about twice a "
+                   "CPU-time goal; the goal itself for memory, threads and counts)")
 
 
 def _print_rows(rows: list[dict]) -> None:

@@ -150,6 +150,7 @@ def cmd_threshold(args) -> int:
     from hostd.experiment.runner import ThresholdSession
     from hostd.experiment.session import Store
     from hostd.experiment.threshold import ThresholdConfig, thresholds_csv
+    from hostd.perception import calibration
     from hostd.perception import thresholds as th
 
     out = Path(args.out)
@@ -159,7 +160,7 @@ def cmd_threshold(args) -> int:
         plan = store.load(args.token, "threshold")
         cfg = ThresholdConfig(**plan["config"])
     else:
-        prior = th.resolve(args.prior)
+        prior = calibration.resolve_curve(args.prior)
         freqs = args.frequencies or [float(f) for f in th.default_curve().freq_hz]
         reach = [display.reach.reach_um(f) if hasattr(display, "reach") else 0.0 for f in freqs]
         if not all(r > 0 for r in reach):
@@ -242,7 +243,7 @@ def cmd_calibration(args) -> int:
     from hostd.perception import calibration
     from hostd.perception import thresholds as th
 
-    curve = th.load_csv(args.thresholds)
+    curve = calibration.load_curve(args.thresholds)
     if args.fit:
         try:
             fit = json.loads(Path(args.fit).read_text())

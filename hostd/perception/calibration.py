@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from hostd.errors import ThresholdError
-from hostd.perception.thresholds import ThresholdCurve, canonical_table
+from hostd.perception.thresholds import ThresholdCurve, canonical_table, default_curve, load_csv
 
 FORMAT = "hostd-calibration-1"
 SUFFIX = ".toml"
@@ -87,6 +87,17 @@ def load(path: str | Path) -> Calibration:
         raise ThresholdError(f"{p}: name must be one word without '@'")
     return Calibration(ThresholdCurve(f, b, name=name), float(doc["a"]), float(doc["b"]), name,
                        {str(k): str(v) for k, v in prov.items()})
+
+
+def load_curve(path: str | Path) -> ThresholdCurve:
+    """What a --thresholds option (or the quality.thresholds key) names: a threshold CSV, or a
+    calibration file (.toml), whose curve it gives: every reader of that option takes one as-is."""
+    return load(path).curve if is_calibration(path) else load_csv(path)
+
+
+def resolve_curve(path: str | Path | None) -> ThresholdCurve:
+    """load_curve(path), or the shipped default curve when no path is given."""
+    return load_curve(path) if path else default_curve()
 
 
 def _toml_str(s: str) -> str:

@@ -126,13 +126,9 @@ def load_csv(path: str | Path) -> ThresholdCurve:
 
     A header that names its columns (frequency_hz, threshold_um, and others such as the
     interval ci_low_um, ci_high_um that `hostd experiment threshold` writes) selects those two
-    by name and ignores the rest. A calibration file (.toml, hostd.perception.calibration) gives
-    its curve: every `--thresholds` reads one as-is."""
+    by name and ignores the rest. (A command's --thresholds also takes a calibration file:
+    hostd.perception.calibration.load_curve reads either.)"""
     p = Path(path)
-    if str(p).endswith(".toml"):
-        from hostd.perception import calibration
-
-        return calibration.load(p).curve
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:

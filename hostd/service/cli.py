@@ -207,7 +207,8 @@ def cmd_doctor(args) -> int:
 def cmd_install_service(args) -> int:
     from hostd.service.install import install
 
-    return install(args.prefix, dry_run=args.dry_run, enable=args.enable, exec_path=args.exec_path)
+    return install(args.root_parser, args.prefix, dry_run=args.dry_run, enable=args.enable,
+                   exec_path=args.exec_path)
 
 
 def add_parsers(sub) -> None:

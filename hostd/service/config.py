@@ -268,10 +268,10 @@ def load(path: str | Path | None) -> Config:
             raise ConfigError(f"{p}: quality.calibration: {e}") from None
         cfg.quality.a, cfg.quality.b = cal.a, cal.b
     if cfg.quality.thresholds:
-        from hostd.perception.thresholds import load_csv
+        from hostd.perception.calibration import load_curve
 
         try:
-            load_csv(cfg.quality.thresholds)
+            load_curve(cfg.quality.thresholds)
         except Exception as e:
             raise ConfigError(f"{p}: quality.thresholds: {e}") from None
     return cfg

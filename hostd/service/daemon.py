@@ -209,9 +209,9 @@ class Daemon:
             cal = calibration.load(cfg.quality.calibration)
             self.curve, self.calibration = cal.curve, cal.label
         elif cfg.quality.thresholds:
-            from hostd.perception.thresholds import load_csv
+            from hostd.perception.calibration import load_curve
 
-            self.curve = load_csv(cfg.quality.thresholds)
+            self.curve = load_curve(cfg.quality.thresholds)
         ctx = mp.get_context("spawn")
         self.select_lock = threading.Lock()  # one select or stop at a time
         self.selected_sha: str | None = None

@@ -83,18 +83,19 @@ def unit_text(exe: Path) -> str:
     return text.replace(SHIPPED_EXEC, str(exe))
 
 
-def plan(prefix: Path, exe: Path) -> list[tuple[Path, bytes, int, bool]]:
+def plan(prefix: Path, exe: Path, parser) -> list[tuple[Path, bytes, int, bool]]:
     """(destination, content, mode, overwrite) for every file: the unit and its companions, the man
-    page the unit's Documentation= names and the shell completions (generated from the parser)."""
+    page the unit's Documentation= names and the shell completions (generated from `parser`, hostd's
+    whole command line: hostd.parser.build_parser())."""
     from hostd import docgen
 
     out = []
     for src, dest, mode in FILES:
         data = unit_text(exe).encode() if src == "hostd.service" else (paths.systemd_dir() / src).read_bytes()
         out.append((prefix / dest, data, mode, True))
-    out.append((prefix / docgen.MAN_DEST, docgen.man_page().encode(), 0o644, True))
+    out.append((prefix / docgen.MAN_DEST, docgen.man_page(parser).encode(), 0o644, True))
     for shell, dest in docgen.COMPLETION_DEST.items():
-        out.append((prefix / dest, docgen.completion(shell).encode(), 0o644, True))
+        out.append((prefix / dest, docgen.completion(shell, parser).encode(), 0o644, True))
     out.append((prefix / CONFIG_DEST, (paths.shipped_dir() / "hostd.toml").read_bytes(), 0o644, False))
     return out
 
@@ -136,8 +137,10 @@ def commands(enable: bool, syspaths: list[str] | None = None) -> list[list[str]]
     return [*out, ENABLE] if enable else out
 
 
-def install(prefix: str = "/", dry_run: bool = False, run_commands: bool | None = None,
+def install(parser, prefix: str = "/", dry_run: bool = False, run_commands: bool | None = None,
             enable: bool = False, exec_path: str | None = None) -> int:
+    """parser: hostd's whole command line (hostd.parser.build_parser()), for the man page and the
+    completions."""
     root = Path(prefix)
     live = root.resolve() == Path("/") if run_commands is None else run_commands
     if exec_path is not None:  # a package build names where hostd will be (it need not exist yet)
@@ -150,7 +153,7 @@ def install(prefix: str = "/", dry_run: bool = False, run_commands: bool | None 
         why = exec_problem(exe, Path(sys.executable).resolve())
     if why:
         raise HostdError(f"refusing to install a unit that cannot start: {why}; {fix()}")
-    steps = plan(root, exe)
+    steps = plan(root, exe, parser)
     say = "would install" if dry_run else "installed"
     for dest, data, mode, overwrite in steps:
         if dest.exists() and not overwrite:

@@ -51,10 +51,10 @@ def texture_export(spec: str, args: argparse.Namespace):
 
     prov: dict = {"tool": f"hostd {__version__}", "source": Path(spec).name}
     if _is_stream(spec):
-        from hostd.commands import _read_stream
+        from hostd.fileio import read_stream
         from hostd.quality import score_stream
 
-        s = _read_stream(spec)
+        s = read_stream(spec)
         heights, spacing, coeffs, n, length = s.reconstruct(), s.spacing_um, s.coefficients, s.n, s.length_mm
         setting = (f"g_db={s.g_db}" if s.method == "shaped" else f"levels={s.levels}" if s.method == "quant"
                    else f"b0_db={s.b0_db},value_bits={s.value_bits}")
