@@ -9,8 +9,10 @@ counted as a deadline miss, a pause longer than the device's buffer as a stall.
 Recovery. Machines stall a process for 100 ms and more (even under SCHED_FIFO). The device
 then runs dry (underrun: it ramps to zero and keeps running) or, after its host timeout,
 ramps to zero and goes idle. The pump watches every STATUS and, as soon as it runs again:
-  - device idle / ramping down while a texture is selected (host timeout, a reset, idle after
-    a stall): STOP (clears what the device buffered while idle), re-prime the buffer, START;
+  - device idle while a texture is selected (host timeout, a reset, idle after a stall):
+    STOP (clears what the device buffered while idle), re-prime the buffer, START; a device
+    still ramping down (a host timeout, at most 50 ms) is let finish first, so the soft start
+    begins where the device is, at zero;
   - device running but dry (underrun): refill at once;
 and in both cases the output restarts with a soft start from zero (the device's own ramp
 took it there), and the jitter buffer's fill target rises. Each episode is logged once when
@@ -86,6 +88,9 @@ class _Episode:
     cause: str
     silent_since_s: float  # device time of the last sample played from the buffer before it
     host_start: float  # host time it was noticed
+
+
+RAMP_DOWN = pr.STATES["RAMP_DOWN"]
 
 
 def _log_nothing(_msg: str) -> None:
@@ -270,13 +275,17 @@ class Pump:
             else:
                 if flags & UNDERRUN_BIT or new_underrun:
                     self._set_fill(self._fill * self.jitter.rise_factor)
-                self._restart()
+                if s["state"] != RAMP_DOWN:
+                    self._restart()
             return
         # an episode is open: is the device playing again?
         if s["state"] != RUNNING:
             if self._episode.cause == "underrun":  # the underrun outlasted the host timeout
                 self._episode.cause = "host timeout" if flags & HOST_TIMEOUT_BIT else "device idle"
-            self._restart()
+            if s["state"] != RAMP_DOWN:
+                self._restart()
+            # (else the device is still ramping its output to zero after a host timeout, for at
+            # most HP_RAMP_TICKS: the soft start begins once it is there, from zero as it assumes)
             return
         if flags & UNDERRUN_BIT or self._last_played_dev_s is None \
                 or self._last_played_dev_s <= self._episode.silent_since_s:
