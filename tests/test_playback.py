@@ -11,6 +11,7 @@ what the device did.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -91,6 +92,9 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     # the device's guarantee: host silence past its timeout, then a ramp of at most ramp_ticks
     # (+ a STATUS period for the last bytes still in the pty), and the output is zero
     silent_ticks = pr.P["default_timeout_ms"] * RATE // 1000 + pr.P["ramp_ticks"] + 3
+    # the texture's amplitude while it played from the buffer (the 99th percentile of |code|)
+    steady = float(np.percentile(np.abs(codes[played]), 99))
+    assert steady > 500
     for (t_stop, t_cont), stall_s in zip(events, stalls, strict=True):
         c = hp.tick_at(t_cont) - tick0
         s0 = hp.tick_at(t_stop) - tick0
@@ -109,8 +113,11 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
         # reach zero first; then the first 5 ms are well below the texture's steady amplitude
         assert codes[resumed - 3 : resumed].tolist() == [0, 0, 0], f"{stall_s} s: from {codes[resumed - 1]}"
         first = np.abs(codes[resumed : resumed + 15]).max()
-        steady = np.abs(codes[resumed + 300 : resumed + 900]).max()
-        assert steady > 500 and first <= 0.3 * steady, (first, steady)
+        assert first <= 0.3 * steady, (first, steady)
+        # and it comes back to the texture's amplitude before the next pause (at least 1 s on;
+        # a loaded machine's own underruns start soft again, so not within a fixed window)
+        nxt = next((hp.tick_at(a) - tick0 for a, _ in events if hp.tick_at(a) - tick0 > c), codes.size)
+        assert np.abs(codes[resumed:nxt]).max() >= 0.5 * steady, f"{stall_s} s: did not come back"
     # health figures = what the device did (its counters, cut at the status's device time)
     g = int(np.ceil(st["device_time_s"] * RATE - 1e-6))
     fig = hostport.playback_figures(rec[rec["tick"] <= g + 1])
@@ -122,7 +129,14 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     assert abs(st["played_fraction"] - fig["played_fraction"]) < 0.01
     assert st["device_state"] == "running" and st["state"] == "playing"
     assert isinstance(st["device_faults"], list)
-    assert journal.count("playback recovered after") == st["recoveries"]  # once per episode
+    # each episode logged once: never more lines than episodes. The journal holds back a line
+    # identical to a recent one (hostd.service.logsetup's back-off) and counts it in a later
+    # "(repeated N more times" line, so a machine whose load adds underrun episodes of equal text
+    # logs fewer; the pauses' host timeouts, seconds apart, are each there
+    lines = [ln for ln in journal.splitlines() if "playback recovered after" in ln]
+    held = sum(int(n) for n in re.findall(r"\(repeated (\d+) more times", "\n".join(lines)))
+    assert len(lines) + held <= st["recoveries"], (len(lines), held, st["recoveries"])
+    assert sum("after host timeout" in ln for ln in lines) >= len(stalls), lines
 
 
 def test_a_real_jump_of_the_hand_is_relocked_within_5_reports(port_factory, tmp_path):

@@ -24,7 +24,9 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "io_retries", "io_dropped", "batch_p50_us", "batch_p99_us", "batch_p999_us",
                "device_time_s", "render_at", "device_uploads", "wait_ticks", "render_reason",
                "device_host_lost", "device_reuploads", "device_rendered_s", "device_faded_s",
-               "device_idle_s", "wakeups", "compiled_cycles")
+               "device_idle_s", "wakeups", "compiled_cycles",
+               "publish_seq")  # odd while publish() writes: readers take a whole snapshot (a seqlock)
+PUBLISH_SEQ = len(STAT_FIELDS) - 1
 STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
                 "batch_p50_us", "batch_p99_us", "batch_p999_us", "device_rendered_s", "device_faded_s",
@@ -242,6 +244,14 @@ def pump_main(cfg, conn, stats) -> None:
     last_pct = [0.0]
 
     def publish() -> None:
+        seq = stats[PUBLISH_SEQ]
+        stats[PUBLISH_SEQ] = seq + 1  # odd: a snapshot is being written
+        try:
+            _publish()
+        finally:
+            stats[PUBLISH_SEQ] = seq + 2
+
+    def _publish() -> None:
         s = link.stats.last_status
         if s:
             put("fill", s["buffer_fill"])
