@@ -10,6 +10,12 @@ played from the buffer over ticks since the first one).
 
 The hand follows the tick's due time (firmware/port/common/sim.c, 5835b3f): a real device reads
 its encoder at the tick, and a port the OS held up must not charge its own lateness to the link.
+The device reports its encoder in a STATUS every 3rd tick, so a step waits 0 to 2 ticks for the
+next one. Steps every 0.4 s (1200 ticks, a multiple of 3) all landed at one phase of that: at a
+STATUS tick when the hand followed the port's real time (3.3 ms p50 before 5835b3f), a tick
+after it with the due time (4.0 ms, 2 ticks more). A hand moves at any phase: the steps come
+every STEP_PERIOD_S = 0.4 s + 1/9000 s, a third of a tick later each time, so the phases are
+sampled evenly and the p50 is the link's, not the phase's.
 
 `sweep()` runs fixed fill targets (the adaptive rise off, so each row is that target's cost),
 quiet and beside a CPU hog per core; `check()` is the guard of docs/benchmarks.md.
@@ -30,6 +36,7 @@ from hostd.device import hostport
 RATE_HZ = 3000.0
 SKIP_TICKS = 3000  # the first second: start-up and the soft start
 HOG = "while True:\n    pass\n"
+STEP_PERIOD_S = 0.4 + 1.0 / 9000.0  # 1200 1/3 ticks: the steps sample every phase of the STATUS period
 
 # the guard (docs/benchmarks.md, "Link latency"): the goal is p50 <= 3.5 ms with no underrun on a
 # quiet 2-core machine; the check's bounds hold on a busy one, about twice the goal
@@ -38,8 +45,8 @@ CHECK_P50_MS = 7.0  # median over the runs of each run's p50
 CHECK_UNDERRUNS_PER_MIN = 3.0  # median over the runs, from the device's counters
 
 
-def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = 0.4, step_mm: float = 0.05,
-        adaptive: bool = True) -> dict:
+def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = STEP_PERIOD_S,
+        step_mm: float = 0.05, adaptive: bool = True) -> dict:
     """One run. adaptive=False holds the fill target (no rise after an underrun)."""
     from hostd.bench.accuracy import texture_coeffs
     from hostd.device.link import DeviceLink
@@ -51,7 +58,7 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = 0.4, s
     exe = hostport.build()
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / "dac.bin"
-        proc = subprocess.Popen([str(exe), "--motion", f"steps:{period_s}:{step_mm}", "--log", str(log),
+        proc = subprocess.Popen([str(exe), "--motion", f"steps:{period_s!r}:{step_mm}", "--log", str(log),
                                  "--duration", str(duration_s + 2)], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
         try:
@@ -82,6 +89,7 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = 0.4, s
     played = (rec["flags"] & hostport.PLAYED) != 0
     changes = np.flatnonzero(np.diff(enc) != 0) + 1
     lat_ticks = []
+    waits = []  # ticks each step waited for the STATUS that reports it (sent when tick % 3 == 0)
     skipped = 0
     for i in changes:
         if i < SKIP_TICKS:  # let start-up and the soft start pass
@@ -95,6 +103,7 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = 0.4, s
         after = np.flatnonzero(code[i : i + 900] != rest)
         if after.size:
             lat_ticks.append(int(after[0]))
+            waits.append(-int(rec["tick"][i]) % 3)
     lat_ms = np.array(lat_ticks) / RATE_HZ * 1e3
     fig = hostport.playback_figures(rec)
     minutes = max(fig["ticks"], 1) / RATE_HZ / 60.0
@@ -112,6 +121,8 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = 0.4, s
             "dac_underrun_episodes": fig["underrun_episodes"], "underruns_port_late": port_late,
             "ticks_port_late": int(late.sum()),
             "played_fraction": fig["played_fraction"], "final_target_fill": final_fill,
+            "p50_ms_by_status_wait": {f"{w} ticks": float(np.median(lat_ms[np.array(waits) == w]))
+                                      for w in range(3) if w in waits},
             "p50_ms": float(np.median(lat_ms)) if lat_ms.size else nan,
             "min_ms": float(lat_ms.min()) if lat_ms.size else nan,
             "max_ms": float(lat_ms.max()) if lat_ms.size else nan}
