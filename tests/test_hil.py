@@ -177,11 +177,14 @@ def test_daemon_plays(hil, transport, where):
     # played from the host's stream (host) or rendered by itself (device); the rate is asserted
     # where KVM runs the guest
     kvm = hil["host"]["accel"] == "kvm"
+    # under TCG what the host streams scales with the emulated CPU's speed, which the guest
+    # measured at boot (hil_suite.Pace: 22x slower than nominal on a host at load ~15, 2026-11-26)
+    slow = max(1.0, (hil.get("pace") or {}).get("factor", 1.0))
     if where == "host":
-        assert dac["ticks_played"] > (3000 if kvm else 300), dac
+        assert dac["ticks_played"] > (3000 if kvm else 300 / slow), (dac, hil.get("pace"))
     else:
         assert dac["ticks_rendering"] > 3000, dac
-    assert dac["nonzero_codes"] > (1000 if kvm else 300), dac
+    assert dac["nonzero_codes"] > (1000 if kvm else 300 / slow), (dac, hil.get("pace"))
     if kvm:
         assert st["played_fraction"] > 0.9, st
 

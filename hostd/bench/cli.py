@@ -165,7 +165,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             else:
                 runs = args.runs or (latency.CHECK_RUNS if args.check else 1)
                 sums = [latency.repeat(runs, args.duration, args.target_fill, load=args.load)]
-        except RuntimeError as e:
+        except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench latency: error: {e}") from None
         bad = latency.check(sums[0]) if args.check else []
         if args.json:

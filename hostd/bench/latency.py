@@ -59,7 +59,7 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = STEP_P
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / "dac.bin"
         proc = subprocess.Popen([str(exe), "--motion", f"steps:{period_s!r}:{step_mm}", "--log", str(log),
-                                 "--duration", str(duration_s + 2)], stdout=subprocess.PIPE,
+                                 "--duration", str(duration_s + 60)], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
         try:
             port = proc.stdout.readline().split()[1]
