@@ -54,7 +54,8 @@ def test_device_mode_daemon_survives_a_2s_sigstop_and_swaps_without_a_jump(tmp_p
         os.killpg(daemon.pid, signal.SIGSTOP)
         t_stop = time.monotonic()
         time.sleep(2.0)
-        t_cont = time.monotonic()
+        # 2 s of the device's clock (the port's ticks): a loaded machine slows the port too
+        t_cont = hp.wait_ticks(t_stop, 6000)
         os.killpg(daemon.pid, signal.SIGCONT)
         time.sleep(0.5)
         t_swap = time.monotonic()
@@ -79,7 +80,7 @@ def test_device_mode_daemon_survives_a_2s_sigstop_and_swaps_without_a_jump(tmp_p
     rendering = (rec["flags"] & hostport.RENDERING) != 0
     tick0 = int(rec["tick"][0])
     a, b = hp.tick_at(t_stop) - tick0, hp.tick_at(t_cont) - tick0
-    assert b - a > 5000
+    assert b - a >= 6000
     assert rendering[a:b].all(), "the display stopped rendering while the daemon was stopped"
     pause = codes[a:b]
     assert np.abs(pause).max() > 1000  # the texture went on under the moving hand

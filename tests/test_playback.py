@@ -11,6 +11,7 @@ what the device did.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -51,19 +52,26 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     stalls = (0.1, 0.3, 2.0)
     events = []
     try:
+        t_spawn = time.monotonic()
         wait_for(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 30, "the device")
+        # what follows waits on the daemon's start-up work (its pump's first render): a budget in
+        # units of the start it just made, as loaded as the machine is now
+        start_s = time.monotonic() - t_spawn
         vtx = tmp_path / "wood.vtx"
         assert main(["encode", "synthetic:wood:1", "-o", str(vtx), "--method", "quant",
                      "--levels", "14"]) == 0
         send_file(sock, str(vtx), "wood")
         request(sock, {"cmd": "select", "name": "wood"})
-        wait_for(lambda: request(sock, {"cmd": "status"})["device_samples_played"] > 3000, 20, "playback")
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_samples_played"] > 3000,
+                 max(20.0, 10 * start_s), f"playback (the daemon started in {start_s:.1f} s)")
         for stall_s in stalls:
             time.sleep(1.0)
             os.killpg(daemon.pid, signal.SIGSTOP)  # the daemon and its pump process
             t_stop = time.monotonic()
+            # the pause is stall_s of the device's clock (the port's ticks): a loaded machine
+            # slows the port too, and the device's host timeout counts its ticks, not ours
             time.sleep(stall_s)
-            t_cont = time.monotonic()
+            t_cont = hp.wait_ticks(t_stop, round(stall_s * RATE))
             os.killpg(daemon.pid, signal.SIGCONT)
             events.append((t_stop, t_cont))
         time.sleep(1.5)
@@ -81,11 +89,19 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     tick0 = int(rec["tick"][0])
     max_step = int(min(60000.0 / RATE / (80.0 / 150.0 * 15.0 * 10.0 / 32767) + 1, 32767))
     assert np.abs(np.diff(codes)).max() <= max_step, "slew limit broken"
+    # the device's guarantee: host silence past its timeout, then a ramp of at most ramp_ticks
+    # (+ a STATUS period for the last bytes still in the pty), and the output is zero
+    silent_ticks = pr.P["default_timeout_ms"] * RATE // 1000 + pr.P["ramp_ticks"] + 3
+    # the texture's amplitude while it played from the buffer (the 99th percentile of |code|)
+    steady = float(np.percentile(np.abs(codes[played]), 99))
+    assert steady > 500
     for (t_stop, t_cont), stall_s in zip(events, stalls, strict=True):
         c = hp.tick_at(t_cont) - tick0
         s0 = hp.tick_at(t_stop) - tick0
-        # during the pause the device ran dry or timed out and ramped to zero
-        assert codes[c - 3 : c + 1].tolist() == [0, 0, 0, 0], f"{stall_s} s: output not at zero at SIGCONT"
+        # during the pause the device ran dry or timed out and ramped to zero (a 100 ms pause may
+        # end within its ramp: the design says zero from s0 + silent_ticks on, not before)
+        assert c - s0 >= round(stall_s * RATE), "the pause is measured in the device's ticks"
+        assert not codes[s0 + silent_ticks : c + 1].any(), f"{stall_s} s: output not at zero before SIGCONT"
         # (what the buffer held at most: the highest fill target and a cycle's worth in flight)
         held = 90 + 2 * pr.MAX_SAMPLES
         assert not played[s0 + held + 30 : c].any(), f"{stall_s} s: played from the buffer during the pause?"
@@ -93,10 +109,15 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
         resumed = c + int(np.argmax(played[c:]))
         assert played[c:].any() and resumed - c <= RATE // 10, \
             f"{stall_s} s pause: resumed {(resumed - c) / RATE * 1e3:.0f} ms after SIGCONT\n{journal[-1500:]}"
-        # soft start: the first 5 ms are well below the texture's steady amplitude
+        # soft start from zero: the pump lets a device still ramping down after its host timeout
+        # reach zero first; then the first 5 ms are well below the texture's steady amplitude
+        assert codes[resumed - 3 : resumed].tolist() == [0, 0, 0], f"{stall_s} s: from {codes[resumed - 1]}"
         first = np.abs(codes[resumed : resumed + 15]).max()
-        steady = np.abs(codes[resumed + 300 : resumed + 900]).max()
-        assert steady > 500 and first <= 0.3 * steady, (first, steady)
+        assert first <= 0.3 * steady, (first, steady)
+        # and it comes back to the texture's amplitude before the next pause (at least 1 s on;
+        # a loaded machine's own underruns start soft again, so not within a fixed window)
+        nxt = next((hp.tick_at(a) - tick0 for a, _ in events if hp.tick_at(a) - tick0 > c), codes.size)
+        assert np.abs(codes[resumed:nxt]).max() >= 0.5 * steady, f"{stall_s} s: did not come back"
     # health figures = what the device did (its counters, cut at the status's device time)
     g = int(np.ceil(st["device_time_s"] * RATE - 1e-6))
     fig = hostport.playback_figures(rec[rec["tick"] <= g + 1])
@@ -108,7 +129,14 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     assert abs(st["played_fraction"] - fig["played_fraction"]) < 0.01
     assert st["device_state"] == "running" and st["state"] == "playing"
     assert isinstance(st["device_faults"], list)
-    assert journal.count("playback recovered after") == st["recoveries"]  # once per episode
+    # each episode logged once: never more lines than episodes. The journal holds back a line
+    # identical to a recent one (hostd.service.logsetup's back-off) and counts it in a later
+    # "(repeated N more times" line, so a machine whose load adds underrun episodes of equal text
+    # logs fewer; the pauses' host timeouts, seconds apart, are each there
+    lines = [ln for ln in journal.splitlines() if "playback recovered after" in ln]
+    held = sum(int(n) for n in re.findall(r"\(repeated (\d+) more times", "\n".join(lines)))
+    assert len(lines) + held <= st["recoveries"], (len(lines), held, st["recoveries"])
+    assert sum("after host timeout" in ln for ln in lines) >= len(stalls), lines
 
 
 def test_a_real_jump_of_the_hand_is_relocked_within_5_reports(port_factory, tmp_path):

@@ -12,7 +12,7 @@ import pytest
 from hostd.device import protocol as pr
 from hostd.device.health import DeviceHealth
 from hostd.device.link import DeviceLink
-from hostd.device.pump import JitterConfig, Pump
+from hostd.device.pump import LOW_WATER_MARGIN, JitterConfig, Pump
 from hostd.device.simdev import SimTransport
 from hostd.errors import DeviceBusy, DeviceGone
 from hostd.render.motion import MotionConfig, MotionEstimator
@@ -79,18 +79,43 @@ def test_restart_is_a_soft_start_and_the_old_buffer_is_not_played():
     assert after[300:].max() >= 0.5 * steady  # and comes back to the texture's amplitude
 
 
-def test_jitter_buffer_rises_after_underruns_bounded_and_decays_while_the_host_keeps_up():
-    t, link, pump, _logs = _playing(target_fill=12, max_fill=90, decay_every_s=0.05)
+def test_jitter_buffer_rises_after_underruns_bounded_and_comes_down_after_a_quiet_period():
+    t, link, pump, _logs = _playing(target_fill=12, max_fill=90, quiet_s=0.05)
     peak = 0
-    for _ in range(6):  # underrun after underrun
-        _cycles(t, pump, 50)
+    _cycles(t, pump, 50)
+    for _ in range(6):  # underrun after underrun, each within the quiet period after the last
         t.advance(60)  # 20 ms
-        _cycles(t, pump, 5)
+        _cycles(t, pump, 20)
         peak = max(peak, pump.target_fill)
     assert peak == 90  # bounded
     assert link.target_fill == pump.target_fill  # the link's flow control follows it
-    _cycles(t, pump, 3000)  # 3 s with no trouble: one sample less every 50 ms
-    assert 12 <= pump.target_fill < peak - 30
+    under = pump.health.underruns
+    # the host kept the device's buffer near the target: after one quiet period of the device's
+    # counters the target is back at its base at once, not a sample per period
+    _cycles(t, pump, 60)
+    assert pump.target_fill == 12 and link.target_fill == 12
+    _cycles(t, pump, 500)
+    assert pump.target_fill == 12 and pump.health.underruns == under
+
+
+def test_a_raised_target_keeps_what_the_device_buffer_needed_in_its_quiet_period():
+    t, _link, pump, _logs = _playing(target_fill=12, max_fill=90, quiet_s=0.2)
+    _cycles(t, pump, 100)
+    t.advance(60)  # 20 ms: an underrun, the target doubles
+    _cycles(t, pump, 5)
+    assert pump.target_fill == 24
+    under = pump.health.underruns
+    _cycles(t, pump, 50)
+    assert pump.target_fill == 24  # within the quiet period: the evidence is still being gathered
+    t.advance(15)  # a 5 ms pause the raised target covers: the device's buffer dips, no underrun
+    _cycles(t, pump, 160)
+    assert pump.health.underruns == under
+    low = 24 - 3 - 15  # the dip: a cycle's samples and the pause's below the target
+    # the quiet period ended: the target came down by what the buffer did not use, keeping the dip
+    assert pump.target_fill == 24 - (low - LOW_WATER_MARGIN), pump.target_fill
+    kept = pump.target_fill
+    _cycles(t, pump, 250)  # a quiet period with no dip: back to base
+    assert kept > 12 and pump.target_fill == 12 and pump.health.underruns == under
 
 
 def test_health_counters_unwrap_and_rebaseline_on_a_device_reset():

@@ -34,9 +34,18 @@ def add_parser(sub, parents) -> None:
     q.add_argument("--texture", default="wood", help="synthetic texture (default wood)")
     lat = bsub.add_parser("latency", help="encoder change to first DAC sample, through the firmware on a pty")
     lat.add_argument("--json", action="store_true")
-    lat.add_argument("--duration", type=float, default=8.0, metavar="S")
+    lat.add_argument("--duration", type=float, default=8.0, metavar="S", help="seconds per run (default 8)")
     lat.add_argument("--target-fill", type=int, default=12, metavar="SAMPLES",
                      help="the device buffer's target fill (default 12 = 4 ms)")
+    lat.add_argument("--runs", type=int, default=None, metavar="N",
+                     help="runs per setting, medians reported (default 1; --check 5, --sweep 3)")
+    lat.add_argument("--load", action="store_true", help="a CPU hog per core meanwhile")
+    lat.add_argument("--sweep", action="store_true",
+                     help="what latency costs: fixed fill targets 2..12 ms against underruns per minute "
+                          "and played fraction, quiet and beside a CPU hog per core")
+    lat.add_argument("--check", action="store_true",
+                     help="exit 1 past the guard's bounds (docs/benchmarks.md): median p50 and underruns "
+                          "per minute over 5 runs at the default")
     so = bsub.add_parser("soak", help="the daemon playing for minutes on the firmware's host port: "
                          "played fraction, underruns, silences from the DAC log")
     so.add_argument("--json", action="store_true")
@@ -175,10 +184,28 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if what == "latency":
         from hostd.bench import latency
 
+        if not (1.0 <= args.duration <= 3600 and 1 <= args.target_fill <= 200
+                and (args.runs is None or 1 <= args.runs <= 100)):
+            raise SystemExit("hostd bench latency: error: --duration 1..3600, --target-fill 1..200, "
+                             "--runs 1..100")
         try:
-            rows.append(latency.run(args.duration, args.target_fill))
-        except RuntimeError as e:
+            if args.sweep:
+                sums = latency.sweep(args.runs or 3, args.duration)
+            else:
+                runs = args.runs or (latency.CHECK_RUNS if args.check else 1)
+                sums = [latency.repeat(runs, args.duration, args.target_fill, load=args.load)]
+        except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench latency: error: {e}") from None
+        bad = latency.check(sums[0]) if args.check else []
+        if args.json:
+            print(json.dumps({"machine": common.machine(), "rows": sums,
+                              "check": {"ok": not bad, "failed": bad} if args.check else None}, indent=1))
+        else:
+            print(f"machine: {common.machine()}")
+            print(latency.table(sums))
+            if args.check:
+                print("check: " + ("ok" if not bad else "FAILED: " + "; ".join(bad)))
+        return 1 if bad else 0
     if what == "soak":
         from hostd.bench import soak
 

@@ -67,7 +67,7 @@ static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the refere
 #define NAMES(X)                                                                                          \
     X(renderer) X(record) X(_episode) X(_guard_seq) X(_flags_seen) X(_last_samples_played)                \
     X(_last_played_dev_s) X(_under_seen) X(_fill) X(_last_decay) X(_extra) X(jitter) X(base_fill)         \
-    X(decay_every_s) X(stats) X(cycles) X(late_batches) X(samples) X(deadline_misses) X(max_late_us)      \
+    X(stats) X(cycles) X(late_batches) X(samples) X(deadline_misses) X(max_late_us)      \
     X(step_us) X(relocks) X(implausible_speed) X(_motion_base)             \
     X(_last_cycle_start) X(period_s) X(link) X(health) X(t) X(target_fill) X(_seq) X(_unacked)            \
     X(_time_hi) X(_last_us) X(device_time_s) X(status_host_time) X(_offset_s) X(_offset_host_t)           \
@@ -124,7 +124,7 @@ typedef struct {
     long long flags_seen, last_sp, under_seen, fill, extra, base_fill, cycles, late_batches, samples;
     long long deadline_misses, motion_base0, motion_base1;
     int has_last_played, has_last_cycle, sent_any, record;
-    double last_played_dev_s, last_decay, decay_every_s, max_late_us, period_s, last_cycle_start;
+    double last_played_dev_s, last_decay, max_late_us, period_s, last_cycle_start;
     /* renderer */
     double latency_s;
     long long spb;
@@ -361,7 +361,7 @@ static int load(S *s, PyObject *pump, int mode) {
     TRY(get_d(pump, N_period_s, &s->period_s));
     TRY(get_opt_d(pump, N__last_cycle_start, &s->last_cycle_start, &s->has_last_cycle));
     TRY(get_obj(pump, N_jitter, &o));
-    r = get_ll(o, N_base_fill, &s->base_fill) < 0 || get_d(o, N_decay_every_s, &s->decay_every_s) < 0;
+    r = get_ll(o, N_base_fill, &s->base_fill) < 0;
     Py_CLEAR(o);
     if (r)
         goto fail;
@@ -1266,6 +1266,13 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         *first = 0;
         return HAND(H_BACKLOG, HAND_MSGS);
     }
+    if (s->fill > s->base_fill) {
+        /* a raised fill target: it comes down on the lowest fill the device reports in a quiet
+         * period, which the reference gathers from every STATUS (Pump._on_status, _decay) */
+        *nmsgs = nm;
+        *first = 0;
+        return HAND(H_DECAY, HAND_MSGS);
+    }
     for (int i = 0; i < nm; i++) {
         int r = take_status(s, &msgs[i], now);
         if (r < 0)
@@ -1279,10 +1286,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
     /* after_poll: _supervise (ordinary: nothing to act on) */
     if (s->flags_seen != 0 || s->h_underruns != s->under_seen || s->ls.state != C_RUNNING)
         return HAND(H_SUPERVISE, HAND_AFTER);
-    /* _decay */
-    int decay_now = s->fill <= s->base_fill;
-    if (!decay_now && now - s->last_decay >= s->decay_every_s)
-        return HAND(H_DECAY, HAND_AFTER);
+    /* _decay (at base: the quiet period starts now; a raised target was handed over above) */
     /* fill_estimate, wanted */
     long long in_flight = 0;
     for (int i = 0; i < s->n_un; i++)
@@ -1349,8 +1353,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
     /* ---- commit the after-poll part */
     s->flags_seen = 0;
     s->under_seen = s->h_underruns;
-    if (decay_now)
-        s->last_decay = now; /* (a fill above base whose decay is not yet due: unchanged) */
+    s->last_decay = now;
     if (n == 0)
         return DONE;
     if (fill < (double)s->spb)

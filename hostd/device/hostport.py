@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +69,22 @@ class HostPort:
             if 0 < i < c.size:
                 return int(c["tick"][i - 1])
         return round((host_monotonic_s - self.t0) * 3000.0)
+
+    def wait_ticks(self, since_host_s: float, ticks: int, timeout_s: float = 120.0) -> float:
+        """Until the port has run `ticks` ticks since host time since_host_s (its --clock log,
+        flushed every 10 ms): a pause measured on the device's clock, which a loaded machine
+        stretches in real time. Returns the host time then; TimeoutError past timeout_s."""
+        if self.clock is None:
+            raise RuntimeError("wait_ticks needs the port's --clock log")
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            raw = self.clock.read_bytes()
+            c = np.frombuffer(raw[: len(raw) // 12 * 12], dtype=CLOCK_DTYPE)
+            i = int(np.searchsorted(c["t"], since_host_s))
+            if 0 < i < c.size and int(c["tick"][-1]) - int(c["tick"][i - 1]) >= ticks:
+                return time.monotonic()
+            time.sleep(0.002)
+        raise TimeoutError(f"the host port ran fewer than {ticks} ticks in {timeout_s:g} s")
 
     def close(self) -> None:
         if self.proc.poll() is None:

@@ -9,12 +9,20 @@ counted as a deadline miss, a pause longer than the device's buffer as a stall.
 Recovery. Machines stall a process for 100 ms and more (even under SCHED_FIFO). The device
 then runs dry (underrun: it ramps to zero and keeps running) or, after its host timeout,
 ramps to zero and goes idle. The pump watches every STATUS and, as soon as it runs again:
-  - device idle / ramping down while a texture is selected (host timeout, a reset, idle after
-    a stall): STOP (clears what the device buffered while idle), re-prime the buffer, START;
+  - device idle while a texture is selected (host timeout, a reset, idle after a stall):
+    STOP (clears what the device buffered while idle), re-prime the buffer, START; a device
+    still ramping down (a host timeout, at most 50 ms) is let finish first, so the soft start
+    begins where the device is, at zero;
   - device running but dry (underrun): refill at once;
 and in both cases the output restarts with a soft start from zero (the device's own ramp
 took it there), and the jitter buffer's fill target rises. Each episode is logged once when
 it ends, with its cause and how long the device played nothing from its buffer.
+
+The raised target comes back down on evidence from the device's own counters, not on a clock:
+after a quiet period (JitterConfig.quiet_s without a fault or an underrun episode) it drops by
+what the device's buffer never used in that period, its lowest reported fill less a margin
+(LOW_WATER_MARGIN). A host that kept the buffer well filled gets its latency back at once; one
+whose buffer dipped keeps the part it needed.
 """
 
 from __future__ import annotations
@@ -30,22 +38,29 @@ from hostd.device.health import HOST_TIMEOUT_BIT, RUNNING, UNDERRUN_BIT, DeviceH
 from hostd.device.link import DeviceLink
 from hostd.errors import DeviceBusy
 
+# The device reports its fill every HP_STATUS_PERIOD_TICKS (3) ticks and plays one sample a tick,
+# so its true lowest fill can be 2 below the lowest it reported: the raised target comes down to
+# leave this much, one more than that, at the lowest point of the quiet period.
+LOW_WATER_MARGIN = 3  # samples
+
 
 @dataclass
 class JitterConfig:
-    """The device buffer's fill target adapts: up after an underrun, slowly down after."""
+    """The device buffer's fill target adapts: up after an underrun, down on the device's evidence."""
 
     base_fill: int = 12  # samples (4 ms at 3 kHz): the configured target
     max_fill: int = 90  # samples (30 ms): the most it rises to
     rise_factor: float = 2.0  # after an underrun: target = min(max, target x factor)
-    decay_every_s: float = 2.0  # while the host keeps up: one sample less every this often
+    # a raised target comes down after this long without an underrun or a fault: by what the
+    # device's buffer never used meanwhile (its lowest reported fill less LOW_WATER_MARGIN)
+    quiet_s: float = 1.0
 
     def __post_init__(self) -> None:
         hi = pr.BUFFER_CAPACITY - pr.MAX_SAMPLES
         if not 1 <= self.base_fill <= self.max_fill <= hi:
             raise ValueError(f"jitter buffer: need 1 <= base_fill <= max_fill <= {hi} samples")
-        if not (self.rise_factor >= 1.0 and self.decay_every_s > 0):
-            raise ValueError("jitter buffer: rise_factor >= 1 and decay_every_s > 0")
+        if not (self.rise_factor >= 1.0 and self.quiet_s > 0):
+            raise ValueError("jitter buffer: rise_factor >= 1 and quiet_s > 0")
 
 
 @dataclass
@@ -75,8 +90,14 @@ class _Episode:
     host_start: float  # host time it was noticed
 
 
+RAMP_DOWN = pr.STATES["RAMP_DOWN"]
+
+
 def _log_nothing(_msg: str) -> None:
     pass
+
+
+_NO_LOW = 1 << 16  # above any fill the device can report (u16)
 
 
 class Pump:
@@ -107,7 +128,8 @@ class Pump:
         self._last_samples_played: int | None = None
         self._flags_seen = 0  # fault bits in the statuses taken since the last step
         self._under_seen = 0  # device underrun episodes counted at the last step
-        self._last_decay = link.t.now()
+        self._last_decay = link.t.now()  # start of the quiet period the target may come down after
+        self._low_fill = _NO_LOW  # the device's lowest reported fill in it (while the target is raised)
         self._last_cycle_start: float | None = None
         # counts of renderers and links already replaced (a new one per selection / reconnection)
         self._motion_base = (0, 0)  # relocks, implausible speeds
@@ -145,6 +167,10 @@ class Pump:
                 and f["state"] == RUNNING):
             self._last_played_dev_s = device_time_s
         self._last_samples_played = sp
+        if self._fill > self.jitter.base_fill and self._episode is None and f["state"] == RUNNING:
+            # the evidence the raised target comes down on: how low the device's buffer went
+            # (every STATUS, stale ones too: the compiled cycle hands a raised target's cycles here)
+            self._low_fill = min(self._low_fill, f["buffer_fill"])
         r = self.renderer
         if r is not None and fresh:
             r.on_encoder(device_time_s, f["encoder_count"])
@@ -164,6 +190,12 @@ class Pump:
     def _set_fill(self, n: int) -> None:
         self._fill = max(self.jitter.base_fill, min(self.jitter.max_fill, int(n)))
         self.link.target_fill = self._link_fill()
+        self._quiet_from(self.link.t.now())
+
+    def _quiet_from(self, now: float) -> None:
+        """A new quiet period starts: the evidence gathered so far is spent."""
+        self._last_decay = now
+        self._low_fill = _NO_LOW
 
     def _link_fill(self) -> int:
         """What the link keeps queued: the fill target plus the samples of a cycle beyond 1 ms."""
@@ -243,13 +275,17 @@ class Pump:
             else:
                 if flags & UNDERRUN_BIT or new_underrun:
                     self._set_fill(self._fill * self.jitter.rise_factor)
-                self._restart()
+                if s["state"] != RAMP_DOWN:
+                    self._restart()
             return
         # an episode is open: is the device playing again?
         if s["state"] != RUNNING:
             if self._episode.cause == "underrun":  # the underrun outlasted the host timeout
                 self._episode.cause = "host timeout" if flags & HOST_TIMEOUT_BIT else "device idle"
-            self._restart()
+            if s["state"] != RAMP_DOWN:
+                self._restart()
+            # (else the device is still ramping its output to zero after a host timeout, for at
+            # most HP_RAMP_TICKS: the soft start begins once it is there, from zero as it assumes)
             return
         if flags & UNDERRUN_BIT or self._last_played_dev_s is None \
                 or self._last_played_dev_s <= self._episode.silent_since_s:
@@ -266,12 +302,20 @@ class Pump:
                  f"the buffer; fill target now {self._fill / pr.SAMPLE_RATE_HZ * 1e3:.1f} ms")
 
     def _decay(self) -> None:
+        """A raised target comes down after a quiet period by what the device's buffer never
+        used in it (its lowest reported fill less LOW_WATER_MARGIN), at once; a buffer that
+        dipped that low keeps its target and a new quiet period starts."""
         now = self.link.t.now()
-        if self._episode is not None or self._fill <= self.jitter.base_fill:
-            self._last_decay = now
-        elif now - self._last_decay >= self.jitter.decay_every_s:
-            self._set_fill(self._fill - 1)
-            self._last_decay = now
+        if self._fill <= self.jitter.base_fill:
+            self._last_decay = now  # (at base: nothing gathered, _low_fill stays unset)
+        elif self._episode is not None:
+            self._quiet_from(now)
+        elif now - self._last_decay >= self.jitter.quiet_s:
+            spare = self._low_fill - LOW_WATER_MARGIN if self._low_fill != _NO_LOW else 0
+            if spare > 0:
+                self._set_fill(self._fill - spare)
+            else:
+                self._quiet_from(now)
 
     # ------------------------------------------------------------------ one cycle
     def _send(self, n: int) -> int:

@@ -37,7 +37,14 @@ from hostd.service.lean import children_with_one_blas_thread
 from hostd.service.library import Library, check_name
 from hostd.service.logsetup import CONTROL_CHARS
 from hostd.service.notify import Notifier
-from hostd.service.pumpproc import FLOAT_FIELDS, RENDER_REASONS, STAT_FIELDS, STATE_NAMES, pump_main
+from hostd.service.pumpproc import (
+    FLOAT_FIELDS,
+    PUBLISH_SEQ,
+    RENDER_REASONS,
+    STAT_FIELDS,
+    STATE_NAMES,
+    pump_main,
+)
 
 log = logging.getLogger("hostd")
 MAX_HEADER = 4096
@@ -340,9 +347,18 @@ class Daemon:
             log.error("quality log: cannot record the play of %s: %s", name, e)
 
     def counters(self) -> dict:
-        """The pump's counters, from shared memory."""
-        st = dict(zip(STAT_FIELDS, self.stats[:], strict=True))
-        for k in STAT_FIELDS:
+        """The pump's counters, from shared memory: one snapshot of one publish (the pump's
+        seqlock), so the device's counters and its clock agree; a pump stopped in the middle of
+        a publish (SIGSTOP) leaves a torn one after 10 ms of retries rather than a hang."""
+        for _ in range(20):
+            seq = self.stats[PUBLISH_SEQ]
+            vals = self.stats[:]
+            if seq % 2 == 0 and self.stats[PUBLISH_SEQ] == seq:
+                break
+            time.sleep(0.0005)
+        st = dict(zip(STAT_FIELDS, vals, strict=True))
+        del st["publish_seq"]
+        for k in st:
             if k not in FLOAT_FIELDS:
                 st[k] = int(st[k])
         st["state"] = STATE_NAMES.get(st["state"], "?")

@@ -26,7 +26,9 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "io_retries", "io_dropped", "batch_p50_us", "batch_p99_us", "batch_p999_us",
                "device_time_s", "render_at", "device_uploads", "wait_ticks", "render_reason",
                "device_host_lost", "device_reuploads", "device_rendered_s", "device_faded_s",
-               "device_idle_s", "wakeups", "compiled_cycles", "voluntary_switches")
+               "device_idle_s", "wakeups", "compiled_cycles", "voluntary_switches",
+               "publish_seq")  # odd while publish() writes: readers take a whole snapshot (a seqlock)
+PUBLISH_SEQ = len(STAT_FIELDS) - 1
 STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
                 "batch_p50_us", "batch_p99_us", "batch_p999_us", "device_rendered_s", "device_faded_s",
@@ -266,6 +268,14 @@ def pump_main(cfg, conn, stats) -> None:
     resets_seen = [0, -math.inf]  # the device's counter resets (health.resets), time of the last one
 
     def publish() -> None:
+        seq = stats[PUBLISH_SEQ]
+        stats[PUBLISH_SEQ] = seq + 1  # odd: a snapshot is being written
+        try:
+            _publish()
+        finally:
+            stats[PUBLISH_SEQ] = seq + 2
+
+    def _publish() -> None:
         # a device's garbage, cut, oversized or unknown messages: dropped (bad CRC, bad layout),
         # never acted on; one line per burst (the first bad one after a quiet second), naming it
         framer = getattr(transport, "deframer", None)

@@ -11,7 +11,8 @@
  *
  * --clock writes, for every tick, when it actually ran: 12-byte records LE u32 tick, f64
  * CLOCK_MONOTONIC seconds (so tests can place host events, e.g. a SIGCONT, on the device's
- * tick axis even when the host port itself ran late).
+ * tick axis even when the host port itself ran late); flushed every 30 ticks, so a test can
+ * follow the device's clock while the port runs.
  * --jump-at moves the simulated hand by MM at once at SECONDS (and keeps it there): a real
  * jump (the hand lifted and set down elsewhere), which the host's motion estimate must re-lock
  * to. The encoder still steps through every count in between, within one tick.
