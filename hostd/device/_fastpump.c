@@ -42,7 +42,7 @@
 
 #include "../render/render_core.h"
 
-#define REVISION 1 /* fastpump.C_REVISION must equal this */
+#define REVISION 2 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
 #define MAX_MSGS 64
 #define MAX_UNACKED 64
@@ -67,6 +67,7 @@ static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the refere
 #define NAMES(X)                                                                                          \
     X(renderer) X(record) X(_episode) X(_guard_seq) X(_flags_seen) X(_last_samples_played)                \
     X(_last_played_dev_s) X(_under_seen) X(_fill) X(_last_decay) X(_extra) X(jitter) X(base_fill)         \
+    X(_low_fill) X(quiet_s)                                                                               \
     X(stats) X(cycles) X(late_batches) X(samples) X(deadline_misses) X(max_late_us)      \
     X(step_us) X(relocks) X(implausible_speed) X(_motion_base)             \
     X(_last_cycle_start) X(period_s) X(link) X(health) X(t) X(target_fill) X(_seq) X(_unacked)            \
@@ -125,6 +126,8 @@ typedef struct {
     long long deadline_misses, motion_base0, motion_base1;
     int has_last_played, has_last_cycle, sent_any, record;
     double last_played_dev_s, last_decay, max_late_us, period_s, last_cycle_start;
+    long long low_fill; /* the device's lowest reported fill while the target is raised (Pump._low_fill) */
+    double quiet_s;     /* JitterConfig.quiet_s */
     /* renderer */
     double latency_s;
     long long spb;
@@ -357,11 +360,12 @@ static int load(S *s, PyObject *pump, int mode) {
     TRY(get_ll(pump, N__under_seen, &s->under_seen));
     TRY(get_ll(pump, N__fill, &s->fill));
     TRY(get_d(pump, N__last_decay, &s->last_decay));
+    TRY(get_ll(pump, N__low_fill, &s->low_fill));
     TRY(get_ll(pump, N__extra, &s->extra));
     TRY(get_d(pump, N_period_s, &s->period_s));
     TRY(get_opt_d(pump, N__last_cycle_start, &s->last_cycle_start, &s->has_last_cycle));
     TRY(get_obj(pump, N_jitter, &o));
-    r = get_ll(o, N_base_fill, &s->base_fill) < 0;
+    r = get_ll(o, N_base_fill, &s->base_fill) < 0 || get_d(o, N_quiet_s, &s->quiet_s) < 0;
     Py_CLEAR(o);
     if (r)
         goto fail;
@@ -735,6 +739,7 @@ static int store(S *s) {
         e |= SET_D(s->pump, _last_played_dev_s, s->last_played_dev_s);
     e |= SET_LL(s->pump, _under_seen, s->under_seen);
     e |= SET_D(s->pump, _last_decay, s->last_decay);
+    e |= SET_LL(s->pump, _low_fill, s->low_fill);
     if (s->has_last_cycle)
         e |= SET_D(s->pump, _last_cycle_start, s->last_cycle_start);
     e |= SET_LL(s->pstats, cycles, s->cycles);
@@ -1133,6 +1138,8 @@ static int take_status(S *s, const msg_t *m, double now) {
         s->last_played_dev_s = device_time_s;
         s->has_last_played = 1;
     }
+    if (s->fill > s->base_fill && f.state == C_RUNNING && f.fill < s->low_fill)
+        s->low_fill = f.fill; /* the evidence a raised target comes down on (no episode here) */
     s->last_sp = f.played;
     s->ls = f;
     s->ls_new = 1;
@@ -1266,13 +1273,6 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         *first = 0;
         return HAND(H_BACKLOG, HAND_MSGS);
     }
-    if (s->fill > s->base_fill) {
-        /* a raised fill target: it comes down on the lowest fill the device reports in a quiet
-         * period, which the reference gathers from every STATUS (Pump._on_status, _decay) */
-        *nmsgs = nm;
-        *first = 0;
-        return HAND(H_DECAY, HAND_MSGS);
-    }
     for (int i = 0; i < nm; i++) {
         int r = take_status(s, &msgs[i], now);
         if (r < 0)
@@ -1286,7 +1286,10 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
     /* after_poll: _supervise (ordinary: nothing to act on) */
     if (s->flags_seen != 0 || s->h_underruns != s->under_seen || s->ls.state != C_RUNNING)
         return HAND(H_SUPERVISE, HAND_AFTER);
-    /* _decay (at base: the quiet period starts now; a raised target was handed over above) */
+    /* _decay: at base, the quiet period starts now (committed below); a raised target after its
+     * quiet period comes down by the reference's rule (Pump._decay), handed over when it is due */
+    if (s->fill > s->base_fill && now - s->last_decay >= s->quiet_s)
+        return HAND(H_DECAY, HAND_AFTER);
     /* fill_estimate, wanted */
     long long in_flight = 0;
     for (int i = 0; i < s->n_un; i++)
@@ -1353,7 +1356,8 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
     /* ---- commit the after-poll part */
     s->flags_seen = 0;
     s->under_seen = s->h_underruns;
-    s->last_decay = now;
+    if (s->fill <= s->base_fill)
+        s->last_decay = now;
     if (n == 0)
         return DONE;
     if (fill < (double)s->spb)
