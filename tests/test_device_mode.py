@@ -135,13 +135,16 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
                      "pump_threads": soak.threads(pump), "daemon_threads": soak.threads(daemon.pid)}
         # stop the daemon just after a jump, for 2.5 s: lost after 1 s, the hand has rested
         # 0.5 s by then, so the display fades out and idles until the daemon is back
-        t_jump = hp.t0 + (int((time.monotonic() - hp.t0) / period) + 1) * period
-        time.sleep(max(0.0, t_jump + 0.1 - time.monotonic()))
+        # (every span on the display's own clock, its ticks: a loaded machine stretches the port's
+        # time against the host's, and the hand moves on the port's time)
+        rate = pr.SAMPLE_RATE_HZ
+        jump_tick = (int(hp.ticks() / (period * rate)) + 1) * round(period * rate)
+        hp.wait_ticks(time.monotonic(), jump_tick + round(0.1 * rate) - hp.ticks())
         os.killpg(daemon.pid, signal.SIGSTOP)
-        time.sleep(2.5)
+        hp.wait_ticks(time.monotonic(), round(2.5 * rate))
         os.killpg(daemon.pid, signal.SIGCONT)
         wait_for(lambda: request(sock, {"cmd": "status"})["device_reuploads"] == 1, 10, "a re-upload")
-        time.sleep(1.0)
+        hp.wait_ticks(time.monotonic(), round(1.0 * rate))
         b = request(sock, {"cmd": "status"})
         t_b = time.monotonic()
     finally:

@@ -70,6 +70,14 @@ class HostPort:
                 return int(c["tick"][i - 1])
         return round((host_monotonic_s - self.t0) * 3000.0)
 
+    def ticks(self) -> int:
+        """The port's latest tick in its --clock log (flushed every 10 ms): its own clock."""
+        if self.clock is None:
+            raise RuntimeError("ticks needs the port's --clock log")
+        raw = self.clock.read_bytes()
+        c = np.frombuffer(raw[: len(raw) // 12 * 12], dtype=CLOCK_DTYPE)
+        return int(c["tick"][-1]) if c.size else 0
+
     def wait_ticks(self, since_host_s: float, ticks: int, timeout_s: float = 120.0) -> float:
         """Until the port has run `ticks` ticks since host time since_host_s (its --clock log,
         flushed every 10 ms): a pause measured on the device's clock, which a loaded machine
