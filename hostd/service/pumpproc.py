@@ -12,6 +12,7 @@ from __future__ import annotations
 import gc
 import math
 import os
+import signal
 import sys
 import time
 
@@ -45,6 +46,8 @@ RENDER_REASONS = ("the display renders it (protocol v2, its CAPS hold the textur
 _REASON_OF_REFUSAL = {"v1": 2, "no_caps": 3, "components": 4, "sections": 5}
 STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 4, "recovering": 5}
 STATE_NAMES = {v: k for k, v in STATE_CODES.items()}
+# the kernel's notice of the daemon's death (PR_SET_PDEATHSIG): a signal of its own, not SIGTERM
+PARENT_DEATH_SIGNAL = signal.SIGUSR2
 
 
 def _realtime(rt, log) -> None:
@@ -73,17 +76,21 @@ def _realtime(rt, log) -> None:
 
 
 def _die_with_parent() -> None:
-    """Linux: the pump gets SIGTERM (it ramps to zero and exits) when the daemon dies, even by
-    SIGKILL outside systemd, so no orphaned pump keeps driving the display."""
+    """Linux: the pump gets PARENT_DEATH_SIGNAL (it ramps to zero, says "daemon gone" and exits)
+    when the daemon dies, even by SIGKILL outside systemd, so no orphaned pump keeps driving the
+    display. Not SIGTERM: the kernel sends it when the daemon's thread that started the pump
+    exits, and under SIGKILL that can come before the daemon's other threads are gone; the pump's
+    parent is then one of them (getppid() still the daemon's pid) and its pipe not yet at EOF, so
+    a SIGTERM would look like a stop (systemctl kill, terminate()) and the line would be lost."""
     try:
         import ctypes
 
         libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, 15)  # PR_SET_PDEATHSIG, SIGTERM
+        libc.prctl(1, int(PARENT_DEATH_SIGNAL))  # PR_SET_PDEATHSIG
         # PR_SET_NAME: `ps` and a refused raw-USB claim ("busy: pid N (hostd-pump) ...") name it
         libc.prctl(15, ctypes.c_char_p(b"hostd-pump"))
         if os.getppid() == 1:  # the parent died before prctl took effect
-            os.kill(os.getpid(), 15)
+            os.kill(os.getpid(), PARENT_DEATH_SIGNAL)
     except (OSError, AttributeError):
         pass
 
@@ -99,7 +106,6 @@ def preload_host_rendering() -> None:
 def pump_main(cfg, conn, stats) -> None:
     """Entry point of the pump process. cfg: hostd.service.config.Config."""
     import resource
-    import signal
 
     import numpy as np
 
@@ -114,6 +120,14 @@ def pump_main(cfg, conn, stats) -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when we stop
     parent = os.getppid()
+    quit_ = False
+    daemon_gone = [False]  # the daemon died (the kernel's notice, or EOF on the pipe): said at exit
+
+    def on_parent_death(*_) -> None:
+        nonlocal quit_
+        daemon_gone[0] = quit_ = True
+
+    signal.signal(PARENT_DEATH_SIGNAL, on_parent_death)  # before prctl: its default action kills
     _die_with_parent()
 
     def log(msg: str, warn: bool | None = None) -> None:
@@ -160,7 +174,7 @@ def pump_main(cfg, conn, stats) -> None:
     texture = None  # (name, coeffs, n, length_mm)
     pump: Pump | None = None  # one pump for the process: its counters survive reconnections
     link: DeviceLink | None = None
-    connected = playing = quit_ = False
+    connected = playing = False
 
     def on_sigterm(*_) -> None:  # systemctl kill, or the parent's terminate(): ramp to zero, exit 0
         nonlocal quit_
@@ -370,8 +384,6 @@ def pump_main(cfg, conn, stats) -> None:
             f"(link up at +{t_up - t_event:.3f} s)")
         tell(last_reconnect_s=round(now - t_event, 4), reconnected=info["reconnected"] + 1)
 
-    daemon_gone = [False]
-
     def commands() -> None:
         """The daemon's commands. EOF: the daemon died (kill -9 outside systemd): stop, with one
         line at exit instead of multiprocessing's traceback of the EOFError."""
@@ -548,6 +560,9 @@ def pump_main(cfg, conn, stats) -> None:
             except Exception:
                 pass
     put("state", STATE_CODES["stopped"])
+    # a second notice (the daemon's last thread exiting after the one that started us) must not
+    # kill the process once Python's finalization has put the default action back
+    signal.signal(PARENT_DEATH_SIGNAL, signal.SIG_IGN)
     if daemon_gone[0] or os.getppid() != parent:  # its pipe is closed: the journal hears it from stderr
         sys.stderr.write("hostd-pump: daemon gone; pump exiting\n")
         sys.stderr.flush()
