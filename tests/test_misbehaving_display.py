@@ -419,6 +419,7 @@ def test_a_display_that_vanishes_during_a_texture_upload_is_uploaded_to_again_wh
                  "the display")
         send_file(sock, str(tmp_path / "wood.vtx"), "wood")
         time.sleep(1.0)
+        rss0 = _pump_rss_kib(daemon.pid)
         at = len(log.read_text().splitlines())
         cable.vanish_during_upload(at_load=4)
         request(sock, {"cmd": "select", "name": "wood"})
@@ -442,5 +443,7 @@ def test_a_display_that_vanishes_during_a_texture_upload_is_uploaded_to_again_wh
                  "the display's own count of rendered time")
         assert len(_lines(log, at, "device lost")) == 1, log.read_text().splitlines()[at:]
         assert not _lines(log, at, "rendering on the host"), log.read_text().splitlines()[at:]
+        rss1 = _pump_rss_kib(daemon.pid)
+        assert rss1 - rss0 < 20 * 1024, (rss0, rss1)  # the cut upload left nothing growing
     finally:
         _end(hp, cable, daemon, log, dac)
