@@ -48,6 +48,11 @@ class Cable(threading.Thread):
         self.pending: list[bytes] = []
         self.stall_s = 0.0  # stall() asks for a stall mid-frame this long
         self.stalls = 0  # stalls done
+        self.echo = 0  # flood(): each STATUS of the display repeated this many times more
+        self.vanish_at_load = 0  # vanish_during_upload(): the LOAD_* frame toward the display that cuts it
+        self.loads = 0  # LOAD_* frames the daemon sent through this cable
+        self.vanished = threading.Event()
+        self.backlog = 0  # bytes toward the daemon it has not taken yet
         self.lock = threading.Lock()
         self.stop_flag = False
         self.start()
@@ -62,6 +67,52 @@ class Cable(threading.Thread):
         with self.lock:
             self.stall_s = seconds
 
+    def flood(self, times: int) -> None:
+        """Every STATUS the display sends reaches the daemon 1 + times times (0: stop the flood):
+        valid reports, far faster than the display's report period."""
+        self.echo = times
+
+    def vanish_during_upload(self, at_load: int) -> None:
+        """The display vanishes when the daemon's `at_load`-th LOAD_* frame (of this cable)
+        reaches it: the rest of the upload goes nowhere, the daemon's side hangs up."""
+        self.vanish_at_load = at_load
+
+    def _to_device(self, data: bytes, frames: bytearray) -> bytes:
+        """What the daemon sent, up to the frame that makes the display vanish (b"" after it)."""
+        if not self.vanish_at_load:
+            return data
+        out = bytearray()
+        for b in data:
+            out.append(b)
+            if b != 0:
+                frames.append(b)
+                continue
+            n_frame = len(frames) + 1
+            try:
+                msg = pr.unframe(bytes(frames))
+            except pr.ProtocolError:
+                msg = b""
+            frames.clear()
+            if msg and pr.NAMES.get(msg[0], "").startswith("LOAD_"):
+                self.loads += 1
+                if self.loads >= self.vanish_at_load:
+                    self.vanished.set()
+                    return bytes(out[: max(0, len(out) - n_frame)])  # this frame never reaches it
+        return bytes(out)
+
+    def _echoed(self, data: bytes) -> bytes:
+        """Whole frames of the display, each STATUS repeated self.echo times more."""
+        k = self.echo
+        if not k:
+            return data
+        out = bytearray()
+        status = pr.IDS["STATUS"]
+        for body in data.split(b"\0")[:-1]:
+            # COBS: the first byte counts up to the first zero, the message's id (not 0) follows
+            n = k + 1 if len(body) > 2 and body[0] > 1 and body[1] == status else 1
+            out += (body + b"\0") * n
+        return bytes(out)
+
     def run(self) -> None:
         """Never stops reading the display (what the daemon has not taken yet waits here, not in
         the display's buffer, which would drop it): the cable itself cuts no frame."""
@@ -71,16 +122,22 @@ class Cable(threading.Thread):
         hold_until = 0.0
         for fd in (self.master, self.dev):
             os.set_blocking(fd, False)
+        from_host = bytearray()  # a frame toward the display, in part
         while not self.stop_flag:
+            if self.vanished.is_set():  # the display is gone: the daemon's side hangs up
+                os.close(self.master)
+                self.master = -1
+                return
             try:
                 w = ([self.master] if to_host else []) + ([self.dev] if to_dev else [])
                 r, w, _ = select.select([self.master, self.dev], w, [], 0.01)
                 if self.master in w:
                     del to_host[: os.write(self.master, to_host)]
+                self.backlog = len(to_host)
                 if self.dev in w:
                     del to_dev[: os.write(self.dev, to_dev)]
                 if self.master in r:
-                    to_dev += os.read(self.master, 65536)
+                    to_dev += self._to_device(os.read(self.master, 65536), from_host)
                 if self.dev not in r:
                     continue
                 held += os.read(self.dev, 65536)
@@ -101,7 +158,7 @@ class Cable(threading.Thread):
                     with self.lock:
                         self.stall_s = stall
                 if cut:
-                    to_host += held[:cut]
+                    to_host += self._echoed(held[:cut])
                     held = held[cut:]
                     with self.lock:
                         extra, self.pending = self.pending, []
@@ -116,7 +173,8 @@ class Cable(threading.Thread):
     def pull(self) -> None:
         self.stop_flag = True
         self.join(2)
-        os.close(self.master)
+        if self.master >= 0:
+            os.close(self.master)
         os.close(self.dev)
 
 
@@ -259,3 +317,133 @@ def _forged_ident(protocol_version: int) -> bytes:
                      dac_bits=pr.P["dac_bits"], sample_rate_hz=pr.SAMPLE_RATE_HZ, limit_code=pr.LIMIT_CODE,
                      max_step_code=pr.MAX_STEP_CODE, buffer_capacity=pr.BUFFER_CAPACITY,
                      max_samples=pr.MAX_SAMPLES, um_per_count_nm=pr.P["um_per_count_nm"])
+
+
+def _display_and_daemon(tmp_path: Path, where: str, hp_args: list[str]):
+    """The host port behind a cable, a daemon on the cable's path that renders `where`, a texture
+    in its library: (host port, cable, daemon, control socket, journal, DAC log, display path)."""
+    try:
+        hostport.build()
+    except RuntimeError as e:
+        pytest.fail(str(e))
+    assert main(["encode", "synthetic:wood:1", "-o", str(tmp_path / "wood.vtx"), "--method", "quant",
+                 "--levels", "14"]) == 0
+    dac = tmp_path / "dac.bin"
+    hp = hostport.HostPort(hp_args, log=dac)
+    link = tmp_path / "display"
+    cable = Cable(hp.pty, link)
+    cfg = tmp_path / "hostd.toml"
+    cfg.write_text(f'[device]\ntransport = "serial:{link}"\nreconnect_s = 0.5\n[render]\nwhere = "{where}"\n'
+                   '[library]\ndir = "lib"\nspool = "spool"\n'
+                   '[control]\nsocket = "hostd.sock"\ngroup = ""\n[quality]\ndb = "q.sqlite"\n')
+    sock = str(tmp_path / "hostd.sock")
+    log = tmp_path / "log.txt"
+    daemon = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)], cwd=tmp_path,
+                              stderr=open(log, "w"))
+    return hp, cable, daemon, sock, log, dac, link
+
+
+def _end(hp, cable, daemon, log: Path, dac: Path) -> None:
+    if daemon.poll() is None:
+        daemon.send_signal(signal.SIGTERM)
+        daemon.wait(30)
+    cable.pull() if not cable.stop_flag else None
+    hp.close()
+    text = log.read_text()
+    assert "Traceback" not in text, text[-3000:]
+    codes = hostport.read_log(dac)["code"].astype(np.int64)  # never past the piezo's limits
+    assert codes.size > 3000 and np.abs(codes).max() <= pr.LIMIT_CODE
+    assert np.abs(np.diff(codes)).max() <= pr.MAX_STEP_CODE
+
+
+FLOOD = "status reports in"
+
+
+def test_a_flood_of_status_reports_and_an_unknown_message_are_one_line_each(tmp_path):
+    """Valid STATUS far faster than the display's report period (each of its reports 7 times
+    over: ~7 k a second while it streams at 1 k): one line per flood episode naming it, the
+    pump streams on and the daemon answers meanwhile, memory flat. A valid frame with an unknown
+    message id: its one line too."""
+    hp, cable, daemon, sock, log, dac, link = _display_and_daemon(
+        tmp_path, "host", ["--motion", "metronome", "--duration", "120"])
+    try:
+        wait_for(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 2 * START_S,
+                 "the display")
+        send_file(sock, str(tmp_path / "wood.vtx"), "wood")
+        request(sock, {"cmd": "select", "name": "wood"})
+        wait_for(lambda: request(sock, {"cmd": "status"})["state"] == "playing", 30, "playing")
+        time.sleep(1.5)  # past any line of the connection itself
+        rss0 = _pump_rss_kib(daemon.pid)
+
+        at = len(log.read_text().splitlines())
+        cable.inject(pr.frame(bytes([0x7F]) + bytes(8)))  # a valid CRC, an id the protocol lacks
+        wait_for(lambda: _lines(log, at, "unknown message id 0x7f"), 30, "the unknown message's line")
+        time.sleep(1.0)
+        said = _lines(log, at, "unknown message id 0x7f")
+        assert len(said) == 1 and str(link) in said[0] and "bad frames or messages" in said[0], said
+
+        for episode in (1, 2):  # two floods, a quiet spell between them: one line each
+            at = len(log.read_text().splitlines())
+            cable.flood(6)
+            wait_for(lambda at=at: _lines(log, at, FLOOD), 30, "the flood's line")
+            # the daemon answers its clients, the pump streams on (samples go out) meanwhile
+            samples0 = request(sock, {"cmd": "status"})["samples"]
+            assert "wood" in str(request(sock, {"cmd": "list"}))
+            wait_for(lambda s0=samples0: request(sock, {"cmd": "status"})["samples"] > s0 + 3000, 30,
+                     "streaming during the flood")
+            time.sleep(1.0)  # the flood goes on: the same episode
+            cable.flood(0)
+            wait_for(lambda: cable.backlog == 0, 30, "the daemon to take the flood")
+            time.sleep(2.2)  # a quiet window (>= 1 s, from after the flood) ends the episode
+            said = _lines(log, at, FLOOD)
+            assert len(said) == 1 and str(link) in said[0] and "flooding" in said[0], (episode, said)
+            n_said = int(said[0].split("sent ")[1].split()[0])
+            assert n_said > 3000, said  # over three times the fastest report rate, in the window
+        st = request(sock, {"cmd": "status"})
+        assert st["connected"] and st["state"] in ("playing", "recovering") and st["texture"] == "wood", st
+        rss1 = _pump_rss_kib(daemon.pid)
+        assert rss1 - rss0 < 20 * 1024, (rss0, rss1)  # bounded: nothing grows with the flood
+    finally:
+        _end(hp, cable, daemon, log, dac)
+
+
+def test_a_display_that_vanishes_during_a_texture_upload_is_uploaded_to_again_when_it_returns(tmp_path):
+    """Device rendering: the display vanishes in the middle of the LOAD_TEXTURE/LOAD_CHUNK
+    sequence (the cable cuts at the daemon's 4th LOAD_* frame). One line names it and says what
+    happened; the daemon answers its clients meanwhile; a new cable on the same path (a replug)
+    is identified again and the texture uploaded again: the display renders it."""
+    hp, cable, daemon, sock, log, dac, link = _display_and_daemon(
+        tmp_path, "device", ["--motion", "metronome", "--duration", "120"])
+    try:
+        wait_for(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 2 * START_S,
+                 "the display")
+        send_file(sock, str(tmp_path / "wood.vtx"), "wood")
+        time.sleep(1.0)
+        rss0 = _pump_rss_kib(daemon.pid)
+        at = len(log.read_text().splitlines())
+        cable.vanish_during_upload(at_load=4)
+        request(sock, {"cmd": "select", "name": "wood"})
+        wait_for(cable.vanished.is_set, 30, "the upload")
+        wait_for(lambda: _lines(log, at, "device lost"), 30, "the loss")
+        # the daemon serves its other clients while the display is gone
+        assert "wood" in str(request(sock, {"cmd": "list"}))
+        wait_for(lambda: not request(sock, {"cmd": "status"})["connected"], 30, "disconnected")
+        lost = _lines(log, at, "device lost")
+        assert len(lost) == 1 and str(link) in lost[0] and "upload" in lost[0], lost
+        uploads0 = request(sock, {"cmd": "status"})["device_uploads"]
+        cable.pull()
+        cable = Cable(hp.pty, link)  # the display is back (a replug)
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_state"] == "rendering", 60,
+                 "rendering after the replug")
+        st = request(sock, {"cmd": "status"})
+        assert st["connected"] and st["render_at"] == "device" and st["texture"] == "wood", st
+        assert st["device_uploads"] > uploads0, st
+        rendered0 = st["device_rendered_s"]
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_rendered_s"] > rendered0 + 0.5, 30,
+                 "the display's own count of rendered time")
+        assert len(_lines(log, at, "device lost")) == 1, log.read_text().splitlines()[at:]
+        assert not _lines(log, at, "rendering on the host"), log.read_text().splitlines()[at:]
+        rss1 = _pump_rss_kib(daemon.pid)
+        assert rss1 - rss0 < 20 * 1024, (rss0, rss1)  # the cut upload left nothing growing
+    finally:
+        _end(hp, cable, daemon, log, dac)

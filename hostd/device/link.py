@@ -35,6 +35,7 @@ class LinkStats:
     bad_messages_received: int = 0
     last_status: dict = field(default_factory=dict)
     io_retries: int = 0  # transient write errors retried
+    last_bad: str = ""  # what the last bad message was (its ProtocolError), for the log
 
 
 # what names a display in its IDENT (limit_code and max_step_code follow SET_LIMITS: not identity)
@@ -183,8 +184,9 @@ class DeviceLink:
         """Decode and act on one message from the device; returns its name (None if bad)."""
         try:
             name, f = fastlink.decode(m)  # protocol.decode, compiled when built
-        except pr.ProtocolError:
+        except pr.ProtocolError as e:
             self.stats.bad_messages_received += 1
+            self.stats.last_bad = str(e)
             return None
         if name == "STATUS":
             self._status(f, fresh)

@@ -44,6 +44,8 @@ RENDER_REASONS = ("the display renders it (protocol v2, its CAPS hold the textur
                   "the display refused the upload (see the log)",
                   "no texture selected")
 _REASON_OF_REFUSAL = {"v1": 2, "no_caps": 3, "components": 4, "sections": 5}
+# more STATUS per second than this many times the protocol's fastest report rate: a flood
+FLOOD_FACTOR = 3
 STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 4, "recovering": 5}
 STATE_NAMES = {v: k for k, v in STATE_CODES.items()}
 # the kernel's notice of the daemon's death (PR_SET_PDEATHSIG): a signal of its own, not SIGTERM
@@ -214,6 +216,8 @@ def pump_main(cfg, conn, stats) -> None:
             log(f"rendering on the host: {detail or RENDER_REASONS[reason]}",
                 warn=where == "device" and reason != 7)
 
+    uploading: list = [None]  # the texture whose upload to the display is under way
+
     def start_device(coeffs) -> bool:
         """Upload to the display and render there when it can hold the texture; False (and
         the reason published) when the host must render it."""
@@ -231,14 +235,17 @@ def pump_main(cfg, conn, stats) -> None:
         # the selection counts from the display's first report at full gain after START_RENDER
         # (reports arrive during the upload's acknowledgements already)
         pump.health.select(True, device=True)
+        uploading[0] = texture[0]  # (a loss meanwhile is said as one: the upload starts again on return)
         try:
             dev.begin(texture)  # upload; the display renders (crossfades on a swap)
         except (DeviceGone, DeviceBusy):
             raise
         except DeviceError as e:  # refused (the upload was not applied): the host renders it
+            uploading[0] = None
             dev.end()
             choose(False, 6, f"device mode: {e}")
             return False
+        uploading[0] = None
         choose(True, 0)
         return True
 
@@ -278,8 +285,16 @@ def pump_main(cfg, conn, stats) -> None:
 
     last_pct = [0.0]
 
-    bad_seen = [0, -math.inf]  # bad frames and messages of this link: counted, time of the last one
+    bad_seen = [0, -math.inf]  # bad frames of this link: counted, time of the last one
+    bad_msgs_seen = [0, -math.inf]  # bad messages (valid frames) of this link: the same
     resets_seen = [0, -math.inf]  # the device's counter resets (health.resets), time of the last one
+    # a flood of STATUS: a display reports once per status_period_ticks at most (1 ms while it
+    # streams, 50 ms while it renders); STATUS counted per second of host time, against that
+    # fastest rate. A window ends only when the pump looks (publish()), so a backlog the host
+    # reads after its own stall falls in the window that holds the stall: it never looks like a
+    # flood. [window start, link.stats.statuses then, flooding]
+    max_status_hz = pr.SAMPLE_RATE_HZ / pr.P["status_period_ticks"]
+    flood = [time.monotonic(), 0, False]
 
     def publish() -> None:
         seq = stats[PUBLISH_SEQ]
@@ -291,15 +306,32 @@ def pump_main(cfg, conn, stats) -> None:
 
     def _publish() -> None:
         # a device's garbage, cut, oversized or unknown messages: dropped (bad CRC, bad layout),
-        # never acted on; one line per burst (the first bad one after a quiet second), naming it
+        # never acted on; one line per burst (the first bad one after a quiet second), naming it.
+        # Bad frames (the framing: garbage, cut, oversized, also a frame the host's own stall
+        # cut) and bad messages (valid frames hostd cannot take: an unknown id, a bad layout) are
+        # bursts of their own: a cut frame of a stall never hides a message the device made up
         framer = getattr(transport, "deframer", None)
-        bad = link.stats.bad_messages_received + (framer.bad_frames if framer is not None else 0)
-        if bad > bad_seen[0]:
-            t_bad = time.monotonic()
-            if t_bad - bad_seen[1] >= 1.0:
-                log(f"device: {transport.describe()} sent bad frames or messages (garbage, cut, oversized "
-                    f"or unknown; {bad} on this link); dropped, the rest of the burst silently")
-            bad_seen[:] = [bad, t_bad]
+        now = time.monotonic()
+        bad_frames = framer.bad_frames if framer is not None else 0
+        for seen, bad, what in (
+                (bad_seen, bad_frames, "garbage, cut or oversized frames"),
+                (bad_msgs_seen, link.stats.bad_messages_received,
+                 f"messages hostd cannot take, the last: {link.stats.last_bad}")):
+            if bad > seen[0]:
+                if now - seen[1] >= 1.0:
+                    log(f"device: {transport.describe()} sent bad frames or messages ({what}; {bad} on this "
+                        "link); dropped, the rest of the burst silently")
+                seen[:] = [bad, now]
+        span_s = now - flood[0]
+        if span_s >= 1.0:  # one line per flood episode (windows over the rate in a row), naming it
+            n_status = link.stats.statuses - flood[1]
+            expected = span_s * max_status_hz
+            flooding = n_status > FLOOD_FACTOR * expected
+            if flooding and not flood[2]:
+                log(f"device: {transport.describe()} sent {n_status} status reports in {span_s:.1f} s "
+                    f"(expected at most ~{expected:.0f}): flooding; each is checked as usual, the host "
+                    "keeps its own pace")
+            flood[:] = [now, link.stats.statuses, flooding]
         s = link.stats.last_status
         if s:
             put("fill", s["buffer_fill"])
@@ -346,7 +378,6 @@ def pump_main(cfg, conn, stats) -> None:
         put("target_fill", pump.target_fill)
         fastpump = sys.modules.get("hostd.device.fastpump")  # loaded by host rendering only
         put("compiled_cycles", fastpump.compiled_cycles() if fastpump is not None else 0)
-        now = time.monotonic()
         if pump.renderer is not None and now - last_pct[0] >= 5.0:
             # percentiles of the host-rendering cycle every 5 s (a sort of 65536 cycles: ~1 ms)
             last_pct[0] = now
@@ -501,6 +532,8 @@ def pump_main(cfg, conn, stats) -> None:
             continue
         connected = True
         bad_seen[:] = [0, -math.inf]
+        bad_msgs_seen[:] = [0, -math.inf]
+        flood[:] = [time.monotonic(), link.stats.statuses, False]
         put("connected", 1)
         if arrival[0] is not None:
             arrival[1] = time.monotonic()
@@ -544,7 +577,12 @@ def pump_main(cfg, conn, stats) -> None:
                     pump._last_cycle_start = None  # the sleeping loop's gaps are not stalls
                     pump.run(stop=lambda: quit_ or device_loop(), each_cycle=each_cycle, wake_fds=fds)
         except DeviceError as e:
-            log(f"device lost while {'playing' if playing else 'idle'}: {e}; output stopped, waiting")
+            if uploading[0] is not None:  # mid-upload: nothing it holds is believed; all again on return
+                log(f"device lost during the upload of {uploading[0]} (device rendering): {e}; output "
+                    "stopped, waiting; identified and uploaded to again when it returns")
+                uploading[0] = None
+            else:
+                log(f"device lost while {'playing' if playing else 'idle'}: {e}; output stopped, waiting")
             put("connected", 0)
             tell(transport=None)
             put("state", STATE_CODES["waiting"])
