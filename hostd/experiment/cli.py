@@ -297,11 +297,20 @@ def cmd_bench(args) -> int:
         out["fit"].append(f)
         if not args.json:
             print(f"hostd fit, (a, b) = (0.581, 0.464), grade noise {sd}, {f['sims']} labs of "
-                  f"{f['answers_per_stimulus']} answers x {f['stimuli']} stimuli: bootstrap 95% covers "
-                  f"a {f['coverage_a']:.0%}, b {f['coverage_b']:.0%}, both {f['coverage_both']:.0%} "
-                  f"(width a {f['mean_width_a']:.3f}, b {f['mean_width_b']:.3f}); t interval of the "
-                  f"standard errors covers both {f['se_t_interval_coverage_both']:.0%} "
+                  f"{f['answers_per_stimulus']} answers x {f['stimuli']} stimuli: its 95% interval (residual "
+                  f"bootstrap-t) covers a {f['coverage_a']:.0%}, b {f['coverage_b']:.0%}, both "
+                  f"{f['coverage_both']:.0%} (width a {f['mean_width_a']:.3f}, b {f['mean_width_b']:.3f}); "
+                  f"t interval of the standard errors covers both {f['se_t_interval_coverage_both']:.0%} "
                   f"(width a {f['se_t_interval_mean_width_a']:.3f})")
+    out["fit_plan"] = []
+    for people in (2, 4, 8, 16, 32):  # x 4 repetitions, grade noise 0.5: the width a plan buys
+        f = simulate_fit(0.581, 0.464, 0.5, n_sims=args.fit_sims, participants=people)
+        out["fit_plan"].append(f)
+        if not args.json:
+            print(f"plan: {people:2d} participants x 4 repetitions "
+                  f"({f['answers_per_stimulus']:3d} answers per stimulus), grade noise 0.5: "
+                  f"mean 95% width a {f['mean_width_a']:.3f}, "
+                  f"b {f['mean_width_b']:.3f}; covers both {f['coverage_both']:.0%}")
     if args.json:
         json.dump(out, sys.stdout, indent=1, default=float)
         print()
