@@ -31,6 +31,7 @@ GRID_STEP_DB = 1.0
 SLOPES = (2.0, 3.5, 6.0)  # β (dB form, = the Weibull shape in amplitude), marginalised over
 LAPSE = (0.0, 0.04)
 PRIOR_SD_DB = 6.0  # the prior on t: normal about the prior curve, 6 dB (0: flat)
+PROCEDURES = ("per-frequency", "joint")
 
 
 def db(um: float) -> float:
@@ -52,6 +53,7 @@ class ThresholdConfig:
     seed: int = 0
     duration_s: float = 0.5  # each interval's stimulus
     gap_s: float = 0.4  # silence between the intervals
+    procedure: str = "per-frequency"  # or "joint": the whole curve at once (hostd.experiment.joint)
 
     def __post_init__(self) -> None:
         if self.n_afc not in (2, 3):
@@ -65,6 +67,11 @@ class ThresholdConfig:
                 raise ExperimentError(f"{f} Hz: frequency, prior and reach must be finite and > 0")
         if not 1 <= self.max_trials <= 1000:
             raise ExperimentError("--trials: 1..1000 per frequency")
+        if self.procedure not in PROCEDURES:
+            raise ExperimentError(f"--procedure {self.procedure}: one of {', '.join(PROCEDURES)}")
+        if self.procedure == "joint" and len(self.frequencies_hz) < 3:
+            raise ExperimentError("--procedure joint fits a curve over frequency: give at least 3 "
+                                  "frequencies")
 
 
 @dataclass
@@ -218,6 +225,15 @@ class ThresholdRun:
 
     def results(self) -> list[ThresholdResult]:
         return [s.result() for s in self.stairs]
+
+
+def make_run(cfg: ThresholdConfig):
+    """The run of cfg.procedure: ThresholdRun (a QUEST+ per frequency) or joint.JointRun."""
+    if cfg.procedure == "joint":
+        from hostd.experiment.joint import JointRun
+
+        return JointRun(cfg)
+    return ThresholdRun(cfg)
 
 
 def thresholds_csv(results: list[ThresholdResult], provenance: str = "") -> str:
