@@ -87,6 +87,9 @@ def add_parser(sub, parents=()) -> None:
     b.add_argument("--joint-runs", type=int, default=0, metavar="N",
                    help="also N seeded runs per case of --procedure joint over the shipped b(f)'s "
                    "frequencies (default 0: none; about 1-2 s CPU a run)")
+    b.add_argument("--joint-wiggle-db", type=float, default=0.0, metavar="SD",
+                   help="joint runs: each frequency's true threshold also deviates from a smooth curve by a "
+                   "normal deviate of this SD (default 0: a curve of the model's form)")
     b.add_argument("--joint-trials", type=int, default=15,
                    help="joint runs' budget per frequency (default 15: half the per-frequency runs')")
     b.add_argument("--json", action="store_true")
@@ -311,7 +314,8 @@ def cmd_bench(args) -> int:
         for kind in ("weibull", "logistic"):
             for n in (2, 3):
                 t0 = time.process_time()
-                e = simulate_joint(kind, n, args.joint_runs, args.joint_trials, seed=2026)
+                e = simulate_joint(kind, n, args.joint_runs, args.joint_trials, seed=2026,
+                                   wiggle_db=args.joint_wiggle_db)
                 within = np.abs(e) <= 2.0
                 r = {"within_2db": float(np.mean(within)),
                      "worst_frequency_within_2db": float(np.min(np.mean(within, axis=0))),

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hostd.errors import ExperimentError
-from hostd.experiment.threshold import LAPSE, SLOPES, ThresholdConfig, ThresholdResult, Trial, db, um
+from hostd.experiment.threshold import ThresholdConfig, ThresholdResult, Trial, db, um
 
 PRIOR_SPAN_DB = 22.0  # levels this far either side of the prior curve (and never above the reach)
 LEVEL_STEP_DB = 2.0
@@ -46,6 +46,8 @@ C0_DB = np.arange(-16.0, 16.0 + 1e-9, 1.0)  # offset from the prior curve
 C0_PRIOR_SD_DB = 6.0  # as the per-frequency procedure's prior on t
 C12_DB = np.arange(-6.0, 6.0 + 1e-9, 2.0)  # tilt and curvature, dB at the range's ends
 C12_PRIOR_SD_DB = 4.0
+SLOPES = (2.0, 3.5, 6.0)  # β and δ shared by all frequencies, marginalised over (the curve has
+LAPSE = (0.0, 0.04)  # trials to spare for them, unlike one frequency's 30)
 PRUNE_EVERY = 8  # trials between re-selections of the grid points the choice is computed over
 PRUNE_LOG = 20.0
 
