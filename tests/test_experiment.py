@@ -59,6 +59,30 @@ def test_no_procedure_step_asks_beyond_the_reach_and_above_reach_is_reported(rea
     assert "ABOVE THE DISPLAY'S REACH" in text and "\n250," not in text  # not clipped into the curve
 
 
+def test_the_joint_mode_never_asks_beyond_the_reach_and_reports_above_reach():
+    from hostd.experiment.threshold import make_run
+
+    freqs = [40.0, 100.0, 250.0, 500.0]
+    reach = [0.5, 5.0, 5.0, 5.0]  # the first frequency's reach is below what this observer needs
+    cfg = ThresholdConfig(freqs, [3.9, 0.62, 0.1, 0.32], reach, n_afc=2, max_trials=12, seed=5,
+                          procedure="joint")
+    run = make_run(cfg)
+    levels = {f: [] for f in freqs}
+    while (t := run.next_trial()) is not None:
+        assert t.amplitude_um <= reach[freqs.index(t.frequency_hz)] * (1 + 1e-12)
+        levels[t.frequency_hz].append(t.level_db)
+        # an observer far less sensitive than the prior (+20 dB): 40 Hz is beyond the reach
+        correct = t.level_db > db(cfg.prior_um[freqs.index(t.frequency_hz)]) + 20
+        run.answer(t.index, t.target if correct else t.target % 2 + 1)
+    assert run.index == 12 * len(freqs) and sum(map(len, levels.values())) == run.index  # the budget
+    res = run.results()
+    assert res[0].status == "above_reach" and res[0].threshold_um > 0.5
+    text = thresholds_csv(res)
+    assert "ABOVE THE DISPLAY'S REACH" in text and "\n40," not in text
+    with pytest.raises(ExperimentError, match="at least 3"):
+        ThresholdConfig(freqs[:2], [1.0, 1.0], [5.0, 5.0], procedure="joint")
+
+
 def test_thresholds_csv_reads_as_is(tmp_path):
     cfg = ThresholdConfig([40.0, 250.0], [3.9, 0.1], [30.0, 20.0], max_trials=4, seed=1)
     run = ThresholdRun(cfg)
@@ -197,6 +221,11 @@ def test_similarity_plan_scores_fit_and_calibration_end_to_end(tmp_path, capsys)
     tout = tmp_path / "thr"
     assert main(["experiment", "threshold", "--out", str(tout), "--token", "t", "--frequencies", "40,250",
                  "--trials", "5", "--simulate", "weibull"]) == 0
+    jout = tmp_path / "thr-joint"  # the joint mode through the same session machinery
+    assert main(["experiment", "threshold", "--out", str(jout), "--token", "j", "--frequencies", "40,100,250",
+                 "--trials", "4", "--joint", "--simulate", "weibull"]) == 0
+    assert len(th.load_csv(jout / "thresholds.csv").freq_hz) == 3
+    assert "joint" in (jout / "thresholds.csv").read_text()
     cal = tmp_path / "lab.toml"
     assert main(["experiment", "calibration", "-o", str(cal), "--thresholds", str(tout / "thresholds.csv"),
                  "--fit", str(tmp_path / "fit.json")]) == 0

@@ -81,11 +81,12 @@ def simulate_thresholds(kind: str, n_afc: int, runs: int, max_trials: int = 30, 
 
 
 def simulate_fit(a: float, b: float, noise_sd: float, n_sims: int = 50, reps: int = 4,
-                 participants: int = 8, seed: int = 0, n_boot: int = 500) -> dict:
+                 participants: int = 8, seed: int = 0, n_boot: int = 2000) -> dict:
     """Simulated participants whose scores are a Ip + b Ia plus noise (per answer, on the paper's
     0..3 scale: rounded and clipped like a grade), over the paper's wood design (6 quant + 6 cut
     levels + the control, `reps` repetitions, `participants` people, mean score per stimulus).
-    Returns the coverage of the 95 % bootstrap intervals of `hostd fit` and their mean widths."""
+    Returns the coverage of the 95 % intervals `hostd fit` states (its residual bootstrap-t) and
+    their mean widths, beside those of the t interval of its standard errors."""
     from hostd.perception import fit
 
     rng0 = np.random.default_rng(seed)

@@ -112,11 +112,11 @@ class ThresholdSession(Session):
     kind = "threshold"
 
     def __init__(self, store: Store, token: str, display, cfg) -> None:
-        from hostd.experiment.threshold import ThresholdRun
+        from hostd.experiment.threshold import make_run
 
         super().__init__(store, token, display)
         self.cfg = cfg
-        self.run = ThresholdRun(cfg)
+        self.run = make_run(cfg)
 
     def current(self):
         t = self.run.next_trial()

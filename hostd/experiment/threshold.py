@@ -1,7 +1,8 @@
 """Detection thresholds by QUEST+ (the questplus package), nAFC, frequencies interleaved.
 
 Intensities are in dB re 1 µm peak displacement, x = 20 log10(A / 1 µm). The model is
-questplus' Weibull on that scale, P(correct) = 1 - δ - (1 - γ - δ) exp(-10^(β (x - t) / 20)),
+questplus' Weibull on that scale (slope and lapse per n-AFC: SLOPES, LAPSE),
+P(correct) = 1 - δ - (1 - γ - δ) exp(-10^(β (x - t) / 20)),
 with γ = 1/n (n-AFC), δ the lapse rate and t the threshold: the displacement at which the
 observer detects the stimulus with probability 1 - 1/e (63 %) beyond guessing. Per frequency
 the stimulus grid runs from PRIOR_SPAN_DB below the prior (the shipped b(f), or a curve given)
@@ -28,9 +29,16 @@ from hostd.errors import ExperimentError
 
 PRIOR_SPAN_DB = 30.0
 GRID_STEP_DB = 1.0
-SLOPES = (2.0, 3.5, 6.0)  # β (dB form, = the Weibull shape in amplitude), marginalised over
-LAPSE = (0.0, 0.04)
+# β (dB form, = the Weibull shape in amplitude) and the lapse rate δ of the model, per n-AFC.
+# 2AFC: fixed. With a guess rate of 1/2 and at most 30 trials a frequency, spending trials on
+# the slope costs the threshold: in 200 seeded runs (Weibull / logistic observer, β 2.5..5)
+# marginalising β over (2, 3.5, 6) and δ over (0, 0.04) put 89.5 / 84 % within ±2 dB, β = 3 and
+# δ = 0.02 fixed 90.5 / 87.5 %. 3AFC: marginalised, where fixing them cost the logistic
+# observer (93 -> 89.5 %). docs/experiments.md has the table (`hostd experiment bench`).
+SLOPES = {2: (3.0,), 3: (2.0, 3.5, 6.0)}
+LAPSE = {2: (0.02,), 3: (0.0, 0.04)}
 PRIOR_SD_DB = 6.0  # the prior on t: normal about the prior curve, 6 dB (0: flat)
+PROCEDURES = ("per-frequency", "joint")
 
 
 def db(um: float) -> float:
@@ -52,6 +60,7 @@ class ThresholdConfig:
     seed: int = 0
     duration_s: float = 0.5  # each interval's stimulus
     gap_s: float = 0.4  # silence between the intervals
+    procedure: str = "per-frequency"  # or "joint": the whole curve at once (hostd.experiment.joint)
 
     def __post_init__(self) -> None:
         if self.n_afc not in (2, 3):
@@ -65,6 +74,11 @@ class ThresholdConfig:
                 raise ExperimentError(f"{f} Hz: frequency, prior and reach must be finite and > 0")
         if not 1 <= self.max_trials <= 1000:
             raise ExperimentError("--trials: 1..1000 per frequency")
+        if self.procedure not in PROCEDURES:
+            raise ExperimentError(f"--procedure {self.procedure}: one of {', '.join(PROCEDURES)}")
+        if self.procedure == "joint" and len(self.frequencies_hz) < 3:
+            raise ExperimentError("--procedure joint fits a curve over frequency: give at least 3 "
+                                  "frequencies")
 
 
 @dataclass
@@ -102,8 +116,8 @@ class Staircase:
             prior = {"threshold": np.exp(-0.5 * ((self.thresholds - centre) / PRIOR_SD_DB) ** 2)}
         self.qp = questplus.QuestPlus(
             stim_domain={"intensity": stim}, prior=prior,
-            param_domain={"threshold": self.thresholds, "slope": np.array(SLOPES),
-                          "lower_asymptote": np.array([1.0 / n_afc]), "lapse_rate": np.array(LAPSE)},
+            param_domain={"threshold": self.thresholds, "slope": np.array(SLOPES[n_afc]),
+                          "lower_asymptote": np.array([1.0 / n_afc]), "lapse_rate": np.array(LAPSE[n_afc])},
             outcome_domain={"response": ["Correct", "Incorrect"]},
             func="weibull", stim_scale="dB", stim_selection_method="min_entropy")
         self.n = 0
@@ -218,6 +232,15 @@ class ThresholdRun:
 
     def results(self) -> list[ThresholdResult]:
         return [s.result() for s in self.stairs]
+
+
+def make_run(cfg: ThresholdConfig):
+    """The run of cfg.procedure: ThresholdRun (a QUEST+ per frequency) or joint.JointRun."""
+    if cfg.procedure == "joint":
+        from hostd.experiment.joint import JointRun
+
+        return JointRun(cfg)
+    return ThresholdRun(cfg)
 
 
 def thresholds_csv(results: list[ThresholdResult], provenance: str = "") -> str:
