@@ -189,6 +189,7 @@ def test_install_service_refuses_an_exec_the_unit_cannot_reach(where, why, tmp_p
 
 def test_dry_run_says_exactly_what_the_real_run_does(tmp_path, monkeypatch, capsys):
     """--dry-run lists the commands the same call runs (and --enable adds systemctl enable --now)."""
+    from hostd.parser import build_parser
     from hostd.service import install as inst
 
     monkeypatch.setattr(inst, "hostd_executable", lambda: Path("/opt/hostd/bin/hostd"))
@@ -205,11 +206,11 @@ def test_dry_run_says_exactly_what_the_real_run_does(tmp_path, monkeypatch, caps
                         subprocess.CompletedProcess(c, 0, "", ""))
     for enable in (False, True):
         root = tmp_path / f"root{enable}"
-        assert inst.install(str(root), dry_run=True, run_commands=True, enable=enable) == 0
+        assert inst.install(build_parser(), str(root), dry_run=True, run_commands=True, enable=enable) == 0
         said = [ln.removeprefix("would run ") for ln in capsys.readouterr().out.splitlines()
                 if ln.startswith("would run ")]
         assert not root.exists() and not ran
-        assert inst.install(str(root), dry_run=False, run_commands=True, enable=enable) == 0
+        assert inst.install(build_parser(), str(root), dry_run=False, run_commands=True, enable=enable) == 0
         capsys.readouterr()
         assert said == ran, (said, ran)
         assert ("systemctl enable --now hostd" in ran) == enable

@@ -44,7 +44,7 @@ def add_parser(sub, parents) -> None:
                      help="what latency costs: fixed fill targets 2..12 ms against underruns per minute "
                           "and played fraction, quiet and beside a CPU hog per core")
     lat.add_argument("--check", action="store_true",
-                     help="exit 1 past the guard's bounds (docs/benchmarks.md): median p50 and underruns "
+                     help="exit 1 past the guard's bounds: median p50 and underruns "
                           "per minute over 5 runs at the default")
     so = bsub.add_parser("soak", help="the daemon playing for minutes on the firmware's host port: "
                          "played fraction, underruns, silences from the DAC log")

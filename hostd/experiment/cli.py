@@ -53,7 +53,7 @@ def add_parser(sub, parents=()) -> None:
                    help="trial budget per frequency (default 30; joint: the total is this x the frequencies)")
     t.add_argument("--procedure", choices=["per-frequency", "joint"], default="per-frequency",
                    help="per-frequency: one QUEST+ per frequency, interleaved (default); joint: the whole "
-                   "curve at once (prior curve + offset, tilt, curvature over log f; docs/experiments.md)")
+                   "curve at once (prior curve + offset, tilt, curvature over log f)")
     t.add_argument("--joint", dest="procedure", action="store_const", const="joint",
                    help="the same as --procedure joint")
     t.add_argument("--stop-width-db", type=float, default=0.0,

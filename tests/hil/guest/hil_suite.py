@@ -623,7 +623,15 @@ def _service_checks(rec) -> Gadget:
     t = time.monotonic()
     sh(["systemctl", "stop", "hostd"], timeout=60)
     rec["stop_s"] = round(time.monotonic() - t, 2)
-    time.sleep(0.5)
+
+    def at_rest():  # the display's own ramp has ended: its last records are zeros, not rendering
+        tail = g.records(n1)[-3:]
+        return len(tail) == 3 and all(r[1] == 0 and not r[3] & 16 for r in tail)
+
+    try:  # the ramp (or, had the stop not reached the display, its host timeout) takes ~1 s nominal
+        wait(at_rest, 2.0, "the DAC at rest after systemctl stop", period=0.1)
+    except TimeoutError:
+        pass  # recorded below, asserted by the host side with the records
     recs = g.records(n1)
     last_nz = max((i for i, r in enumerate(recs) if r[1] != 0), default=None)
     if last_nz is not None:
