@@ -119,8 +119,12 @@ def test_hostd_encode_json_reports_what_hostd_iobj_measures(tmp_path, capsys):
     if enc["size_set_by"] == "waveform":
         assert cap.err.count("not Iobj, set the size") == 1 and "the waveform criterion" in cap.err
     ref = api.encode(y, length_mm=10.0, target_iobj=0.05)
-    assert {k: v for k, v in enc.items() if k not in ("output", "search_cpu_s", "notes")} == \
-        {k: v for k, v in ref.items() if k not in ("stream", "search_cpu_s", "notes")}
+    # (size_note: the same note, naming the CLI's options there and the API's arguments here)
+    assert {k: v for k, v in enc.items() if k not in ("output", "search_cpu_s", "notes", "size_note")} == \
+        {k: v for k, v in ref.items() if k not in ("stream", "search_cpu_s", "notes", "size_note")}
+    assert ("--target-iobj" in (enc.get("size_note") or "")) == \
+        ("target_iobj=" in (ref.get("size_note") or "")) == \
+        (enc["size_set_by"] == "waveform")
     assert main(["iobj", str(prof), str(out), "--spacing", "0.5", "--json"]) == 0
     measured = json.loads(capsys.readouterr().out)
     assert measured["spqi"] == enc["spqi"] >= 0.9 and measured["Iobj"] <= 0.05
