@@ -335,3 +335,58 @@ def test_device_rendering_is_within_one_percent_and_inside_the_slew_limit():
     steps = np.abs(np.diff(codes.astype(np.float64)))
     assert np.abs(codes).max() > 5000  # the stroke's fast part was rendered
     assert steps.max() <= 0.9 * step_limit, (steps.max(), step_limit)  # 88 %; a 1200 Hz band: 100 %
+
+
+def test_a_stop_while_an_upload_waits_for_its_answers_still_says_stop_render(monkeypatch):
+    """The VM rig: `systemctl stop` came while the display already rendered but its answers to
+    the upload were not in (a slow guest); the pump's stop path skipped STOP_RENDER and the
+    display, its host lost but the hand moving, rendered on. Now a stop interrupts the wait
+    (UploadAborted, at once) and end() says STOP_RENDER whenever START_RENDER went out, answered
+    or not; the same after an upload that timed out twice."""
+    for case in ("abort", "timeout"):
+        _stop_during_upload(case, monkeypatch)
+        monkeypatch.undo()
+
+
+def _stop_during_upload(case, monkeypatch):
+    from hostd.device import devmode, devrender
+    from hostd.device.link import DeviceLink
+    from hostd.device.simdev import SimTransport
+    from hostd.errors import DeviceTimeout
+    from hostd.render.pipeline import RenderConfig
+
+    _, (c, n, length) = _setup("wood")
+    t = SimTransport(realtime=False)
+    link = DeviceLink(t)
+    link.ident = pr.decode(t.device.ident())[1]
+    link.caps = pr.decode(t.device.caps())[1]
+    sent = []
+    monkeypatch.setattr(t, "send", lambda m: sent.append(pr.NAMES[m[0]]))  # taken, never answered
+    monkeypatch.setattr(t, "recv", lambda timeout_s=0.0: None)
+    dev = devmode.DeviceMode(link, RenderConfig(), log=lambda m: None)
+    if case == "abort":
+        polls = [0]
+
+        def stopping():
+            polls[0] += 1
+            return polls[0] > 3  # the stop arrives during the wait for the first answer
+        dev.abort = stopping
+        with pytest.raises(devrender.UploadAborted):
+            dev.begin(("wood", c, n, length))
+        assert polls[0] == 4  # given way at the first poll after the stop, not at a deadline
+    else:
+        def unanswered(tr, msgs, timeout_s=1.0, **kw):
+            for m in msgs:
+                tr.send(m)
+            raise DeviceTimeout("no ACK")
+        monkeypatch.setattr(devrender, "send_and_confirm", unanswered)
+        with pytest.raises(DeviceTimeout):
+            dev.begin(("wood", c, n, length))
+        assert "START_RENDER" in sent  # it went out: the display may be rendering
+    assert not dev.rendering
+    sent.clear()
+    dev.end()
+    assert sent == ["STOP_RENDER"], case
+    sent.clear()
+    dev.end()  # said once: a second end() has nothing to stop
+    assert sent == [], case

@@ -221,7 +221,8 @@ def test_service_under_systemd(hil):
     assert s["security_exposure"] is not None and s["security_exposure"] < 2.0
     # both were known problems (docs/hil-findings.md 4 and 5), fixed: asserted now
     assert s["dac_final_code"] == 0, ("after `systemctl stop` in device rendering the display keeps "
-                                      f"rendering: last DAC records {s.get('dac_after_stop_tail')}")
+                                      f"rendering: last DAC records {s.get('dac_after_stop_tail')}, "
+                                      f"stop took {s.get('stop_s')} s; journal: {s.get('stop_journal')}")
     assert s["late_plug_picked_up"], ("the service does not pick up a display plugged in after it "
                                       f"started; status then: {s.get('late_plug_status')}")
 

@@ -56,6 +56,10 @@ class DeviceMode:
         self.timeout_ms = int(timeout_ms)
         self.texture = None  # (name, coeffs, n, length_mm)
         self.rendering = False  # START_RENDER acknowledged for the current texture
+        # START_RENDER sent, its answer not (yet) in: the display may render, so a stop says
+        # STOP_RENDER all the same (a slow display, or a stop while the upload waits)
+        self.start_sent = False
+        self.abort = None  # a callable, true when the process stops: an upload in flight gives way
         self.slot = 1
         self.recoveries = 0
         self.uploads = 0
@@ -99,23 +103,24 @@ class DeviceMode:
         else:
             msgs = devrender.setup_messages(c, n, length_mm, self.cfg, slot=self.slot, params=self.params)
             msgs.append(pr.encode("START_RENDER", host_lost_ms=self.host_lost_ms))
+            self.start_sent = True
         try:
-            devrender.send_and_confirm(self.link.t, msgs, on_other=self.link._take)
+            devrender.send_and_confirm(self.link.t, msgs, on_other=self.link._take, abort=self.abort)
         except DeviceTimeout:
             # no answer is not a refusal: a starved or emulated host can miss the 1 s (the VM
             # rig under load); the whole upload once more, waiting longer, before the host renders
             devrender.send_and_confirm(self.link.t, msgs, timeout_s=self.RETRY_ACK_S,
-                                       on_other=self.link._take)
+                                       on_other=self.link._take, abort=self.abort)
         self.texture = texture
         self.rendering = True
         self.uploads += 1
         self._started_at = time.monotonic()
 
     def end(self) -> None:
-        if self.rendering:
+        if self.rendering or self.start_sent:
             self.link._send(pr.encode("STOP_RENDER"), must=True)  # retried like STOP
         self.texture = None
-        self.rendering = False
+        self.rendering = self.start_sent = False
 
     def tick(self) -> None:
         """Once per pump cycle: keep alive, and bring the texture back if the display is not

@@ -105,12 +105,17 @@ def expects_ack(msg: bytes) -> bool:
     return 0x20 <= msg[0] < 0x30
 
 
+class UploadAborted(Exception):
+    """The process is stopping: an upload waiting for its answers gives way (what was sent may
+    already play; the caller's stop path says STOP_RENDER)."""
+
+
 def send_and_confirm(transport, msgs: list[bytes], timeout_s: float = 1.0, on_other=None,
-                     busy_retries: int = 20) -> list[dict]:
+                     busy_retries: int = 20, abort=None) -> list[dict]:
     """Send render messages and wait for their ACKs; a LOAD_END answered BUSY (a crossfade in
     progress) is resent after 60 ms. Messages other than ACK go to on_other(bytes) (the link's
     STATUS handling). Raises DeviceError naming the refused message and the reason, DeviceTimeout
-    when no answer came within timeout_s."""
+    when no answer came within timeout_s, UploadAborted as soon as abort() (if given) is true."""
     import time
 
     from hostd.errors import DeviceError, DeviceTimeout
@@ -123,6 +128,8 @@ def send_and_confirm(transport, msgs: list[bytes], timeout_s: float = 1.0, on_ot
         deadline = time.monotonic() + timeout_s
         retries = busy_retries
         while True:
+            if abort is not None and abort():
+                raise UploadAborted("stopping")
             r = transport.recv(0.005)
             if r is None:
                 if time.monotonic() > deadline:

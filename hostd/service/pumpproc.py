@@ -238,6 +238,9 @@ def pump_main(cfg, conn, stats) -> None:
         uploading[0] = texture[0]  # (a loss meanwhile is said as one: the upload starts again on return)
         try:
             dev.begin(texture)  # upload; the display renders (crossfades on a swap)
+        except devrender.UploadAborted:  # stopping: the loop ends, the stop path says STOP_RENDER
+            uploading[0] = None
+            return True
         except (DeviceGone, DeviceBusy):
             raise
         except DeviceError as e:  # refused (the upload was not applied): the host renders it
@@ -557,6 +560,7 @@ def pump_main(cfg, conn, stats) -> None:
                     dev_params = devrender.device_params_apart(rcfg)
                 dev = DeviceMode(link, rcfg, log, host_lost_ms=cfg.render.host_lost_ms,
                                  timeout_ms=cfg.device.host_timeout_ms, params=dev_params)
+                dev.abort = lambda: quit_  # a stop does not wait out an upload's answers
                 if texture is None:
                     choose(True, 7)
             else:
@@ -589,14 +593,18 @@ def pump_main(cfg, conn, stats) -> None:
         finally:
             connected = False
             pump.renderer = None
-            try:
-                if quit_ and playing:
-                    if dev is not None:
-                        dev.end()
-                    link.stop()
-                transport.close()
-            except Exception:
-                pass
+            # a stop: the display ends what it renders (or may render: an upload in flight) and
+            # ramps to zero; each step on its own, so one failing does not skip the next
+            steps = []
+            if quit_ and dev is not None:
+                steps.append(dev.end)
+            if quit_ and (playing or dev is not None):
+                steps.append(link.stop)
+            for step in (*steps, transport.close):
+                try:
+                    step()
+                except Exception:
+                    pass
     put("state", STATE_CODES["stopped"])
     # a second notice (the daemon's last thread exiting after the one that started us) must not
     # kill the process once Python's finalization has put the default action back
