@@ -12,8 +12,11 @@ import pty
 import pytest
 
 from hostd.device import protocol as pr
-from hostd.device.devmode import DeviceMode
 from hostd.device.seriallink import SerialTransport
+
+# gather's count is the caller's: device mode takes one report pair per wake-up since the display
+# reports every 150 ms (firmware 0.4); these tests hold it to several, the general case
+PAIRS = 3
 
 
 @pytest.fixture
@@ -47,13 +50,13 @@ def test_gathers_report_pairs_reading_each_arrival_and_counts_its_wake_ups(port,
     """Each arrival wakes the loop once and is read at once (a wake-up is a run of the loop);
     the messages are handed over once REPORTS_PER_WAKE pairs are in."""
     master, t = port
-    want = 2 * DeviceMode.REPORTS_PER_WAKE
-    for _ in range(DeviceMode.REPORTS_PER_WAKE):
+    want = 2 * PAIRS
+    for _ in range(PAIRS):
         os.write(master, _pair())
     others, runs = t.gather((), 1000, want)
-    assert others == set() and 1 <= runs <= DeviceMode.REPORTS_PER_WAKE
+    assert others == set() and 1 <= runs <= PAIRS
     msgs = t.drain()
-    assert [pr.decode(m)[0] for m in msgs] == ["STATUS", "RENDER_STATUS"] * DeviceMode.REPORTS_PER_WAKE
+    assert [pr.decode(m)[0] for m in msgs] == ["STATUS", "RENDER_STATUS"] * PAIRS
     assert t.drain() == []
 
 
@@ -63,7 +66,7 @@ def test_gather_returns_at_once_for_a_command_and_keeps_what_arrived(port, impl)
     try:
         os.write(master, _pair())
         os.write(w, b"x")  # a command from the daemon
-        others, runs = t.gather((r,), 1000, 2 * DeviceMode.REPORTS_PER_WAKE)
+        others, runs = t.gather((r,), 1000, 2 * PAIRS)
         assert others == {r} and runs == 1
         assert [pr.decode(m)[0] for m in t.drain()] == ["STATUS", "RENDER_STATUS"]
     finally:
@@ -74,7 +77,7 @@ def test_gather_returns_at_once_for_a_command_and_keeps_what_arrived(port, impl)
 def test_a_stopped_display_s_1ms_statuses_fill_the_count_within_a_few_ms(port, impl):
     master, t = port
     status = pr.frame(pr.encode("STATUS", state=pr.STATES["IDLE"]))
-    want = 2 * DeviceMode.REPORTS_PER_WAKE
+    want = 2 * PAIRS
     for _ in range(want):  # one per ms from a display that is not rendering
         os.write(master, status)
     others, _runs = t.gather((), 1000, want)
@@ -84,7 +87,7 @@ def test_a_stopped_display_s_1ms_statuses_fill_the_count_within_a_few_ms(port, i
 def test_gather_times_out_with_fewer_messages_and_hands_them_over(port, impl):
     master, t = port
     os.write(master, _pair())
-    others, runs = t.gather((), 30, 2 * DeviceMode.REPORTS_PER_WAKE)
+    others, runs = t.gather((), 30, 2 * PAIRS)
     assert others == set() and runs >= 1
     assert len(t.drain()) == 2
 
@@ -103,7 +106,7 @@ def test_gather_counts_one_wake_up_per_arrival(port, impl):
     import time
 
     master, t = port
-    n = DeviceMode.REPORTS_PER_WAKE
+    n = PAIRS
 
     def feed() -> None:
         for _ in range(n):

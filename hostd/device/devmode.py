@@ -13,15 +13,15 @@ A host stall does not interrupt the texture: the display keeps rendering; after 
 it flags the host as lost and still renders while the hand moves (docs/protocol.md).
 
 The host sleeps meanwhile (`run`): no periodic loop, it blocks on the transport until the
-display reports (STATUS and RENDER_STATUS every 50 ms while it renders), a command arrives
-(the daemon's pipe, a hotplug monitor: any descriptor in `fds`) or the next keep-alive is due.
-Over serial the kernel wakes the loop at each report's arrival (a tty's VMIN would spare
-the read, not the wake-up): the loop reads each arrival when it wakes (one read, deframed:
-Transport.gather) and takes the messages in (decodes them, acts, calls each_wake) once three
-report pairs are in (150 ms; the counters are cumulative, every STATUS's fault bits count); a
-display that stops rendering sends its 1 ms STATUS again, which reaches that count within a
-few ms. Every wake-up is a run of the loop (`wakeups`, the figure `hostd bench soak` sets
-against the process's own count of wake-ups). A keep-alive that falls due before the next
+display reports (STATUS and RENDER_STATUS every 150 ms while it renders, firmware 0.4; 50 ms
+before), a command arrives (the daemon's pipe, a hotplug monitor: any descriptor in `fds`) or
+the next keep-alive is due. Each report pair wakes the loop once (over serial: one read,
+deframed, Transport.gather with a count of REPORTS_PER_WAKE pairs, so a 0.3 display's 50 ms
+pairs also wake it once each); the counters are cumulative and every STATUS's fault bits
+count, so the slower report loses no tick; a display that stops rendering sends its 1 ms
+STATUS again at once. Every wake-up is a run of the loop (`wakeups`, the figure `hostd bench
+soak` sets against the process's own count of wake-ups). A keep-alive that falls due before the
+next wake-up goes out with it, so the keep-alive adds no wake-up of its own.
 wake-up goes out with it, so the keep-alive adds no wake-up of its own.
 """
 
@@ -44,7 +44,7 @@ RENDERING = pr.STATES["RENDERING"]
 class DeviceMode:
     IDLE_WAIT_S = 0.05  # nothing to render: read the display's 1 ms statuses in batches
     RETRY_ACK_S = 3.0  # an upload not answered within 1 s is sent once more with this long to wait
-    REPORTS_PER_WAKE = 3  # report pairs taken in at once while rendering (150 ms)
+    REPORTS_PER_WAKE = 1  # report pairs taken in at once while rendering (one per 150 ms, firmware 0.4)
 
     def __init__(self, link: DeviceLink, cfg, log, host_lost_ms: int = 1000,
                  timeout_ms: int = 50, params: dict | None = None) -> None:

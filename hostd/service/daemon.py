@@ -921,7 +921,11 @@ class Daemon:
                 # reconnection attempts or wake-ups while it waits for a device) and every worker thread is
                 # alive, never by a timer alone
                 progress = st["cycles"] + st["reconnects"] + st["wait_ticks"]
-                if progress != last_cycles and healthy:
+                if (progress != last_cycles or not ready) and healthy:
+                    # before READY=1 the pump is still starting (its imports, the display's
+                    # equalizer designed in a child: a minute and more on a slow or emulated CPU)
+                    # and has no progress to show; this loop running and the pump alive is the
+                    # liveness then, and TimeoutStartSec= bounds the start itself
                     self.notifier.notify("WATCHDOG=1")
                 last_cycles = progress
                 self.notifier.notify(f"STATUS={state} {self.selected or '-'} device={st['device_state']} "
