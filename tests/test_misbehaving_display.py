@@ -49,6 +49,7 @@ class Cable(threading.Thread):
         self.stall_s = 0.0  # stall() asks for a stall mid-frame this long
         self.stalls = 0  # stalls done
         self.echo = 0  # flood(): each STATUS of the display repeated this many times more
+        self.flood_times: list[float] = []  # when each flooded STATUS went toward the daemon
         self.vanish_at_load = 0  # vanish_during_upload(): the LOAD_* frame toward the display that cuts it
         self.loads = 0  # LOAD_* frames the daemon sent through this cable
         self.vanished = threading.Event()
@@ -111,6 +112,8 @@ class Cable(threading.Thread):
             # COBS: the first byte counts up to the first zero, the message's id (not 0) follows
             n = k + 1 if len(body) > 2 and body[0] > 1 and body[1] == status else 1
             out += (body + b"\0") * n
+            if n > 1:
+                self.flood_times += [time.monotonic()] * n
         return bytes(out)
 
     def run(self) -> None:
@@ -359,6 +362,19 @@ def _end(hp, cable, daemon, log: Path, dac: Path) -> None:
 FLOOD = "status reports in"
 
 
+def _flood_dips(times: list[float], per_s: float) -> int:
+    """Spells of a flood during which the statuses actually sent fell to the daemon's flood
+    threshold or below in some 1 s window (the display's port or this cable starved on a loaded
+    machine): each may end an episode as the design says, so each may add one line."""
+    t = np.sort(np.asarray(times))
+    if t.size < 2 or t[-1] - t[0] < 1.0:
+        return 0
+    starts = t[t <= t[-1] - 1.0]
+    counts = np.searchsorted(t, starts + 1.0) - np.searchsorted(t, starts)
+    low = counts <= per_s
+    return int(np.count_nonzero(low[1:] & ~low[:-1]) + low[0])
+
+
 def test_a_flood_of_status_reports_and_an_unknown_message_are_one_line_each(tmp_path):
     """Valid STATUS far faster than the display's report period (each of its reports 7 times
     over: ~7 k a second while it streams at 1 k): one line per flood episode naming it, the
@@ -385,6 +401,7 @@ def test_a_flood_of_status_reports_and_an_unknown_message_are_one_line_each(tmp_
         for episode in (1, 2):  # two floods, a quiet spell between them: one line each
             at = len(log.read_text().splitlines())
             cable.flood(6)
+            cable.flood_times = []
             wait_for(lambda at=at: _lines(log, at, FLOOD), 30, "the flood's line")
             # the daemon answers its clients, the pump streams on (samples go out) meanwhile
             samples0 = request(sock, {"cmd": "status"})["samples"]
@@ -396,7 +413,14 @@ def test_a_flood_of_status_reports_and_an_unknown_message_are_one_line_each(tmp_
             wait_for(lambda: cable.backlog == 0, 30, "the daemon to take the flood")
             time.sleep(2.2)  # a quiet window (>= 1 s, from after the flood) ends the episode
             said = _lines(log, at, FLOOD)
-            assert len(said) == 1 and str(link) in said[0] and "flooding" in said[0], (episode, said)
+            # one line per episode; a spell in which the flood itself fell under the threshold
+            # (its statuses counted as they left this cable) is a new episode by design
+            from hostd.service.pumpproc import FLOOD_FACTOR
+
+            max_hz = pr.SAMPLE_RATE_HZ / pr.P["status_period_ticks"]
+            dips = _flood_dips(cable.flood_times, FLOOD_FACTOR * max_hz)
+            assert 1 <= len(said) <= 1 + dips and all(str(link) in x and "flooding" in x for x in said), (
+                episode, dips, said)
             n_said = int(said[0].split("sent ")[1].split()[0])
             assert n_said > 3000, said  # over three times the fastest report rate, in the window
         st = request(sock, {"cmd": "status"})
