@@ -390,3 +390,32 @@ def _stop_during_upload(case, monkeypatch):
     sent.clear()
     dev.end()  # said once: a second end() has nothing to stop
     assert sent == [], case
+
+
+def test_an_upload_counts_each_answer_as_progress_for_the_watchdog():
+    """The VM rig under load: a display's upload took longer than WatchdogSec=5 and systemd
+    killed the daemon at every try. send_and_confirm calls alive() for each message that
+    arrives (an ACK, a STATUS meanwhile): the pump counts them as progress; silence is not."""
+    from hostd.device import devrender
+
+    setup, _ = _setup("wood")
+
+    class Answering:  # ACKs each message that expects one, with a STATUS before it
+        def __init__(self):
+            self.out = []
+
+        def send(self, m):
+            if devrender.expects_ack(m):
+                self.out += [pr.encode("STATUS", state=pr.STATES["IDLE"]),
+                             pr.encode("ACK", for_id=m[0], result=pr.RESULTS["OK"])]
+
+        def recv(self, timeout_s=0.0):
+            return self.out.pop(0) if self.out else None
+
+        def describe(self):
+            return "answering"
+
+    calls = []
+    acks = devrender.send_and_confirm(Answering(), setup, alive=lambda: calls.append(1))
+    assert len(acks) == sum(devrender.expects_ack(m) for m in setup) > 1
+    assert len(calls) == 2 * len(acks)  # every arrival, the STATUS too

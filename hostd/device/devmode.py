@@ -60,6 +60,7 @@ class DeviceMode:
         # STOP_RENDER all the same (a slow display, or a stop while the upload waits)
         self.start_sent = False
         self.abort = None  # a callable, true when the process stops: an upload in flight gives way
+        self.alive = None  # a callable, called for each message arriving during an upload (progress)
         self.slot = 1
         self.recoveries = 0
         self.uploads = 0
@@ -105,12 +106,14 @@ class DeviceMode:
             msgs.append(pr.encode("START_RENDER", host_lost_ms=self.host_lost_ms))
             self.start_sent = True
         try:
-            devrender.send_and_confirm(self.link.t, msgs, on_other=self.link._take, abort=self.abort)
+            devrender.send_and_confirm(self.link.t, msgs, on_other=self.link._take, abort=self.abort,
+                                       alive=self.alive)
         except DeviceTimeout:
             # no answer is not a refusal: a starved or emulated host can miss the 1 s (the VM
             # rig under load); the whole upload once more, waiting longer, before the host renders
             devrender.send_and_confirm(self.link.t, msgs, timeout_s=self.RETRY_ACK_S,
-                                       on_other=self.link._take, abort=self.abort)
+                                       on_other=self.link._take, abort=self.abort,
+                                       alive=self.alive)
         self.texture = texture
         self.rendering = True
         self.uploads += 1

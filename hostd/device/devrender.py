@@ -111,11 +111,13 @@ class UploadAborted(Exception):
 
 
 def send_and_confirm(transport, msgs: list[bytes], timeout_s: float = 1.0, on_other=None,
-                     busy_retries: int = 20, abort=None) -> list[dict]:
+                     busy_retries: int = 20, abort=None, alive=None) -> list[dict]:
     """Send render messages and wait for their ACKs; a LOAD_END answered BUSY (a crossfade in
     progress) is resent after 60 ms. Messages other than ACK go to on_other(bytes) (the link's
     STATUS handling). Raises DeviceError naming the refused message and the reason, DeviceTimeout
-    when no answer came within timeout_s, UploadAborted as soon as abort() (if given) is true."""
+    when no answer came within timeout_s, UploadAborted as soon as abort() (if given) is true.
+    alive() (if given) is called for each message that arrives: the upload's progress (a slow
+    display's upload can outlast a watchdog period; its answers show it is moving)."""
     import time
 
     from hostd.errors import DeviceError, DeviceTimeout
@@ -131,6 +133,8 @@ def send_and_confirm(transport, msgs: list[bytes], timeout_s: float = 1.0, on_ot
             if abort is not None and abort():
                 raise UploadAborted("stopping")
             r = transport.recv(0.005)
+            if r is not None and alive is not None:
+                alive()
             if r is None:
                 if time.monotonic() > deadline:
                     raise DeviceTimeout(f"{transport.describe()}: no ACK for {pr.NAMES[m[0]]} within "

@@ -493,6 +493,13 @@ def pump_main(cfg, conn, stats) -> None:
 
     conn_fd = conn.fileno()
 
+    def upload_progress() -> None:
+        """A message arrived during an upload to the display: progress, as a wake-up is (a slow
+        display's upload, e.g. an emulated one on a loaded host, outlasted WatchdogSec=5 and
+        systemd killed the daemon at every try)."""
+        pump.stats.cycles += 1
+        put("cycles", pump.stats.cycles)
+
     def each_wake(ready) -> None:  # device mode: a wake-up of the sleeping loop
         pump.stats.cycles += 1  # progress the daemon's watchdog sees
         if ready is None or conn_fd in ready:  # (conn.poll() builds a selector per call)
@@ -561,6 +568,7 @@ def pump_main(cfg, conn, stats) -> None:
                 dev = DeviceMode(link, rcfg, log, host_lost_ms=cfg.render.host_lost_ms,
                                  timeout_ms=cfg.device.host_timeout_ms, params=dev_params)
                 dev.abort = lambda: quit_  # a stop does not wait out an upload's answers
+                dev.alive = upload_progress  # the watchdog sees a slow upload moving
                 if texture is None:
                     choose(True, 7)
             else:
