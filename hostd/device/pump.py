@@ -328,7 +328,12 @@ class Pump:
         link = self.link
         t0 = link.next_play_time_s()
         t_play = t0 + np.arange(n) / pr.SAMPLE_RATE_HZ
-        return self._send_codes(self.renderer.render_codes(t_play))
+        r = self.renderer
+        codes = r.render_codes(t_play)
+        sent = self._send_codes(codes)
+        if sent < len(codes) and hasattr(r, "unsent"):
+            r.unsent(len(codes) - sent)  # (a stimulus goes on where the device's samples end)
+        return sent
 
     def _send_codes(self, codes: np.ndarray, first: int = 0) -> int:
         """SAMPLES for `codes`, of which `first` went out already (the compiled cycle hands a

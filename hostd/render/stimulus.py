@@ -123,15 +123,18 @@ class _Still:
 class _StimulusStage(OutputStage):
     """The output stage (process(): the same limits as every host-rendered sample) whose first
     start is at full envelope: the stimulus begins at zero with its own raised-cosine ramp, and
-    a soft start on top would change its onset. A later restart (the device ran dry: the
-    stimulus is reported as not played) soft-starts as usual."""
+    a soft start on top would change its onset. A later restart (the device ran dry or stopped:
+    the stimulus is reported as not played) aborts it: silence from then on."""
 
     started = False
+    aborted = False
 
     def restart_from(self, um: float = 0.0) -> None:
         super().restart_from(um)
         if not self.started and um == 0.0:
             self.envelope = 1.0
+        elif self.started:
+            self.aborted = True
         self.started = True
 
 
@@ -151,6 +154,8 @@ class StimulusRenderer:
         self.samples = np.concatenate([np.zeros(LEAD_SAMPLES), cmd])
         self.pos = 0
         self.limited = 0  # samples the output stage changed (none, after the check)
+        self._last_before = 0.0  # the stage's last output before the latest batch
+        self._last_y = np.zeros(0)
         # the pump keeps the device's buffer this full (clamped to all it can hold): nothing
         # follows the hand, so latency is no matter, and a host stall up to the device's host
         # timeout is covered
@@ -168,11 +173,23 @@ class StimulusRenderer:
         self.out.start()
 
     def render_codes(self, t_play_s: np.ndarray) -> np.ndarray:
+        """The next len(t_play_s) samples (the play times do not matter: nothing follows the hand)."""
         n = len(t_play_s)
         x = np.zeros(n)
-        part = self.samples[self.pos : self.pos + n]
-        x[: part.size] = part
+        if not self.out.aborted:
+            part = self.samples[self.pos : self.pos + n]
+            x[: part.size] = part
+        self._last_before = self.out.last_um
         self.pos += n
         y = self.out.process(x)
+        self._last_y = y
         self.limited += int(np.count_nonzero(y != x))
         return self.out.to_codes(y)
+
+    def unsent(self, k: int) -> None:
+        """The last k samples rendered did not go out (the link was busy): they come again next,
+        from the output stage's state after the last sample that did."""
+        n = self._last_y.size
+        k = min(max(int(k), 0), n)
+        self.pos -= k
+        self.out.last_um = float(self._last_y[n - k - 1]) if k < n else self._last_before
