@@ -84,7 +84,12 @@ def rig(tmp_path_factory):
         pytest.fail(str(e))
     r = Rig(tmp_path_factory.mktemp("stim"))
     try:
-        wait_for(lambda: r.daemon.poll() is None and r.status()["connected"], 90, "the display")
+        def up() -> bool:
+            if r.daemon.poll() is not None:
+                pytest.fail(r.journal())
+            return r.status()["connected"]
+
+        wait_for(up, 90, "the display")
         os.chmod(r.sock, 0o666)  # a member of the socket's group: here, anyone (nobody included)
         yield r
     finally:
@@ -100,6 +105,20 @@ def dac_log(path: Path) -> np.ndarray:
     raw = Path(path).read_bytes()
     return np.frombuffer(raw[: len(raw) // hostport.LOG_DTYPE.itemsize * hostport.LOG_DTYPE.itemsize],
                          dtype=hostport.LOG_DTYPE)
+
+
+def settled_log(path: Path, since: int = 0) -> np.ndarray:
+    """The DAC log from record `since`, once it shows the display idle for 30 ticks after its last
+    RUNNING tick (the port writes its log as it runs: a stimulus just answered is all in it)."""
+    t_end = time.monotonic() + 10
+    while True:
+        rec = dac_log(path)[since:]
+        run = (rec["flags"] & hostport.RUNNING) != 0
+        if rec.size > 30 and not run[-30:].any():
+            return rec
+        if time.monotonic() > t_end:
+            pytest.fail("the port's DAC log does not show the display idle")
+        time.sleep(0.02)
 
 
 def expected_codes(cfg, f_hz: float, amplitude_um: float, duration_s: float) -> np.ndarray:
@@ -149,8 +168,7 @@ def test_a_threshold_session_through_the_daemon_plays_every_stimulus_whole(rig, 
     answers = Store(out / "session.sqlite").answers("s1")
     assert [a["trial"] for a in answers] == [0, 1, 2, 3]  # each trial once (a repeat records nothing)
     assert (out / "thresholds.csv").exists() and len((out / "trials.csv").read_text().splitlines()) >= 5
-    time.sleep(0.1)  # the port writes its log as it runs
-    rec = dac_log(rig.log)[t0_tick:]
+    rec = settled_log(rig.log, t0_tick)
     assert_within_limits(rig.cfg, rec)
     codes = rec["code"].astype(np.int64)
     targets = {(a["stimulus"]["frequency_hz"], a["stimulus"]["amplitude_um"]) for a in answers}
@@ -197,8 +215,7 @@ def test_the_device_logs_the_sinusoid_within_a_code_and_the_daemons_reach_is_the
             pytest.fail("five stimuli in a row cut short")
         e = expected_codes(rig.cfg, f, got[fs.index(f)], 0.3)
         assert rep["played"]["samples"] >= e.size and rep["played"]["limited"] == 0  # the device's count
-        time.sleep(0.05)
-        rec = dac_log(rig.log)[n0:]
+        rec = settled_log(rig.log, n0)
         a, _b = running_runs(rec)[-1]
         dac = rec["code"][a + LEAD_SAMPLES : a + LEAD_SAMPLES + e.size].astype(np.int64)
         assert np.array_equal(dac, e)
@@ -234,7 +251,7 @@ def test_a_stimulus_stops_device_rendering_and_the_display_idles_after(rig, tmp_
     assert st["texture"] is None and st["state"] == "idle", st
     # the display ramps down and idles (its state as it reports it, published a few times a second)
     wait_for(lambda: rig.status()["device_state"] == "idle", 10, "the display idle")
-    rec = dac_log(rig.log)
+    rec = settled_log(rig.log)
     rendering = (rec["flags"] & hostport.RENDERING) != 0
     a, _b = running_runs(rec)[-1]
     assert rendering[:a].any() and not rendering[a:].any()  # rendered, streamed, then neither
@@ -294,9 +311,8 @@ def test_over_reach_and_hostile_stimuli_are_refused_and_nothing_passes_the_limit
     for line, rep in zip(lines, replies, strict=True):
         assert rep["ok"] is False and not rep.get("retry") and "\n" not in rep["error"], (line, rep)
     assert "reaches" in replies[0]["error"] and "refused" in replies[1]["error"]
-    time.sleep(0.1)
+    rec = settled_log(rig.log, n0)
     assert rig.status()["device_samples_played"] == played0  # nothing was played
-    rec = dac_log(rig.log)[n0:]
     assert not ((rec["flags"] & hostport.RUNNING) != 0).any()
     assert_within_limits(rig.cfg, dac_log(rig.log))  # the whole run of the port so far
 
