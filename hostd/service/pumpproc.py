@@ -50,6 +50,9 @@ STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 
 STATE_NAMES = {v: k for k, v in STATE_CODES.items()}
 # samples of silence the device plays after a stimulus before it is answered and STOPped
 STIMULUS_TAIL = 6
+# the display's host timeout while it plays a stimulus: what its buffer holds (the pump keeps it
+# full for a stimulus: 227 samples, 76 ms) and a little more
+STIMULUS_TIMEOUT_MS = 85
 # the kernel's notice of the daemon's death (PR_SET_PDEATHSIG): a signal of its own, not SIGTERM
 PARENT_DEATH_SIGNAL = signal.SIGUSR2
 
@@ -276,11 +279,14 @@ def pump_main(cfg, conn, stats) -> None:
         except (OSError, EOFError):
             pass
 
-    def drop_stimulus(error: str) -> None:
-        """The stimulus being played was not played whole: say so (the client may ask again)."""
+    def drop_stimulus(error: str, link_up: bool = True) -> None:
+        """The stimulus being played was not played whole: say so (the client may ask again);
+        the display's host timeout is set back (a new link sets it anyway)."""
         s, stim[0] = stim[0], None
         if s is not None:
             answer_stimulus(s["id"], error)
+            if connected and link_up:
+                link.set_timeout(cfg.device.host_timeout_ms)
 
     def stimulus_begin(sid: int, f_hz: float, amplitude_um: float, duration_s: float) -> None:
         nonlocal texture, playing
@@ -301,6 +307,10 @@ def pump_main(cfg, conn, stats) -> None:
         texture = None  # the stimulus ends what played; the display is idle after it
         if dev is not None and dev.rendering:
             dev.end()  # the display stops rendering first; it streams the stimulus
+        # the display's host timeout covers the whole buffer while it plays a stimulus: a host
+        # stall shorter than what it holds does not cut it (what it holds was all checked; a
+        # host gone for longer still ramps the display to zero); set back at the end
+        link.set_timeout(max(cfg.device.host_timeout_ms, STIMULUS_TIMEOUT_MS))
         r.start()
         pump.begin(r)  # (STOP if it streamed,) prime, START
         first_seq = link.next_seq()  # the first SAMPLES after START: once taken, START was too
@@ -315,6 +325,7 @@ def pump_main(cfg, conn, stats) -> None:
     def stimulus_end() -> None:
         nonlocal playing
         pump.end()  # STOP: the device plays nothing more (the stimulus's tail was silence)
+        link.set_timeout(cfg.device.host_timeout_ms)
         pump.health.select(False)
         playing = False
         put("state", STATE_CODES["idle"])
@@ -332,8 +343,11 @@ def pump_main(cfg, conn, stats) -> None:
                 s["p0"] = h.samples_played  # played before is counted here (what since, at most, later)
         elif pump.recovering or h.underruns != s["underruns0"] or pump.stats.recoveries != s["recoveries0"]:
             stim[0] = None
-            answer_stimulus(s["id"], "the display ran dry or stopped during the stimulus (an underrun or its "
-                            "host timeout): it was not played whole; ask again")
+            ep = pump._episode
+            why = ep.cause if ep is not None else "underrun" if h.underruns != s["underruns0"] else "stopped"
+            answer_stimulus(s["id"], f"the display stopped playing the stimulus ({why}: a host stall "
+                            f"longer than its buffer) after {h.samples_played - s['p0']} samples: it was not "
+                            "played whole; ask again")
             stimulus_end()
             return
         elif h.samples_played - s["p0"] >= s["needed"]:
@@ -674,7 +688,7 @@ def pump_main(cfg, conn, stats) -> None:
                     pump._last_cycle_start = None  # the sleeping loop's gaps are not stalls
                     pump.run(stop=lambda: quit_ or device_loop(), each_cycle=each_cycle, wake_fds=fds)
         except DeviceError as e:
-            drop_stimulus(f"the display was lost during the stimulus ({e})")
+            drop_stimulus(f"the display was lost during the stimulus ({e})", link_up=False)
             if uploading[0] is not None:  # mid-upload: nothing it holds is believed; all again on return
                 log(f"device lost during the upload of {uploading[0]} (device rendering): {e}; output "
                     "stopped, waiting; identified and uploaded to again when it returns")
