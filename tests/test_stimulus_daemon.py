@@ -258,6 +258,24 @@ def test_a_stimulus_stops_device_rendering_and_the_display_idles_after(rig, tmp_
     # device mode stays lean: the stimulus path loads no scipy (nor matplotlib) into the pump
     pump = soak._pump_pid(rig.daemon.pid)
     assert soak.mapped_libs(pump) == []
+    # a select while a stimulus plays interrupts it (answered "retry") and the display renders
+    res: dict = {}
+
+    def long_stimulus() -> None:
+        try:
+            res["reply"] = request(rig.sock, {"cmd": "stimulus", "frequency_hz": 100.0, "amplitude_um": 1.0,
+                                              "duration_s": 3.0}, timeout_s=20)
+        except ClientError as e:
+            res["error"] = e
+
+    th = threading.Thread(target=long_stimulus)
+    th.start()
+    wait_for(lambda: rig.status()["state"] == "playing", 10, "the stimulus playing")
+    request(rig.sock, {"cmd": "select", "name": "wood"})
+    th.join(20)
+    assert "error" in res and res["error"].reply.get("retry"), res  # (interrupted, or cut by a stall)
+    wait_for(lambda: rig.status()["device_state"] == "rendering", 30, "device rendering again")
+    request(rig.sock, {"cmd": "stop"})
 
 
 HOSTILE = r"""

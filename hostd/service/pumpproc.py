@@ -305,6 +305,11 @@ def pump_main(cfg, conn, stats) -> None:
             return
         fastpump.usable(pump)  # (its first call imports the transports' modules: not after START)
         texture = None  # the stimulus ends what played; the display is idle after it
+        now = time.monotonic()
+        # (kept before any message goes out: a display lost from here on is answered as such)
+        stim[0] = s = {"id": sid, "renderer": r, "first_seq": None, "p0": None, "t0": now,
+                       "deadline": now + duration_s + 2.0, "duration_s": duration_s,
+                       "needed": r.length + STIMULUS_TAIL}
         if dev is not None and dev.rendering:
             dev.end()  # the display stops rendering first; it streams the stimulus
         # the display's host timeout covers the whole buffer while it plays a stimulus: a host
@@ -313,14 +318,10 @@ def pump_main(cfg, conn, stats) -> None:
         link.set_timeout(max(cfg.device.host_timeout_ms, STIMULUS_TIMEOUT_MS))
         r.start()
         pump.begin(r)  # (STOP if it streamed,) prime, START
-        first_seq = link.next_seq()  # the first SAMPLES after START: once taken, START was too
+        s["first_seq"] = link.next_seq()  # the first SAMPLES after START: once taken, START was too
+        s["underruns0"], s["recoveries0"] = pump.health.underruns, pump.stats.recoveries
         playing = True
         put("state", STATE_CODES["playing"])
-        now = time.monotonic()
-        stim[0] = {"id": sid, "renderer": r, "first_seq": first_seq, "p0": None,
-                   "underruns0": pump.health.underruns, "recoveries0": pump.stats.recoveries,
-                   "t0": now, "deadline": now + duration_s + 2.0, "duration_s": duration_s,
-                   "needed": r.length + STIMULUS_TAIL}
 
     def stimulus_end() -> None:
         nonlocal playing
