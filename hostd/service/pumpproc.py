@@ -303,6 +303,9 @@ def pump_main(cfg, conn, stats) -> None:
         except StimulusRefused as e:
             answer_stimulus(sid, str(e), retry=False)
             return
+        except Exception as e:  # (the daemon checked it: whatever slipped through never stops the pump)
+            answer_stimulus(sid, f"stimulus refused: {type(e).__name__}: {e}", retry=False)
+            return
         fastpump.usable(pump)  # (its first call imports the transports' modules: not after START)
         texture = None  # the stimulus ends what played; the display is idle after it
         now = time.monotonic()
