@@ -400,3 +400,60 @@ def test_a_display_lost_mid_stimulus_repeats_the_trial_and_nothing_is_recorded_t
     assert [a["trial"] for a in rows] == [0, 1] and rows[0]["stimulus"] == first
     with pytest.raises(ExperimentError, match="reaches"):  # beyond the reach: refused, not retried
         display.play(Sinusoid(250.0, display.reach.reach_um(250.0) * 1.01, 0.2))
+
+
+def test_the_pump_streams_a_stimulus_after_a_texture_sample_for_sample():
+    """Host rendering (a texture streamed, then a stimulus), on the simulated display with a
+    manual clock: the display plays the stimulus' codes exactly, from a full buffer; after it
+    the pump's fill target is the texture's again. A link too busy to take a batch loses none
+    of the stimulus' samples (they go out in the next cycle)."""
+    from hostd.bench.accuracy import texture_coeffs
+    from hostd.device.link import DeviceLink
+    from hostd.device.pump import Pump
+    from hostd.device.simdev import SimTransport
+    from hostd.errors import DeviceBusy
+    from hostd.render import Renderer
+    from hostd.render.stimulus import StimulusRenderer
+    from hostd.texture import synth
+
+    cfg = load(None)
+    rc = cfg.render_config()
+    t = SimTransport(realtime=False)
+    t.device.played_log = []
+    link = DeviceLink(t, target_fill=12)
+    t.advance(3)
+    link.handshake(timeout_s=0.1)
+    c, n, length = texture_coeffs(synth.make("wood", seed=1))
+    tex = Renderer(c, n, length, rc)
+    tex.start()
+    pump = Pump(link, tex)
+    pump.step()
+    link.start()
+    for _ in range(300):
+        t.advance(3)
+        pump.step()
+    stim = StimulusRenderer(rc, 250.0, 1.0, 0.3)
+    stim.start()
+    real_send, calls = link._send, [0]
+
+    def sometimes_busy(data, must=False):  # every 7th SAMPLES write: the port would block
+        calls[0] += 1
+        if not must and calls[0] % 7 == 0:
+            raise DeviceBusy("busy")
+        return real_send(data, must)
+
+    link._send = sometimes_busy
+    l0 = len(t.device.played_log)
+    pump.begin(stim)
+    assert link.target_fill == pr.BUFFER_CAPACITY - pr.MAX_SAMPLES  # the whole buffer
+    for _ in range(400):
+        t.advance(3)
+        pump.step()
+    link._send = real_send
+    e = expected_codes(cfg, 250.0, 1.0, 0.3)
+    played = np.array(t.device.played_log[l0:], dtype=np.int64)
+    starts = [k for k in range(0, 400) if np.array_equal(played[k : k + e.size], e)]
+    assert starts and not played[starts[0] + e.size :].any(), "the stimulus is not in what the display played"
+    assert t.device.underruns == 0 and stim.limited == 0 and calls[0] > 7
+    pump.end()
+    assert link.target_fill == 12
