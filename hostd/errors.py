@@ -90,3 +90,8 @@ class DeviceTimeout(DeviceError):
 class ExperimentError(HostdError, ValueError):
     """An experiment's design, session or stimulus is unusable (unknown texture, reused token,
     a stimulus beyond the display's reach)."""
+
+
+class StimulusRefused(ExperimentError):
+    """A stimulus beyond the display's reach, or not a finite one: refused before anything is
+    played (by the host, and by the daemon for its clients)."""

@@ -40,7 +40,8 @@ def test_shipped_config_is_valid_and_documents_every_key():
     text = (ROOT / "config" / "hostd.toml").read_text()
     from dataclasses import fields
 
-    for section in ("device", "library", "control", "quality", "render", "output", "realtime", "metrics"):
+    for section in ("device", "library", "control", "quality", "render", "output", "realtime", "metrics",
+                    "experiment"):
         for f in fields(getattr(cfg, section)):
             assert f"\n{f.name} =" in text, f"{section}.{f.name} undocumented"
     assert cfg.render_config().motion.order == 2

@@ -198,8 +198,11 @@ class Pump:
         self._low_fill = _NO_LOW
 
     def _link_fill(self) -> int:
-        """What the link keeps queued: the fill target plus the samples of a cycle beyond 1 ms."""
-        return min(self._fill + self._extra, pr.BUFFER_CAPACITY - pr.MAX_SAMPLES)
+        """What the link keeps queued: the fill target plus the samples of a cycle beyond 1 ms,
+        or more for a renderer that does not follow the hand (a stimulus, hostd.render.stimulus:
+        its `fill_samples`, latency being no matter there, buys margin against host stalls)."""
+        deep = getattr(self.renderer, "fill_samples", 0) if self.renderer is not None else 0
+        return min(max(self._fill + self._extra, deep), pr.BUFFER_CAPACITY - pr.MAX_SAMPLES)
 
     # ------------------------------------------------------------------ playback control
     def begin(self, renderer) -> None:
@@ -209,6 +212,7 @@ class Pump:
             self._motion_base = (self._motion_base[0] + old.motion.relocks,
                                  self._motion_base[1] + old.motion.implausible)
         self.renderer = renderer
+        self.link.target_fill = self._link_fill()
         self.health.select(renderer is not None)
         self._episode = None
         if renderer is None:
@@ -324,7 +328,12 @@ class Pump:
         link = self.link
         t0 = link.next_play_time_s()
         t_play = t0 + np.arange(n) / pr.SAMPLE_RATE_HZ
-        return self._send_codes(self.renderer.render_codes(t_play))
+        r = self.renderer
+        codes = r.render_codes(t_play)
+        sent = self._send_codes(codes)
+        if sent < len(codes) and hasattr(r, "unsent"):
+            r.unsent(len(codes) - sent)  # (a stimulus goes on where the device's samples end)
+        return sent
 
     def _send_codes(self, codes: np.ndarray, first: int = 0) -> int:
         """SAMPLES for `codes`, of which `first` went out already (the compiled cycle hands a

@@ -37,7 +37,11 @@ def add_parser(sub, parents=()) -> None:
     g.add_argument("--port", type=int, default=0,
                    help="loopback port of the participant's page (0: any free)")
     g.add_argument("--display", default="sim", metavar="sim|daemon",
-                   help="sim: the simulated display (default); daemon: the running hostd's (textures only)")
+                   help="sim: the simulated display (default); daemon: the running hostd's display (for "
+                   "thresholds its config needs [experiment] stimuli = true)")
+    g.add_argument("--socket", default=None, metavar="PATH",
+                   help="--display daemon: hostd's control socket (default: $HOSTD_SOCKET, else "
+                   "control.socket of --config)")
     g.add_argument("--config", default=None, help="hostd config (output limits, actuator, control socket)")
     g.add_argument("--simulate", choices=["weibull", "logistic", "linear"], default=None,
                    help="answer with a simulated observer instead of the page (a dry run)")
@@ -103,7 +107,9 @@ def _display(args):
     if args.display == "sim":
         return SimDisplay(Reach(cfg.render_config()), realtime=args.simulate is None), cfg
     if args.display == "daemon":
-        return DaemonDisplay(cfg.control.socket), cfg
+        import os
+
+        return DaemonDisplay(args.socket or os.environ.get("HOSTD_SOCKET") or cfg.control.socket), cfg
     raise ExperimentError(f"--display {args.display}: sim or daemon")
 
 
@@ -176,10 +182,11 @@ def cmd_threshold(args) -> int:
     else:
         prior = calibration.resolve_curve(args.prior)
         freqs = args.frequencies or [float(f) for f in th.default_curve().freq_hz]
-        reach = [display.reach.reach_um(f) if hasattr(display, "reach") else 0.0 for f in freqs]
-        if not all(r > 0 for r in reach):
-            raise ExperimentError("the threshold experiment plays sinusoids: use --display sim (the daemon "
-                                  "plays textures)")
+        reach = [display.reach.reach_um(f) for f in freqs]  # (the daemon's: its config's bound)
+        for f, r in zip(freqs, reach, strict=True):
+            if not r > 0:
+                raise ExperimentError(f"the display cannot play {f:g} Hz (its reach there is {r:.3g} µm): "
+                                      "leave that frequency out (--frequencies)")
         cfg = ThresholdConfig(freqs, [float(prior(f)) for f in freqs], reach, n_afc=args.afc,
                               max_trials=args.trials, stop_width_db=args.stop_width_db, seed=args.seed,
                               procedure=args.procedure)

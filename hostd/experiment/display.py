@@ -1,21 +1,24 @@
 """What a stimulus is, how far the display can reach, and the displays that play stimuli.
 
-Safety, host side: a sinusoid of amplitude A µm at f Hz needs a command of A / |H(f)| (the
-actuator's response, config render.actuator) that must stay inside the output stage's limits
-(output.travel_um: |x| <= travel/2 at its code limit; output.slew_um_s: 2 pi f A_cmd <= slew).
-`reach_um(f)` is that bound times SAFETY_MARGIN; `check()` refuses (ExperimentError) any
-stimulus above it before anything is played, and SimDisplay renders through the real output
-stage (hostd.render.output.OutputStage) and refuses again if the stage had to clip or slew-
-limit a single sample. The firmware's own limits (firmware/src/core.c: |code| <= limit_code,
-slew <= max_step_code, whatever the host sends) are tested by firmware/tests/test_fw.c
-(test_limits_only_tighten plays codes 32767/-32768 over the limit; test_random_bytes_never_
-break_safety). A procedure never asks beyond the reach: its stimulus grid stops there, and a
-threshold estimated above it is reported as such (ThresholdResult.status "above_reach").
+Safety, host side: the bound is hostd.render.stimulus.StimulusBound (the daemon applies the
+same one to its clients' stimuli): a sinusoid of amplitude A µm at f Hz needs a command of
+A / |H(f)| (the actuator's response, config render.actuator) that must stay inside the output
+stage's limits (output.travel_um: |x| <= travel/2 at its code limit; output.slew_um_s:
+2 pi f A_cmd <= slew). `reach_um(f)` is that bound times SAFETY_MARGIN; `check()` refuses
+(StimulusRefused, an ExperimentError) any stimulus above it before anything is played, or one
+the output stage would have to limit. SimDisplay renders through the real output stage and
+refuses again if the stage had to clip or slew-limit a single sample; DaemonDisplay's daemon
+checks again and streams through its output stage and the firmware's limits. The firmware's
+own limits (firmware/src/core.c: |code| <= limit_code, slew <= max_step_code, whatever the host
+sends) are tested by firmware/tests/test_fw.c (test_limits_only_tighten plays codes
+32767/-32768 over the limit; test_random_bytes_never_break_safety) and, for stimuli, by
+tests/test_stimulus_daemon.py on the firmware's host port. A procedure never asks beyond the
+reach: its stimulus grid stops there, and a threshold estimated above it is reported as such
+(ThresholdResult.status "above_reach").
 """
 
 from __future__ import annotations
 
-import math
 import threading
 import time
 from dataclasses import dataclass
@@ -23,10 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from hostd.errors import DeviceGone, ExperimentError
+from hostd.render.stimulus import RAMP_S, SAFETY_MARGIN, SAMPLE_RATE_HZ, StimulusBound, sinusoid_um
 
-SAFETY_MARGIN = 0.9  # the procedures stay 10 % (0.9 dB) inside the output stage's limits
-SAMPLE_RATE_HZ = 3000.0
-RAMP_S = 0.05  # raised-cosine onset and offset: no click at the ends of a stimulus
+__all__ = ["RAMP_S", "SAFETY_MARGIN", "SAMPLE_RATE_HZ", "DaemonDisplay", "DaemonReach", "Reach", "SimDisplay",
+           "Sinusoid"]
 
 
 @dataclass(frozen=True)
@@ -38,52 +41,25 @@ class Sinusoid:
     duration_s: float = 0.5
 
     def samples_um(self, gain: float = 1.0) -> np.ndarray:
-        n = round(self.duration_s * SAMPLE_RATE_HZ)
-        t = np.arange(n) / SAMPLE_RATE_HZ
-        env = np.ones(n)
-        r = min(int(RAMP_S * SAMPLE_RATE_HZ), n // 2)
-        if r:
-            ramp = 0.5 - 0.5 * np.cos(np.pi * np.arange(r) / r)
-            env[:r], env[n - r:] = ramp, ramp[::-1]
-        return (self.amplitude_um / gain) * env * np.sin(2 * np.pi * self.frequency_hz * t)
+        return sinusoid_um(self.frequency_hz, self.amplitude_um, self.duration_s, gain)
 
 
-class Reach:
+class Reach(StimulusBound):
     """The largest sinusoid (µm peak at the finger) the display can play at f, from the config's
-    output stage and actuator model."""
+    output stage and actuator model (hostd.render.stimulus: the bound the daemon applies too)."""
 
     def __init__(self, render_config=None) -> None:
-        from hostd.render.output import OutputStage
-
         if render_config is None:
             from hostd.service.config import load
 
             render_config = load(None).render_config()
-        self.render_config = render_config
-        self.stage = OutputStage(render_config.output)
-        self.actuator = render_config.actuator
+        super().__init__(render_config)
 
-    def gain(self, f_hz: float) -> float:
-        return float(abs(self.actuator.measured(np.array([float(f_hz)]))[0]))
-
-    def command_limit_um(self, f_hz: float) -> float:
-        """Largest command amplitude: the displacement limit, and the slew limit at f."""
-        return min(self.stage.limit_um, self.stage.cfg.slew_um_s / (2 * math.pi * f_hz))
-
-    def reach_um(self, f_hz: float) -> float:
-        return SAFETY_MARGIN * self.gain(f_hz) * self.command_limit_um(f_hz)
-
-    def check(self, s: Sinusoid) -> None:
-        """Refuse a stimulus beyond the reach (or not a finite positive one): nothing is played."""
-        if not (math.isfinite(s.frequency_hz) and s.frequency_hz > 0 and math.isfinite(s.amplitude_um)
-                and s.amplitude_um >= 0 and math.isfinite(s.duration_s) and 0 < s.duration_s <= 10):
-            raise ExperimentError(f"stimulus {s} refused: frequency > 0, amplitude >= 0 and a duration "
-                                  "of at most 10 s expected")
-        r = self.reach_um(s.frequency_hz)
-        if s.amplitude_um > r:
-            raise ExperimentError(f"stimulus of {s.amplitude_um:.4g} µm at {s.frequency_hz:g} Hz refused: "
-                                  f"the display reaches {r:.4g} µm there (output.travel_um, "
-                                  "output.slew_um_s, render.actuator, with a 10 % margin)")
+    def check(self, s: Sinusoid) -> None:  # type: ignore[override]
+        """Refuse a stimulus beyond the reach (or not a finite positive one): nothing is played
+        (StimulusRefused, an ExperimentError)."""
+        super().check(*(float(v) if isinstance(v, np.number) else v
+                        for v in (s.frequency_hz, s.amplitude_um, s.duration_s)))
 
 
 class SimDisplay:
@@ -122,6 +98,12 @@ class SimDisplay:
             time.sleep(s.duration_s)
 
     def play_silence(self, duration_s: float) -> None:
+        """An interval without the stimulus."""
+        if self.realtime:
+            time.sleep(duration_s)
+
+    def wait(self, duration_s: float) -> None:
+        """Between intervals: nothing is played."""
         if self.realtime:
             time.sleep(duration_s)
 
@@ -139,34 +121,74 @@ class SimDisplay:
             time.sleep(seconds)
 
 
+SILENCE_HZ = 100.0  # the frequency of a silent interval's stimulus (amplitude 0: the value is moot)
+
+
+class DaemonReach:
+    """The running daemon's reach (its `reach` command: the bound it applies to every stimulus,
+    from its own config), asked once per frequency."""
+
+    def __init__(self, display: DaemonDisplay) -> None:
+        self.display = display
+        self.cache: dict[float, float] = {}
+
+    def reach_um(self, f_hz: float) -> float:
+        f = float(f_hz)
+        if f not in self.cache:
+            rep = self.display._request({"cmd": "reach", "frequencies_hz": [f]}, refusal=ExperimentError)
+            self.cache[f] = float(rep["reach_um"][0])
+        return self.cache[f]
+
+
 class DaemonDisplay:
-    """The running daemon's display, through its control socket: a texture is sent (once),
-    selected for `seconds` while the participant strokes it, then stopped. Sinusoids are not
-    streams the daemon plays (it renders textures at the hand's position): the threshold
-    experiment uses the simulated display or a display driven by the lab's own stimulus
-    player, and says so."""
+    """The running daemon's display, through its control socket.
+
+    A sinusoid is the daemon's `stimulus` command: the daemon checks it against the display's
+    reach (from its own config; refused: ExperimentError), its pump streams it through the
+    output stage and the firmware's limits, and it answers once the display has played it (the
+    device's own count of samples played). A silent interval is the same command at amplitude 0,
+    so the display does exactly the same in every interval but the one that holds the stimulus
+    (no cue from the display starting or stopping). No display, a display lost or running dry
+    mid-stimulus, a daemon not answering: DeviceGone (the trial is repeated, nothing recorded).
+    The daemon plays stimuli only with `[experiment] stimuli = true` in its config.
+
+    A texture (the similarity experiment) is sent once, selected for `seconds` while the
+    participant strokes it, then stopped."""
 
     def __init__(self, socket_path: str) -> None:
         self.socket_path = socket_path
         self.sent: dict[str, str] = {}
+        self.reach = DaemonReach(self)
 
     def play(self, s: Sinusoid) -> None:
-        raise ExperimentError("the daemon plays texture streams, not sinusoids: run the threshold "
-                              "experiment with --display sim")
+        self._stimulus(float(s.frequency_hz), float(s.amplitude_um), float(s.duration_s))
 
     def play_silence(self, duration_s: float) -> None:
+        """An interval without the stimulus: the same command at amplitude 0."""
+        self._stimulus(SILENCE_HZ, 0.0, float(duration_s))
+
+    def wait(self, duration_s: float) -> None:
+        """Between intervals: nothing is played."""
         time.sleep(duration_s)
 
-    def _request(self, req: dict, payload: bytes = b"") -> dict:
+    def _stimulus(self, f_hz: float, amplitude_um: float, duration_s: float) -> None:
+        self._request({"cmd": "stimulus", "frequency_hz": f_hz, "amplitude_um": amplitude_um,
+                       "duration_s": duration_s}, refusal=ExperimentError, timeout_s=duration_s + 15.0)
+
+    def _request(self, req: dict, payload: bytes = b"", refusal=DeviceGone, timeout_s: float = 30.0) -> dict:
+        """One request; a daemon not answering or a failure worth a retry (the reply's `retry`)
+        is DeviceGone, another refusal is `refusal`."""
         from hostd.service.client import ClientError, request
 
         try:
-            rep = request(self.socket_path, req, payload)
-        except (ClientError, OSError) as e:
+            return request(self.socket_path, req, payload, timeout_s=timeout_s)
+        except ClientError as e:
+            reply = getattr(e, "reply", None)
+            if reply is None or reply.get("retry"):
+                raise DeviceGone(f"the daemon: {e}") from None
+            raise refusal(f"the daemon refused: {e}") from None
+        except OSError as e:
             raise DeviceGone(f"the daemon is not answering: {e}") from None
-        if not rep.get("ok", False):
-            raise DeviceGone(f"the daemon refused: {rep.get('error')}")
-        return rep
 
     def play_stream(self, path: str, seconds: float) -> None:
         import hashlib

@@ -132,7 +132,7 @@ class ThresholdSession(Session):
         c = self.cfg
         for i in range(1, t["n_afc"] + 1):
             if i > 1:
-                self.display.play_silence(c.gap_s)
+                self.display.wait(c.gap_s)  # between intervals: nothing is played
             if i == t["target"]:
                 self.display.play(Sinusoid(t["frequency_hz"], t["amplitude_um"], c.duration_s))
             else:
@@ -179,7 +179,7 @@ class SimilaritySession(Session):
     def present(self, t):
         s = self.plan["seconds"]
         self.display.play_stream(t["reference"], s)
-        self.display.play_silence(self.plan.get("gap_s", 1.0))
+        self.display.wait(self.plan.get("gap_s", 1.0))
         self.display.play_stream(t["stream"] or t["reference"], s)  # the control: reference twice
 
     def check_answer(self, value):

@@ -15,7 +15,9 @@ from hostd.service.control import peer_uid
 
 
 class ClientError(HostdError):
-    """The daemon could not be reached or refused the request."""
+    """The daemon could not be reached or refused the request (then `reply` is its answer)."""
+
+    reply: dict | None = None
 
 
 def socket_path(config: str | None) -> str:
@@ -99,7 +101,9 @@ def request(path: str, req: dict, payload: bytes = b"", timeout_s: float = 30.0)
     except ValueError:
         raise ClientError(f"hostd at {path} gave a malformed answer") from None
     if not reply.get("ok"):
-        raise ClientError(reply.get("error", "refused"))
+        err = ClientError(reply.get("error", "refused"))
+        err.reply = reply  # (its "retry": true says the same request may succeed later)
+        raise err
     return reply
 
 

@@ -98,6 +98,13 @@ class MetricsCfg:
 
 
 @dataclass
+class ExperimentCfg:
+    # play sinusoidal stimuli for `hostd experiment threshold --display daemon` (the control
+    # socket's `stimulus` command): off by default, see docs/experiments.md
+    stimuli: bool = False
+
+
+@dataclass
 class Config:
     device: DeviceCfg = field(default_factory=DeviceCfg)
     library: LibraryCfg = field(default_factory=LibraryCfg)
@@ -107,6 +114,7 @@ class Config:
     output: OutputCfg = field(default_factory=OutputCfg)
     realtime: RealtimeCfg = field(default_factory=RealtimeCfg)
     metrics: MetricsCfg = field(default_factory=MetricsCfg)
+    experiment: ExperimentCfg = field(default_factory=ExperimentCfg)
     path: str = "<defaults>"
 
     def render_config(self):

@@ -288,7 +288,7 @@ class ControlServer:
                       "try again")
         try:
             conn.settimeout(0.5)
-            conn.sendall((json.dumps({"ok": False, "error": why}) + "\n").encode())
+            conn.sendall((json.dumps({"ok": False, "error": why, "retry": True}) + "\n").encode())
         except OSError:
             pass
         finally:

@@ -48,6 +48,11 @@ _REASON_OF_REFUSAL = {"v1": 2, "no_caps": 3, "components": 4, "sections": 5}
 FLOOD_FACTOR = 3
 STATE_CODES = {"starting": 0, "waiting": 1, "idle": 2, "playing": 3, "stopped": 4, "recovering": 5}
 STATE_NAMES = {v: k for k, v in STATE_CODES.items()}
+# samples of silence the device plays after a stimulus before it is answered and STOPped
+STIMULUS_TAIL = 6
+# the display's host timeout while it plays a stimulus: what its buffer holds (the pump keeps it
+# full for a stimulus: 227 samples, 76 ms) and a little more
+STIMULUS_TIMEOUT_MS = 85
 # the kernel's notice of the daemon's death (PR_SET_PDEATHSIG): a signal of its own, not SIGTERM
 PARENT_DEATH_SIGNAL = signal.SIGUSR2
 
@@ -266,16 +271,125 @@ def pump_main(cfg, conn, stats) -> None:
         put("state", STATE_CODES["playing"])
         put("texture_serial", stats[STAT_INDEX["texture_serial"]] + 1)
 
+    # ---- stimuli (hostd.render.stimulus; the daemon's `stimulus` command): streamed like a
+    # host-rendered texture, through the output stage and the firmware's limits, whatever the
+    # hand does; answered once the device's own count of samples played covers it
+    stim: list = [None]  # the stimulus being played (a dict), else None
+
+    def answer_stimulus(sid: int, error: str | None, retry: bool = True, played: dict | None = None) -> None:
+        try:
+            conn.send(("stimulus", (sid, error, retry, played)))
+        except (OSError, EOFError):
+            pass
+
+    def drop_stimulus(error: str, link_up: bool = True) -> None:
+        """The stimulus being played was not played whole: say so (the client may ask again);
+        the display's host timeout is set back (a new link sets it anyway)."""
+        s, stim[0] = stim[0], None
+        if s is not None:
+            answer_stimulus(s["id"], error)
+            if connected and link_up:
+                link.set_timeout(cfg.device.host_timeout_ms)
+
+    def stimulus_begin(sid: int, f_hz: float, amplitude_um: float, duration_s: float) -> None:
+        nonlocal texture, playing
+        drop_stimulus("interrupted by another stimulus")
+        if not connected:
+            answer_stimulus(sid, "no display is connected (hostd status says why): connect it and ask again")
+            return
+        from hostd.device import fastpump  # (Pump.run imports it: loaded now, not after START)
+        from hostd.errors import StimulusRefused
+        from hostd.render.stimulus import StimulusRenderer  # (the stimulus path only)
+
+        try:
+            r = StimulusRenderer(rcfg, f_hz, amplitude_um, duration_s)
+        except StimulusRefused as e:
+            answer_stimulus(sid, str(e), retry=False)
+            return
+        except Exception as e:  # (the daemon checked it: whatever slipped through never stops the pump)
+            answer_stimulus(sid, f"stimulus refused: {type(e).__name__}: {e}", retry=False)
+            return
+        fastpump.usable(pump)  # (its first call imports the transports' modules: not after START)
+        texture = None  # the stimulus ends what played; the display is idle after it
+        now = time.monotonic()
+        # (kept before any message goes out: a display lost from here on is answered as such)
+        stim[0] = s = {"id": sid, "renderer": r, "first_seq": None, "p0": None, "t0": now,
+                       "deadline": now + duration_s + 2.0, "duration_s": duration_s,
+                       "needed": r.length + STIMULUS_TAIL}
+        if dev is not None and dev.rendering:
+            dev.end()  # the display stops rendering first; it streams the stimulus
+        # the display's host timeout covers the whole buffer while it plays a stimulus: a host
+        # stall shorter than what it holds does not cut it (what it holds was all checked; a
+        # host gone for longer still ramps the display to zero); set back at the end
+        link.set_timeout(max(cfg.device.host_timeout_ms, STIMULUS_TIMEOUT_MS))
+        r.start()
+        pump.begin(r)  # (STOP if it streamed,) prime, START
+        s["first_seq"] = link.next_seq()  # the first SAMPLES after START: once taken, START was too
+        s["underruns0"], s["recoveries0"] = pump.health.underruns, pump.stats.recoveries
+        playing = True
+        put("state", STATE_CODES["playing"])
+
+    def stimulus_end() -> None:
+        nonlocal playing
+        pump.end()  # STOP: the device plays nothing more (the stimulus's tail was silence)
+        link.set_timeout(cfg.device.host_timeout_ms)
+        pump.health.select(False)
+        playing = False
+        put("state", STATE_CODES["idle"])
+
+    def stimulus_check() -> None:
+        """Once per cycle while a stimulus plays: played whole (the device's own count of samples
+        played since it took the stimulus's first SAMPLES), or not (it ran dry, stopped, or not
+        in time)."""
+        s = stim[0]
+        if s is None:
+            return
+        h = pump.health
+        if s["p0"] is None:
+            if link.acked(s["first_seq"]):  # it took STOP (if any), the prime and START: what it
+                s["p0"] = h.samples_played  # played before is counted here (what since, at most, later)
+        elif pump.recovering or h.underruns != s["underruns0"] or pump.stats.recoveries != s["recoveries0"]:
+            stim[0] = None
+            ep = pump._episode
+            why = ep.cause if ep is not None else "underrun" if h.underruns != s["underruns0"] else "stopped"
+            answer_stimulus(s["id"], f"the display stopped playing the stimulus ({why}: a host stall "
+                            f"longer than its buffer) after {h.samples_played - s['p0']} samples: it was not "
+                            "played whole; ask again")
+            stimulus_end()
+            return
+        elif h.samples_played - s["p0"] >= s["needed"]:
+            stim[0] = None
+            r = s["renderer"]
+            played = {"samples": h.samples_played - s["p0"], "stimulus_samples": r.length,
+                      "limited": r.limited, "host_s": round(time.monotonic() - s["t0"], 4),
+                      "device_time_s": link.device_time_s}
+            if r.limited:  # (cannot happen after the check; said rather than assumed)
+                answer_stimulus(s["id"], f"the output stage limited {r.limited} samples of the stimulus",
+                                retry=False, played=played)
+            else:
+                answer_stimulus(s["id"], None, played=played)
+            stimulus_end()
+            return
+        if time.monotonic() > s["deadline"]:
+            stim[0] = None
+            answer_stimulus(s["id"], f"the display did not play the {s['duration_s']:g} s stimulus within "
+                            f"{s['deadline'] - s['t0']:g} s; ask again")
+            stimulus_end()
+
     def command(cmd) -> None:
         """A command from the parent; while no device is connected only the choice is kept."""
         nonlocal texture, playing, quit_
         if cmd[0] == "quit":
             quit_ = True
+        elif cmd[0] == "stimulus":
+            stimulus_begin(*cmd[1])
         elif cmd[0] == "select":
+            drop_stimulus("interrupted: a texture was selected")
             texture = cmd[1]
             if connected:
                 begin()
         elif cmd[0] == "stop":
+            drop_stimulus("interrupted by a stop")
             texture = None
             if connected:
                 if dev is not None and dev.rendering:
@@ -434,6 +548,7 @@ def pump_main(cfg, conn, stats) -> None:
 
     def each_cycle() -> None:
         commands()
+        stimulus_check()
         if dev is not None and pump.renderer is None:
             dev.tick()
         hotplug_cycle()
@@ -589,6 +704,7 @@ def pump_main(cfg, conn, stats) -> None:
                     pump._last_cycle_start = None  # the sleeping loop's gaps are not stalls
                     pump.run(stop=lambda: quit_ or device_loop(), each_cycle=each_cycle, wake_fds=fds)
         except DeviceError as e:
+            drop_stimulus(f"the display was lost during the stimulus ({e})", link_up=False)
             if uploading[0] is not None:  # mid-upload: nothing it holds is believed; all again on return
                 log(f"device lost during the upload of {uploading[0]} (device rendering): {e}; output "
                     "stopped, waiting; identified and uploaded to again when it returns")
@@ -602,17 +718,19 @@ def pump_main(cfg, conn, stats) -> None:
             connected = False
             pump.renderer = None
             # a stop: the display ends what it renders (or may render: an upload in flight) and
-            # ramps to zero; each step on its own, so one failing does not skip the next
+            # ramps to zero (STOP also ends a stimulus or a stream); each step on its own, so one
+            # failing does not skip the next
             steps = []
             if quit_ and dev is not None:
                 steps.append(dev.end)
-            if quit_ and (playing or dev is not None):
+            if quit_:
                 steps.append(link.stop)
             for step in (*steps, transport.close):
                 try:
                     step()
                 except Exception:
                     pass
+    drop_stimulus("hostd is stopping")
     put("state", STATE_CODES["stopped"])
     # a second notice (the daemon's last thread exiting after the one that started us) must not
     # kill the process once Python's finalization has put the default action back
