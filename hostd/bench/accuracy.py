@@ -68,7 +68,7 @@ def settings() -> list[Setting]:
     for t in ("float64", "float32"):
         s.append(Setting("dtype", t, lambda c, t=t: replace(c, dtype=t), t == d.dtype))
     s.append(Setting("prediction", "off (hold last position)", lambda c: replace(c, predict=False)))
-    for order, win in ((1, 4), (1, 8), (2, 8), (2, 16), (2, 24)):
+    for order, win in ((1, 4), (1, 8), (2, 8), (2, 16), (2, 24), (3, 24), (3, 32), (3, 40), (3, 48)):
         s.append(Setting("prediction", f"order {order}, window {win}",
                          lambda c, o=order, w=win: replace(c, motion=replace(c.motion, order=o, window=w)),
                          d.predict and (order, win) == (d.motion.order, d.motion.window)))
