@@ -119,3 +119,25 @@ def test_accuracy_check_holds_every_rendering_mode(rows, level, want, capsys):
     assert _check("accuracy", rows, level) == want
     err = capsys.readouterr().err
     assert ("FAIL" in err or "needs" in err) == bool(want)
+
+
+def test_speeds_that_keep_every_component_in_the_pass_band_share_one_bucket():
+    """Below v_full every non-zero component sounds at or below f_pass: the band-limited weights
+    are the coefficients themselves, for every such speed. They share the rest bucket (the
+    compiled cycle hands the first visit of a bucket to the reference: a reversal swept through
+    hundreds of 2 % buckets of identical weights), and the heights are the exact ones."""
+    from hostd.render.height import REST_BUCKET, HeightEvaluator
+
+    c = np.zeros(200)
+    c[:150] = np.linspace(1.0, 0.1, 150)  # the top 50 components are zero: they set no limit
+    h = HeightEvaluator(c, 1000, 20.0)
+    v_full = 400.0 * 2 * 20.0 / 150
+    assert h._v_full_mm_s == pytest.approx(v_full, rel=1e-8) and h._v_full_mm_s < v_full
+    x = np.linspace(0.0, 3.0, 7)
+    for v in (-0.99 * v_full, 1e-6, 0.5, 0.5 * v_full, 0.999 * v_full):
+        assert h._bucket(v) == REST_BUCKET
+        assert np.all(h.gains(v)[:150] == 1.0)  # (the zero components may fade: they weigh nothing)
+        assert h(x, v).tobytes() == h.series(x, v, exact_gains=True).tobytes()
+    above = 1.01 * v_full
+    assert h._bucket(above) != REST_BUCKET and h.gains(h._bucket_speed(h._bucket(above)))[149] < 1.0
+    assert HeightEvaluator(np.zeros(5), 100, 1.0)._bucket(10.0) == REST_BUCKET  # silent: one bucket

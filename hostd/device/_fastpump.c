@@ -76,9 +76,11 @@ static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the refere
     X(underruns) X(samples_played) X(_time_s) X(_sel_active) X(_sel_device) X(_sel_due) X(_sel_played)    \
     X(_sel_started) X(motion) X(position) X(height) X(eq) X(out) X(latency_s) X(_xfade_left) X(cfg)        \
     X(samples_per_batch) X(_total) X(um_per_count) X(_t) X(_x) X(_c0) X(_c1) X(_c2) X(_c3) X(_t_ref) \
-    X(_rest_x) X(_dt_us) X(_uniform) X(_cache) X(implausible) X(_outliers) X(_since_restart) X(window) X(order)      \
+    X(_rest_x) X(_dt_us) X(_uniform) X(_cache) X(implausible) X(_outliers) X(_since_restart) X(window)    \
+    X(order)                                                                                              \
     X(glitch_um) X(rest_speed_mm_s) X(rest_hold_um) X(max_predict_s) X(max_gap_s) X(max_speed_mm_s)       \
-    X(n) X(length_mm) X(band) X(speed_bucket) X(_w_bucket) X(_w) X(_w_cache) X(sos) X(zi) X(last_um)      \
+    X(n) X(length_mm) X(band) X(speed_bucket) X(_v_full_mm_s) X(_w_bucket) X(_w) X(_w_cache) X(sos)     \
+    X(zi) X(last_um)                                                                                      \
     X(envelope) X(target_envelope) X(limit_um) X(max_step_um) X(ramp_step) X(_codes_per_um) X(limit_code) \
     X(nonfinite) X(clipped) X(ser) X(fd) X(deframer) X(_buf) X(bad_frames) X(_queue) X(_pending)          \
     X(_vmin) X(after_poll) X(_take) X(clear) X(extend) X(step) X(empty_reads)
@@ -147,7 +149,7 @@ typedef struct {
     /* height */
     long long hn, w_bucket;
     int has_wb;
-    double length_mm, speed_bucket;
+    double length_mm, speed_bucket, v_full;
     /* equalizer, output stage */
     Py_ssize_t ns;
     rc_out_t o;
@@ -572,6 +574,7 @@ static int load(S *s, PyObject *pump, int mode) {
     TRY(get_ll(s->height, N_n, &s->hn));
     NO(s->hn <= 0);
     TRY(get_d(s->height, N_length_mm, &s->length_mm));
+    TRY(get_d(s->height, N__v_full_mm_s, &s->v_full));
     TRY(get_obj(s->height, N_band, &o));
     r = get_d(o, N_speed_bucket, &s->speed_bucket);
     Py_CLEAR(o);
@@ -1335,7 +1338,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         const double v = s->c1 + dtv * (2.0 * s->c2 + dtv * (3.0 * s->c3));
         long long b;
         const double sp = fabs(v);
-        if (sp < 1e-9)
+        if (sp < 1e-9 || sp <= s->v_full) /* HeightEvaluator._bucket: every gain 1 up to v_full */
             b = REST_BUCKET;
         else {
             const double q = floor(log(sp) / log1p(s->speed_bucket));

@@ -62,6 +62,21 @@ def _dot(w, x) -> float:
     return acc
 
 
+def _dots(rows, x) -> list[float]:
+    """[_dot(r, x) for r in rows], the same sums in the same order, in one pass over x (the
+    four rows of a cubic fit over 40 readings, 1000 times a second, cost half as much)."""
+    if len(rows) == 4:
+        w0, w1, w2, w3 = rows
+        a0 = a1 = a2 = a3 = 0.0
+        for xi, b0, b1, b2, b3 in zip(x, w0, w1, w2, w3, strict=True):
+            a0 += b0 * xi
+            a1 += b1 * xi
+            a2 += b2 * xi
+            a3 += b3 * xi
+        return [a0, a1, a2, a3]
+    return [_dot(r, x) for r in rows]
+
+
 class MotionEstimator:
     def __init__(self, cfg: MotionConfig | None = None) -> None:
         self.cfg = cfg = cfg or MotionConfig()
@@ -180,10 +195,11 @@ class MotionEstimator:
                 self._cache[key] = w
         else:
             w = self._weights((np.array(t) - tr) * 1e3, order)  # irregular: solve afresh
-        c0 = _dot(w[0], x)
-        c1 = _dot(w[1], x) * 1e3
-        c2 = _dot(w[2], x) * 1e6 if order >= 2 else 0.0
-        c3 = _dot(w[3], x) * 1e9 if order == 3 else 0.0
+        d = _dots(w, x)  # one row per coefficient, order + 1 of them
+        c0 = d[0]
+        c1 = d[1] * 1e3
+        c2 = d[2] * 1e6 if order >= 2 else 0.0
+        c3 = d[3] * 1e9 if order == 3 else 0.0
         self._c0, self._c1, self._c2, self._c3 = c0, c1, c2, c3
         rest = self.cfg.rest_speed_mm_s
         if abs(c1) < rest and max(x) - min(x) <= rest * (t[-1] - t[0]) + self.cfg.rest_hold_um * 1e-3:
