@@ -67,12 +67,19 @@ def test_the_motion_fit_follows_a_reversal_and_does_not_hold_there():
 
 
 def test_a_cubic_fit_is_exact_on_a_cubic_and_the_order_is_checked():
-    m = MotionEstimator(MotionConfig(order=3, window=12, rest_speed_mm_s=0.0))
-    t = np.arange(30) * 1e-3
+    from hostd.render.motion import CUBIC_MIN_READINGS
+
+    t = np.arange(40) * 1e-3
     x = 1.0 + 20.0 * t + 300.0 * t**2 - 4000.0 * t**3
+    short = MotionEstimator(MotionConfig(order=3, window=CUBIC_MIN_READINGS - 1, rest_speed_mm_s=0.0))
+    m = MotionEstimator(MotionConfig(order=3, window=CUBIC_MIN_READINGS, rest_speed_mm_s=0.0))
     for a, b in zip(t.tolist(), x.tolist(), strict=True):
         m.update(a, b)
-    tp = 0.035
+        short.update(a, b)
+    # fewer readings than a cubic needs (after a start or a re-lock): a parabola, which amplifies
+    # the encoder's steps less
+    assert short._c3 == 0.0 and short._c2 != 0.0
+    tp = 0.045
     assert m.predict_one(tp) == pytest.approx(1.0 + 20 * tp + 300 * tp**2 - 4000 * tp**3, abs=1e-9)
     assert m.velocity_at(tp) == pytest.approx(20 + 600 * tp - 12000 * tp**2, abs=1e-6)
     assert m.velocity_mm_s == pytest.approx(20 + 600 * t[-1] - 12000 * t[-1] ** 2, abs=1e-6)

@@ -56,7 +56,8 @@
 #define REPORT_SIZE 64 /* protocol.REPORT_SIZE (checked at init) */
 
 /* ------------------------------------------------------------------ constants (init) */
-static int C_STATUS_ID = -1, C_SAMPLES_ID = -1, C_MAX_SAMPLES = 0, C_RUNNING = 1, C_SMALL_BATCH = 32;
+static int C_STATUS_ID = -1, C_SAMPLES_ID = -1, C_MAX_SAMPLES = 0, C_RUNNING = 1, C_SMALL_BATCH = 32,
+           C_CUBIC_MIN = 24; /* motion.CUBIC_MIN_READINGS (init) */
 static long long C_RATE = 3000, C_CAP = 0, C_MAX_FRAME = 0, C_MAX_GAP_US = 600000000LL;
 static PyObject *decode_fn = NULL; /* hostd.device.fastlink.decode: builds last_status dicts */
 static PyObject *DeviceBusy = NULL; /* hostd.errors.DeviceBusy (init) */
@@ -1072,6 +1073,8 @@ static int take_status(S *s, const msg_t *m, double now) {
         long long order = s->order < mn - 1 ? s->order : mn - 1;
         if (since < 2 * (s->order + 1) && order > 1)
             order = 1;
+        if (order == 3 && mn < C_CUBIC_MIN)
+            order = 2; /* a short window: motion.CUBIC_MIN_READINGS */
         if (order == 0) {
             c0 = mx[mn - 1];
             c1 = c2 = c3 = 0.0;
@@ -1760,7 +1763,8 @@ static PyObject *fp_init(PyObject *self, PyObject *args) {
         const char *key;
         int *dst;
     } ii[] = {{"status_id", &C_STATUS_ID}, {"samples_id", &C_SAMPLES_ID}, {"max_samples", &C_MAX_SAMPLES},
-              {"running", &C_RUNNING}, {"small_batch", &C_SMALL_BATCH}};
+              {"running", &C_RUNNING}, {"small_batch", &C_SMALL_BATCH},
+              {"cubic_min_readings", &C_CUBIC_MIN}};
     for (size_t i = 0; i < sizeof ii / sizeof ii[0]; i++) {
         PyObject *v = PyDict_GetItemString(d, ii[i].key);
         if (!v) {
@@ -1776,7 +1780,8 @@ static PyObject *fp_init(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "init: a report of 64 bytes expected");
         return NULL;
     }
-    if (C_MAX_SAMPLES < 1 || 5 + 2 * C_MAX_SAMPLES > REPORT_SIZE || C_SMALL_BATCH > RC_MAX_N || C_RATE <= 0) {
+    if (C_MAX_SAMPLES < 1 || 5 + 2 * C_MAX_SAMPLES > REPORT_SIZE || C_SMALL_BATCH > RC_MAX_N || C_RATE <= 0 ||
+        C_CUBIC_MIN < 4) {
         PyErr_SetString(PyExc_ValueError, "init: constants out of range");
         return NULL;
     }

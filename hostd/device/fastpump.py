@@ -26,7 +26,7 @@ from hostd.compiled import load as load_compiled
 from hostd.device import fastlink
 from hostd.device import protocol as pr
 from hostd.errors import DeviceBusy
-from hostd.render import equalizer, fastrender
+from hostd.render import equalizer, fastrender, motion
 from hostd.render.pipeline import Renderer
 
 C_REVISION = 3  # _fastpump.c's REVISION this module is written for
@@ -49,7 +49,8 @@ def _load():
             "max_frame": pr.Deframer.MAX_FRAME, "max_gap_us": MAX_GAP_US,
             "status_id": pr.IDS["STATUS"], "samples_id": pr.IDS["SAMPLES"],
             "max_samples": pr.MAX_SAMPLES, "running": pr.STATES["RUNNING"],
-            "small_batch": equalizer.SMALL_BATCH, "report_size": pr.REPORT_SIZE},
+            "small_batch": equalizer.SMALL_BATCH, "report_size": pr.REPORT_SIZE,
+            "cubic_min_readings": motion.CUBIC_MIN_READINGS},
            DeviceBusy, fastlink.decode, _codes_from_bytes)
     return c
 
