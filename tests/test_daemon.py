@@ -20,7 +20,7 @@ import pytest
 from hostd.cli import main
 from hostd.errors import ConfigError
 from hostd.service.client import ClientError, request, send_file
-from hostd.service.config import load
+from hostd.service.config import Config, load
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,7 +44,12 @@ def test_shipped_config_is_valid_and_documents_every_key():
                     "experiment"):
         for f in fields(getattr(cfg, section)):
             assert f"\n{f.name} =" in text, f"{section}.{f.name} undocumented"
-    assert cfg.render_config().motion.order == 2
+    from hostd.render.motion import MotionConfig
+
+    # the shipped file, the config's defaults and the renderer's agree on the motion fit
+    m = cfg.render_config().motion
+    assert (m.order, m.window) == (MotionConfig.order, MotionConfig.window) == (3, 40)
+    assert (Config().render.predict_order, Config().render.predict_window) == (3, 40)
 
 
 @pytest.mark.parametrize("text, needle", [

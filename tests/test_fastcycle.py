@@ -277,15 +277,16 @@ def test_phase_of_a_small_batch_is_bitwise_the_numpy_formula(xs, n, length_mm):
 
 @settings(max_examples=300, deadline=None)
 @given(st.lists(st.one_of(ANY_FLOAT, st.floats(-1.0, 1.0)), max_size=32),
-       st.tuples(st.floats(-1e3, 1e3), st.floats(-3e3, 3e3), st.floats(-1e5, 1e5), st.floats(-10.0, 10.0)))
+       st.tuples(st.floats(-1e3, 1e3), st.floats(-3e3, 3e3), st.floats(-1e5, 1e5), st.floats(-1e7, 1e7),
+                 st.floats(-10.0, 10.0)))
 def test_prediction_of_a_small_batch_is_bitwise_the_numpy_formula(ts, fit):
     """MotionEstimator.predict's scalar path (<= 32 instants) against the numpy formula."""
     from hostd.render.motion import MotionEstimator
 
     m = MotionEstimator()
-    m._c0, m._c1, m._c2, m._t_ref = fit
+    m._c0, m._c1, m._c2, m._c3, m._t_ref = fit
     t = np.array(ts, dtype=np.float64)
     lim = m.cfg.max_predict_s
     dt = (t - m._t_ref).clip(-lim, lim)
-    ref = m._c0 + dt * (m._c1 + dt * m._c2)
+    ref = m._c0 + dt * (m._c1 + dt * (m._c2 + dt * m._c3))
     assert np.asarray(m.predict(t), dtype=np.float64).tobytes() == np.asarray(ref, dtype=np.float64).tobytes()

@@ -68,7 +68,7 @@ def settings() -> list[Setting]:
     for t in ("float64", "float32"):
         s.append(Setting("dtype", t, lambda c, t=t: replace(c, dtype=t), t == d.dtype))
     s.append(Setting("prediction", "off (hold last position)", lambda c: replace(c, predict=False)))
-    for order, win in ((1, 4), (1, 8), (2, 8), (2, 16), (2, 24)):
+    for order, win in ((1, 4), (1, 8), (2, 8), (2, 16), (2, 24), (3, 24), (3, 32), (3, 40), (3, 48)):
         s.append(Setting("prediction", f"order {order}, window {win}",
                          lambda c, o=order, w=win: replace(c, motion=replace(c.motion, order=o, window=w)),
                          d.predict and (order, win) == (d.motion.order, d.motion.window)))
@@ -187,7 +187,11 @@ def measure_device(coeffs, n, length_mm, cfg: RenderConfig, duration_s: float, h
 
 
 def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = True,
-        repeats: int = REPEATS) -> list[dict]:
+        repeats: int = REPEATS, knobs: tuple[str, ...] | None = None,
+        firmware_cost: bool = True) -> list[dict]:
+    """The rows of every setting (of `knobs` only, when given). firmware_cost=False leaves out
+    the QEMU instruction count of the device row (it builds the ARM firmware: minutes on a fresh
+    machine), which `--check` does not hold."""
     from hostd.tty import progress_bar
 
     hand = Metronome()
@@ -196,7 +200,7 @@ def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = 
     rows = []
     done: dict[str, dict] = {}  # the default setting is measured once and reused per knob
     ref_cache: dict = {}
-    todo = settings()
+    todo = [st for st in settings() if knobs is None or st.knob in knobs]
     bar = progress_bar(progress, total=len(todo) * len(coeffs), desc="bench accuracy", unit="run",
                        leave=False)
     for st in todo:
@@ -224,7 +228,7 @@ def run(textures: dict[str, Profile], duration_s: float = 4.8, progress: bool = 
                                   if st.where == "device" else None),
                "per_texture": per}
         if st.where == "device":
-            fw = firmware_tick_cost()
+            fw = firmware_tick_cost() if firmware_cost else {"error": "not counted (--check)"}
             row.update(repeats=1, cpu_min_ms_per_s=0.0, cpu_max_ms_per_s=0.0,
                        fw_cpu_ms_per_s=fw.get("ms_per_s"), fw_insn_per_tick=fw.get("insn_mean"),
                        fw_insn_per_tick_max=fw.get("insn_max"),

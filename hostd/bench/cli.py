@@ -25,6 +25,8 @@ def add_parser(sub, parents) -> None:
     a.add_argument("--quiet", action="store_true", help="no progress bar")
     a.add_argument("--repeats", type=int, default=3, metavar="N",
                    help="runs per host setting and texture: the CPU median and its min-max (default 3)")
+    _check_opt(a, "every rendering mode within 1 %% RMS of the ideal display on every texture, host "
+               "rendering within 5 %% of a core; runs only the render_at rows")
     q = bsub.add_parser("pipeline", help="time per 1 ms batch at default settings (p50/p99/p99.9)")
     q.add_argument("--json", action="store_true")
     q.add_argument("--duration", type=float, default=60.0, metavar="S", help="simulated seconds (default 60)")
@@ -167,8 +169,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
             raise SystemExit("hostd bench: error: --duration must be 0.5..600 s")
         if not 1 <= args.repeats <= 50:
             raise SystemExit("hostd bench: error: --repeats must be 1..50")
+        level = args.check
         rows = accuracy.run(_textures(args), args.duration, progress=not (args.quiet or args.json),
-                            repeats=args.repeats)
+                            repeats=args.repeats, knobs=("render_at",) if level else None,
+                            firmware_cost=not level)
         if args.plot:
             accuracy.plot(rows, args.plot)
         if args.json:
@@ -179,7 +183,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
             print(accuracy.table(rows))
             if args.plot:
                 print(f"plot: {args.plot}")
-        return 0
+        return _check(what, rows, level) if level else 0
     rows: list[dict] = []
     if what == "latency":
         from hostd.bench import latency
@@ -328,4 +332,14 @@ def _check(what: str, rows: list[dict], level: str) -> int:
         return g.check(rows, [g.CLI_ENCODE_CPU_S], level, "cli encode")
     if what == "scoring":
         return g.check(rows, [g.SCORING_PER_S], level, "scoring")
+    if what == "accuracy":
+        modes = [r for r in rows if r["knob"] == "render_at"]
+        if {r["setting"] for r in modes} != {"host", "device"}:
+            print("hostd bench accuracy: --check needs the render_at rows (host and device)", file=sys.stderr)
+            return 1
+        bad = 0
+        for r in modes:
+            guards = [g.ACCURACY_RMS_PCT] + ([g.ACCURACY_HOST_CPU_MS_PER_S] if r["setting"] == "host" else [])
+            bad |= g.check([r], guards, level, f"accuracy render_at={r['setting']} ({r['worst_texture']})")
+        return bad
     return 0

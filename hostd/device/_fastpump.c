@@ -42,7 +42,7 @@
 
 #include "../render/render_core.h"
 
-#define REVISION 2 /* fastpump.C_REVISION must equal this */
+#define REVISION 3 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
 #define MAX_MSGS 64
 #define MAX_UNACKED 64
@@ -56,7 +56,8 @@
 #define REPORT_SIZE 64 /* protocol.REPORT_SIZE (checked at init) */
 
 /* ------------------------------------------------------------------ constants (init) */
-static int C_STATUS_ID = -1, C_SAMPLES_ID = -1, C_MAX_SAMPLES = 0, C_RUNNING = 1, C_SMALL_BATCH = 32;
+static int C_STATUS_ID = -1, C_SAMPLES_ID = -1, C_MAX_SAMPLES = 0, C_RUNNING = 1, C_SMALL_BATCH = 32,
+           C_CUBIC_MIN = 24; /* motion.CUBIC_MIN_READINGS (init) */
 static long long C_RATE = 3000, C_CAP = 0, C_MAX_FRAME = 0, C_MAX_GAP_US = 600000000LL;
 static PyObject *decode_fn = NULL; /* hostd.device.fastlink.decode: builds last_status dicts */
 static PyObject *DeviceBusy = NULL; /* hostd.errors.DeviceBusy (init) */
@@ -75,10 +76,12 @@ static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the refere
     X(_fill_from_seq) X(statuses) X(messages_sent) X(samples_sent) X(last_status) X(_last) X(state)        \
     X(underruns) X(samples_played) X(_time_s) X(_sel_active) X(_sel_device) X(_sel_due) X(_sel_played)    \
     X(_sel_started) X(motion) X(position) X(height) X(eq) X(out) X(latency_s) X(_xfade_left) X(cfg)        \
-    X(samples_per_batch) X(_total) X(um_per_count) X(_t) X(_x) X(_c0) X(_c1) X(_c2) X(_t_ref) X(_rest_x) \
-    X(_dt_us) X(_uniform) X(_cache) X(implausible) X(_outliers) X(_since_restart) X(window) X(order)      \
+    X(samples_per_batch) X(_total) X(um_per_count) X(_t) X(_x) X(_c0) X(_c1) X(_c2) X(_c3) X(_t_ref) \
+    X(_rest_x) X(_dt_us) X(_uniform) X(_cache) X(implausible) X(_outliers) X(_since_restart) X(window)    \
+    X(order)                                                                                              \
     X(glitch_um) X(rest_speed_mm_s) X(rest_hold_um) X(max_predict_s) X(max_gap_s) X(max_speed_mm_s)       \
-    X(n) X(length_mm) X(band) X(speed_bucket) X(_w_bucket) X(_w) X(_w_cache) X(sos) X(zi) X(last_um)      \
+    X(n) X(length_mm) X(band) X(speed_bucket) X(_v_full_mm_s) X(_w_bucket) X(_w) X(_w_cache) X(sos)     \
+    X(zi) X(last_um)                                                                                      \
     X(envelope) X(target_envelope) X(limit_um) X(max_step_um) X(ramp_step) X(_codes_per_um) X(limit_code) \
     X(nonfinite) X(clipped) X(ser) X(fd) X(deframer) X(_buf) X(bad_frames) X(_queue) X(_pending)          \
     X(_vmin) X(after_poll) X(_take) X(clear) X(extend) X(step) X(empty_reads)
@@ -139,15 +142,15 @@ typedef struct {
     double glitch_um, rest_speed, rest_hold, max_predict, max_gap, max_speed;
     double mt[MAX_WIN], mx[MAX_WIN];
     int mn;
-    double c0, c1, c2, t_ref, rest_x;
+    double c0, c1, c2, c3, t_ref, rest_x;
     int has_rest;
     long long dt_us, uniform, since_restart, m_relocks, m_implausible;
     long long wkey_n, wkey_dt, wkey_order; /* the motion weights in mw (-1: none) */
-    double mw[3][MAX_WIN];
+    double mw[4][MAX_WIN];
     /* height */
     long long hn, w_bucket;
     int has_wb;
-    double length_mm, speed_bucket;
+    double length_mm, speed_bucket, v_full;
     /* equalizer, output stage */
     Py_ssize_t ns;
     rc_out_t o;
@@ -532,7 +535,7 @@ static int load(S *s, PyObject *pump, int mode) {
         Py_CLEAR(o);
         if (r)
             goto fail;
-        NO(w < 2 || w > MAX_WIN || ord < 0 || ord > 2);
+        NO(w < 2 || w > MAX_WIN || ord < 0 || ord > 3);
         s->win = (int)w;
         s->order = (int)ord;
     }
@@ -557,6 +560,7 @@ static int load(S *s, PyObject *pump, int mode) {
     TRY(get_d(s->motion, N__c0, &s->c0));
     TRY(get_d(s->motion, N__c1, &s->c1));
     TRY(get_d(s->motion, N__c2, &s->c2));
+    TRY(get_d(s->motion, N__c3, &s->c3));
     TRY(get_d(s->motion, N__t_ref, &s->t_ref));
     TRY(get_opt_d(s->motion, N__rest_x, &s->rest_x, &s->has_rest));
     TRY(get_ll(s->motion, N__dt_us, &s->dt_us));
@@ -571,6 +575,7 @@ static int load(S *s, PyObject *pump, int mode) {
     TRY(get_ll(s->height, N_n, &s->hn));
     NO(s->hn <= 0);
     TRY(get_d(s->height, N_length_mm, &s->length_mm));
+    TRY(get_d(s->height, N__v_full_mm_s, &s->v_full));
     TRY(get_obj(s->height, N_band, &o));
     r = get_d(o, N_speed_bucket, &s->speed_bucket);
     Py_CLEAR(o);
@@ -759,6 +764,7 @@ static int store(S *s) {
     e |= SET_D(s->motion, _c0, s->c0);
     e |= SET_D(s->motion, _c1, s->c1);
     e |= SET_D(s->motion, _c2, s->c2);
+    e |= SET_D(s->motion, _c3, s->c3);
     e |= SET_D(s->motion, _t_ref, s->t_ref);
     if (s->has_rest)
         e |= SET_D(s->motion, _rest_x, s->rest_x);
@@ -948,7 +954,7 @@ static long long compiled_count; /* cycles done here from start to end */
 static double predict_one(const S *s, double t) {
     const double m = s->max_predict;
     const double dt = py_min(py_max(t - s->t_ref, -m), m);
-    return s->c0 + dt * (s->c1 + dt * s->c2);
+    return s->c0 + dt * (s->c1 + dt * (s->c2 + dt * s->c3));
 }
 
 /* the cached least-squares rows for (n, dt_us, order): 1 found, 0 not cached, -1 error */
@@ -1037,7 +1043,7 @@ static int take_status(S *s, const msg_t *m, double now) {
     double mt[MAX_WIN], mx[MAX_WIN];
     int mn = s->mn;
     long long since = s->since_restart, mdt = s->dt_us, uni = s->uniform;
-    double c0 = s->c0, c1 = s->c1, c2 = s->c2, t_ref = s->t_ref, rest_x = s->rest_x;
+    double c0 = s->c0, c1 = s->c1, c2 = s->c2, c3 = s->c3, t_ref = s->t_ref, rest_x = s->rest_x;
     int has_rest = s->has_rest;
     const int stale = t_s <= s->mt[s->mn - 1];
     if (!stale) {
@@ -1067,9 +1073,11 @@ static int take_status(S *s, const msg_t *m, double now) {
         long long order = s->order < mn - 1 ? s->order : mn - 1;
         if (since < 2 * (s->order + 1) && order > 1)
             order = 1;
+        if (order == 3 && mn < C_CUBIC_MIN)
+            order = 2; /* a short window: motion.CUBIC_MIN_READINGS */
         if (order == 0) {
             c0 = mx[mn - 1];
-            c1 = c2 = 0.0;
+            c1 = c2 = c3 = 0.0;
             has_rest = 0;
         } else {
             if (uni < mn - 1)
@@ -1079,8 +1087,18 @@ static int take_status(S *s, const msg_t *m, double now) {
                 return r < 0 ? -1 : HAND(H_FIT_UNCACHED, 0);
             c0 = dot(s->mw[0], mx, mn);
             c1 = dot(s->mw[1], mx, mn) * 1e3;
-            c2 = order == 2 ? dot(s->mw[2], mx, mn) * 1e6 : 0.0;
-            if (fabs(c1) < s->rest_speed) {
+            c2 = order >= 2 ? dot(s->mw[2], mx, mn) * 1e6 : 0.0;
+            c3 = order == 3 ? dot(s->mw[3], mx, mn) * 1e9 : 0.0;
+            /* at rest: slow, and the readings within what that speed covers over the window
+             * (max(x) - min(x) as Python's max and min: the first of equals) */
+            double lo = mx[0], hi = mx[0];
+            for (int i = 1; i < mn; i++) {
+                if (mx[i] > hi)
+                    hi = mx[i];
+                if (mx[i] < lo)
+                    lo = mx[i];
+            }
+            if (fabs(c1) < s->rest_speed && hi - lo <= s->rest_speed * (mt[mn - 1] - mt[0]) + s->rest_hold * 1e-3) {
                 double acc = 0.0;
                 for (int i = 0; i < mn; i++)
                     acc += 1.0 * mx[i];
@@ -1090,7 +1108,7 @@ static int take_status(S *s, const msg_t *m, double now) {
                     has_rest = 1;
                 }
                 c0 = rest_x;
-                c1 = c2 = 0.0;
+                c1 = c2 = c3 = 0.0;
             } else
                 has_rest = 0;
         }
@@ -1156,6 +1174,7 @@ static int take_status(S *s, const msg_t *m, double now) {
         s->c0 = c0;
         s->c1 = c1;
         s->c2 = c2;
+        s->c3 = c3;
         s->t_ref = t_ref;
         s->rest_x = rest_x;
         s->has_rest = has_rest;
@@ -1314,10 +1333,15 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         const double queued = s->device_time_s + (double)(s->ls.fill + in_flight + 1) / (double)C_RATE;
         const double t0 = py_max(queued, device_now(s, now) + (double)(in_flight + 1) / (double)C_RATE);
         /* plan: predict; heights: phase, weights of the speed's bucket, the series */
-        const double v = s->c1;
+        const double m = s->max_predict;
+        /* Renderer.plan: the speed at the batch's middle instant (motion.velocity_at) */
+        const double t_first = (t0 + 0.0 / (double)C_RATE) + s->latency_s;
+        const double t_last = (t0 + (double)(n - 1) / (double)C_RATE) + s->latency_s;
+        const double dtv = py_min(py_max(0.5 * (t_first + t_last) - s->t_ref, -m), m);
+        const double v = s->c1 + dtv * (2.0 * s->c2 + dtv * (3.0 * s->c3));
         long long b;
         const double sp = fabs(v);
-        if (sp < 1e-9)
+        if (sp < 1e-9 || sp <= s->v_full) /* HeightEvaluator._bucket: every gain 1 up to v_full */
             b = REST_BUCKET;
         else {
             const double q = floor(log(sp) / log1p(s->speed_bucket));
@@ -1339,12 +1363,11 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
             new_w = 1;
         }
         const double two_l = 2.0 * s->length_mm, dx = s->length_mm / (double)s->hn, kph = M_PI / (double)s->hn;
-        const double m = s->max_predict;
         for (long long i = 0; i < n; i++) {
             const double tp = t0 + (double)i / (double)C_RATE;
             const double t = tp + s->latency_s;
             const double dt = py_min(py_max(t - s->t_ref, -m), m);
-            const double x = s->c0 + dt * (s->c1 + dt * s->c2);
+            const double x = s->c0 + dt * (s->c1 + dt * (s->c2 + dt * s->c3));
             theta[i] = (py_mod(x, two_l) / dx + 0.5) * kph;
         }
         rc_clenshaw((const double *)s->wbuf.buf, s->wbuf.len / 8, theta, n, h, 1);
@@ -1740,7 +1763,8 @@ static PyObject *fp_init(PyObject *self, PyObject *args) {
         const char *key;
         int *dst;
     } ii[] = {{"status_id", &C_STATUS_ID}, {"samples_id", &C_SAMPLES_ID}, {"max_samples", &C_MAX_SAMPLES},
-              {"running", &C_RUNNING}, {"small_batch", &C_SMALL_BATCH}};
+              {"running", &C_RUNNING}, {"small_batch", &C_SMALL_BATCH},
+              {"cubic_min_readings", &C_CUBIC_MIN}};
     for (size_t i = 0; i < sizeof ii / sizeof ii[0]; i++) {
         PyObject *v = PyDict_GetItemString(d, ii[i].key);
         if (!v) {
@@ -1756,7 +1780,8 @@ static PyObject *fp_init(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "init: a report of 64 bytes expected");
         return NULL;
     }
-    if (C_MAX_SAMPLES < 1 || 5 + 2 * C_MAX_SAMPLES > REPORT_SIZE || C_SMALL_BATCH > RC_MAX_N || C_RATE <= 0) {
+    if (C_MAX_SAMPLES < 1 || 5 + 2 * C_MAX_SAMPLES > REPORT_SIZE || C_SMALL_BATCH > RC_MAX_N || C_RATE <= 0 ||
+        C_CUBIC_MIN < 4) {
         PyErr_SetString(PyExc_ValueError, "init: constants out of range");
         return NULL;
     }

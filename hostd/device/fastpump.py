@@ -26,10 +26,10 @@ from hostd.compiled import load as load_compiled
 from hostd.device import fastlink
 from hostd.device import protocol as pr
 from hostd.errors import DeviceBusy
-from hostd.render import equalizer, fastrender
+from hostd.render import equalizer, fastrender, motion
 from hostd.render.pipeline import Renderer
 
-C_REVISION = 2  # _fastpump.c's REVISION this module is written for
+C_REVISION = 3  # _fastpump.c's REVISION this module is written for
 _STATUS = ["id:u8", "state:u8", "fault_flags:u16", "device_time_us:u32", "encoder_count:u32",
            "samples_played:u32", "buffer_fill:u16", "last_seq:u16", "underruns:u16",
            "malformed:u16", "encoder_errors:u16"]  # the layout _fastpump.c reads
@@ -49,7 +49,8 @@ def _load():
             "max_frame": pr.Deframer.MAX_FRAME, "max_gap_us": MAX_GAP_US,
             "status_id": pr.IDS["STATUS"], "samples_id": pr.IDS["SAMPLES"],
             "max_samples": pr.MAX_SAMPLES, "running": pr.STATES["RUNNING"],
-            "small_batch": equalizer.SMALL_BATCH, "report_size": pr.REPORT_SIZE},
+            "small_batch": equalizer.SMALL_BATCH, "report_size": pr.REPORT_SIZE,
+            "cubic_min_readings": motion.CUBIC_MIN_READINGS},
            DeviceBusy, fastlink.decode, _codes_from_bytes)
     return c
 

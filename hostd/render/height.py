@@ -92,6 +92,15 @@ class HeightEvaluator:
             raise ValueError("table_oversample must be 2..1024")
         self.m = 1 << max(4, math.ceil(math.log2(table_oversample * 2 * (c.size + 1))))
         self._idx_per_sample = self.m / (2.0 * self.n)  # table index per sample spacing
+        # Up to this speed every non-zero component sounds at or below f_pass: every gain is 1 and
+        # the weights are those of a hand at rest, so those speeds share the rest bucket instead
+        # of one bucket per 2 % of speed (a reversal sweeps through hundreds of them, each a first
+        # visit the compiled cycle hands to the reference). A hair below the edge, so that no
+        # rounding of k v / 2L puts a component past f_pass.
+        nz = np.flatnonzero(c)
+        f_pass, _f_stop = band_edges_hz(self.band)
+        self._v_full_mm_s = (f_pass * 2.0 * self.length_mm / float(nz[-1] + 1) * (1.0 - 1e-9)
+                             if nz.size else math.inf)
 
     def gains(self, speed_mm_s: float) -> np.ndarray:
         return band_gains(self.k, speed_mm_s, self.length_mm, self.band)
@@ -128,7 +137,7 @@ class HeightEvaluator:
 
     def _bucket(self, speed_mm_s: float) -> int:
         s = abs(speed_mm_s)
-        if s < 1e-9:
+        if s < 1e-9 or s <= self._v_full_mm_s:
             return REST_BUCKET
         return math.floor(math.log(s) / math.log1p(self.band.speed_bucket))
 

@@ -1,7 +1,7 @@
 """Hand motion estimate from quantized encoder samples, and latency-compensating prediction.
 
-A least-squares polynomial (order 1: velocity; order 2: velocity and acceleration) is fitted
-to the last `window` (time, position) samples. A sample that departs from the current fit's
+A least-squares polynomial (order 1: velocity; order 2: velocity and acceleration; order 3: and
+jerk) is fitted to the last `window` (time, position) samples. A sample that departs from the current fit's
 prediction by more than `glitch_um` (a single-count glitch is 0.4 µm; a hand cannot jump
 hundreds of µm in 1 ms) is replaced by the prediction, so one glitching reading moves
 nothing. But readings that disagree with the prediction `relock_reports` times in a row, and
@@ -10,15 +10,16 @@ lifted and set down): the fit restarts from them (`relocks` counts it; the rende
 crossfades across the discontinuity). A gap in the readings longer than `max_gap_s` also
 restarts the fit: a prediction that far ahead is no reference. A speed estimate beyond
 `max_speed_mm_s` is physically impossible for a hand: it is rejected (`implausible` counts
-it) and the fit restarts from the newest reading. Below a speed dead band the hand is at
-rest: the held position moves only when the window's mean leaves a hold band, so ±1-count
-encoder dither does not reach the output.
+it) and the fit restarts from the newest reading. Below a speed dead band, with readings that
+stay within what that speed covers over the window (a reversal passes through zero speed but
+not through rest), the hand is at rest: the held position moves only when the window's mean
+leaves a hold band, so ±1-count encoder dither does not reach the output.
 
 This runs once per encoder reading (1 kHz) on the real-time path. Readings come evenly
 spaced (device timestamps), so the least-squares solution matrix depends only on the
 window's length and spacing: it is computed once (the normal equations solved by numpy, time
 in ms relative to the newest reading, which keeps them well conditioned) and each update is
-three dot products in scalar Python (a few µs). Irregular spacing (a lost report) solves afresh.
+up to four dot products in scalar Python (a few µs). Irregular spacing (a lost report) solves afresh.
 """
 
 from __future__ import annotations
@@ -30,14 +31,23 @@ from dataclasses import dataclass
 import numpy as np
 
 SMALL_BATCH = 32  # at or below this many instants, predict in scalar Python (same values)
+# A cubic needs this many readings in its window (after a start or a re-lock it has fewer): the
+# encoder's 0.4 µm steps reach a prediction 6 ms ahead as 3.7 µm RMS from a cubic over 8
+# readings, 0.38 µm over 24 (a parabola over 8: 0.77 µm); the compiled cycle uses the same number
+CUBIC_MIN_READINGS = 24
 
 
 @dataclass
 class MotionConfig:
-    # Order 2 over 16 ms: the most accurate setting of `hostd bench accuracy` under the
-    # paper's strokes (order 1 lags in the acceleration phases; longer windows lag in jerk)
-    window: int = 16  # samples in the fit (1 kHz status -> 16 ms)
-    order: int = 2  # 0 = hold, 1 = velocity, 2 = velocity + acceleration
+    # Order 3 over 40 ms: the most accurate setting of `hostd bench accuracy` under the paper's
+    # strokes. The renderer predicts ~6 ms past the newest reading (transport, the device's
+    # buffer, the chain's delay); a quadratic lags there wherever the hand's acceleration
+    # changes, and only a short window keeps that lag small, which leaves the 0.4 µm encoder
+    # steps little averaging (order 2 over 16 ms: 1.31 % RMS on sandpaper, where both errors are
+    # about equal). A cubic follows the changing acceleration, so the window can grow until the
+    # steps average out: 0.74 % (docs/rendering.md, docs/benchmarks.md)
+    window: int = 40  # samples in the fit (1 kHz status -> 40 ms)
+    order: int = 3  # 0 = hold, 1 = velocity, 2 = + acceleration, 3 = + jerk
     glitch_um: float = 200.0
     rest_speed_mm_s: float = 0.2  # below this the hand is at rest: no extrapolation
     rest_hold_um: float = 1.0  # at rest, the held position moves only past this band (dither)
@@ -56,11 +66,26 @@ def _dot(w, x) -> float:
     return acc
 
 
+def _dots(rows, x) -> list[float]:
+    """[_dot(r, x) for r in rows], the same sums in the same order, in one pass over x (the
+    four rows of a cubic fit over 40 readings, 1000 times a second, cost half as much)."""
+    if len(rows) == 4:
+        w0, w1, w2, w3 = rows
+        a0 = a1 = a2 = a3 = 0.0
+        for xi, b0, b1, b2, b3 in zip(x, w0, w1, w2, w3, strict=True):
+            a0 += b0 * xi
+            a1 += b1 * xi
+            a2 += b2 * xi
+            a3 += b3 * xi
+        return [a0, a1, a2, a3]
+    return [_dot(r, x) for r in rows]
+
+
 class MotionEstimator:
     def __init__(self, cfg: MotionConfig | None = None) -> None:
         self.cfg = cfg = cfg or MotionConfig()
-        if cfg.order not in (0, 1, 2) or cfg.window < cfg.order + 2:
-            raise ValueError("order must be 0, 1 or 2 and window >= order + 2")
+        if cfg.order not in (0, 1, 2, 3) or cfg.window < cfg.order + 2:
+            raise ValueError("order must be 0, 1, 2 or 3 and window >= order + 2")
         if cfg.relock_reports < 1:
             raise ValueError("relock_reports must be >= 1")
         for name in ("glitch_um", "rest_speed_mm_s", "rest_hold_um", "max_predict_s", "max_gap_s",
@@ -70,8 +95,8 @@ class MotionEstimator:
                 raise ValueError(f"motion.{name} must be a finite number >= 0")
         self._t: deque[float] = deque(maxlen=cfg.window)
         self._x: deque[float] = deque(maxlen=cfg.window)
-        # x(t) = c0 + c1 (t - t_ref) + c2 (t - t_ref)^2, t in s, x in mm
-        self._c0 = self._c1 = self._c2 = 0.0
+        # x(t) = c0 + c1 (t - t_ref) + c2 (t - t_ref)^2 + c3 (t - t_ref)^3, t in s, x in mm
+        self._c0 = self._c1 = self._c2 = self._c3 = 0.0
         self._t_ref = 0.0
         self._rest_x: float | None = None
         self._dt_us = -1
@@ -82,11 +107,11 @@ class MotionEstimator:
         self.implausible = 0
         self._outliers: list[tuple[float, float]] = []
         self._since_restart = 1 << 30  # readings since the fit last restarted
-        # the fit in force before the latest re-lock: (c0, c1, c2, t_ref), for a crossfade
-        self.previous_fit: tuple[float, float, float, float] | None = None
+        # the fit in force before the latest re-lock: (c0, c1, c2, c3, t_ref), for a crossfade
+        self.previous_fit: tuple[float, float, float, float, float] | None = None
 
     def _restart(self, readings: list[tuple[float, float]]) -> None:
-        self.previous_fit = (self._c0, self._c1, self._c2, self._t_ref)
+        self.previous_fit = (self._c0, self._c1, self._c2, self._c3, self._t_ref)
         self._t.clear()
         self._x.clear()
         self._outliers.clear()
@@ -160,8 +185,10 @@ class MotionEstimator:
         order = min(self.cfg.order, n - 1)
         if self._since_restart < 2 * (self.cfg.order + 1):
             order = min(order, 1)  # a fresh restart: too few readings for an acceleration
+        if order == 3 and n < CUBIC_MIN_READINGS:
+            order = 2  # a short window: a cubic would amplify the encoder's steps (see there)
         if order == 0:
-            self._c0, self._c1, self._c2 = x[-1], 0.0, 0.0
+            self._c0, self._c1, self._c2, self._c3 = x[-1], 0.0, 0.0, 0.0
             self._rest_x = None
             return
         if self._uniform >= n - 1:
@@ -174,45 +201,61 @@ class MotionEstimator:
                 self._cache[key] = w
         else:
             w = self._weights((np.array(t) - tr) * 1e3, order)  # irregular: solve afresh
-        c0 = _dot(w[0], x)
-        c1 = _dot(w[1], x) * 1e3
-        c2 = _dot(w[2], x) * 1e6 if order == 2 else 0.0
-        self._c0, self._c1, self._c2 = c0, c1, c2
-        if abs(c1) < self.cfg.rest_speed_mm_s:
-            # At rest: hold a position; encoder dither (±1 count) must not move the output.
+        d = _dots(w, x)  # one row per coefficient, order + 1 of them
+        c0 = d[0]
+        c1 = d[1] * 1e3
+        c2 = d[2] * 1e6 if order >= 2 else 0.0
+        c3 = d[3] * 1e9 if order == 3 else 0.0
+        self._c0, self._c1, self._c2, self._c3 = c0, c1, c2, c3
+        rest = self.cfg.rest_speed_mm_s
+        if abs(c1) < rest and max(x) - min(x) <= rest * (t[-1] - t[0]) + self.cfg.rest_hold_um * 1e-3:
+            # At rest: hold a position; encoder dither (±1 count) must not move the output. Rest
+            # is a slow fit whose readings stay within what that speed covers over the window
+            # (plus the hold band): a hand passing through zero speed at a reversal is not at
+            # rest, and holding the window's mean there (20 ms behind at 40 readings) would jump
+            # the texture by tens of µm.
             mx = _dot((1.0,) * n, x) / n
             if self._rest_x is None or abs(mx - self._rest_x) * 1000.0 > self.cfg.rest_hold_um:
                 self._rest_x = mx
-            self._c0, self._c1, self._c2 = self._rest_x, 0.0, 0.0
+            self._c0, self._c1, self._c2, self._c3 = self._rest_x, 0.0, 0.0, 0.0
         else:
             self._rest_x = None
 
     @property
     def velocity_mm_s(self) -> float:
+        """The speed at the newest reading."""
         return self._c1
+
+    def velocity_at(self, t_s: float) -> float:
+        """The fit's speed (mm/s) at instant t_s (clipped to max_predict_s past the newest reading,
+        as the prediction): the speed the hand will have when the samples planned for t_s play.
+        The operations of the compiled cycle (hostd/device/_fastpump.c), in the same order."""
+        m = self.cfg.max_predict_s
+        dt = min(max(t_s - self._t_ref, -m), m)
+        return self._c1 + dt * (2.0 * self._c2 + dt * (3.0 * self._c3))
 
     def predict_previous(self, t_s: np.ndarray) -> np.ndarray:
         """The fit in force before the latest restart, extrapolated (for a crossfade)."""
-        c0, c1, c2, tr = self.previous_fit or (self._c0, 0.0, 0.0, self._t_ref)
+        c0, c1, c2, c3, tr = self.previous_fit or (self._c0, 0.0, 0.0, 0.0, self._t_ref)
         m = self.cfg.max_predict_s
         dt = (np.asarray(t_s, dtype=np.float64) - tr).clip(-m, m)
-        return c0 + dt * (c1 + dt * c2)
+        return c0 + dt * (c1 + dt * (c2 + dt * c3))
 
     def predict_one(self, t_s: float) -> float:
         m = self.cfg.max_predict_s
         dt = min(max(t_s - self._t_ref, -m), m)
-        return self._c0 + dt * (self._c1 + dt * self._c2)
+        return self._c0 + dt * (self._c1 + dt * (self._c2 + dt * self._c3))
 
     def predict(self, t_s: float | np.ndarray) -> np.ndarray | float:
         if isinstance(t_s, float | int):
             return self.predict_one(float(t_s))
         m = self.cfg.max_predict_s
         t = np.asarray(t_s, dtype=np.float64)
-        c0, c1, c2, tr = self._c0, self._c1, self._c2, self._t_ref
+        c0, c1, c2, c3, tr = self._c0, self._c1, self._c2, self._c3, self._t_ref
         if t.ndim == 1 and t.size <= SMALL_BATCH:
             # a real-time batch: the same operations sample by sample in Python floats (IEEE
-            # doubles, as numpy's), which costs less than the six numpy calls below
+            # doubles, as numpy's), which costs less than the numpy calls below
             dts = [min(max(x - tr, -m), m) for x in t.tolist()]
-            return np.array([c0 + dt * (c1 + dt * c2) for dt in dts], dtype=np.float64)
+            return np.array([c0 + dt * (c1 + dt * (c2 + dt * c3)) for dt in dts], dtype=np.float64)
         dt = (t - tr).clip(-m, m)
-        return c0 + dt * (c1 + dt * c2)
+        return c0 + dt * (c1 + dt * (c2 + dt * c3))

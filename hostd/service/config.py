@@ -67,8 +67,8 @@ class RenderCfg:
     band_end_hz: float = 1000.0  # the speed-aware fade runs from 400 Hz (f_max at v_ref) to here
     dtype: str = "float64"
     samples_per_batch: int = 3
-    predict_order: int = 2
-    predict_window: int = 16
+    predict_order: int = 3  # = MotionConfig's (tests/test_daemon.py)
+    predict_window: int = 40
     equalizer: bool = True
     equalizer_reg_hz: float = 1400.0
     actuator: str = "paper-parametric"
@@ -155,7 +155,7 @@ RANGES = {
     ("device", "reconnect_s"): (0.05, 3600), ("library", "max_stream_bytes"): (100, 1 << 30),
     ("render", "samples_per_batch"): (1, 29), ("render", "host_lost_ms"): (100, 60000),
     ("render", "band_end_hz"): (401.0, 1200.0),
-    ("render", "predict_order"): (0, 2),
+    ("render", "predict_order"): (0, 3),
     ("render", "predict_window"): (2, 256), ("render", "equalizer_reg_hz"): (300, 1499),
     ("output", "travel_um"): (0.1, 1000), ("output", "slew_um_s"): (1, 1e7),
     ("output", "dac_bits"): (8, 24), ("output", "ramp_s"): (0.001, 10),
