@@ -280,3 +280,30 @@ def test_auto_renders_on_the_host_for_a_v1_display_or_a_texture_too_large_and_sa
     big = _pump_on_sim(2, n_coeffs=pr.R["max_components"] + 1)
     assert big["render_at"] == 0 and "more components" in RENDER_REASONS[int(big["render_reason"])]
     assert any(f"at most {pr.R['max_components']} components" in m for m in big["lines"]), big["lines"]
+
+
+def test_the_pump_gives_its_host_renderer_loading_a_bounded_deadline_for_the_watchdog(monkeypatch):
+    """The VM rig under load: a display refused device mode (SET_EQ BUSY), the pump fell back to
+    host rendering and imported the renderer and scipy.signal for more than WatchdogSec=5 with
+    no cycle to show; systemd killed the daemon. While it loads, the pump publishes a deadline
+    (busy_until_s, at most LOADING_ALLOWANCE_S ahead) that the daemon takes as progress; after,
+    0 again, also when the import fails."""
+    import sys
+
+    from hostd.render import equalizer
+    from hostd.service import pumpproc
+
+    stats = [0.0] * len(pumpproc.STAT_FIELDS)
+    i = pumpproc.STAT_INDEX["busy_until_s"]
+    seen = []
+    monkeypatch.delitem(sys.modules, "hostd.render.pipeline", raising=False)  # "not loaded yet"
+    monkeypatch.setattr(equalizer, "preload", lambda: seen.append(stats[i] - time.monotonic()))
+    pumpproc.preload_host_rendering(stats)
+    assert len(seen) == 1 and 0 < seen[0] <= pumpproc.LOADING_ALLOWANCE_S and stats[i] == 0.0
+
+    def broken():
+        raise ImportError("no scipy")
+    monkeypatch.setattr(equalizer, "preload", broken)
+    with pytest.raises(ImportError):
+        pumpproc.preload_host_rendering(stats)
+    assert stats[i] == 0.0

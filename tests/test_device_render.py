@@ -291,6 +291,7 @@ def test_an_upload_not_answered_in_time_is_a_timeout_and_is_sent_once_more(monke
     monkeypatch.setattr(devrender, "send_and_confirm", first_unanswered)
     _, (c, n, length) = _setup("wood")
     dev = devmode.DeviceMode(link, RenderConfig(), log=lambda m: None)
+    dev._taken_over = True  # (a display known idle: take_over has its own test)
     dev.begin(("wood", c, n, length))
     assert waits == [1.0, devmode.DeviceMode.RETRY_ACK_S] and dev.rendering and dev.uploads == 1
     waits.clear()
@@ -300,6 +301,7 @@ def test_an_upload_not_answered_in_time_is_a_timeout_and_is_sent_once_more(monke
 
     monkeypatch.setattr(devrender, "send_and_confirm", never_answered)
     dev2 = devmode.DeviceMode(link, RenderConfig(), log=lambda m: None)
+    dev2._taken_over = True
     with pytest.raises(DeviceTimeout):  # twice unanswered: the caller renders on the host
         dev2.begin(("wood", c, n, length))
     assert len(waits) == 2 and not dev2.rendering
@@ -364,6 +366,7 @@ def _stop_during_upload(case, monkeypatch):
     monkeypatch.setattr(t, "send", lambda m: sent.append(pr.NAMES[m[0]]))  # taken, never answered
     monkeypatch.setattr(t, "recv", lambda timeout_s=0.0: None)
     dev = devmode.DeviceMode(link, RenderConfig(), log=lambda m: None)
+    dev._taken_over = True  # (a display known idle: take_over has its own test)
     if case == "abort":
         polls = [0]
 
@@ -419,3 +422,33 @@ def test_an_upload_counts_each_answer_as_progress_for_the_watchdog():
     acks = devrender.send_and_confirm(Answering(), setup, alive=lambda: calls.append(1))
     assert len(acks) == sum(devrender.expects_ack(m) for m in setup) > 1
     assert len(calls) == 2 * len(acks)  # every arrival, the STATUS too
+
+
+def test_a_new_host_takes_over_a_display_still_rendering_a_previous_hosts_texture():
+    """The VM rig after `systemctl kill -s KILL`: the display rendered the killed host's texture
+    on (a lost host, the hand moving), the restarted host's SET_EQ was refused BUSY and it
+    rendered on the host with the old texture still under it. DeviceMode.begin on a display it
+    did not start stops it first (STOP_RENDER, then its STATUS of a state other than
+    RENDERING), and the upload is accepted."""
+    from hostd.device import devmode
+    from hostd.device.link import DeviceLink
+    from hostd.device.simdev import SimTransport
+    from hostd.render.pipeline import RenderConfig
+    from hostd.sim.hand import Metronome
+
+    t = SimTransport(realtime=True, hand=Metronome())
+    try:
+        link = DeviceLink(t)
+        link.handshake(timeout_s=2.0)
+        link.await_caps(1.0)
+        _, (c, n, length) = _setup("wood")
+        first = devmode.DeviceMode(link, RenderConfig(), log=lambda m: None)
+        first.begin(("wood", c, n, length))
+        assert t.device.state == pr.STATES["RENDERING"]
+        # the first host is gone without a word; a second one connects to the same display
+        second = devmode.DeviceMode(link, RenderConfig(), log=lambda m: None)
+        second.begin(("wood", c, n, length))  # raised DeviceError (SET_EQ BUSY) before
+        assert second.rendering and second.uploads == 1 and t.device.state == pr.STATES["RENDERING"]
+        assert t.device.render.refused == 0
+    finally:
+        t.close()

@@ -59,6 +59,7 @@ class DeviceMode:
         # START_RENDER sent, its answer not (yet) in: the display may render, so a stop says
         # STOP_RENDER all the same (a slow display, or a stop while the upload waits)
         self.start_sent = False
+        self._taken_over = False  # take_over() done on this connection
         self.abort = None  # a callable, true when the process stops: an upload in flight gives way
         self.alive = None  # a callable, called for each message arriving during an upload (progress)
         self.slot = 1
@@ -78,6 +79,7 @@ class DeviceMode:
         self._keepalive_msg = pr.encode("SET_TIMEOUT", timeout_ms=self.timeout_ms)  # a same-value one
         self.wakeups = 0  # runs of the sleeping loop: one per wake-up (gathered arrivals included)
         self._started_at = 0.0
+        self._statuses_at_start = -1
 
     @property
     def params(self) -> dict:
@@ -102,6 +104,7 @@ class DeviceMode:
             self.slot = 2 if self.slot == 1 else 1
             msgs = pr.texture_messages(self.slot, c, n, length_mm)
         else:
+            self.take_over()
             msgs = devrender.setup_messages(c, n, length_mm, self.cfg, slot=self.slot, params=self.params)
             msgs.append(pr.encode("START_RENDER", host_lost_ms=self.host_lost_ms))
             self.start_sent = True
@@ -118,6 +121,37 @@ class DeviceMode:
         self.rendering = True
         self.uploads += 1
         self._started_at = time.monotonic()
+        self._statuses_at_start = self.link.stats.statuses
+
+    TAKE_OVER_S = 1.0  # a display told to stop a previous host's texture: fade (50 ms) and STATUS
+
+    def take_over(self) -> None:
+        """Once per connection, before the first upload: STOP_RENDER (answered ACK whatever the
+        display does), then its first STATUS of a state other than RENDERING. A display may
+        still render what a previous host gave it (that host was killed: a lost host's texture
+        plays on while the hand moves), and says so only every 150 ms, so the host cannot know
+        from what it has heard; this upload starts from idle (its SET_EQ would be refused BUSY
+        while the display renders: the VM rig after SIGKILL rendered on the host with the old
+        texture still under it)."""
+        if self._taken_over:
+            return
+        self._taken_over = True
+        link = self.link
+        try:
+            devrender.send_and_confirm(link.t, [pr.encode("STOP_RENDER")], on_other=link._take,
+                                       abort=self.abort, alive=self.alive)
+        except DeviceTimeout:
+            return  # (the upload waits longer and says what the display does)
+        deadline = time.monotonic() + self.TAKE_OVER_S
+        n0 = link.stats.statuses
+        while time.monotonic() < deadline:
+            if self.abort is not None and self.abort():
+                raise devrender.UploadAborted("stopping")
+            if link.poll(0.01) and self.alive is not None:
+                self.alive()
+            s = link.stats.last_status
+            if link.stats.statuses != n0 and s and s["state"] != RENDERING:
+                return
 
     def end(self) -> None:
         if self.rendering or self.start_sent:
@@ -133,14 +167,20 @@ class DeviceMode:
             self.link._send(self._keepalive_msg, must=True)  # set_timeout's message, encoded once
             self._last_keepalive = now
         s = self.link.stats.last_status
-        if self.texture is None or not s or now - self._started_at < 0.1:
+        # (only a STATUS sent after START_RENDER's answer says what the display does now: the
+        # display reports every 150 ms while rendering, so the last one heard may predate it)
+        if (self.texture is None or not s or now - self._started_at < 0.1
+                or self.link.stats.statuses == self._statuses_at_start):
             return
         if s["state"] != RENDERING:
             self.log(f"device mode: the display stopped rendering (state {s['state']}); uploading "
                      f"{self.texture[0]} again")
             self.rendering = False
             self.recoveries += 1
-            self.begin(self.texture)
+            try:
+                self.begin(self.texture)
+            except devrender.UploadAborted:
+                return  # stopping: the stop path says STOP_RENDER
 
     def run(self, stop, each_wake, fds=()) -> None:
         """Device mode's loop, until stop() is true: sleep until the display reports, a

@@ -1016,7 +1016,10 @@ class Daemon:
                 # reconnection attempts or wake-ups while it waits for a device) and every worker thread is
                 # alive, never by a timer alone
                 progress = st["cycles"] + st["reconnects"] + st["wait_ticks"]
-                if (progress != last_cycles or not ready) and healthy:
+                # (the pump loading the host renderer, a fallback from device mode: seconds on a
+                # slow CPU with no cycle to show, bounded by its own deadline: busy_until_s)
+                loading = st.get("busy_until_s", 0.0) > time.monotonic()
+                if (progress != last_cycles or not ready or loading) and healthy:
                     # before READY=1 the pump is still starting (its imports, the display's
                     # equalizer designed in a child: a minute and more on a slow or emulated CPU)
                     # and has no progress to show; this loop running and the pump alive is the

@@ -27,13 +27,13 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "io_retries", "io_dropped", "batch_p50_us", "batch_p99_us", "batch_p999_us",
                "device_time_s", "render_at", "device_uploads", "wait_ticks", "render_reason",
                "device_host_lost", "device_reuploads", "device_rendered_s", "device_faded_s",
-               "device_idle_s", "wakeups", "compiled_cycles", "voluntary_switches",
+               "device_idle_s", "wakeups", "compiled_cycles", "voluntary_switches", "busy_until_s",
                "publish_seq")  # odd while publish() writes: readers take a whole snapshot (a seqlock)
 PUBLISH_SEQ = len(STAT_FIELDS) - 1
 STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
                 "batch_p50_us", "batch_p99_us", "batch_p999_us", "device_rendered_s", "device_faded_s",
-                "device_idle_s"}
+                "device_idle_s", "busy_until_s"}
 # why the texture renders where it does (`render_reason`, published as the index)
 RENDER_REASONS = ("the display renders it (protocol v2, its CAPS hold the texture)",
                   "configured: [render] where = \"host\"",
@@ -102,12 +102,25 @@ def _die_with_parent() -> None:
         pass
 
 
-def preload_host_rendering() -> None:
-    """Import the host renderer and scipy.signal (its equalizer) now: a pump that will render on
-    the host loads them before it plays; device mode never does."""
-    from hostd.render import equalizer, pipeline  # noqa: F401
+LOADING_ALLOWANCE_S = 120.0  # the daemon's watchdog allowance while the pump loads the host renderer
 
-    equalizer.preload()
+
+def preload_host_rendering(stats=None) -> None:
+    """Import the host renderer and scipy.signal (its equalizer) now: a pump that will render on
+    the host loads them before it plays; device mode never does. Seconds on a slow or emulated
+    CPU with no progress to show: `stats` (the shared counters) carries a deadline meanwhile,
+    busy_until_s (CLOCK_MONOTONIC), that the daemon's watchdog takes as liveness (bounded)."""
+    if "hostd.render.pipeline" in sys.modules and "scipy.signal" in sys.modules:
+        return
+    if stats is not None:
+        stats[STAT_INDEX["busy_until_s"]] = time.monotonic() + LOADING_ALLOWANCE_S
+    try:
+        from hostd.render import equalizer, pipeline  # noqa: F401
+
+        equalizer.preload()
+    finally:
+        if stats is not None:
+            stats[STAT_INDEX["busy_until_s"]] = 0.0
 
 
 def pump_main(cfg, conn, stats) -> None:
@@ -199,7 +212,7 @@ def pump_main(cfg, conn, stats) -> None:
     where = cfg.render.where  # auto (the default), device or host
     dev_params = None  # devrender.device_params(rcfg): the equalizer's design, for the display
     if where == "host":
-        preload_host_rendering()  # before the first connection: a selection plays at once
+        preload_host_rendering(stats)  # before the first connection: a selection plays at once
     else:  # designed now (in a child, ~1 s of scipy), not between a display's arrival and playing
         try:
             dev_params = devrender.device_params_apart(rcfg)
@@ -262,6 +275,7 @@ def pump_main(cfg, conn, stats) -> None:
         _, coeffs, n, length = texture
         link.poll(0.01)
         if dev is None or not start_device(coeffs):
+            preload_host_rendering(stats)  # (a fallback from device mode loads it here: bounded)
             from hostd.render import Renderer  # (host rendering only: device mode never loads it)
 
             r = Renderer(np.asarray(coeffs), n, length, rcfg)
@@ -689,7 +703,7 @@ def pump_main(cfg, conn, stats) -> None:
             else:
                 choose(False, _REASON_OF_REFUSAL[why[0]], why[1])
         if dev is None:  # the host renders: its renderer's imports now, not at the first texture
-            preload_host_rendering()
+            preload_host_rendering(stats)
         try:
             if texture is not None:
                 begin()
