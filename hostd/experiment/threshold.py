@@ -10,7 +10,9 @@ up to the display's reach and never beyond it (hostd.experiment.display: the hos
 anything above); the threshold grid runs PRIOR_SPAN_DB either side of the prior, so a threshold
 above the reach is estimated as such and reported with status "above_reach", never clipped.
 
-The estimate is the posterior mean of t; its interval the central 95 % of t's marginal
+A frequency's next level is the one of least expected entropy of t's marginal posterior (the
+QUEST+ rule with β and δ as nuisance parameters, computed from questplus' posterior and model
+table). The estimate is the posterior mean of t; its interval the central 95 % of t's marginal
 posterior. A frequency stops at its trial budget or when that interval is narrower than
 stop_width_db. Trials of the frequencies still running are interleaved at random (seeded).
 A run is a pure function of (config, seed, answers): resuming replays the answers recorded.
