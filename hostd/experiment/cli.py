@@ -87,6 +87,11 @@ def add_parser(sub, parents=()) -> None:
                    help="seeded runs per procedure and observer (default 200)")
     b.add_argument("--trials", type=int, default=30)
     b.add_argument("--fit-sims", type=int, default=50)
+    b.add_argument("--seed", type=int, default=2026,
+                   help="the runs' seed (default 2026, the docs' figures; another gives independent runs)")
+    b.add_argument("--oracle", action="store_true",
+                   help="also the same runs answered to a grid Bayes that knows each observer's psychometric "
+                   "function and has only its threshold to find: what 30 trials can carry at best")
     b.add_argument("--joint-runs", type=int, default=0, metavar="N",
                    help="also N seeded runs per case of --procedure joint over the shipped b(f)'s "
                    "frequencies (default 0: none; about 1-2 s CPU a run)")
@@ -299,13 +304,13 @@ def cmd_bench(args) -> int:
 
     from hostd.experiment.observers import simulate_fit, simulate_thresholds
 
-    out = {"runs": args.runs, "trials_per_frequency": args.trials, "threshold": {}}
+    out = {"runs": args.runs, "seed": args.seed, "trials_per_frequency": args.trials, "threshold": {}}
     for kind in ("weibull", "logistic"):
         for n in (2, 3):
             if args.runs <= 0:
                 continue
             t0 = time.process_time()
-            e = simulate_thresholds(kind, n, args.runs, args.trials, seed=2026)
+            e = simulate_thresholds(kind, n, args.runs, args.trials, seed=args.seed)
             r = {"within_2db": float(np.mean(np.abs(e) <= 2.0)), "bias_db": float(np.mean(e)),
                  "p90_abs_err_db": float(np.percentile(np.abs(e), 90)),
                  "cpu_s_per_run": (time.process_time() - t0) / args.runs}
@@ -314,6 +319,22 @@ def cmd_bench(args) -> int:
                 print(f"QUEST+ {n}AFC {kind:<8} within ±2 dB: {r['within_2db']:.1%}  "
                       f"bias {r['bias_db']:+.2f} dB  "
                       f"90th pct |error| {r['p90_abs_err_db']:.2f} dB  ({r['cpu_s_per_run']:.2f} s CPU/run)")
+    if args.oracle and args.runs > 0:
+        from hostd.experiment.observers import simulate_oracle
+
+        out["oracle"] = {}
+        for prior in ("procedure", "true"):
+            for kind in ("weibull", "logistic"):
+                for n in (2, 3):
+                    e = simulate_oracle(kind, n, args.runs, args.trials, seed=args.seed, prior=prior)
+                    r = {"within_2db": float(np.mean(np.abs(e) <= 2.0)), "bias_db": float(np.mean(e)),
+                         "p90_abs_err_db": float(np.percentile(np.abs(e), 90))}
+                    out["oracle"][f"{prior} prior, {n}AFC, {kind} observer"] = r
+                    if not args.json:
+                        what = "the procedure's prior" if prior == "procedure" else "the true ±8 dB draw"
+                        print(f"oracle (knows the observer's function; {what}) {n}AFC {kind:<8} within "
+                              f"±2 dB: {r['within_2db']:.1%}  bias {r['bias_db']:+.2f} dB  "
+                              f"90th pct |error| {r['p90_abs_err_db']:.2f} dB")
     if args.joint_runs > 0:
         from hostd.experiment.joint import simulate_joint
 
@@ -321,7 +342,7 @@ def cmd_bench(args) -> int:
         for kind in ("weibull", "logistic"):
             for n in (2, 3):
                 t0 = time.process_time()
-                e = simulate_joint(kind, n, args.joint_runs, args.joint_trials, seed=2026,
+                e = simulate_joint(kind, n, args.joint_runs, args.joint_trials, seed=args.seed,
                                    wiggle_db=args.joint_wiggle_db)
                 within = np.abs(e) <= 2.0
                 r = {"within_2db": float(np.mean(within)),

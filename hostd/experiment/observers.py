@@ -36,6 +36,12 @@ class WeibullObserver:
         z = 10 ** (self.slope * (x_db - self.threshold_db) / 20)
         return 1 - self.lapse - (1 - g - self.lapse) * math.exp(-z)
 
+    def p_at(self, x_db, threshold_db):
+        """P(correct) at x_db of this observer moved to threshold_db (arrays broadcast)."""
+        g = 1.0 / self.n_afc
+        z = 10 ** (self.slope * (np.asarray(x_db) - threshold_db) / 20)
+        return 1 - self.lapse - (1 - g - self.lapse) * np.exp(-z)
+
 
 @dataclass(frozen=True)
 class LogisticObserver:
@@ -48,6 +54,12 @@ class LogisticObserver:
         g = 1.0 / self.n_afc
         m = self.threshold_db - self.spread_db * LN_E_MINUS_1
         return g + (1 - g - self.lapse) / (1 + math.exp(-(x_db - m) / self.spread_db))
+
+    def p_at(self, x_db, threshold_db):
+        """P(correct) at x_db of this observer moved to threshold_db (arrays broadcast)."""
+        g = 1.0 / self.n_afc
+        m = threshold_db - self.spread_db * LN_E_MINUS_1
+        return g + (1 - g - self.lapse) / (1 + np.exp(-(np.asarray(x_db) - m) / self.spread_db))
 
 
 def make_observer(kind: str, rng: np.random.Generator, centre_db: float, n_afc: int):
@@ -77,6 +89,47 @@ def simulate_thresholds(kind: str, n_afc: int, runs: int, max_trials: int = 30, 
             correct = rng.random() < obs.p_correct(t.level_db)
             run.answer(t.index, t.target if correct else (t.target % n_afc) + 1)
         errs[r] = db(run.results()[0].threshold_um) - obs.threshold_db
+    return errs
+
+
+def simulate_oracle(kind: str, n_afc: int, runs: int, max_trials: int = 30, seed: int = 0,
+                    centre_um: float = 0.1, reach_um: float = 30.0, prior: str = "procedure") -> np.ndarray:
+    """A practical ceiling for a procedure on simulate_thresholds' observers: errors (dB) of a grid
+    Bayes that knows each observer's psychometric function exactly (shape, slope, lapse) and has only
+    its threshold to find, with the per-frequency procedure's prior on it (prior="procedure":
+    normal, PRIOR_SD_DB about the prior's centre) or the simulation's own draw of it
+    (prior="true": uniform ±8 dB), the same levels, the QUEST+ rule (the level of least expected
+    posterior entropy) and the posterior mean. The same seeds give the same observers and
+    answers' random numbers as simulate_thresholds."""
+    from hostd.experiment.threshold import GRID_STEP_DB, PRIOR_SD_DB, PRIOR_SPAN_DB, db
+
+    centre, top = db(centre_um), db(reach_um)
+    stim = np.arange(centre - PRIOR_SPAN_DB, top + 1e-9, GRID_STEP_DB)
+    ts = np.arange(centre - PRIOR_SPAN_DB, centre + PRIOR_SPAN_DB + 1e-9, 0.25)
+    if prior == "procedure":
+        p0 = np.exp(-0.5 * ((ts - centre) / PRIOR_SD_DB) ** 2)
+    elif prior == "true":
+        p0 = (np.abs(ts - centre) <= 8.0).astype(np.float64)
+    else:
+        raise ValueError(prior)
+    errs = np.empty(runs)
+    for r in range(runs):
+        rng = np.random.default_rng([seed, r])
+        obs = make_observer(kind, rng, centre, n_afc)
+        rng.integers(1 << 31)  # simulate_thresholds' run seed: the answers' draws stay in step
+        pc_table = obs.p_at(stim[:, None], ts[None, :])  # (level, threshold)
+        post = p0 / p0.sum()
+        for _ in range(max_trials):
+            eh = np.zeros(stim.size)
+            for m in (post * pc_table, post * (1 - pc_table)):
+                tot = m.sum(axis=1)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    eh -= np.sum(np.where(m > 0, m * np.log(m / tot[:, None]), 0.0), axis=1)
+            i = int(np.argmin(eh))
+            correct = rng.random() < obs.p_correct(stim[i])
+            post = post * (pc_table[i] if correct else 1 - pc_table[i])
+            post /= post.sum()
+        errs[r] = float(post @ ts) - obs.threshold_db
     return errs
 
 

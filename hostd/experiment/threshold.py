@@ -10,7 +10,9 @@ up to the display's reach and never beyond it (hostd.experiment.display: the hos
 anything above); the threshold grid runs PRIOR_SPAN_DB either side of the prior, so a threshold
 above the reach is estimated as such and reported with status "above_reach", never clipped.
 
-The estimate is the posterior mean of t; its interval the central 95 % of t's marginal
+A frequency's next level is the one of least expected entropy of t's marginal posterior (the
+QUEST+ rule with β and δ as nuisance parameters, computed from questplus' posterior and model
+table). The estimate is the posterior mean of t; its interval the central 95 % of t's marginal
 posterior. A frequency stops at its trial budget or when that interval is narrower than
 stop_width_db. Trials of the frequencies still running are interleaved at random (seeded).
 A run is a pure function of (config, seed, answers): resuming replays the answers recorded.
@@ -29,16 +31,16 @@ from hostd.errors import ExperimentError
 
 PRIOR_SPAN_DB = 30.0
 GRID_STEP_DB = 1.0
-# β (dB form, = the Weibull shape in amplitude) and the lapse rate δ of the model, per n-AFC.
-# 2AFC: fixed. With a guess rate of 1/2 and at most 30 trials a frequency, spending trials on
-# the slope costs the threshold: in 200 seeded runs (Weibull / logistic observer, β 2.5..5)
-# marginalising β over (2, 3.5, 6) and δ over (0, 0.04) put 89.5 / 84 % within ±2 dB, β = 3 and
-# δ = 0.02 fixed 90.5 / 87.5 %. 3AFC: marginalised, where fixing them cost the logistic
-# observer (93 -> 89.5 %). docs/experiments.md has the table (`hostd experiment bench`).
-SLOPES = {2: (3.0,), 3: (2.0, 3.5, 6.0)}
-LAPSE = {2: (0.02,), 3: (0.0, 0.04)}
+# β (dB form, = the Weibull shape in amplitude) and the lapse rate δ of the model: marginalised
+# over, as nuisance parameters. The next level minimises the expected entropy of the threshold's
+# marginal posterior, not of the whole (t, β, δ) posterior as questplus' next_stim does (that
+# spent 2AFC trials on the slope: with it, fixing β = 3 and δ = 0.02 had been the better 2AFC
+# model). docs/experiments.md has the figures (`hostd experiment bench`).
+SLOPES = {2: (2.0, 3.5, 6.0), 3: (2.0, 3.5, 6.0)}
+LAPSE = {2: (0.0, 0.04), 3: (0.0, 0.04)}
 PRIOR_SD_DB = 6.0  # the prior on t: normal about the prior curve, 6 dB (0: flat)
 PROCEDURES = ("per-frequency", "joint")
+_PARAMS = ("threshold", "slope", "lower_asymptote", "lapse_rate")
 
 
 def db(um: float) -> float:
@@ -120,10 +122,27 @@ class Staircase:
                           "lower_asymptote": np.array([1.0 / n_afc]), "lapse_rate": np.array(LAPSE[n_afc])},
             outcome_domain={"response": ["Correct", "Incorrect"]},
             func="weibull", stim_scale="dB", stim_selection_method="min_entropy")
+        # P(correct) per (stimulus, threshold, (slope, guess, lapse)): questplus' own model table
+        lik = self.qp.likelihoods.sel(response="Correct").transpose("intensity", *_PARAMS).values
+        self._p_correct = np.ascontiguousarray(lik.reshape(lik.shape[0], lik.shape[1], -1), dtype=np.float64)
         self.n = 0
 
     def next_db(self) -> float:
-        return float(self.qp.next_stim["intensity"])
+        """The level that minimises the expected entropy of the threshold's marginal posterior
+        (questplus' own rule, `qp.next_stim`, minimises that of the whole (t, β, δ) posterior and
+        so spends trials on the slope and lapse, which only the threshold's estimate needs as
+        nuisance parameters)."""
+        post = self.qp.posterior.transpose(*_PARAMS).values
+        n_t = post.shape[0]
+        pc = np.einsum("itk,tk->it", self._p_correct, post.reshape(n_t, -1))  # (stimulus, threshold)
+        pi = post.sum(axis=(1, 2, 3))[None, :] - pc
+        eh = np.zeros(pc.shape[0])
+        for m in (pc, pi):  # the joint probability of (answer, t): entropy of t given the answer
+            tot = m.sum(axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                h = -np.sum(np.where(m > 0, m * np.log(m / tot[:, None]), 0.0), axis=1)
+            eh += h  # = P(answer) H(t | answer)
+        return float(self.stim[int(np.argmin(eh))])
 
     def update(self, x_db: float, correct: bool) -> None:
         self.qp.update(stim={"intensity": float(x_db)},
