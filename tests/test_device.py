@@ -254,6 +254,10 @@ def test_a_stream_started_after_the_link_went_unread_plays_on_from_its_prime(fir
         pump.run(1.0)
         link.poll(0.01)
         final = dict(link.stats.last_status)
+        # the device clock's offset (largest device time - arrival) stays a lower bound: a STATUS
+        # stamped tick g / 3 kHz leaves at tick g + 1, due T0 + (g + 1) / 3 kHz at 0 ppm (the
+        # compiled cycle stamped arrivals with its wake-up time: 2-26 ms over under load)
+        assert link._offset_s + port.t0 < 0
         link.stop()
         t.close()
     assert statuses > 500  # the backlog was there (over 0.5 s of reports read before the prime)
