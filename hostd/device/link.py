@@ -251,15 +251,16 @@ class DeviceLink:
             return False
         return self.device_time_s < self.device_now_s() - 2 * self._status_period_s() - self.CURRENT_SLACK_S
 
-    def catch_up(self, budget_s: float = 1.0) -> bool:
+    def catch_up(self, budget_s: float = 0.25) -> bool:
         """Read the link up to the device's present: take in every message waiting, and go on
         reading while the reports run ahead of the host's clock (a backlog: many reports, each
         from later on the device's clock, in one short read) or are stale(), for at most
         budget_s. A link left unread for a while (a texture built between the handshake and the
         start) holds a tty buffer of old reports (a pty: ~700 STATUS, the device's first 0.7 s
         of the pause), handed over 4 KB per read as a kernel worker refills it; flow control on
-        them counts what the device took since as still in flight, and sends nothing. Returns
-        whether the last read kept pace (False: the budget ran out, or the device is silent)."""
+        them counts what the device took since as still in flight, and sends nothing (a pty's
+        backlog took 7-13 ms to read here). Returns whether the last read kept pace (False: the
+        budget ran out, or the device is silent)."""
         deadline = time.monotonic() + budget_s
         self.poll(0.0)
         while (h0 := time.monotonic()) < deadline:

@@ -216,10 +216,10 @@ class Pump:
                 self.link.stop()
             self._started = False
             return
-        self._ready(renderer)
+        self._ready()
         self._restart(first=True)
 
-    def _ready(self, renderer) -> None:
+    def _ready(self) -> None:
         """Load what the cycles after START need, before START: from START on the device plays
         the primed buffer (the fill target, 4 ms by default) and the next cycle must come before
         it runs dry. The compiled cycle's modules (hostd.device.fastpump and the transports it
@@ -240,7 +240,7 @@ class Pump:
             link.reset_stream()  # STOP: the device drops what it buffered while not playing
         r.out.restart_from(0.0)  # the device ramped to zero; fade in from there
         # the device's present state, not a backlog: a link left unread for a while (a texture
-        # built between the handshake and the start) holds seconds of old STATUS, on which the
+        # built between the handshake and the start) holds ~0.7 s of old STATUS, on which the
         # primed samples stay "in flight" until they are read through, so nothing more was sent
         # and the device played its primed buffer dry (DAC log: the prime, then an underrun)
         link.catch_up()
