@@ -268,8 +268,10 @@ class DeviceLink:
             # the next report, and all that waits behind it: a current link has one or two
             n = self.poll(min(deadline - h0, 0.005))
             h1 = time.monotonic()
-            if n == 0:  # none for 5 ms: nothing behind (or a device that reports every 50 ms)
-                return not self.stale()
+            if n == 0:  # none for 5 ms: nothing behind (or a device that reports every 50 ms),
+                if not self.stale():  # unless what it said last is known to be old: then the
+                    return True  # tty's worker has not handed the rest over yet (a busy machine)
+                continue
             ahead_s = (self.device_time_s - d0) - (h1 - h0)
             if ahead_s <= 2 * self._status_period_s() + self.CURRENT_SLACK_S and not self.stale():
                 return True
