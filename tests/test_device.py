@@ -226,3 +226,45 @@ def test_end_to_end_with_the_firmware_host_port_under_clock_drift(firmware_host,
     assert np.max(np.abs(played)) > 1000
     steps = np.abs(np.diff(rec["code"].astype(np.int64)))
     assert steps.max() <= pr.MAX_STEP_CODE
+
+
+def test_a_stream_started_after_the_link_went_unread_plays_on_from_its_prime(firmware_host, tmp_path):
+    """A link left unread for seconds (a texture built between the handshake and the start)
+    holds the device's old reports in the port's buffer (here ~700 STATUS, its first 0.7 s),
+    handed over a few KB per read. begin() primes on the device's present state, not on that backlog:
+    on the backlog the primed samples stayed "in flight" (unacknowledged) until it was read
+    through, the pump sent nothing meanwhile and the device played its prime dry (an underrun
+    right after every such start: the clock-drift test's failures ~1.5 s in). Every underrun
+    left must be a host stall's (_explained)."""
+    import time
+
+    from hostd.device.seriallink import SerialTransport
+
+    log = tmp_path / "dac.bin"
+    with hostport.HostPort(["--motion", "metronome", "--duration", "30"], log=log) as port:
+        t = SerialTransport(port.pty)
+        link = DeviceLink(t, target_fill=30)
+        link.handshake(timeout_s=2.0)
+        r = _renderer()
+        time.sleep(2.5)  # nothing reads the link meanwhile: its reports pile up in the pty
+        pump = Pump(link, None)
+        pump.begin(r)
+        statuses = link.stats.statuses
+        assert not link.stale()  # primed on a current report (stale(): older than 2 periods + 5 ms)
+        pump.run(1.0)
+        link.poll(0.01)
+        final = dict(link.stats.last_status)
+        # the device clock's offset (largest device time - arrival) stays a lower bound: a STATUS
+        # stamped tick g / 3 kHz leaves at tick g + 1, due T0 + (g + 1) / 3 kHz at 0 ppm (the
+        # compiled cycle stamped arrivals with its wake-up time: 2-26 ms over under load)
+        assert link._offset_s + port.t0 < 0
+        link.stop()
+        t.close()
+    assert statuses > 500  # the backlog was there (over 0.5 s of reports read before the prime)
+    rec = hostport.read_log(log)
+    g = -(-final["device_time_us"] * pr.SAMPLE_RATE_HZ // 1_000_000)
+    rec = rec[rec["tick"] <= g + 1]
+    fig = hostport.playback_figures(rec)
+    assert fig["ticks"] >= 2000  # it played on past its prime (30 samples)
+    assert fig["underrun_episodes"] == final["underruns"] == pump.health.underruns
+    _explained(fig, pump, link, buffer_s=30 / pr.SAMPLE_RATE_HZ)

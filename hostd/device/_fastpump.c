@@ -104,6 +104,7 @@ typedef struct {
     Py_buffer wbuf, sosbuf, zibuf, ringbuf;
     int have_w, have_sos, have_zi, have_ring;
     int fd, mode; /* mode: MODE_SERIAL (COBS frames on a byte stream) or MODE_HID (a report per read/write) */
+    int clock_live; /* the cycle's clock is CLOCK_MONOTONIC (not a test's now_s): read it again after the read */
     long long empty_reads;
     /* transport */
     unsigned char *dbuf;
@@ -1286,6 +1287,16 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
                 break;
         }
     }
+    /* The reference's clock reads (link._status, fill_estimate, _decay: transport.now()) all
+     * come after its read: a STATUS is stamped with a time at or after its arrival, so the
+     * device-clock offset (the largest device time - arrival) stays a lower bound. The cycle's
+     * start is not: a process held up between its wake-up and the read (measured: 10-30 ms on
+     * a loaded machine) stamped the reports that arrived meanwhile early and raised the offset
+     * by that much for seconds (it decays at 1 ms/s): device_now_s() ran ahead of the device,
+     * the fill estimate fell short and the buffer held that much more (latency), stale()
+     * misjudged. */
+    if (s->clock_live)
+        now = mono_now();
     *more = s->overflow != NULL;
     if (nm > FRESH || *more) { /* a backlog (the host stalled): stale statuses are the reference's */
         *nmsgs = nm;
@@ -1536,6 +1547,7 @@ static PyObject *fp_step(PyObject *self, PyObject *args) {
         return PyErr_NoMemory();
     PyObject *res = NULL;
     int r = load(s, pump, mode);
+    s->clock_live = o_now == Py_None;
     if (r < 0)
         goto done;
     if (r == 0) {
@@ -1638,6 +1650,7 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
     double due_out = 0.0;
     PyObject *ret = NULL;
     int r = load(s, pump, mode);
+    s->clock_live = 1;
     if (r < 0)
         goto done;
     if (r == 0) {

@@ -234,6 +234,49 @@ class DeviceLink:
                 n += 1
         return n
 
+    # A STATUS older than this plus two of its state's report periods, on the device's clock as
+    # the link knows it (device_now_s), is a backlog's, not the device's present.
+    CURRENT_SLACK_S = 0.005
+
+    def _status_period_s(self) -> float:
+        s = self.stats.last_status
+        rendering = bool(s) and s["state"] == pr.STATES["RENDERING"]
+        return (pr.R if rendering else pr.P)["status_period_ticks"] / pr.SAMPLE_RATE_HZ
+
+    def stale(self) -> bool:
+        """Is the latest STATUS taken known to be from a backlog: older on the device's clock
+        (as far as the link knows it) than two of its report periods and CURRENT_SLACK_S? False
+        when there is none, or when nothing fresher ever came to tell."""
+        if not self.stats.last_status:
+            return False
+        return self.device_time_s < self.device_now_s() - 2 * self._status_period_s() - self.CURRENT_SLACK_S
+
+    def catch_up(self, budget_s: float = 0.25) -> bool:
+        """Read the link up to the device's present: take in every message waiting, and go on
+        reading while the reports run ahead of the host's clock (a backlog: many reports, each
+        from later on the device's clock, in one short read) or are stale(), for at most
+        budget_s. A link left unread for a while (a texture built between the handshake and the
+        start) holds a tty buffer of old reports (a pty: ~700 STATUS, the device's first 0.7 s
+        of the pause), handed over 4 KB per read as a kernel worker refills it; flow control on
+        them counts what the device took since as still in flight, and sends nothing (a pty's
+        backlog took 7-13 ms to read here). Returns whether the last read kept pace (False: the
+        budget ran out, or the device is silent)."""
+        deadline = time.monotonic() + budget_s
+        self.poll(0.0)
+        while (h0 := time.monotonic()) < deadline:
+            d0 = self.device_time_s
+            # the next report, and all that waits behind it: a current link has one or two
+            n = self.poll(min(deadline - h0, 0.005))
+            h1 = time.monotonic()
+            if n == 0:  # none for 5 ms: nothing behind (or a device that reports every 50 ms),
+                if not self.stale():  # unless what it said last is known to be old: then the
+                    return True  # tty's worker has not handed the rest over yet (a busy machine)
+                continue
+            ahead_s = (self.device_time_s - d0) - (h1 - h0)
+            if ahead_s <= 2 * self._status_period_s() + self.CURRENT_SLACK_S and not self.stale():
+                return True
+        return False
+
     @property
     def in_flight(self) -> int:
         return sum(c for _, c in self._unacked)

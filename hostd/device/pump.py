@@ -220,7 +220,18 @@ class Pump:
                 self.link.stop()
             self._started = False
             return
+        self._ready()
         self._restart(first=True)
+
+    def _ready(self) -> None:
+        """Load what the cycles after START need, before START: from START on the device plays
+        the primed buffer (the fill target, 4 ms by default) and the next cycle must come before
+        it runs dry. The compiled cycle's modules (hostd.device.fastpump and the transports it
+        tells apart) were imported by the first run() after begin(): 20-60 ms, measured, so
+        every stream began with an underrun (and a doubled fill target)."""
+        from hostd.device import fastpump
+
+        fastpump.usable(self)  # (imports the transports it checks for)
 
     def end(self) -> None:
         """Stop playing (the device ramps to zero)."""
@@ -232,7 +243,11 @@ class Pump:
         if not first or self._started:
             link.reset_stream()  # STOP: the device drops what it buffered while not playing
         r.out.restart_from(0.0)  # the device ramped to zero; fade in from there
-        link.poll(0.0)
+        # the device's present state, not a backlog: a link left unread for a while (a texture
+        # built between the handshake and the start) holds ~0.7 s of old STATUS, on which the
+        # primed samples stay "in flight" until they are read through, so nothing more was sent
+        # and the device played its primed buffer dry (DAC log: the prime, then an underrun)
+        link.catch_up()
         self._send(link.wanted_to_prime())  # pre-fill, then start
         link.start()
         self._started = True
