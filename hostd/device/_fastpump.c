@@ -42,7 +42,7 @@
 
 #include "../render/render_core.h"
 
-#define REVISION 3 /* fastpump.C_REVISION must equal this */
+#define REVISION 4 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
 #define MAX_MSGS 64
 #define MAX_UNACKED 64
