@@ -129,9 +129,12 @@ def bare_ms_per_job(textures, plan, scoring) -> tuple[float, float]:
 
 
 def pool_run(textures, plan, scoring, store, *, workers: int, dask: str | None = None,
-             batch: int | None = None, rss_at: int | None = None, warm: bool = False) -> dict:
+             batch: int | None = None, rss_at: int | None = None, warm: bool = False,
+             workers_cpu_s=None) -> dict:
     """One run: wall s, jobs/s, driver + worker CPU ms per job, driver RSS at `rss_at` and at
-    the end. warm: on a local pool started (and timed: start_s) before the run's clock starts."""
+    the end. warm: on a local pool started (and timed: start_s) before the run's clock starts.
+    Worker CPU: from /proc for a warm pool, else `workers_cpu_s()` (the workers' total CPU s
+    now) before and after, else as measured around each task in the workers."""
     from hostd.corpus import jobs, run
 
     worker_cpu = [0.0]
@@ -161,6 +164,8 @@ def pool_run(textures, plan, scoring, store, *, workers: int, dask: str | None =
     try:
         if ex is not None:
             p0 = [_proc_cpu_s(p) for p in pids]
+        elif workers_cpu_s is not None:
+            k0 = workers_cpu_s()
         b0 = _busy_s()
         c0 = time.process_time()
         w0 = time.perf_counter()
@@ -173,6 +178,8 @@ def pool_run(textures, plan, scoring, store, *, workers: int, dask: str | None =
             if set(ex.pool._processes) != set(pids):
                 raise RuntimeError("bench corpus: a worker process was replaced during the run")
             worker_cpu[0] = sum(_proc_cpu_s(p) - c for p, c in zip(pids, p0, strict=True))
+        elif workers_cpu_s is not None:
+            worker_cpu[0] = workers_cpu_s() - k0
     finally:
         if ex is not None:
             ex.close()
@@ -293,9 +300,10 @@ def _dask(tex, plan, scoring, d, w: int, batch: int | None) -> dict:
     """The same jobs on a LocalCluster of w worker processes (1 thread each, as `--dask local`
     starts it), started and warmed up (imports, a run on 2 textures) before the measured run;
     its scheduler runs in this process, so its CPU time is counted as the driver's; the
-    workers' CPU is measured around each task (their event loops are not counted)."""
+    workers' CPU is their processes' whole CPU time (every thread: the task's, the event
+    loop's, heartbeats), before and after the run; their nannies' is not counted."""
     try:
-        from distributed import LocalCluster
+        from distributed import Client, LocalCluster
     except ImportError:
         from hostd.extras import pip_install
 
@@ -305,12 +313,20 @@ def _dask(tex, plan, scoring, d, w: int, batch: int | None) -> dict:
     os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")  # as --dask local
     crun._one_thread_per_worker()
     cluster = LocalCluster(n_workers=w, threads_per_worker=1, processes=True, dashboard_address=None)
+    client = None
     try:
+        client = Client(cluster)
         pool_run(tex[:2], plan, scoring, d / "dask-warm.sqlite", workers=w, dask=cluster.scheduler_address,
                  batch=batch)
+
+        def workers_cpu_s() -> float:
+            return float(sum(client.run(time.process_time).values()))
+
         dk = pool_run(tex, plan, scoring, d / "dask.sqlite", workers=w, dask=cluster.scheduler_address,
-                      batch=batch)
+                      batch=batch, workers_cpu_s=workers_cpu_s)
     finally:
+        if client is not None:
+            client.close()
         cluster.close()
     return {"dask_batch": batch or crun.DASK_BATCH, "dask_cpu_ms_per_job": dk["cpu_ms_per_job"],
             "dask_overhead_ms_per_job": dk["overhead_ms_per_job"],
