@@ -274,8 +274,8 @@ def run(*, jobs_scale: int = 10_000, heights: int = 2000, spqi: bool = False, da
         res.update(_section(tex, plan, Scoring(spqi=spqi, timeout_s=60.0), d, w, batch, repeats, "tiny"))
         res["heights_per_job"] = heights
         if typical:
-            # typical jobs: 10 whole textures x hostd-v2's default sweep (24) = 240 jobs per run
-            ttex, tplan = _textures(10, TYPICAL_HEIGHTS), crun.make_plan(["hostd-v2"])
+            # typical jobs: 20 whole textures x hostd-v2's default sweep (24) = 480 jobs per run
+            ttex, tplan = _textures(20, TYPICAL_HEIGHTS), crun.make_plan(["hostd-v2"])
             t = _section(ttex, tplan, Scoring(spqi=True, timeout_s=60.0), d, w, batch, repeats, "typical")
             t["heights_per_job"] = TYPICAL_HEIGHTS
             res["typical"] = t
