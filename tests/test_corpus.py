@@ -184,6 +184,11 @@ def test_the_drivers_fast_keys_are_job_keys_bytes_and_tasks_are_guided(tmp_path)
     assert [len(t.jobs) for t in one] == [4, 3] * 5 and skipped == [3] * 5
     left = [k for i in range(5) for k in keys[10 * i + 3 : 10 * i + 10]]
     assert [j.key for t in one for j in t.jobs] == left
+    # the driver's cap (from how long jobs take) is read as each task is made
+    caps = iter([64, 64] + [3] * 18)
+    capped = list(crun.iter_tasks(tex, plan, sc, 256, lambda keys: set(), skipped.append, 1,
+                                  lambda: next(caps)))
+    assert [len(t.jobs) for t in capped] == [10, 10] + [3, 3, 3, 1] * 3
 
 
 def test_manifest_csv_and_toml_give_each_entry_its_own_units(tmp_path):

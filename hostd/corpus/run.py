@@ -24,6 +24,8 @@ from hostd.errors import HostdError
 
 DEFAULT_BATCH = 256  # at most this many jobs per task (tasks shrink towards the end: iter_tasks)
 DASK_BATCH = 256  # the same on Dask, whose per-task cost (scheduler, worker event loop) is larger
+FIRST_BATCH = 64  # at most this many per task until a task has told how long a job takes
+TASK_TARGET_S = 2.0  # then at most this long per task (slow codecs: rows arrive, Ctrl-C loses little)
 MAX_TASK_RETRIES = 3
 
 
@@ -150,13 +152,14 @@ GUIDE = 1  # tasks shrink to (jobs still to hand out) / (GUIDE x workers) toward
 
 def iter_tasks(textures: Iterable[TextureSpec], plan: Plan, scoring: Scoring, batch: int,
                skip: Callable[[list[str]], set[str]], on_skip: Callable[[int], None],
-               workers: int = 1) -> Iterator[Task]:
+               workers: int = 1, cap: Callable[[], int] | None = None) -> Iterator[Task]:
     """Tasks of one texture's jobs, leaving out the keys `skip` says are done. Guided sizes
     (guided self-scheduling): a task takes min(batch, jobs still to hand out / workers) jobs, so
     while more than a texture per worker remains, a texture's jobs go in one task (its profile
     loaded once, in one worker; a split texture is loaded by every worker that gets a part), and
     the last textures are cut into halving tasks down to single jobs, so no worker finishes a
-    long last task while the others idle."""
+    long last task while the others idle. `cap()`, when given, further limits each task as it is
+    made (the driver's limit from how long jobs take)."""
     ver = versions(plan)
     km = jobs.KeyMaker(scoring)
     points = []
@@ -178,7 +181,7 @@ def iter_tasks(textures: Iterable[TextureSpec], plan: Plan, scoring: Scoring, ba
             remaining -= len(specs) - len(todo)
         i = 0
         while i < len(todo):
-            size = max(1, min(batch, -(-remaining // div)))
+            size = max(1, min(batch, -(-remaining // div), cap() if cap is not None else batch))
             part = tuple(todo[i : i + size])
             i += len(part)
             remaining -= len(part)
@@ -421,6 +424,15 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
                      else f"local pool of {n_workers}")
     window = 4 * n_workers + 2  # tasks in flight (Dask: from the cluster's threads, see below)
     done_tasks = 0
+    pace = [0.0, 0]  # seconds of finished tasks, their jobs
+
+    def cap() -> int:
+        """Jobs per task: FIRST_BATCH until a task has reported its time, then what takes about
+        TASK_TARGET_S (cheap jobs: whole textures; a slow codec: a few jobs per task)."""
+        if pace[1] == 0 or pace[0] <= 0:
+            return min(batch, FIRST_BATCH)
+        return max(1, min(batch, int(TASK_TARGET_S * pace[1] / pace[0])))
+
     pending: dict = {}
     tries: Counter = Counter()
     exhausted = False
@@ -438,6 +450,9 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             pending[ex.submit(t, task_fn)] = t
 
     def record(rows: list[dict]) -> None:
+        if rows and rows[0].get("_task_s") is not None:
+            pace[0] += rows[0]["_task_s"]
+            pace[1] += len(rows)
         summ.written += st.write(rows, replace=retry_errors)
         for r in rows:
             if r["error"] is None:
@@ -453,7 +468,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
         ex = using if using is not None else executor(dask, workers, pool)
         # task sizes shrink towards the end in proportion to the workers there are
         tasks = iter_tasks(textures, plan, scoring, batch, lambda keys: st.known(keys, ok_only=retry_errors),
-                           skipped, ex.slots() if hasattr(ex, "slots") else n_workers)
+                           skipped, ex.slots() if hasattr(ex, "slots") else n_workers, cap)
         fill()
         while pending:
             fut = ex.next_done(pending)
