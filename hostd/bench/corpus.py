@@ -219,6 +219,9 @@ def efficiency(tex, plan, scoring, d, w: int, batch: int | None, repeats: int, t
     return {
         "textures": len(tex), "jobs_per_run": manys[0]["jobs"],
         "work_ms_per_job": med(r["work_cpu_ms_per_job"] for r in manys),
+        # the same work with one worker: CPU time per job that grows with W workers is contention
+        # for the cores and caches (or other load), not the machinery
+        "work_ms_per_job_one_worker": med(r["work_cpu_ms_per_job"] for r in ones),
         "input_load_ms_per_job": med(r["input_load_ms_per_job"] for r in manys),
         "pool_cpu_ms_per_job": med(r["cpu_ms_per_job"] for r in manys),
         "driver_cpu_ms_per_job": med(r["driver_cpu_ms_per_job"] for r in manys),
