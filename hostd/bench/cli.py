@@ -87,7 +87,8 @@ def add_parser(sub, parents) -> None:
     cb.add_argument("--batch", type=int, default=None, metavar="JOBS",
                     help="at most JOBS per task (default as `hostd corpus run`: 256)")
     cb.add_argument("--heights", type=int, default=2000, metavar="N",
-                    help="heights per texture of the tiny jobs (default 2000 = 1 mm)")
+                    help="heights per texture of the tiny jobs (default 2000 = 1 mm; at most 20000, the "
+                    "synthetic textures' 10 mm)")
     cb.add_argument("--spqi", action="store_true", help="score the tiny jobs with SPQI too")
     cb.add_argument("--repeats", type=int, default=3, metavar="N",
                     help="rounds of 1 and W workers per job size, medians reported (3)")
@@ -246,9 +247,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         if (args.jobs < 1000 or (args.workers is not None and args.workers < 1)
                 or (args.batch is not None and args.batch < 1) or not 1 <= args.repeats <= 50
-                or not 16 <= args.heights <= 10_000_000):
+                or not 16 <= args.heights <= 20_000):
             raise SystemExit("hostd bench corpus: error: --jobs must be >= 1000, --workers and --batch >= 1, "
-                             "--repeats 1..50, --heights 16..10000000")
+                             "--repeats 1..50, --heights 16..20000 (a synthetic texture's length)")
         try:
             rows.append(corpus_bench.run(jobs_scale=args.jobs, dask=not args.no_dask, workers=args.workers,
                                          batch=args.batch, heights=args.heights, spqi=args.spqi,
