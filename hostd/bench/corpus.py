@@ -179,7 +179,9 @@ def pool_run(textures, plan, scoring, store, *, workers: int, dask: str | None =
         if ex is not None:
             if set(ex.pool._processes) != set(pids):
                 raise RuntimeError("bench corpus: a worker process was replaced during the run")
-            worker_cpu[0] = sum(_proc_cpu_s(p) - c for p, c in zip(pids, p0, strict=True))
+            proc = sum(_proc_cpu_s(p) - c for p, c in zip(pids, p0, strict=True))
+            if proc == proc:  # no /proc/PID/schedstat (NaN): keep the CPU measured around each task
+                worker_cpu[0] = proc
         elif workers_cpu_s is not None:
             worker_cpu[0] = workers_cpu_s() - k0
     finally:
