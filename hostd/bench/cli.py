@@ -90,8 +90,9 @@ def add_parser(sub, parents) -> None:
                     help="heights per texture of the tiny jobs (default 2000 = 1 mm; at most 20000, the "
                     "synthetic textures' 10 mm)")
     cb.add_argument("--spqi", action="store_true", help="score the tiny jobs with SPQI too")
-    cb.add_argument("--repeats", type=int, default=3, metavar="N",
-                    help="rounds of 1 and W workers per job size, medians reported (3)")
+    cb.add_argument("--repeats", type=int, default=7, metavar="N",
+                    help="rounds of 1 and W workers per job size, medians reported (7: a round is ~1 s, "
+                    "single rounds spread ±20 %%)")
     cb.add_argument("--no-typical", action="store_true",
                     help="skip the typical jobs (20 000 heights, hostd-v2's default sweep, SPQI)")
     cb.add_argument("--no-dask", action="store_true", help="skip the Dask LocalCluster run")

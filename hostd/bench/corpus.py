@@ -257,7 +257,7 @@ def _section(tex, plan, scoring, d, w, batch, repeats, tag) -> dict:
 
 
 def run(*, jobs_scale: int = 10_000, heights: int = 2000, spqi: bool = False, dask: bool = True,
-        workers: int | None = None, batch: int | None = None, repeats: int = 3,
+        workers: int | None = None, batch: int | None = None, repeats: int = 7,
         typical: bool = True) -> dict:
     import tempfile
     from pathlib import Path
