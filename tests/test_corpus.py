@@ -156,6 +156,41 @@ def test_resume_skips_known_keys_and_a_new_codec_version_is_a_new_key(tmp_path, 
     assert bumped.written == 10 and len(_rows(db)) == 20
 
 
+def test_the_drivers_fast_keys_are_job_keys_bytes_and_tasks_are_guided(tmp_path):
+    """The keys iter_tasks builds from pre-encoded parts equal job_key's (stores made before
+    stay valid), with non-ASCII text in a setting; every job is handed out once, in order; a
+    texture is one task while more than a texture per worker remains, and the last ones are cut
+    into shrinking tasks down to single jobs."""
+    tex = crun.textures_from([f"synthetic:wood:{k}" for k in range(1, 6)], SHORT)
+    fx = f"{FIX}:uniform"
+    plan = crun.make_plan(["hostd-v2", fx], methods=["shaped"], g_db=[-6.0, 0.0, 6.0],
+                          speeds_mm_s=[50.0, 100.0],
+                          settings={fx: [{"step_um": 1.0}, {"step_um": 0.5, "note": "µm – ü"}]})
+    assert plan.per_texture == 10
+    sc = jobs.Scoring(spqi=False)
+    ver = crun.versions(plan)
+    skipped = []
+    two = list(crun.iter_tasks(tex, plan, sc, 256, lambda keys: set(), skipped.append, 2))
+    for t in two:
+        for j in t.jobs:
+            name, version = ver[j.codec]
+            assert j.key == jobs.job_key(t.texture, name, version, j.setting, j.speed_mm_s, j.fmax_hz, sc)
+    assert [len(t.jobs) for t in two] == [10, 10, 10, 10, 5, 3, 1, 1]  # 50 jobs, 2 workers
+    assert [t.texture.name for t in two][:4] == [x.name for x in tex[:4]] and not skipped
+    keys = [j.key for t in two for j in t.jobs]
+    assert len(set(keys)) == len(keys) == 50
+    # one worker: whole textures, at most `batch` jobs per task; known keys are left out
+    one = list(crun.iter_tasks(tex, plan, sc, 4, lambda ks: set(ks[:3]), skipped.append, 1))
+    assert [len(t.jobs) for t in one] == [4, 3] * 5 and skipped == [3] * 5
+    left = [k for i in range(5) for k in keys[10 * i + 3 : 10 * i + 10]]
+    assert [j.key for t in one for j in t.jobs] == left
+    # the driver's cap (from how long jobs take) is read as each task is made
+    caps = iter([64, 64] + [3] * 18)
+    capped = list(crun.iter_tasks(tex, plan, sc, 256, lambda keys: set(), skipped.append, 1,
+                                  lambda: next(caps)))
+    assert [len(t.jobs) for t in capped] == [10, 10] + [3, 3, 3, 1] * 3
+
+
 def test_manifest_csv_and_toml_give_each_entry_its_own_units(tmp_path):
     from hostd.errors import ProfileError
     from hostd.texture import manifest

@@ -86,7 +86,17 @@ def add_parser(sub, parents) -> None:
     cb.add_argument("--json", action="store_true")
     cb.add_argument("--jobs", type=int, default=10_000, metavar="N", help="jobs of the memory run (10^4)")
     cb.add_argument("--workers", type=int, default=None, metavar="N", help="pool size (default every core)")
-    cb.add_argument("--batch", type=int, default=16, metavar="JOBS", help="jobs per task (default 16)")
+    cb.add_argument("--batch", type=int, default=None, metavar="JOBS",
+                    help="at most JOBS per task (default as `hostd corpus run`: 256)")
+    cb.add_argument("--heights", type=int, default=2000, metavar="N",
+                    help="heights per texture of the tiny jobs (default 2000 = 1 mm; at most 20000, the "
+                    "synthetic textures' 10 mm)")
+    cb.add_argument("--spqi", action="store_true", help="score the tiny jobs with SPQI too")
+    cb.add_argument("--repeats", type=int, default=7, metavar="N",
+                    help="rounds of 1 and W workers per job size, medians reported (7: a round is ~1 s, "
+                    "single rounds spread ±20 %%)")
+    cb.add_argument("--no-typical", action="store_true",
+                    help="skip the typical jobs (20 000 heights, hostd-v2's default sweep, SPQI)")
     cb.add_argument("--no-dask", action="store_true", help="skip the Dask LocalCluster run")
     lb = bsub.add_parser("load", help="reading a large two-column CSV against np.loadtxt (goal <= 1.5x)")
     lb.add_argument("--lines", type=int, default=2_000_000)
@@ -240,11 +250,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if what == "corpus":
         from hostd.bench import corpus as corpus_bench
 
-        if args.jobs < 1000 or (args.workers is not None and args.workers < 1) or args.batch < 1:
-            raise SystemExit("hostd bench corpus: error: --jobs must be >= 1000, --workers and --batch >= 1")
+        if (args.jobs < 1000 or (args.workers is not None and args.workers < 1)
+                or (args.batch is not None and args.batch < 1) or not 1 <= args.repeats <= 50
+                or not 16 <= args.heights <= 20_000):
+            raise SystemExit("hostd bench corpus: error: --jobs must be >= 1000, --workers and --batch >= 1, "
+                             "--repeats 1..50, --heights 16..20000 (a synthetic texture's length)")
         try:
             rows.append(corpus_bench.run(jobs_scale=args.jobs, dask=not args.no_dask, workers=args.workers,
-                                         batch=args.batch))
+                                         batch=args.batch, heights=args.heights, spqi=args.spqi,
+                                         repeats=args.repeats, typical=not args.no_typical))
         except (RuntimeError, HostdError) as e:
             raise SystemExit(f"hostd bench corpus: error: {e}") from None
     if what == "cli":

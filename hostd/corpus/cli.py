@@ -61,7 +61,8 @@ def add_parser(sub, parents) -> None:
                    help="run on a Dask cluster: tcp://HOST:8786, or 'local' (a LocalCluster of worker "
                    "processes)")
     r.add_argument("--batch", type=int, default=None, metavar="JOBS",
-                   help="jobs per task (default 16 on the local pool, 64 on Dask)")
+                   help="at most JOBS per task (default 256; a texture's jobs go in one task of at most "
+                   "~2 s, the last textures' in shrinking tasks)")
     r.add_argument("--timeout", type=float, default=60.0, metavar="S",
                    help="per-job limit: a codec still running after S seconds is an error row (60)")
     r.add_argument("--no-spqi", action="store_true", help="skip SPQI (faster; the SPQI column stays empty)")

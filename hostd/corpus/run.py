@@ -22,8 +22,10 @@ from hostd.corpus import codecs, jobs
 from hostd.corpus.jobs import JobSpec, Scoring, Task, TextureSpec
 from hostd.errors import HostdError
 
-DEFAULT_BATCH = 16  # jobs per task on the local pool
-DASK_BATCH = 64  # on Dask, whose per-task cost (scheduler, worker event loop) is larger
+DEFAULT_BATCH = 256  # at most this many jobs per task (tasks shrink towards the end: iter_tasks)
+DASK_BATCH = 256  # the same on Dask, whose per-task cost (scheduler, worker event loop) is larger
+FIRST_BATCH = 64  # at most this many per task until a task has told how long a job takes
+TASK_TARGET_S = 2.0  # then at most this long per task (slow codecs: rows arrive, Ctrl-C loses little)
 MAX_TASK_RETRIES = 3
 
 
@@ -145,25 +147,45 @@ def versions(plan: Plan) -> dict[str, tuple[str, str]]:
     return out
 
 
+GUIDE = 1  # tasks shrink to (jobs still to hand out) / (GUIDE x workers) towards the end
+
+
 def iter_tasks(textures: Iterable[TextureSpec], plan: Plan, scoring: Scoring, batch: int,
-               skip: Callable[[list[str]], set[str]], on_skip: Callable[[int], None]) -> Iterator[Task]:
-    """Tasks of at most `batch` jobs of one texture, leaving out the keys `skip` says are done."""
+               skip: Callable[[list[str]], set[str]], on_skip: Callable[[int], None],
+               workers: int = 1, cap: Callable[[], int] | None = None) -> Iterator[Task]:
+    """Tasks of one texture's jobs, leaving out the keys `skip` says are done. Guided sizes
+    (guided self-scheduling): a task takes min(batch, jobs still to hand out / workers) jobs, so
+    while more than a texture per worker remains, a texture's jobs go in one task (its profile
+    loaded once, in one worker; a split texture is loaded by every worker that gets a part), and
+    the last textures are cut into halving tasks down to single jobs, so no worker finishes a
+    long last task while the others idle. `cap()`, when given, further limits each task as it is
+    made (the driver's limit from how long jobs take)."""
     ver = versions(plan)
+    km = jobs.KeyMaker(scoring)
+    points = []
+    for v, f in plan.geometries:
+        for spec, sj in plan.points:
+            name, version = ver[spec]
+            points.append((km.point(name, version, sj, v, f), spec, sj, v, f))
+    textures = list(textures)
+    remaining = len(textures) * len(points)  # at most this many jobs still to hand out
+    div = GUIDE * max(1, workers)
     for tex in textures:
         tex = hashed(tex)
-        specs: list[JobSpec] = []
-        for v, f in plan.geometries:
-            for spec, sj in plan.points:
-                name, version = ver[spec]
-                specs.append(JobSpec(jobs.job_key(tex, name, version, sj, v, f, scoring), spec, sj, v, f))
-        for i in range(0, len(specs), batch):
-            part = specs[i : i + batch]
-            done = skip([j.key for j in part])
-            todo = tuple(j for j in part if j.key not in done)
-            if len(todo) < len(part):
-                on_skip(len(part) - len(todo))
-            if todo:
-                yield Task(tex, todo, scoring)
+        head = km.texture(tex)
+        specs = [JobSpec(km.key(head, pp), spec, sj, v, f) for pp, spec, sj, v, f in points]
+        done = skip([j.key for j in specs])
+        todo = [j for j in specs if j.key not in done]
+        if len(todo) < len(specs):
+            on_skip(len(specs) - len(todo))
+            remaining -= len(specs) - len(todo)
+        i = 0
+        while i < len(todo):
+            size = max(1, min(batch, -(-remaining // div), cap() if cap is not None else batch))
+            part = tuple(todo[i : i + size])
+            i += len(part)
+            remaining -= len(part)
+            yield Task(tex, part, scoring)
 
 
 # ----------------------------------------------------------------------------- executors
@@ -231,6 +253,16 @@ class _Local:
 
     def submit(self, task: Task, fn=jobs.run_task):
         return self.pool.submit(fn, task)
+
+    def warm(self, hold_s: float = 0.05) -> None:
+        """Start every worker process now (the bench times runs without the pool's start-up and
+        reports it apart). The pool starts a process per task submitted while none is idle; each
+        warm-up task holds `hold_s` so that all are submitted before one returns."""
+        for _ in range(3):
+            futs = [self.pool.submit(jobs.warm_up, hold_s) for _ in range(self.workers)]
+            if len({f.result() for f in futs}) == self.workers:
+                return
+        raise HostdError(f"could not start {self.workers} worker processes")
 
     def next_done(self, pending):
         from concurrent.futures import FIRST_COMPLETED, wait
@@ -361,8 +393,9 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
         scoring: Scoring | None = None, dask: str | None = None, workers: int | None = None,
         batch: int | None = None, progress: bool | None = None, retry_errors: bool = False,
         on_rows: Callable[[list[dict]], None] | None = None, task_fn: Callable = jobs.run_task,
-        pool: bool = False) -> Summary:
-    """Run every job not yet in the store; returns what happened (Ctrl-C: interrupted=True)."""
+        pool: bool = False, using=None) -> Summary:
+    """Run every job not yet in the store; returns what happened (Ctrl-C: interrupted=True).
+    `using`: an executor() already started (the bench's warm pools), left open for the caller."""
     from hostd.corpus.store import Store
 
     if batch is None:
@@ -384,14 +417,22 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
         if bar is not None:
             bar.update(k)
 
-    tasks = iter_tasks(textures, plan, scoring, batch,
-                       lambda keys: st.known(keys, ok_only=retry_errors), skipped)
-    ex = None
     n_workers = workers or os.cpu_count() or 1
+    tasks: Iterator[Task] = iter(())
+    ex = None
     summ.executor = (f"dask {dask}" if dask else "in this process" if n_workers == 1 and not pool
                      else f"local pool of {n_workers}")
     window = 4 * n_workers + 2  # tasks in flight (Dask: from the cluster's threads, see below)
     done_tasks = 0
+    pace = [0.0, 0]  # seconds of finished tasks, their jobs
+
+    def cap() -> int:
+        """Jobs per task: FIRST_BATCH until a task has reported its time, then what takes about
+        TASK_TARGET_S (cheap jobs: whole textures; a slow codec: a few jobs per task)."""
+        if pace[1] == 0 or pace[0] <= 0:
+            return min(batch, FIRST_BATCH)
+        return max(1, min(batch, int(TASK_TARGET_S * pace[1] / pace[0])))
+
     pending: dict = {}
     tries: Counter = Counter()
     exhausted = False
@@ -409,6 +450,9 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             pending[ex.submit(t, task_fn)] = t
 
     def record(rows: list[dict]) -> None:
+        if rows and rows[0].get("_task_s") is not None:
+            pace[0] += rows[0]["_task_s"]
+            pace[1] += len(rows)
         summ.written += st.write(rows, replace=retry_errors)
         for r in rows:
             if r["error"] is None:
@@ -421,7 +465,10 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             on_rows(rows)
 
     try:
-        ex = executor(dask, workers, pool)
+        ex = using if using is not None else executor(dask, workers, pool)
+        # task sizes shrink towards the end in proportion to the workers there are
+        tasks = iter_tasks(textures, plan, scoring, batch, lambda keys: st.known(keys, ok_only=retry_errors),
+                           skipped, ex.slots() if hasattr(ex, "slots") else n_workers, cap)
         fill()
         while pending:
             fut = ex.next_done(pending)
@@ -455,11 +502,11 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             fill()
     except KeyboardInterrupt:
         summ.interrupted = True
-        if ex is not None:
+        if ex is not None and using is None:
             ex.close(cancel=True)
         ex = None
     finally:
-        if ex is not None:
+        if ex is not None and using is None:
             ex.close()
         if bar is not None:
             bar.close()

@@ -62,7 +62,7 @@ class Store:
         try:
             with self.db:
                 before = self.db.total_changes
-                self.db.executemany(q, [tuple(r.get(c) for c in COLUMNS) for r in rows])
+                self.db.executemany(q, [tuple(map(r.get, COLUMNS)) for r in rows])
                 return self.db.total_changes - before
         except sqlite3.Error as exc:
             raise StoreError(f"cannot write to {self.path}: {exc}") from None
