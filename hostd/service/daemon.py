@@ -738,7 +738,7 @@ class Daemon:
         daemon's config: output.travel_um, output.slew_um_s, render.actuator)."""
         if not self.cfg.experiment.stimuli:
             self.refuse(f"this hostd does not play stimuli: set [experiment] stimuli = true in "
-                        f"{self.cfg.path} and restart hostd (docs/experiments.md)")
+                        f"{self.cfg.path} and restart hostd (`hostd experiment threshold --help`)")
         if self._stimulus_bound is None:
             from hostd.render.stimulus import StimulusBound
 
