@@ -420,7 +420,7 @@ def pump_main(cfg, conn, stats) -> None:
     bad_msgs_seen = [0, -math.inf]  # bad messages (valid frames) of this link: the same
     resets_seen = [0, -math.inf]  # the device's counter resets (health.resets), time of the last one
     # a flood of STATUS: a display reports once per status_period_ticks at most (1 ms while it
-    # streams, 50 ms while it renders); STATUS counted per second of host time, against that
+    # streams, 150 ms while it renders); STATUS counted per second of host time, against that
     # fastest rate. A window ends only when the pump looks (publish()), so a backlog the host
     # reads after its own stall falls in the window that holds the stall: it never looks like a
     # flood. [window start, link.stats.statuses then, flooding]
