@@ -205,24 +205,8 @@ def _lines(log: Path, start: int, needle: str) -> list[str]:
 
 
 def test_a_misbehaving_display_is_named_dropped_or_reconnected_and_the_daemon_keeps_serving(tmp_path):
-    try:
-        hostport.build()
-    except RuntimeError as e:
-        pytest.fail(str(e))
-    assert main(["encode", "synthetic:wood:1", "-o", str(tmp_path / "wood.vtx"), "--method", "quant",
-                 "--levels", "14"]) == 0
-    dac = tmp_path / "dac.bin"
-    hp = hostport.HostPort(["--motion", "metronome", "--duration", "300"], log=dac)
-    link = tmp_path / "display"
-    cable = Cable(hp.pty, link)
-    cfg = tmp_path / "hostd.toml"
-    cfg.write_text(f'[device]\ntransport = "serial:{link}"\nreconnect_s = 0.5\n[render]\nwhere = "host"\n'
-                   '[library]\ndir = "lib"\nspool = "spool"\n'
-                   '[control]\nsocket = "hostd.sock"\ngroup = ""\n[quality]\ndb = "q.sqlite"\n')
-    sock = str(tmp_path / "hostd.sock")
-    log = tmp_path / "log.txt"
-    daemon = subprocess.Popen([sys.executable, "-m", "hostd", "run", "--config", str(cfg)], cwd=tmp_path,
-                              stderr=open(log, "w"))
+    hp, cable, daemon, sock, log, dac, link = _display_and_daemon(
+        tmp_path, "host", ["--motion", "metronome", "--duration", "300"])
     rnd = random.Random(29)
     try:
         wait_for(lambda: request(sock, {"cmd": "status"}, timeout_s=2)["connected"], 2 * START_S,
@@ -300,17 +284,7 @@ def test_a_misbehaving_display_is_named_dropped_or_reconnected_and_the_daemon_ke
         rss1 = _pump_rss_kib(daemon.pid)
         assert rss1 - rss0 < 20 * 1024, (rss0, rss1)  # bounded: no buffer grows with what it was sent
     finally:
-        if daemon.poll() is None:
-            daemon.send_signal(signal.SIGTERM)
-            daemon.wait(30)
-        cable.pull() if not cable.stop_flag else None
-        hp.close()
-    text = log.read_text()
-    assert "Traceback" not in text, text[-3000:]
-    # nothing the display said drove the piezo past its limits (the firmware's DAC log)
-    codes = hostport.read_log(dac)["code"].astype(np.int64)
-    assert codes.size > 3000 and np.abs(codes).max() <= pr.LIMIT_CODE
-    assert np.abs(np.diff(codes)).max() <= pr.MAX_STEP_CODE
+        _end(hp, cable, daemon, log, dac)  # (and nothing the display said passed the piezo's limits)
 
 
 def _forged_ident(protocol_version: int) -> bytes:

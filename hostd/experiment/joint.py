@@ -37,8 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hostd.errors import ExperimentError
-from hostd.experiment.threshold import ThresholdConfig, ThresholdResult, Trial, db, um
+from hostd.experiment.threshold import ThresholdConfig, ThresholdResult, Trial, answered, db, um
 
 PRIOR_SPAN_DB = 22.0  # levels this far either side of the prior curve (and never above the reach)
 LEVEL_STEP_DB = 2.0
@@ -160,12 +159,7 @@ class JointRun:
     def answer(self, trial_index: int, chosen: int) -> bool:
         """Record the chosen interval of the pending trial; returns whether it was correct."""
         t = self.pending
-        if t is None or t.index != trial_index:
-            raise ExperimentError(f"answer to trial {trial_index}, but trial "
-                                  f"{'none' if t is None else t.index} is the one presented")
-        if not 1 <= chosen <= t.n_afc:
-            raise ExperimentError(f"answer {chosen}: choose an interval 1..{t.n_afc}")
-        correct = chosen == t.target
+        correct = answered(t, trial_index, chosen)
         p = self.p_correct[:, self._stim]
         self.log_post = self.log_post + np.log(np.clip(p if correct else 1 - p, 1e-300, None))
         self.log_post -= self.log_post.max()

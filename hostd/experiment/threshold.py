@@ -185,6 +185,17 @@ class Trial:
         return asdict(self)
 
 
+def answered(t: Trial | None, trial_index: int, chosen: int) -> bool:
+    """Whether `chosen` is the pending trial `t`'s target: ExperimentError (one line) for an answer
+    to another trial than the one presented or an interval outside 1..n_afc."""
+    if t is None or t.index != trial_index:
+        raise ExperimentError(f"answer to trial {trial_index}, but trial "
+                              f"{'none' if t is None else t.index} is the one presented")
+    if not 1 <= chosen <= t.n_afc:
+        raise ExperimentError(f"answer {chosen}: choose an interval 1..{t.n_afc}")
+    return chosen == t.target
+
+
 @dataclass
 class ThresholdRun:
     """Interleaved staircases; next_trial() then answer(trial, chosen interval), in order."""
@@ -237,12 +248,7 @@ class ThresholdRun:
     def answer(self, trial_index: int, chosen: int) -> bool:
         """Record the chosen interval of the pending trial; returns whether it was correct."""
         t = self.pending
-        if t is None or t.index != trial_index:
-            raise ExperimentError(f"answer to trial {trial_index}, but trial "
-                                  f"{'none' if t is None else t.index} is the one presented")
-        if not 1 <= chosen <= t.n_afc:
-            raise ExperimentError(f"answer {chosen}: choose an interval 1..{t.n_afc}")
-        correct = chosen == t.target
+        correct = answered(t, trial_index, chosen)
         i = self.cfg.frequencies_hz.index(t.frequency_hz)
         self.stairs[i].update(t.level_db, correct)
         self.pending = None
