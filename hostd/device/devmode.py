@@ -22,7 +22,6 @@ count, so the slower report loses no tick; a display that stops rendering sends 
 STATUS again at once. Every wake-up is a run of the loop (`wakeups`, the figure `hostd bench
 soak` sets against the process's own count of wake-ups). A keep-alive that falls due before the
 next wake-up goes out with it, so the keep-alive adds no wake-up of its own.
-wake-up goes out with it, so the keep-alive adds no wake-up of its own.
 """
 
 from __future__ import annotations

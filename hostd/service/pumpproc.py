@@ -366,10 +366,11 @@ def pump_main(cfg, conn, stats) -> None:
             stim[0] = None
             ep = pump._episode
             why = ep.cause if ep is not None else "underrun" if h.underruns != s["underruns0"] else "stopped"
-            answer_stimulus(s["id"], f"the display stopped playing the stimulus ({why}: a host stall "
-                            f"longer than its buffer) after {h.samples_played - s['p0']} samples: it was not "
-                            "played whole; ask again")
+            n_played = h.samples_played - s["p0"]
             stimulus_end()
+            answer_stimulus(s["id"], f"the display stopped playing the stimulus ({why}: a host stall "
+                            f"longer than its buffer) after {n_played} samples: it was not "
+                            "played whole; ask again")
             return
         elif h.samples_played - s["p0"] >= s["needed"]:
             stim[0] = None
@@ -377,18 +378,18 @@ def pump_main(cfg, conn, stats) -> None:
             played = {"samples": h.samples_played - s["p0"], "stimulus_samples": r.length,
                       "limited": r.limited, "host_s": round(time.monotonic() - s["t0"], 4),
                       "device_time_s": link.device_time_s}
+            stimulus_end()  # idle first: the answer says the stimulus is over (a client's status agrees)
             if r.limited:  # (cannot happen after the check; said rather than assumed)
                 answer_stimulus(s["id"], f"the output stage limited {r.limited} samples of the stimulus",
                                 retry=False, played=played)
             else:
                 answer_stimulus(s["id"], None, played=played)
-            stimulus_end()
             return
         if time.monotonic() > s["deadline"]:
             stim[0] = None
+            stimulus_end()
             answer_stimulus(s["id"], f"the display did not play the {s['duration_s']:g} s stimulus within "
                             f"{s['deadline'] - s['t0']:g} s; ask again")
-            stimulus_end()
 
     def command(cmd) -> None:
         """A command from the parent; while no device is connected only the choice is kept."""
