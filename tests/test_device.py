@@ -152,10 +152,10 @@ def firmware_safety(codes: np.ndarray, limit: int = pr.LIMIT_CODE,
 
 
 def _explained(fig: dict, pump: Pump, link: DeviceLink, buffer_s: float) -> None:
-    """Every underrun in the DAC log coincides with a host pause longer than the buffer that
-    the pump measured (or with the simulated device itself being held up by the OS, which the
-    host port flags per tick), and every silence ends within 100 ms of the end of the pauses
-    that caused it: playback recovers."""
+    """Every underrun in the DAC log coincides with a host pause that the pump measured (one
+    that left the buffer less than two cycles), or with the simulated device itself being held
+    up by the OS (which the host port flags per tick), and every silence ends within 100 ms of
+    the end of the pauses that caused it: playback recovers."""
     offset = link._offset_s  # device time - host monotonic time
     stalls = [(a + offset, b + offset) for a, b in pump.stats.stall_log]
     stalls += [(a / pr.SAMPLE_RATE_HZ, b / pr.SAMPLE_RATE_HZ) for a, b in fig["late_tick_runs"]]
@@ -176,8 +176,9 @@ def test_end_to_end_with_the_firmware_host_port_under_clock_drift(firmware_host,
     runs +500 ppm fast for 5 s, then -500 ppm slow. A burst of malformed frames mid-stream
     changes nothing but the malformed counter. What the design guarantees on a loaded machine:
     what was played is exactly what was sent (through the firmware's safety stage); every
-    underrun in the DAC log coincides with a measured host pause longer than the buffer, is
-    counted by the device and by the host's health figures, and is followed by recovery."""
+    underrun in the DAC log coincides with a measured host pause (one that left the buffer less
+    than two cycles), is counted by the device and by the host's health figures, and is
+    followed by recovery."""
     from hostd.device.seriallink import SerialTransport
 
     log = tmp_path / "dac.bin"

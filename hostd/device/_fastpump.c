@@ -42,7 +42,8 @@
 
 #include "../render/render_core.h"
 
-#define REVISION 4 /* fastpump.C_REVISION must equal this */
+#define STALL_MARGIN_CYCLES 2 /* pump.STALL_MARGIN_CYCLES */
+#define REVISION 5 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
 #define MAX_MSGS 64
 #define MAX_UNACKED 64
@@ -1676,7 +1677,8 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
             long long lf = s->fill + s->extra;
             if (lf > lim_fill)
                 lf = lim_fill;
-            if (now - s->last_cycle_start > (double)lf / (double)C_RATE) {
+            /* Pump.run: a pause that left less than STALL_MARGIN_CYCLES cycles of the buffer */
+            if (now - s->last_cycle_start > (double)lf / (double)C_RATE - STALL_MARGIN_CYCLES * s->period_s) {
                 why = "stall"; /* (Pump.run counts it) */
                 break;
             }

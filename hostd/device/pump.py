@@ -44,6 +44,12 @@ from hostd.errors import DeviceBusy
 LOW_WATER_MARGIN = 3  # samples
 
 
+# A host pause counts as a stall (PumpStats.stalls, stall_log) when it left the device's buffer
+# less than this many cycles: the cycle after a pause needs its own time to read the reports and
+# write, and its estimate of the fill counts samples in flight (a tty read blocked 9 ms in the
+# kernel's buffer work, then a 2.6 ms cycle, emptied a 10 ms buffer; compiled: _fastpump.c).
+STALL_MARGIN_CYCLES = 2
+
 @dataclass
 class JitterConfig:
     """The device buffer's fill target adapts: up after an underrun, down on the device's evidence."""
@@ -70,7 +76,7 @@ class PumpStats:
     late_batches: int = 0  # a batch sent when the device had less than one batch queued
     max_late_us: float = 0.0
     samples: int = 0  # samples sent (host side; what was PLAYED comes from the device)
-    stalls: int = 0  # host pauses longer than the device's buffer
+    stalls: int = 0  # host pauses that left the device's buffer < STALL_MARGIN_CYCLES cycles
     longest_stall_ms: float = 0.0
     recoveries: int = 0  # episodes where the device stopped playing and was brought back
     io_retries: int = 0  # transient write errors retried within the cycle
@@ -414,8 +420,10 @@ class Pump:
             if duration_s is not None and now - start >= duration_s:
                 break
             last = self._last_cycle_start
-            if last is not None and now - last > self._link_fill() / pr.SAMPLE_RATE_HZ:
-                # a host pause longer than the buffer: the device may have run dry
+            margin_s = self._link_fill() / pr.SAMPLE_RATE_HZ - STALL_MARGIN_CYCLES * self.period_s
+            if last is not None and now - last > margin_s:
+                # a host pause that left the buffer less than STALL_MARGIN_CYCLES cycles: the device
+                # may have run dry before this cycle's samples reach it
                 if now - last > max(2 * self.period_s, 0.004):
                     st.stalls += 1
                     st.longest_stall_ms = max(st.longest_stall_ms, (now - last) * 1e3)

@@ -25,7 +25,7 @@ HEALTH = (
     ("device_underruns", "hostd_device_underruns", "underrun episodes the device reported", True),
     ("device_samples_played", "hostd_device_samples_played", "samples the device played from its buffer",
      True),
-    ("stalls", "hostd_host_stalls", "host pauses longer than the device's buffer", True),
+    ("stalls", "hostd_host_stalls", "host pauses that left the device's buffer less than two cycles", True),
     ("recoveries", "hostd_recoveries", "times the device was brought back to the selected texture", True),
     ("target_fill_ms", "hostd_target_fill_ms", "the jitter buffer's fill target, ms", False),
     ("device_time_s", "hostd_device_time_seconds", "the device's clock at its latest STATUS", False),
