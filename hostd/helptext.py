@@ -30,6 +30,7 @@ hostd bench soak [--minutes 10] [--load]                        # the daemon for
 hostd demo [--sim] [--render host|device]                       # the daemon on the embedded display
 hostd corpus run DIR|MANIFEST... --codec hostd-v2 --codec my.py:Codec -o R.sqlite   # codecs x settings
 hostd corpus report R.sqlite -o DIR                             # BD-rate tables, rate-quality PNGs
+hostd corpus run synthetic:wood:1-5 --codec v2 --codec mpeg-rm --report DIR  # BD-rate vs the standard
 hostd bench soak --render device --runs 3 --seconds 40 --check  # device mode's footprint: PSS, threads, CPU
 hostd bench cli | scoring | cycle --compiled-only [--check [ci]]  # guarded figures: exit 1 past a bound
 

@@ -271,3 +271,28 @@ def test_the_standard_codec_runs_through_the_corpus_protocol(rm, monkeypatch):
     r = peers.run_peer(default, t, 64)  # the same crossing reaches the Encoder: the same bytes
     assert r["bytes"] == len(fine.data)
     assert r["Iobj"] == pytest.approx(iobj(fine.reconstruction_um), rel=1e-6, abs=1e-9)
+
+
+def test_one_command_gives_a_bd_rate_table_of_hostd_against_the_standard(rm, tmp_path, monkeypatch, capsys):
+    """`hostd corpus run ... --codec hostd-v2 --codec mpeg-rm --report DIR`: the sweep of both codecs
+    and the BD-rate table in one command, the reference software found in build.sh's cache; VC-PWQ,
+    absent here, gives rows that say why, and is labelled a research codec (CC BY-NC)."""
+    from hostd.corpus import peercodecs
+
+    for env in (peercodecs.MPEG_ENCODER_ENV, peercodecs.MPEG_SYNTH_ENV, peercodecs.VCPWQ_ENV):
+        monkeypatch.delenv(env, raising=False)
+    rep = tmp_path / "rep"
+    capsys.readouterr()
+    assert main(["corpus", "run", "synthetic:wood:1", "--length-mm", "5", "--codec", "hostd-v2", "--codec",
+                 "mpeg-rm", "--codec", "vc-pwq", "--methods", "shaped", "--no-spqi", "--workers", "1",
+                 "--no-progress", "-o", str(tmp_path / "c.sqlite"), "--report", str(rep)]) == 0
+    out = capsys.readouterr().out
+    print(out)
+    line = next(ln for ln in out.splitlines() if ln.startswith("Iobj in dB") and " mpeg-rm " in ln)
+    assert "vs hostd-v2/shaped: mean" in line and "wins" in line and "nan" not in line
+    assert f"unavailable {len(peercodecs.VCPWQ_BUDGETS)}" in out  # vc-pwq's rows, one per setting
+    md = (rep / "report.md").read_text()
+    assert "- `vc-pwq`: VC-PWQ: a research codec (CC BY-NC licence), not the standard's" in md
+    assert "- `mpeg-rm`: the MPEG-I Haptics reference software" in md
+    rows = (rep / "bdrate.csv").read_text().splitlines()
+    assert any(",mpeg-rm," in r and "synthetic:wood:1" in r for r in rows)
