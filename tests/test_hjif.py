@@ -267,3 +267,39 @@ def test_wavelet_bands_decode_without_the_reference_software(tmp_path):
     f.write_text(json.dumps(doc(block_length=8192, effects=100, stream="")))
     with pytest.raises(ProfileError, match=r"bands\[0\]\.effects: 100 blocks of 65536 samples, more than"):
         hjif.read_channel(f)
+
+
+def test_the_corpus_tool_reads_hjif(files, tmp_path, capsys):
+    """`hostd corpus run` takes .hjif textures (a directory of them, --member to choose the
+    perception): the same heights as the profile exported, so the same bytes and Iobj."""
+    import shutil
+
+    from hostd.corpus.store import Store
+
+    d = tmp_path / "db"
+    d.mkdir()
+    shutil.copy(files / "prof.hjif", d / "prof.hjif")
+    shutil.copy(files / "wood.hjif", d / "wood.hjif")
+    common = ["--codec", "hostd-v2", "--methods", "shaped", "--g", "0", "--no-spqi", "--workers", "1",
+              "--no-progress", "--length-mm", "5"]
+    assert main(["corpus", "run", str(d), *common, "-o", str(tmp_path / "a.sqlite")]) == 0
+    assert main(["corpus", "run", "synthetic:wood:3", *common, "-o", str(tmp_path / "b.sqlite")]) == 0
+    assert main(["corpus", "run", str(d / "wood.hjif"), "--member", "1", *common,
+                 "-o", str(tmp_path / "c.sqlite")]) == 0
+    capsys.readouterr()
+
+    def rows(db):
+        st = Store(db)
+        try:
+            return {r["texture"]: r for r in st.rows()}
+        finally:
+            st.close()
+
+    a, b, c = rows(tmp_path / "a.sqlite"), rows(tmp_path / "b.sqlite"), rows(tmp_path / "c.sqlite")
+    assert sorted(a) == ["prof", "wood"] and all(r["error"] is None for r in a.values())
+    ref = b["synthetic:wood:3"]
+    for col in ("n", "bytes", "Iobj"):  # the profile exported, read back: the same job
+        assert a["prof"][col] == pytest.approx(ref[col], rel=1e-9), col
+    assert a["wood"]["spacing_um"] == pytest.approx(0.5)  # the texture over space by default
+    (t,) = c.values()  # --member 1: the time-domain perception, 80 mm/s over 8 kHz
+    assert t["error"] is None and t["spacing_um"] == pytest.approx(80e3 / 8000)
