@@ -19,6 +19,7 @@ hostd decode IN.vtx -o PROFILE.csv                              # reconstructed 
 hostd inspect IN.vtx --json                                     # header, sizes, ratios, ref P/A, coefficients
 hostd iobj IN.vtx --json                                        # receiver side: index from the stream alone
 hostd iobj REFERENCE_PROFILE IN.vtx --json                      # sender side: against the original
+hostd iobj REFERENCE_PROFILE DECODED_PROFILE --json             # another codec's output (e.g. an .hjif)
 hostd fit SCORES.csv [--json] [--nonnegative] [--exclude-saturated] [--bootstrap N]   # (a, b), SE, intervals
 hostd experiment threshold|similarity|calibration|bench ...   # calibrate Iobj on your display (browser page)
 hostd report rate-quality PROFILE -o DIR [--json]               # CSV, Markdown, PNG: Iobj, Ip, Ia, SPQI, CPU

@@ -303,3 +303,24 @@ def test_the_corpus_tool_reads_hjif(files, tmp_path, capsys):
     assert a["wood"]["spacing_um"] == pytest.approx(0.5)  # the texture over space by default
     (t,) = c.values()  # --member 1: the time-domain perception, 80 mm/s over 8 kHz
     assert t["error"] is None and t["spacing_um"] == pytest.approx(80e3 / 8000)
+
+
+def test_iobj_scores_a_decoded_profile_against_its_reference(files, tmp_path, capsys):
+    """`hostd iobj REFERENCE DECODED`: a decoded profile (another codec's output, an .hjif back from
+    the reference software) scored as a stream is: the stream's decoded heights give its Iobj."""
+    dec = tmp_path / "dec.txt"
+    assert main(["decode", str(files / "wood.vtx"), "-o", str(dec)]) == 0
+    capsys.readouterr()
+    assert main(["iobj", str(files / "prof.hjif"), str(files / "wood.vtx"), "--json"]) == 0
+    as_stream = json.loads(capsys.readouterr().out)
+    assert main(["iobj", str(files / "prof.hjif"), str(dec), "--spacing", "0.5", "--json"]) == 0
+    as_profile = json.loads(capsys.readouterr().out)
+    assert as_profile["decoded"] == "profile" and as_profile["n_keep"] == 80
+    for k in ("Ip", "Ia", "Iobj", "spqi"):
+        assert as_profile[k] == pytest.approx(as_stream[k], rel=1e-6, abs=1e-12), k
+    assert main(["iobj", str(files / "prof.hjif"), str(files / "prof.hjif"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["Iobj"] == 0
+    # another grid is refused, naming both files
+    assert main(["iobj", str(files / "prof.hjif"), str(dec), "--spacing", "0.25"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "dec.txt" in err and "prof.hjif" in err and "same options" in err

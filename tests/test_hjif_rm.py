@@ -207,10 +207,10 @@ def test_decoder_hjif_and_hmpg_import_as_the_synthesizer_plays(rm, wood):
     np.testing.assert_array_equal(direct.heights_um, ch.samples)
 
 
-def test_round_trip_costs_no_more_than_the_reference_codec(rm, wood):
+def test_round_trip_costs_no_more_than_the_reference_codec(rm, wood, capsys):
     """hostd -> .hjif -> Encoder -b -> .hmpg -> Decoder -> .hjif -> hostd, against the reference codec
-    alone on the same signal (WAV -> Encoder -b -> Decoder -> Synthesizer), both scored by Iobj
-    (hostd.perception.indices, what `hostd iobj` computes) against hostd's rendering: the texture
+    alone on the same signal (WAV -> Encoder -b -> Decoder -> Synthesizer), both scored by
+    `hostd iobj REFERENCE DECODED` against hostd's rendering: the texture
     as played at 50 mm/s is what crosses (the RM's .hmpg cannot carry a spatial perception)."""
     d, s = wood
     assert main(["export", str(d / "wood.vtx"), "-o", str(d / "t.hjif"), "--perceptions", "time"]) == 0
@@ -234,8 +234,18 @@ def test_round_trip_costs_no_more_than_the_reference_codec(rm, wood):
     def iobj(y_um):
         return float(indices.score(c_ref, transform.analyze(y_um, n_keep), b_k).Iobj)
 
-    rt, codec = iobj(back.heights_um), iobj(codec_um)
-    print(f"round trip Iobj {rt:.5f}, reference codec alone {codec:.5f}")
+    # scored by `hostd iobj REFERENCE DECODED` (the codec's output as a one-column profile)
+    np.savetxt(d / "c.txt", codec_um, fmt="%.17g")
+    geometry = ["--speed", "50", "--fmax", f"{s.fmax_hz:g}", "--json"]
+    scores = []
+    for decoded, extra in (("t_rt.hjif", []), ("c.txt", ["--spacing", f"{orig.spacing_um!r}"])):
+        capsys.readouterr()
+        assert main(["iobj", str(d / "t.hjif"), str(d / decoded), *geometry, *extra]) == 0
+        scores.append(json.loads(capsys.readouterr().out)["Iobj"])
+    rt, codec = scores
+    assert rt == pytest.approx(iobj(back.heights_um), rel=1e-9)
+    assert codec == pytest.approx(iobj(codec_um), rel=1e-9)
+    print(f"round trip Iobj {rt:.5f}, reference codec alone {codec:.5f} (hostd iobj)")
     assert 0 < rt <= codec + 0.005, (rt, codec)
 
 
