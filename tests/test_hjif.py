@@ -324,3 +324,20 @@ def test_iobj_scores_a_decoded_profile_against_its_reference(files, tmp_path, ca
     assert main(["iobj", str(files / "prof.hjif"), str(dec), "--spacing", "0.25"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "dec.txt" in err and "prof.hjif" in err and "same options" in err
+
+
+def test_provenance_names_the_calibration(files, tmp_path):
+    """--calibration FILE: the description carries NAME@ID (as the quality log records it);
+    without it, null (hostd's streams and profiles carry no display calibration)."""
+    from hostd.perception import calibration, thresholds
+
+    curve = thresholds.ThresholdCurve(np.array([40.0, 100.0, 250.0, 400.0]), np.array([2.0, 0.5, 0.2, 0.3]))
+    cal = calibration.Calibration(curve, 0.9, 0.2, "lab-a", {"thresholds": "test", "weights": "test"})
+    calibration.write(tmp_path / "lab-a.toml", cal)
+    out = tmp_path / "c.hjif"
+    assert main(["export", str(files / "wood.vtx"), "-o", str(out), "--calibration",
+                 str(tmp_path / "lab-a.toml")]) == 0
+    prov = json.loads(json.loads(out.read_bytes())["description"])["hostd"]
+    assert prov["calibration"] == f"lab-a@{cal.cal_id}" and prov["source"] == "wood.vtx"
+    base = json.loads(json.loads((files / "wood.hjif").read_bytes())["description"])["hostd"]
+    assert base["calibration"] is None

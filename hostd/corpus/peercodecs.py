@@ -215,9 +215,6 @@ class MpegRm(_TimeSignalPeer):
         return (f"set {MPEG_ENCODER_ENV} / {MPEG_SYNTH_ENV}, or build the reference software "
                 "(its build.sh caches it in ~/.cache/mpeg-haptics-rm/bin)")
 
-    def curve(self, setting: dict) -> str:
-        return " ".join(self.options)
-
     def _code(self, signal: np.ndarray, work: Path, *, kbps: int, **_: Any) -> tuple[bytes, np.ndarray]:
         enc, syn = self._paths()
         write_wav(work / "sig.wav", signal)
