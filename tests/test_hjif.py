@@ -341,3 +341,14 @@ def test_provenance_names_the_calibration(files, tmp_path):
     assert prov["calibration"] == f"lab-a@{cal.cal_id}" and prov["source"] == "wood.vtx"
     base = json.loads(json.loads((files / "wood.hjif").read_bytes())["description"])["hostd"]
     assert base["calibration"] is None
+
+
+def test_an_hmpg_over_the_limit_is_refused_before_decoding(tmp_path, monkeypatch):
+    big = tmp_path / "big.hmpg"
+    big.write_bytes(b"\0" * 2000)
+    monkeypatch.setattr(hjif, "MAX_HMPG_BYTES", 1000)
+    monkeypatch.setattr(hjif, "run_rm", lambda *a, **k: pytest.fail("ran the Decoder on a file over "
+                                                                     "the limit"))
+    with pytest.raises(ProfileError, match=r"big.hmpg: 2000 bytes, more than the 0 MiB an .hmpg may have .*"
+                       r"refused before decoding"):
+        load_profile(big, LoadOptions())

@@ -306,3 +306,15 @@ def test_one_command_gives_a_bd_rate_table_of_hostd_against_the_standard(rm, tmp
     assert "- `mpeg-rm`: the MPEG-I Haptics reference software" in md
     rows = (rep / "bdrate.csv").read_text().splitlines()
     assert any(",mpeg-rm," in r and "synthetic:wood:1" in r for r in rows)
+
+
+def test_a_hostile_hmpg_is_one_line_and_the_decoder_is_bounded(rm, tmp_path, capsys):
+    """2000 random bytes (seed 1) kept the unbounded Decoder busy for over 60 s on its way to 1 GB;
+    run by hostd (1 GiB of address space, 120 s of CPU) it stops at the cap: a one-line error
+    naming the file, exit 2."""
+    bad = tmp_path / "r1.hmpg"
+    bad.write_bytes(np.random.default_rng(1).bytes(2000))
+    assert main(["encode", str(bad), "-o", str(tmp_path / "x.vtx"), "--spacing", "6.25", "--method", "cut",
+                 "--b0", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{bad}: the reference Decoder failed" in err and "bad_alloc" in err, err
