@@ -104,6 +104,9 @@ def cmd_iobj(args: argparse.Namespace) -> int:
         stream_path, ref_spec = args.first, None
     else:
         stream_path, ref_spec = args.stream, args.first
+    decoded = _decoded_profile(stream_path, ref_spec, args)
+    if decoded is not None:
+        return _iobj_of_profiles(ref_spec, decoded, args)
     s = _read_iobj_stream(stream_path, ref_spec)
     for opt, given, header, unit in (("--speed", args.speed, s.speed_mm_s, "mm/s"),
                                      ("--fmax", args.fmax, s.fmax_hz, "Hz")):
@@ -162,6 +165,68 @@ def format_fields(out: dict) -> str:
         return str(v)
 
     return "\n".join(f"{k:>{width}}: {fmt(v)}" for k, v in out.items())
+
+
+def _decoded_profile(path: str, ref_spec: str | None, args: argparse.Namespace):
+    """`hostd iobj REFERENCE DECODED`: the second file when it is a profile, not a stream (another
+    codec's output, an .hjif back from the reference software); None when it is a stream, or
+    when the two look swapped or it is no profile (then the stream's message is the one given)."""
+    from hostd.errors import StreamError
+    from hostd.texture import synth
+
+    if ref_spec is None or Path(path).suffix.lower() == ".vtx":
+        return None  # a stream (or a broken one: the stream's message)
+    if not (synth.is_spec(path) or Path(path).is_file()):
+        return None
+    try:
+        _read_stream(path)
+        return None
+    except StreamError:
+        pass
+    try:
+        _read_stream(ref_spec)
+        return None  # REFERENCE is the stream: arguments swapped (the stream's message says so)
+    except (StreamError, OSError):
+        pass
+    ref = read_profile(ref_spec, args)
+    return ref, read_profile(path, args, length_mm=ref.length_mm)
+
+
+def _iobj_of_profiles(ref_spec: str, profiles, args: argparse.Namespace) -> int:
+    """Ip, Ia, Iobj (and SPQI) of a decoded profile against its reference: the N' DCT amplitudes
+    of each (N' from --speed and --fmax, default 50 mm/s and 400 Hz), as for a stream."""
+    import numpy as np
+
+    from hostd.codec import transform
+    from hostd.errors import ProfileError
+    from hostd.perception import calibration, guard, indices, peer, thresholds
+
+    ref, dec = profiles
+    if dec.n != ref.n or not math.isclose(dec.spacing_um, ref.spacing_um, rel_tol=1e-9):
+        raise ProfileError(f"{args.stream}: {dec.n} samples every {dec.spacing_um:g} µm, the reference "
+                           f"{ref_spec} {ref.n} every {ref.spacing_um:g} µm: load both with the same "
+                           "options (--length-mm, --spacing, units)")
+    speed = args.speed if args.speed is not None else 50.0
+    fmax = args.fmax if args.fmax is not None else 400.0
+    n_keep = max(1, min(ref.n - 1, transform.n_keep_for(ref.length_mm, speed, fmax)))
+    curve = calibration.load_curve(args.thresholds) if args.thresholds else thresholds.default_curve()
+    b_k = curve(transform.frequencies_hz(np.arange(1, n_keep + 1), ref.length_mm, speed))
+    c_ref = transform.analyze(ref.heights_um, n_keep)
+    c_dec = transform.analyze(dec.heights_um, n_keep)
+    a, b = _ab(args)
+    out = indices.score(c_ref, c_dec, b_k, a, b).as_dict()
+    out.update(reference="profile", decoded="profile", n=ref.n, n_keep=n_keep, spacing_um=ref.spacing_um,
+               length_mm=ref.length_mm, speed_mm_s=speed, fmax_hz=fmax,
+               wsnr_db=guard.weighted_snr_db(c_ref, c_dec, b_k))
+    out.update(peer.peer_scores(c_ref, c_dec, ref.n, ref.length_mm, speed))
+    for k in ("st_sim", "spqi"):
+        if out.get(k) is not None and not math.isfinite(out[k]):
+            out[k] = None
+    if args.json:
+        _dump(out)
+    else:
+        print(format_fields(out))
+    return 0
 
 
 def _read_iobj_stream(stream_path: str, ref_spec: str | None):

@@ -19,6 +19,7 @@ hostd decode IN.vtx -o PROFILE.csv                              # reconstructed 
 hostd inspect IN.vtx --json                                     # header, sizes, ratios, ref P/A, coefficients
 hostd iobj IN.vtx --json                                        # receiver side: index from the stream alone
 hostd iobj REFERENCE_PROFILE IN.vtx --json                      # sender side: against the original
+hostd iobj REFERENCE_PROFILE DECODED_PROFILE --json             # another codec's output (e.g. an .hjif)
 hostd fit SCORES.csv [--json] [--nonnegative] [--exclude-saturated] [--bootstrap N]   # (a, b), SE, intervals
 hostd experiment threshold|similarity|calibration|bench ...   # calibrate Iobj on your display (browser page)
 hostd report rate-quality PROFILE -o DIR [--json]               # CSV, Markdown, PNG: Iobj, Ip, Ia, SPQI, CPU
@@ -30,6 +31,7 @@ hostd bench soak [--minutes 10] [--load]                        # the daemon for
 hostd demo [--sim] [--render host|device]                       # the daemon on the embedded display
 hostd corpus run DIR|MANIFEST... --codec hostd-v2 --codec my.py:Codec -o R.sqlite   # codecs x settings
 hostd corpus report R.sqlite -o DIR                             # BD-rate tables, rate-quality PNGs
+hostd corpus run synthetic:wood:1-5 --codec v2 --codec mpeg-rm --report DIR  # BD-rate vs the standard
 hostd bench soak --render device --runs 3 --seconds 40 --check  # device mode's footprint: PSS, threads, CPU
 hostd bench cli | scoring | cycle --compiled-only [--check [ci]]  # guarded figures: exit 1 past a bound
 

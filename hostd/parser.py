@@ -82,8 +82,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=commands.cmd_inspect)
 
     p = sub.add_parser("iobj", parents=[loader_parent(None), geometry_parent(from_stream=True), idx],
-                       help="Ip, Ia, Iobj of a stream (against a profile or its header)")
-    p.add_argument("first", metavar="[REFERENCE_PROFILE] STREAM")
+                       help="Ip, Ia, Iobj of a stream (against a profile or its header), or of a decoded "
+                       "profile against its reference",
+                       description="Ip, Ia, Iobj of a .vtx stream, against REFERENCE_PROFILE or its own "
+                       "header; or of DECODED_PROFILE (another codec's output in any profile format, e.g. "
+                       "an .hjif) against REFERENCE_PROFILE, both read with the same options, N' from "
+                       "--speed and --fmax (default 50 mm/s and 400 Hz for a decoded profile).")
+    p.add_argument("first", metavar="[REFERENCE_PROFILE] STREAM|DECODED_PROFILE")
     p.add_argument("stream", nargs="?", default=None, help=argparse.SUPPRESS)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=commands.cmd_iobj)

@@ -90,6 +90,11 @@ def test_codec_names_resolve_or_say_what_is_wrong(tmp_path):
     f = tmp_path / "mycodec.py"
     f.write_text("from tests.corpus_codec_fixture import UniformZlib as C\n")
     assert codecs.resolve(f"{f}:C").name == "uniform-zlib"  # a file path, the class called
+    # the peers by their short names, each labelled where the report shows it
+    assert [codecs.resolve(n).name for n in ("mpeg-rm", "mpeg-rm-cf0", "vc-pwq")] == list(codecs.PEERS)
+    notes = report.about(["vc-pwq", "mpeg-rm", "hostd-v2/shaped", f"{FIX}:uniform"])
+    assert list(notes) == ["mpeg-rm", "vc-pwq"] and "standard's codec" in notes["mpeg-rm"]
+    assert "research codec (CC BY-NC" in notes["vc-pwq"]
     for bad, says in (("nope", "module:attr"), ("no_such_module_xyz:f", "cannot be loaded"),
                       (f"{FIX}:struct", "not a codec"), (f"{tmp_path}/missing.py:C", "no file")):
         with pytest.raises(codecs.HostdError, match=says):
@@ -381,6 +386,19 @@ def test_cli_report_and_export(tmp_path, capsys):
     assert "akima" in (tmp_path / "rep" / "report.md").read_text()
     assert (tmp_path / "r.csv").read_text().count("\n") == 1 + 9
     capsys.readouterr()
+    # run and report in one command (--report): the same table as `hostd corpus report` prints
+    run = ["corpus", "run", "synthetic:wood:1", "--codec", f"{FIX}:uniform", "--codec", "hostd-v2",
+           "--methods", "shaped", "--g=-12,-6,0,6", "--length-mm", "2", "--no-spqi", "--workers", "1",
+           "-o", str(db), "--no-progress"]
+    assert main([*run, "--report", str(tmp_path / "one")]) == 0
+    out = capsys.readouterr().out
+    assert main(["corpus", "report", str(db), "-o", str(tmp_path / "two"), "--no-plots"]) == 0
+    assert [ln for ln in out.splitlines() if " vs hostd-v2/shaped: " in ln] == [
+        ln for ln in capsys.readouterr().out.splitlines() if " vs hostd-v2/shaped: " in ln] != []
+    assert (tmp_path / "one" / "bdrate.csv").read_text() == (tmp_path / "two" / "bdrate.csv").read_text()
+    assert main([*run, "--report", str(tmp_path / "one"), "--json"]) == 0
+    both = json.loads(capsys.readouterr().out)
+    assert both["run"]["skipped"] == 9 and both["report"]["anchor"] == "hostd-v2/shaped"
     assert main(["corpus", "report", str(db), "-o", str(tmp_path / "rep"), "--anchor", "nope"]) == 2
     err = capsys.readouterr().err
     assert "anchor 'nope' is not a curve" in err and len(err.strip().splitlines()) == 1

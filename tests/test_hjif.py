@@ -267,3 +267,88 @@ def test_wavelet_bands_decode_without_the_reference_software(tmp_path):
     f.write_text(json.dumps(doc(block_length=8192, effects=100, stream="")))
     with pytest.raises(ProfileError, match=r"bands\[0\]\.effects: 100 blocks of 65536 samples, more than"):
         hjif.read_channel(f)
+
+
+def test_the_corpus_tool_reads_hjif(files, tmp_path, capsys):
+    """`hostd corpus run` takes .hjif textures (a directory of them, --member to choose the
+    perception): the same heights as the profile exported, so the same bytes and Iobj."""
+    import shutil
+
+    from hostd.corpus.store import Store
+
+    d = tmp_path / "db"
+    d.mkdir()
+    shutil.copy(files / "prof.hjif", d / "prof.hjif")
+    shutil.copy(files / "wood.hjif", d / "wood.hjif")
+    common = ["--codec", "hostd-v2", "--methods", "shaped", "--g", "0", "--no-spqi", "--workers", "1",
+              "--no-progress", "--length-mm", "5"]
+    assert main(["corpus", "run", str(d), *common, "-o", str(tmp_path / "a.sqlite")]) == 0
+    assert main(["corpus", "run", "synthetic:wood:3", *common, "-o", str(tmp_path / "b.sqlite")]) == 0
+    assert main(["corpus", "run", str(d / "wood.hjif"), "--member", "1", *common,
+                 "-o", str(tmp_path / "c.sqlite")]) == 0
+    capsys.readouterr()
+
+    def rows(db):
+        st = Store(db)
+        try:
+            return {r["texture"]: r for r in st.rows()}
+        finally:
+            st.close()
+
+    a, b, c = rows(tmp_path / "a.sqlite"), rows(tmp_path / "b.sqlite"), rows(tmp_path / "c.sqlite")
+    assert sorted(a) == ["prof", "wood"] and all(r["error"] is None for r in a.values())
+    ref = b["synthetic:wood:3"]
+    for col in ("n", "bytes", "Iobj"):  # the profile exported, read back: the same job
+        assert a["prof"][col] == pytest.approx(ref[col], rel=1e-9), col
+    assert a["wood"]["spacing_um"] == pytest.approx(0.5)  # the texture over space by default
+    (t,) = c.values()  # --member 1: the time-domain perception, 80 mm/s over 8 kHz
+    assert t["error"] is None and t["spacing_um"] == pytest.approx(80e3 / 8000)
+
+
+def test_iobj_scores_a_decoded_profile_against_its_reference(files, tmp_path, capsys):
+    """`hostd iobj REFERENCE DECODED`: a decoded profile (another codec's output, an .hjif back from
+    the reference software) scored as a stream is: the stream's decoded heights give its Iobj."""
+    dec = tmp_path / "dec.txt"
+    assert main(["decode", str(files / "wood.vtx"), "-o", str(dec)]) == 0
+    capsys.readouterr()
+    assert main(["iobj", str(files / "prof.hjif"), str(files / "wood.vtx"), "--json"]) == 0
+    as_stream = json.loads(capsys.readouterr().out)
+    assert main(["iobj", str(files / "prof.hjif"), str(dec), "--spacing", "0.5", "--json"]) == 0
+    as_profile = json.loads(capsys.readouterr().out)
+    assert as_profile["decoded"] == "profile" and as_profile["n_keep"] == 80
+    for k in ("Ip", "Ia", "Iobj", "spqi"):
+        assert as_profile[k] == pytest.approx(as_stream[k], rel=1e-6, abs=1e-12), k
+    assert main(["iobj", str(files / "prof.hjif"), str(files / "prof.hjif"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["Iobj"] == 0
+    # another grid is refused, naming both files
+    assert main(["iobj", str(files / "prof.hjif"), str(dec), "--spacing", "0.25"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "dec.txt" in err and "prof.hjif" in err and "same options" in err
+
+
+def test_provenance_names_the_calibration(files, tmp_path):
+    """--calibration FILE: the description carries NAME@ID (as the quality log records it);
+    without it, null (hostd's streams and profiles carry no display calibration)."""
+    from hostd.perception import calibration, thresholds
+
+    curve = thresholds.ThresholdCurve(np.array([40.0, 100.0, 250.0, 400.0]), np.array([2.0, 0.5, 0.2, 0.3]))
+    cal = calibration.Calibration(curve, 0.9, 0.2, "lab-a", {"thresholds": "test", "weights": "test"})
+    calibration.write(tmp_path / "lab-a.toml", cal)
+    out = tmp_path / "c.hjif"
+    assert main(["export", str(files / "wood.vtx"), "-o", str(out), "--calibration",
+                 str(tmp_path / "lab-a.toml")]) == 0
+    prov = json.loads(json.loads(out.read_bytes())["description"])["hostd"]
+    assert prov["calibration"] == f"lab-a@{cal.cal_id}" and prov["source"] == "wood.vtx"
+    base = json.loads(json.loads((files / "wood.hjif").read_bytes())["description"])["hostd"]
+    assert base["calibration"] is None
+
+
+def test_an_hmpg_over_the_limit_is_refused_before_decoding(tmp_path, monkeypatch):
+    big = tmp_path / "big.hmpg"
+    big.write_bytes(b"\0" * 2000)
+    monkeypatch.setattr(hjif, "MAX_HMPG_BYTES", 1000)
+    monkeypatch.setattr(hjif, "run_rm", lambda *a, **k: pytest.fail("ran the Decoder on a file over "
+                                                                     "the limit"))
+    with pytest.raises(ProfileError, match=r"big.hmpg: 2000 bytes, more than the 0 MiB an .hmpg may have .*"
+                       r"refused before decoding"):
+        load_profile(big, LoadOptions())

@@ -41,7 +41,9 @@ def add_parser(sub, parents) -> None:
     r.add_argument("-o", "--out", default="corpus.sqlite", metavar="FILE.sqlite",
                    help="the results store (default corpus.sqlite); created, or resumed")
     r.add_argument("--codec", action="append", default=None, metavar="NAME",
-                   help="hostd-v2 (default), hostd-v1, or module:attr / file.py:attr (repeatable)")
+                   help="hostd-v2 (default), hostd-v1, mpeg-rm / mpeg-rm-cf0 (the MPEG-I Haptics "
+                   "reference software: the standard's codec), vc-pwq (a research codec, CC BY-NC), or "
+                   "module:attr / file.py:attr (repeatable)")
     r.add_argument("--sweep", metavar="FILE.toml",
                    help="settings per codec: [codec.\"NAME\"] settings = [{...}, ...]")
     r.add_argument("--methods", type=lambda v: [t.strip() for t in v.split(",") if t.strip()],
@@ -69,6 +71,9 @@ def add_parser(sub, parents) -> None:
     r.add_argument("--retry-errors", action="store_true", help="run again the jobs whose row is an error")
     r.add_argument("--parquet", metavar="FILE.parquet", help="also export the whole store as Parquet")
     r.add_argument("--no-progress", action="store_true", help="no progress bar (default: on a terminal)")
+    r.add_argument("--report", metavar="DIR",
+                   help="then write the BD-rate report there and print its summary, as `hostd corpus "
+                   "report` does (anchor hostd-v2/shaped when present; no PNGs)")
     r.add_argument("--json", action="store_true", help="print the summary as JSON")
     r.set_defaults(func=cmd_run)
 
@@ -136,9 +141,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                    retry_errors=args.retry_errors)
     if args.parquet and not summ.interrupted:
         store.export_parquet(args.out, args.parquet)
-    if args.json:
-        print(json.dumps(summ.as_dict(), indent=1))
-    else:
+    if not args.json or summ.interrupted:
         for line in summ.lines():
             print(line, file=sys.stderr if summ.interrupted else sys.stdout)
     if summ.interrupted:
@@ -147,7 +150,34 @@ def cmd_run(args: argparse.Namespace) -> int:
         print("hostd corpus run: error: every job failed (see the reasons above and the rows' `error`)",
               file=sys.stderr)
         return 1
+    if args.report is None:
+        if args.json:
+            print(json.dumps(summ.as_dict(), indent=1))
+        return 0
+    from hostd.corpus import report
+
+    res = report.report(args.out, args.report, plots=False)
+    if args.json:
+        print(json.dumps({"run": summ.as_dict(), "report": res}, indent=1, default=str))
+    else:
+        _print_report(res, "hostd corpus run")
     return 0
+
+
+def _print_report(res: dict, prog: str) -> None:
+    for w in res["warnings"]:
+        print(f"{prog}: warning: {w}", file=sys.stderr)
+    for s in res["summary"]:
+        print(f"{s['transform']:<32} {s['curve']:<24} vs {s['anchor']}: mean {s['mean_pct']:+.1f} %, "
+              f"median {s['median_pct']:+.1f} %, worst {s['worst_pct']:+.1f} %, "
+              f"wins {s['wins']}/{s['textures']}"
+              + (f", no value {s['no_value']}" if s["no_value"] else ""))
+    for name, text in res.get("about", {}).items():
+        print(f"{name}: {text}")
+    if res["failed_by_reason"]:
+        print("failed rows: " + ", ".join(f"{k} {v}" for k, v in res["failed_by_reason"].items()))
+    pngs = len(res["files"]) - 3
+    print("wrote " + ", ".join(res["files"][:3]) + (f" and {pngs} PNGs" if pngs else ""))
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -155,20 +185,12 @@ def cmd_report(args: argparse.Namespace) -> int:
 
     res = report.report(args.store, args.out, anchor=args.anchor, method=args.interpolation,
                         plots=not args.no_plots, max_plots=args.max_plots)
-    for w in res["warnings"]:
-        print(f"hostd corpus report: warning: {w}", file=sys.stderr)
     if args.json:
+        for w in res["warnings"]:
+            print(f"hostd corpus report: warning: {w}", file=sys.stderr)
         print(json.dumps(res, indent=1, default=str))
         return 0
-    for s in res["summary"]:
-        print(f"{s['transform']:<32} {s['curve']:<24} vs {s['anchor']}: mean {s['mean_pct']:+.1f} %, "
-              f"median {s['median_pct']:+.1f} %, worst {s['worst_pct']:+.1f} %, "
-              f"wins {s['wins']}/{s['textures']}"
-              + (f", no value {s['no_value']}" if s["no_value"] else ""))
-    if res["failed_by_reason"]:
-        print("failed rows: " + ", ".join(f"{k} {v}" for k, v in res["failed_by_reason"].items()))
-    pngs = len(res["files"]) - 3
-    print("wrote " + ", ".join(res["files"][:3]) + (f" and {pngs} PNGs" if pngs else ""))
+    _print_report(res, "hostd corpus report")
     return 0
 
 

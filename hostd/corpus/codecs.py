@@ -57,7 +57,9 @@ CPU time: the driver measures each call as process CPU time (time.process_time) 
 time of child processes that ended during the call (resource.getrusage(RUSAGE_CHILDREN)), so
 a codec that runs an external program (and waits for it) is measured with it.
 
-Naming a codec: `hostd-v1` / `hostd-v2` (alias v1, v2) are hostd's streams; anything else is
+Naming a codec: `hostd-v1` / `hostd-v2` (alias v1, v2) are hostd's streams; `mpeg-rm`,
+`mpeg-rm-cf0` (the MPEG-I Haptics reference software: the standard's codec) and `vc-pwq` (a
+research codec, CC BY-NC) are the peers of hostd.corpus.peercodecs; anything else is
 "module:attr" (an importable module) or "path/to/file.py:attr". `attr` is a codec object, or
 a class or function called with no arguments that returns one. The name is resolved again in
 every worker process, so the module must be importable there (same PYTHONPATH, or a file path
@@ -220,19 +222,25 @@ def run_codec(codec: Codec, heights_um: np.ndarray, spacing_um: float, setting: 
 
 
 BUILTIN = {"hostd-v1": "v1", "hostd-v2": "v2", "v1": "v1", "v2": "v2"}
+# the peers of hostd.corpus.peercodecs by their short names (each runs only when its programs are
+# present; otherwise its rows are "unavailable" with what to do)
+PEERS = {"mpeg-rm": "hostd.corpus.peercodecs:MpegRm", "mpeg-rm-cf0": "hostd.corpus.peercodecs:MpegRmCf0",
+         "vc-pwq": "hostd.corpus.peercodecs:VcPwq"}
 
 
 @lru_cache(maxsize=64)
 def resolve(spec: str) -> Codec:
     """The codec a name stands for (see the module docstring); cached per process."""
     spec = spec.strip()
+    spec = PEERS.get(spec, spec)
     if spec in BUILTIN:
         from hostd.corpus.hostdcodec import HostdStream
 
         return HostdStream(BUILTIN[spec])
     target, sep, attr = spec.rpartition(":")
     if not sep or not target or not attr:
-        raise HostdError(f"codec {spec!r}: use hostd-v1, hostd-v2, module:attr or file.py:attr")
+        raise HostdError(f"codec {spec!r}: use hostd-v1, hostd-v2, {', '.join(PEERS)}, module:attr or "
+                         "file.py:attr")
     try:
         if target.endswith(".py"):
             path = Path(target).resolve()

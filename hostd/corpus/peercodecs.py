@@ -19,9 +19,10 @@ components' series on the patch's grid (transform.synthesize), so the corpus sco
 any codec. The bytes are the file the encoder writes plus the 4-byte float32 scale factor a
 receiver needs (the patch geometry is not counted; a receiver of any codec needs it).
 
-Names for `hostd corpus` (module:attr): hostd.corpus.peercodecs:MpegRm,
-hostd.corpus.peercodecs:MpegRmCf0 (one wavelet band over the whole spectrum, -cf 0),
-hostd.corpus.peercodecs:VcPwq.
+Names for `hostd corpus --codec`: mpeg-rm, mpeg-rm-cf0 (one wavelet band over the whole
+spectrum, -cf 0), vc-pwq (hostd.corpus.codecs.PEERS), or in full hostd.corpus.peercodecs:MpegRm,
+:MpegRmCf0, :VcPwq. `ABOUT` says what each is (its licence); the corpus report prints it beside
+the tables wherever the codec appears.
 """
 
 from __future__ import annotations
@@ -140,6 +141,7 @@ class _TimeSignalPeer:
     heights out; `_code(signal, work, **setting)` -> (bytes of its file, decoded signal)."""
 
     name = ""
+    about = ""  # what it is, its licence: printed beside the corpus report's tables
     knob = ""
     settings: tuple[dict, ...] = ()
 
@@ -190,6 +192,8 @@ class MpegRm(_TimeSignalPeer):
     """The MPEG-I Haptics reference software (the standard's codec): knob = target bitrate, kb/s."""
 
     name = "mpeg-rm"
+    about = ("the MPEG-I Haptics reference software (ISO/IEC 23090-31 RM, BSD): the standard's codec, "
+             "WAV -> Encoder -> .hmpg -> Synthesizer")
     knob = "target bitrate, kb/s"
     settings = tuple({"kbps": k} for k in MPEG_BITRATES_KBPS)
     options: tuple[str, ...] = ()
@@ -211,9 +215,6 @@ class MpegRm(_TimeSignalPeer):
         return (f"set {MPEG_ENCODER_ENV} / {MPEG_SYNTH_ENV}, or build the reference software "
                 "(its build.sh caches it in ~/.cache/mpeg-haptics-rm/bin)")
 
-    def curve(self, setting: dict) -> str:
-        return " ".join(self.options)
-
     def _code(self, signal: np.ndarray, work: Path, *, kbps: int, **_: Any) -> tuple[bytes, np.ndarray]:
         enc, syn = self._paths()
         write_wav(work / "sig.wav", signal)
@@ -229,6 +230,7 @@ class MpegRmCf0(MpegRm):
     """The reference software with one wavelet band over the whole spectrum (-cf 0)."""
 
     name = "mpeg-rm-cf0"
+    about = "the MPEG-I Haptics reference software with one wavelet band over the whole spectrum (-cf 0)"
     options = ("-cf", "0")
 
 
@@ -237,6 +239,8 @@ class VcPwq(_TimeSignalPeer):
     A research codec under CC BY-NC, not the standard's; hostd only runs a copy built outside."""
 
     name = "vc-pwq"
+    about = ("VC-PWQ: a research codec (CC BY-NC licence), not the standard's and not part of hostd; "
+             "only a copy built outside is run")
     knob = f"bit budget per {VCPWQ_BLOCK}-sample block"
     settings = tuple({"budget": b} for b in VCPWQ_BUDGETS)
 
@@ -265,3 +269,7 @@ class VcPwq(_TimeSignalPeer):
         if not enc.is_file() or not dec.is_file():
             raise CodecFailure(f"VC-PWQ wrote no {enc.name} / {dec.name} in {work}", "bad_output")
         return enc.read_bytes(), read_wav(dec)
+
+
+# what each peer is, by the name its rows carry (the corpus report prints it where the codec appears)
+ABOUT = {c.name: c.about for c in (MpegRm, MpegRmCf0, VcPwq)}

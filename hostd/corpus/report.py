@@ -137,6 +137,15 @@ def summarise(table: Sequence[BDRow]) -> list[dict]:
     return out
 
 
+def about(labels: Iterable[str]) -> dict[str, str]:
+    """What each peer codec among the curves is (hostd.corpus.peercodecs.ABOUT: the standard's
+    reference software, or a research codec and its licence), by codec name."""
+    from hostd.corpus.peercodecs import ABOUT
+
+    names = {label.split("/")[0] for label in labels}
+    return {n: ABOUT[n] for n in sorted(names) if n in ABOUT}
+
+
 def default_anchor(rows: Sequence[dict]) -> str:
     labels = sorted({r["curve"] for r in rows if r.get("curve") and r.get("error") is None})
     if not labels:
@@ -163,10 +172,12 @@ def _fmt(x: float) -> str:
 
 
 def markdown(summary: Sequence[dict], table: Sequence[BDRow], method: str, fails: dict[str, int],
-             total_rows: int) -> str:
+             total_rows: int, notes: dict[str, str] | None = None) -> str:
     lines = [f"# Corpus BD-rate report ({total_rows} rows)", ""]
     lines.append(f"Interpolation: {method}. Rate: bytes. Negative = fewer bytes than the anchor for the "
                  "same quality. Each curve reduced to its Pareto front first.")
+    if notes:
+        lines += ["", "Codecs:", ""] + [f"- `{n}`: {text}" for n, text in notes.items()]
     if fails:
         lines.append("")
         lines.append("Failed rows: " + ", ".join(f"{k} {v}" for k, v in fails.items()))
@@ -264,13 +275,14 @@ def report(store_path: str | Path, out_dir: str | Path, *, anchor: str | None = 
     _write_csv(out / "bdrate.csv", [{**r.__dict__, "transform": METRICS[r.metric], "interpolation": method}
                                     for r in table])
     _write_csv(out / "bdrate_summary.csv", [{**s, "interpolation": method} for s in summ])
-    md = markdown(summ, table, method, fails, len(rows))
+    notes = about(r["curve"] for r in rows if r.get("curve"))
+    md = markdown(summ, table, method, fails, len(rows), notes)
     tmp = out / "report.md.part"
     tmp.write_text(md, encoding="utf-8")
     tmp.replace(out / "report.md")
     pngs = plot(rows, out, anchor, max_plots) if plots else []
     return {"anchor": anchor, "interpolation": method, "rows": len(rows), "failed_by_reason": fails,
-            "summary": summ,
+            "summary": summ, "about": notes,
             "warnings": [f"{r.texture} {r.curve} ({r.metric}): {r.note}" for r in table if r.note],
             "files": [str(out / n) for n in ("bdrate.csv", "bdrate_summary.csv", "report.md")]
             + [str(p) for p in pngs]}

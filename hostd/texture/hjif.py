@@ -78,6 +78,18 @@ NATIVE_CURVES = {"Linear", "Cubic", "Unknown"}  # "Unknown": the RM's default ca
 RM_ENV = "HOSTD_MPEG_RM"  # a directory with the reference software's Encoder, Decoder, Synthesizer
 RM_TOOLS = ("Encoder", "Decoder", "Synthesizer")
 RM_TIMEOUT_S = 120.0
+# What a reference tool may use: a legitimate .hmpg of 10 s of noise at 64 kb/s decodes in 6 MB,
+# but 2 kB of random bytes made the Decoder at 2de9ff1 take 1 GB and 22 s. A tool past these
+# fails (std::bad_alloc, SIGXCPU) and hostd says so in one line.
+RM_MEMORY_BYTES = 1 << 30  # address space
+RM_CPU_S = int(RM_TIMEOUT_S)
+MAX_HMPG_BYTES = 4 << 20  # refused before the Decoder runs (its .hjif is ~20x larger)
+# the tool is started through this: its limits set in the child, then exec (no preexec_fn: safe in
+# a process with threads)
+_LIMITED = ("import os, resource, sys; "
+            "resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[1]),) * 2); "
+            "resource.setrlimit(resource.RLIMIT_CPU, (int(sys.argv[2]),) * 2); "
+            "os.execv(sys.argv[3], sys.argv[3:])")
 _FULL_SCALE = re.compile(r"full_scale_um=([0-9.eE+-]+)")
 _SPEED = re.compile(r"speed_mm_s=([0-9.eE+-]+)")
 
@@ -116,15 +128,18 @@ def rm_tool(name: str) -> Path:
 
 def run_rm(name: str, *args: str, cwd: Path | None = None) -> str:
     """Run one reference tool; its stdout. A failure is one line naming the tool."""
+    import sys
+
     exe = rm_tool(name)
+    cmd = [sys.executable, "-I", "-c", _LIMITED, str(RM_MEMORY_BYTES), str(RM_CPU_S), str(exe), *args]
     try:
-        r = subprocess.run([str(exe), *args], cwd=cwd, capture_output=True, text=True,
-                           timeout=RM_TIMEOUT_S, errors="replace")
+        r = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=RM_TIMEOUT_S,
+                           errors="replace")
     except subprocess.TimeoutExpired:
         raise ProfileError(f"the reference {name} did not finish within {RM_TIMEOUT_S:g} s") from None
     if r.returncode != 0:
         last = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["no output"]
-        raise ProfileError(f"the reference {name} failed (exit {r.returncode}): {last[0]}")
+        raise ProfileError(f"the reference {name} failed (exit {r.returncode}): {last[0].strip()}")
     return r.stdout
 
 
@@ -674,10 +689,19 @@ def read_channel(path: Path, member: str | None = None) -> Channel:
             out = Path(tmp) / "decoded.hjif"
             if not path.is_file():
                 raise ProfileError(f"no such .hmpg file: {path}")
+            size = path.stat().st_size
+            if size > MAX_HMPG_BYTES:
+                raise ProfileError(f"{path}: {size} bytes, more than the {MAX_HMPG_BYTES >> 20} MiB an .hmpg "
+                                   "may have (hostd.texture.hjif.MAX_HMPG_BYTES): refused before decoding")
             if rm_dir() is None:
                 raise ProfileError(f"{path}: an .hmpg is read through the reference Decoder, which is not "
                                    f"installed: {RM_HOW}")
-            run_rm("Decoder", "-f", str(path), "-o", str(out))
+            try:
+                run_rm("Decoder", "-f", str(path), "-o", str(out))
+            except ProfileError as e:
+                raise ProfileError(f"{path}: {e} (not a valid .hmpg? the Decoder may use "
+                                   f"{RM_MEMORY_BYTES >> 20} MiB and {RM_CPU_S} s of CPU; a valid one needs "
+                                   "far less)") from None
             if not out.is_file():
                 raise ProfileError(f"{path}: the reference Decoder wrote no .hjif")
             doc = load_json(out)
