@@ -71,6 +71,7 @@ def test_bash_completion_completes_files(files_here, capsys):
     assert {"prof.csv", "pq.vtx"} <= complete("encode", "p")  # the profile
     assert {"prof.csv", "pq.vtx"} <= complete("encode", "-o", "p")  # the output
     assert "pq.vtx" in complete("iobj", "p") and "pq.vtx" in complete("send", "p")
+    assert "prof.csv" in complete("corpus", "run", "-o", "p")  # -o FILE.sqlite: files, not directories only
     assert complete("encode", "--method", "") == {"shaped", "quant", "cut"}  # choices stay choices
     assert "encode" in complete("enc")
 
@@ -93,6 +94,8 @@ def test_fish_completion_completes_files_and_commands(files_here, capsys):
     assert complete("hostd report ") == {"rate-quality"}
     assert "--target-iobj" in complete("hostd encode --tar")
     assert complete("hostd stop --da") == {"--daemon"}
+    assert {"prof.csv", "pq.vtx"} <= complete("hostd corpus run -o p")  # -o FILE.sqlite: a file
+    assert {"prof.csv", "pdir/"} <= complete("hostd corpus report p")  # the store
     assert "pdir/" in complete("hostd demo --out p")
     # a command of the same name deeper down (hostd bench sim) takes its own options, not hostd sim's
     assert "--plot" in complete("hostd sim --") and "--plot" not in complete("hostd bench sim --")
@@ -137,14 +140,21 @@ def test_zsh_completion_parses_and_offers_files(tmp_path, capsys):
 def test_every_path_argument_is_marked_for_completion():
     """Arguments that name files: the positional profile/stream/scores/scene/file and -o, --config,
     --thresholds, --db ...; nothing that takes a number."""
-    marked = {(" ".join(path), a.dest) for path, p in docgen.walk(build_parser()) for a in p._actions
-              if docgen.path_kind(a)}
+    kinds = {(" ".join(path), a.dest): docgen.path_kind(a) for path, p in docgen.walk(build_parser())
+             for a in p._actions if docgen.path_kind(a)}
+    marked = set(kinds)
     for want in (("encode", "profile"), ("encode", "output"), ("decode", "stream"), ("iobj", "first"),
                  ("render", "output"), ("fit", "scores"), ("send", "file"), ("run", "config"),
                  ("quality", "db"), ("sim", "scene"), ("report rate-quality", "out"),
-                 ("encode", "thresholds")):
+                 ("encode", "thresholds"), ("export", "source"), ("corpus run", "sweep"),
+                 ("corpus run", "parquet"), ("corpus report", "store"), ("corpus export", "store"),
+                 ("experiment similarity", "design"), ("experiment calibration", "fit")):
         assert want in marked, want
     assert not [m for m in marked if m[1] in ("speed", "levels", "seconds", "length_mm")]
+    # a file named by its metavar is a file, whatever its dest says (out is a directory elsewhere)
+    for want in (("corpus run", "out"), ("corpus export", "out"), ("bench accuracy", "plot")):
+        assert kinds[want] == "file", want
+    assert kinds[("corpus report", "out")] == kinds[("demo", "out")] == "dir"
 
 
 # ---------------------------------------------------------------- --help examples
