@@ -178,6 +178,12 @@ def test_each_command_help_shows_the_readme_examples():
             assert t in help_text, (path, t)
     enc = next(p for path, p in docgen.walk(ap) if path == ("encode",)).format_help()
     assert "examples:\n  hostd encode PROFILE -o OUT.vtx --target-iobj 0.05" in enc
+    # every command and group, and hostd itself, ends its --help with examples
+    missing = [" ".join(path) or "hostd" for path, p in docgen.walk(ap)
+               if "\nexamples:\n" not in p.format_help()]
+    assert not missing, missing
+    calib = next(p for path, p in docgen.walk(ap) if path == ("experiment", "calibration")).format_help()
+    assert "hostd experiment calibration -o lab.toml" in calib
 
 
 def test_a_mistyped_command_gets_the_closest_one(capsys):
