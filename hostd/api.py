@@ -76,7 +76,9 @@ def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
     Returns
     -------
     Profile
-        ``heights_um`` (float64 array of N heights, µm), ``spacing_um``, ``n``, ``length_mm``.
+        ``heights_um`` (float64 array of N heights, µm), ``spacing_um``, ``n``, ``length_mm``,
+        ``note`` (what the CLI prints about the file, e.g. which ``.mat`` variable it read; also
+        raised as a HostdWarning).
     """
     from hostd.texture import synth
     from hostd.texture.load import LoadOptions, cut_patch
@@ -89,7 +91,10 @@ def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
     if synth.is_spec(str(source)):
         prof = synth.from_spec(str(source))
         return cut_patch(prof.heights_um, prof.spacing_um, opts, str(source))
-    return _load(source, opts)
+    prof = _load(source, opts)
+    if prof.note:  # what the CLI prints about the file (which .mat variable, what an .hjif held)
+        _warn([f"{source}: {prof.note}"])
+    return prof
 
 
 def _heights(profile: Profile | np.ndarray, length_mm: float | None) -> tuple[np.ndarray, float]:

@@ -298,6 +298,7 @@ def mats(tmp_path):
     return tmp_path
 
 
+@pytest.mark.filterwarnings("ignore:.*read its one numeric variable")  # said, tested below
 def test_mat_profiles_read_like_the_same_numbers_in_csv(mats):
     import numpy as np
 
@@ -310,6 +311,23 @@ def test_mat_profiles_read_like_the_same_numbers_in_csv(mats):
                   ("two.mat", {"var": "z", "spacing": 0.5})):
         got = api.load_profile(mats / f, **kw).heights_um
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12, err_msg=f)
+
+
+def test_mat_note_says_which_variable_once_in_the_cli_and_the_api(mats, capsys):
+    """The one variable taken without --var is said (once, the file named once); the API returns
+    it in the profile's note and raises it as a HostdWarning. --var asked: nothing to say."""
+    from hostd import api
+    from hostd.errors import HostdWarning
+
+    out = ["-o", str(mats / "o.vtx"), "--method", "quant", "--levels", "14"]
+    assert main(["encode", str(mats / "one.mat"), "--spacing", "0.5", *out]) == 0
+    err = capsys.readouterr().err
+    assert f"{mats / 'one.mat'}: read its one numeric variable, 'h'" in err and err.count("one.mat") == 1, err
+    assert main(["encode", str(mats / "two.mat"), "--var", "x,z", *out]) == 0
+    assert "warning" not in capsys.readouterr().err
+    with pytest.warns(HostdWarning, match=r"one\.mat: read its one numeric variable, 'h'"):
+        prof = api.load_profile(mats / "one.mat", spacing=0.5)
+    assert prof.note == "read its one numeric variable, 'h'"
 
 
 def test_mat_errors_say_what_to_do(mats):
