@@ -485,7 +485,7 @@ def run_scene(scene: str | Path, *, only: list[str] | None = None) -> dict:
     -------
     dict
         ``scene``, ``codec_iobj``, and ``runs``: one record per run (no effect, each effect
-        alone, all together; or just the effects in `only`) with effects, ip, ia, iobj,
+        alone, all together; or just the effects in `only`) with effects, Ip, Ia, Iobj,
         rms_error_um, rms_texture_um, underruns, latency_ms, spectrum_change_um.
         ``pandas.DataFrame(result["runs"])`` gives the table.
     """
