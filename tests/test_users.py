@@ -197,6 +197,16 @@ def test_a_mistyped_command_gets_the_closest_one(capsys):
     with pytest.raises(SystemExit):
         main(["xyzzy"])
     assert "choose from 'encode'" in capsys.readouterr().err  # nothing close: the list
+    # a mistyped option: the command's own error, with its closest option
+    with pytest.raises(SystemExit) as e:
+        main(["encode", "x", "-o", "y", "--metod", "quant"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err == ("hostd encode: error: unrecognized arguments: --metod quant, "
+                                         "did you mean '--method'? (see 'hostd encode --help')\n"), err
+    with pytest.raises(SystemExit):
+        main(["bench", "latency", "--jsn"])
+    assert "hostd bench latency: error: unrecognized arguments: --jsn, did you mean '--json'?" in (
+        capsys.readouterr().err)
 
 
 # ---------------------------------------------------------------- hints that lead the right way
