@@ -76,6 +76,65 @@ def test_bash_completion_completes_files(files_here, capsys):
     assert "encode" in complete("enc")
 
 
+def _bash_tab(cwd: Path, script: Path, line: str) -> str:
+    """What an interactive bash (readline on a pseudo-terminal, the completion script sourced)
+    shows when `line` is typed and then TAB: the candidates it lists, or the completed line.
+    The echo typed after the TAB ends the reading: readline handles keys in order."""
+    import pty
+    import select
+    import signal
+
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: bash on the terminal
+        os.chdir(cwd)
+        os.execvpe("bash", ["bash", "--norc", "--noprofile", "-i"],
+                   {"PATH": os.environ["PATH"], "TERM": "dumb", "PS1": "$ ", "HOME": str(cwd),
+                    "HISTFILE": "/dev/null", "INPUTRC": "/dev/null"})
+
+    def read_until(marker: bytes) -> bytes:
+        out = b""
+        deadline = time.monotonic() + 60
+        while marker not in out and time.monotonic() < deadline:
+            if select.select([fd], [], [], 1.0)[0]:
+                try:
+                    chunk = os.read(fd, 4096)
+                except OSError:
+                    break
+                out += chunk
+        assert marker in out, out
+        return out
+
+    import time
+
+    try:
+        os.write(fd, b"bind 'set show-all-if-ambiguous on'; bind 'set completion-query-items 0'; "
+                 b"bind 'set page-completions off'; source " + str(script).encode() + b"; echo RE''ADY\n")
+        read_until(b"READY\r\n$ ")  # the prompt: readline has the terminal (keys typed before are not its)
+        os.write(fd, line.encode() + b"\t\x15echo DO''NE\n")  # TAB, then erase the line and mark the end
+        return read_until(b"DONE\r\n").decode(errors="replace")
+    finally:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        os.close(fd)
+
+
+@pytest.mark.skipif(shutil.which("bash") is None, reason="no bash")
+def test_bash_completion_in_an_interactive_bash(files_here, capsys):
+    """A real bash's readline: files where a command takes one, choices, commands; and -o default:
+    an argument without completion of its own (--codec takes file.py:attr) still gets file names."""
+    assert main(["completion", "bash"]) == 0
+    script = files_here / "c.bash"
+    script.write_text(capsys.readouterr().out)
+    (files_here / "my_codec.py").write_text("")
+    got = _bash_tab(files_here, script, "hostd encode p")
+    assert "prof.csv" in got and "pq.vtx" in got and "pdir/" in got, got
+    got = _bash_tab(files_here, script, "hostd corpus run --codec my")
+    assert "hostd corpus run --codec my_codec.py" in got, got
+    got = _bash_tab(files_here, script, "hostd encode --method ")
+    assert "quant" in got and "shaped" in got and "prof.csv" not in got, got
+    assert "hostd encode " in _bash_tab(files_here, script, "hostd enc")
+
+
 @pytest.mark.skipif(shutil.which("fish") is None, reason="fish is not installed (apt-get install fish)")
 def test_fish_completion_completes_files_and_commands(files_here, capsys):
     assert main(["completion", "fish"]) == 0
