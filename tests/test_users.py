@@ -515,6 +515,25 @@ def test_api_errors_are_the_builtin_exceptions_callers_catch(tmp_path):
     with pytest.raises(FileNotFoundError):
         api.encode(np.sin(np.arange(2000) / 5.0), length_mm=1.0, method="quant", levels=8,
                    thresholds=str(tmp_path / "none.csv"))
+    # every function that takes a file: a missing one is FileNotFoundError with hostd's one line
+    from hostd.errors import ConfigError, FitError, StreamError
+
+    no_vtx = tmp_path / "none.vtx"
+    for call, cls, text in ((lambda: api.decode(no_vtx), StreamError, "no such stream file"),
+                            (lambda: api.score(str(no_vtx)), StreamError, "no such stream file"),
+                            (lambda: api.run_scene(tmp_path / "none.toml"), ConfigError, "no such scene"),
+                            (lambda: api.run_scene("no-such-scene"), ConfigError, "no such scene"),
+                            (lambda: api.fit(tmp_path / "none.csv"), FitError, "no such scores file")):
+        with pytest.raises(FileNotFoundError, match=text) as e:
+            call()
+        assert isinstance(e.value, cls) and isinstance(e.value, ValueError) and "\n" not in str(e.value)
+    # a scores CSV by its path, as hostd fit reads it (Ip, Ia columns)
+    ips, ias = np.linspace(0.1, 1.0, 10).tolist(), (np.linspace(0.9, 0.05, 10) ** 2).tolist()
+    rows = [(p, a, 0.5 * p + 0.2 * a) for p, a in zip(ips, ias, strict=True)]
+    (tmp_path / "s.csv").write_text("texture,method,level,score,Ip,Ia\n" + "".join(
+        f"w,quant,{i},{sc!r},{p!r},{a!r}\n" for i, (p, a, sc) in enumerate(rows)))
+    res = api.fit(tmp_path / "s.csv", n_boot=0)
+    assert res["a"] == pytest.approx(0.5, abs=1e-9) and res["b"] == pytest.approx(0.2, abs=1e-9)
 
 
 def test_cli_keeps_its_one_line_message_and_exit_code(tmp_path):
