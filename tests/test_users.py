@@ -610,3 +610,28 @@ def test_rate_quality_png_has_no_overlapping_texts(tmp_path, monkeypatch):
     assert not overlaps, overlaps
     assert all(fig.bbox.contains(b.x0, b.y0) and fig.bbox.contains(b.x1, b.y1) for _, b in boxes)
     plt.close("all")
+
+
+def test_a_figure_named_for_a_format_no_backend_writes_is_refused_before_the_work(tmp_path, capsys,
+                                                                                  monkeypatch):
+    """bench accuracy --plot runs minutes before it saves: an extension matplotlib cannot write
+    is refused first (one line, exit 2); the ones accepted are all matplotlib's own."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hostd.plotting import IMAGE_SUFFIXES
+
+    supported = plt.figure().canvas.get_supported_filetypes()
+    plt.close("all")
+    assert {s[1:] for s in IMAGE_SUFFIXES} <= set(supported), set(supported)
+    from hostd.bench import accuracy
+
+    def ran(*a, **k):
+        raise AssertionError("the benchmark ran before the --plot name was checked")
+
+    monkeypatch.setattr(accuracy, "run", ran)
+    assert main(["bench", "accuracy", "--plot", str(tmp_path / "out.mp3")]) == 2
+    err = capsys.readouterr().err
+    assert "--plot" in err and ".mp3 is none of" in err and "out.png" in err and len(err.splitlines()) == 1

@@ -180,6 +180,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not 1 <= args.repeats <= 50:
             raise SystemExit("hostd bench: error: --repeats must be 1..50")
         level = args.check
+        if args.plot:
+            from hostd.plotting import check_image_path
+
+            check_image_path(args.plot, "--plot")
         rows = accuracy.run(_textures(args), args.duration, progress=not (args.quiet or args.json),
                             repeats=args.repeats, knobs=("render_at",) if level else None,
                             firmware_cost=not level)
