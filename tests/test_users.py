@@ -446,6 +446,27 @@ def test_render_refuses_an_extension_it_cannot_write(tmp_path, capfdbinary):
     assert run("-") == 0 and capfdbinary.readouterr().out[:4] == b"RIFF"
 
 
+def test_decode_writes_what_the_extension_says(tmp_path, capsys):
+    """hostd decode -o: heights one per line for a text name, a .npy array for .npy (both read
+    back by hostd as the same profile), and a name for another format (out.wav) refused."""
+    import numpy as np
+
+    from hostd import api
+
+    vtx = tmp_path / "w.vtx"
+    assert main(["encode", "synthetic:wood:1", "-o", str(vtx), "--method", "quant", "--levels", "14"]) == 0
+    want = api.decode(vtx).reconstruct()
+    assert main(["decode", str(vtx), "-o", str(tmp_path / "h.npy")]) == 0
+    assert main(["decode", str(vtx), "-o", str(tmp_path / "h.csv")]) == 0
+    capsys.readouterr()
+    np.testing.assert_array_equal(np.load(tmp_path / "h.npy"), want)
+    np.testing.assert_array_equal(np.loadtxt(tmp_path / "h.csv"), want)
+    assert main(["decode", str(vtx), "-o", str(tmp_path / "h.wav")]) == 2
+    err = capsys.readouterr().err
+    assert "not .wav: name it h.csv" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "h.wav").exists()
+
+
 # ---------------------------------------------------------------- progress only on a terminal
 
 
