@@ -509,6 +509,18 @@ def test_progress_goes_through_one_helper():
     users = [str(f.relative_to(ROOT)) for f in (ROOT / "hostd").rglob("*.py")
              if "tqdm(" in f.read_text() and f.name != "tty.py"]
     assert not users, users
+    # a status line redrawn with '\r' is printed only where the file asks whether it is on a terminal
+    import ast
+
+    redraw = set()
+    for f in (ROOT / "hostd").rglob("*.py"):
+        for n in ast.walk(ast.parse(f.read_text())):
+            text = n.value if isinstance(n, ast.Constant) and isinstance(n.value, str) else ""
+            if "\r" in text.replace("\r\n", ""):
+                redraw.add(f)
+    assert (ROOT / "hostd" / "demo.py") in redraw  # the demo's status line: the scan sees it
+    unguarded = [str(f.relative_to(ROOT)) for f in redraw if "on_terminal(" not in f.read_text()]
+    assert not unguarded, unguarded
 
 
 # ---------------------------------------------------------------- the API: exceptions, notes, warnings
