@@ -76,7 +76,9 @@ def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
     Returns
     -------
     Profile
-        ``heights_um`` (float64 array of N heights, µm), ``spacing_um``, ``n``, ``length_mm``.
+        ``heights_um`` (float64 array of N heights, µm), ``spacing_um``, ``n``, ``length_mm``,
+        ``note`` (what the CLI prints about the file, e.g. which ``.mat`` variable it read; also
+        raised as a HostdWarning).
     """
     from hostd.texture import synth
     from hostd.texture.load import LoadOptions, cut_patch
@@ -89,7 +91,10 @@ def load_profile(source: str | Path, *, x_unit: str = "um", y_unit: str = "um",
     if synth.is_spec(str(source)):
         prof = synth.from_spec(str(source))
         return cut_patch(prof.heights_um, prof.spacing_um, opts, str(source))
-    return _load(source, opts)
+    prof = _load(source, opts)
+    if prof.note:  # what the CLI prints about the file (which .mat variable, what an .hjif held)
+        _warn([f"{source}: {prof.note}"])
+    return prof
 
 
 def _heights(profile: Profile | np.ndarray, length_mm: float | None) -> tuple[np.ndarray, float]:
@@ -312,8 +317,10 @@ def decode(data: bytes | str | Path | Mapping) -> Stream:
 
     if isinstance(data, Mapping):  # what `encode` returns
         data = data["stream"]
-    if isinstance(data, str | Path):
-        data = Path(data).read_bytes()
+    if isinstance(data, str | Path):  # a missing file: FileNotFoundError (hostd's StreamNotFound)
+        from hostd.fileio import read_stream
+
+        return read_stream(data)
     return stream.decode(bytes(data))
 
 
@@ -375,7 +382,7 @@ def score(stream: Stream | bytes | Mapping, reference: Profile | np.ndarray | No
     return out
 
 
-def fit(records: Iterable[Mapping] | Mapping[str, Iterable], *, nonnegative: bool = False,
+def fit(records: Iterable[Mapping] | Mapping[str, Iterable] | str | Path, *, nonnegative: bool = False,
         scale_min: float = 0.0, scale_max: float = 3.0, exclude_saturated: bool = False,
         n_boot: int = 2000) -> dict:
     """Fit (a, b) of Iobj = a Ip + b Ia to subjective scores by least squares without
@@ -383,7 +390,8 @@ def fit(records: Iterable[Mapping] | Mapping[str, Iterable], *, nonnegative: boo
 
     Parameters
     ----------
-    records : list of dicts, or a dict of columns (e.g. ``DataFrame.to_dict("list")``)
+    records : list of dicts, a dict of columns (e.g. ``DataFrame.to_dict("list")``), or the
+        path of a scores CSV (as ``hostd fit`` reads it; stream rows scored with µm profiles)
         Each stimulus: ``score`` and ``Ip``, ``Ia`` (or ``ip``, ``ia``); optionally ``texture``,
         ``method``, ``level``. A control (``method="none"``, the reference against itself) may
         leave out Ip and Ia: they are 0. ``df.to_dict("records")`` works as is.
@@ -403,6 +411,21 @@ def fit(records: Iterable[Mapping] | Mapping[str, Iterable], *, nonnegative: boo
     from hostd.errors import FitError
     from hostd.perception import fit as _fit
 
+    if isinstance(records, str | Path):  # a scores CSV; a missing one is FileNotFoundError
+        from hostd.quality import score_stream
+
+        def score_one(stream_path, profile_spec):
+            st = decode(stream_path)
+            ref = None if profile_spec is None else load_profile(profile_spec, length_mm=st.length_mm)
+            sc = score_stream(st, reference_um=None if ref is None else ref.heights_um)
+            return float(sc.Ip), float(sc.Ia)
+
+        try:
+            stimuli = _fit.read_scores(records, score_one)
+        except HostdError as exc:
+            raise _python_names(exc) from None
+        records = [{"texture": s.texture, "method": s.method, "level": s.level, "score": s.score,
+                    "Ip": s.Ip, "Ia": s.Ia} for s in stimuli]
     if isinstance(records, Mapping):
         keys = list(records)
         cols = [list(records[k]) for k in keys]
@@ -480,7 +503,7 @@ def run_scene(scene: str | Path, *, only: list[str] | None = None) -> dict:
     -------
     dict
         ``scene``, ``codec_iobj``, and ``runs``: one record per run (no effect, each effect
-        alone, all together; or just the effects in `only`) with effects, ip, ia, iobj,
+        alone, all together; or just the effects in `only`) with effects, Ip, Ia, Iobj,
         rms_error_um, rms_texture_um, underruns, latency_ms, spectrum_change_um.
         ``pandas.DataFrame(result["runs"])`` gives the table.
     """

@@ -11,9 +11,34 @@ from hostd.errors import HostdError
 from hostd.parser import build_parser
 
 
+def _unrecognized(ap, argv: list[str], extra: list[str]):
+    """The command's own error for options it does not take, with the closest option it does
+    ('--metod' -> did you mean '--method'?), instead of hostd's for the whole line."""
+    import argparse
+    import difflib
+
+    p = ap
+    for word in argv:
+        subs = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
+        if subs and word in subs[0].choices:
+            p = subs[0].choices[word]
+    message = f"unrecognized arguments: {' '.join(extra)}"
+    options = [o for a in p._actions for o in a.option_strings]
+    for e in extra:
+        if e.startswith("-"):
+            close = difflib.get_close_matches(e.split("=", 1)[0], options, n=1, cutoff=0.6)
+            if close:
+                message += f", did you mean '{close[0]}'?"
+                break
+    p.error(message)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
-    args = ap.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args, extra = ap.parse_known_args(argv)
+    if extra:
+        _unrecognized(ap, argv, extra)
     try:
         return int(args.func(args) or 0)
     except HostdError as exc:

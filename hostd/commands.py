@@ -68,9 +68,30 @@ def cmd_encode(args: argparse.Namespace) -> int:
     return 0
 
 
+DECODE_TEXT_SUFFIXES = ("", ".csv", ".txt", ".dat", ".asc", ".tsv")  # one height per line
+
+
 def cmd_decode(args: argparse.Namespace) -> int:
+    """Heights (µm) one per line, or a .npy array: what the output's extension names; any other
+    extension (out.wav) is refused before the stream is read."""
+    from hostd.errors import ConfigError
+
+    suffix = "" if args.output in (None, "-") else Path(args.output).suffix.lower()
+    if suffix not in (*DECODE_TEXT_SUFFIXES, ".npy"):
+        raise ConfigError(f"-o {args.output}: hostd decode writes heights as text (one per line: .csv, .txt) "
+                          f"or a NumPy .npy array, not {suffix}: name it "
+                          f"{Path(args.output).with_suffix('.csv').name}")
     s = _read_stream(args.stream)
     y = s.reconstruct()
+    if suffix == ".npy":
+        import io
+
+        import numpy as np
+
+        buf = io.BytesIO()
+        np.save(buf, np.asarray(y, dtype=np.float64))
+        _write_bytes_atomic(args.output, buf.getvalue())
+        return 0
     text = "\n".join(repr(float(v)) for v in y) + "\n"
     if args.output in (None, "-"):
         sys.stdout.write(text)

@@ -21,20 +21,26 @@ COMPLETION_DEST = {"bash": "usr/local/share/bash-completion/completions/hostd",
 # naming its argument so, e.g. metavar="FILE"); everything else still falls back to file names
 # in bash (-o default) but is not offered files in zsh and fish.
 FILE_DESTS = frozenset({"profile", "stream", "first", "output", "thresholds", "scores", "file", "config",
-                        "socket", "db", "exec_path", "scene", "input", "inputs", "profiles"})
-FILE_METAVARS = frozenset({"FILE", "PATH", "CSV", "FILE.png", "STREAM", "PROFILE"})
+                        "socket", "db", "exec_path", "scene", "input", "inputs", "profiles", "source",
+                        "store", "design", "sweep", "parquet"})
+FILE_METAVARS = frozenset({"FILE", "PATH", "CSV", "JSON", "STREAM", "PROFILE"})  # and FILE.png, FILE.toml ...
 DIR_DESTS = frozenset({"out", "peers", "prefix", "out_dir"})
 DIR_METAVARS = frozenset({"DIR"})
 
 
 def path_kind(action: argparse.Action) -> str | None:
-    """'file', 'dir' or None for one argument of the parser."""
+    """'file', 'dir' or None for one argument of the parser. The metavar, when it names one,
+    decides before the dest (`corpus run -o FILE.sqlite` is a file though its dest is out)."""
     if action.nargs == 0 or action.choices:
         return None
     meta = action.metavar if isinstance(action.metavar, str) else None
-    if action.dest in DIR_DESTS or meta in DIR_METAVARS:
+    if meta in DIR_METAVARS:
         return "dir"
-    if action.dest in FILE_DESTS or meta in FILE_METAVARS:
+    if meta in FILE_METAVARS or (meta or "").startswith("FILE."):
+        return "file"
+    if action.dest in DIR_DESTS:
+        return "dir"
+    if action.dest in FILE_DESTS:
         return "file"
     return None
 

@@ -2,8 +2,9 @@
 
 Each is also the built-in exception a Python caller already catches: bad input or arguments are
 ValueError (StreamError, ProfileError, ThresholdError, ConfigError, CodecError, FitError,
-QualityError), a file that does not exist is FileNotFoundError (ProfileNotFound,
-ThresholdNotFound), so `api.load_profile('/nonexistent')` raises what `open()` would.
+QualityError), a file that does not exist is FileNotFoundError (ProfileNotFound, StreamNotFound,
+ThresholdNotFound, ConfigNotFound, ScoresNotFound), so `api.load_profile('/nonexistent')` raises
+what `open()` would.
 `hostd.api` warns with HostdWarning (a UserWarning) where the CLI prints a note.
 """
 
@@ -43,12 +44,24 @@ class ConfigError(HostdError, ValueError):
     """A configuration file or parameter is invalid."""
 
 
+class ConfigNotFound(ConfigError, FileNotFoundError):
+    """A config, scene or other TOML file that does not exist."""
+
+
+class StreamNotFound(StreamError, FileNotFoundError):
+    """The .vtx stream file does not exist."""
+
+
 class CodecError(HostdError, ValueError):
     """Codec parameters are invalid (levels, b0, geometry)."""
 
 
 class FitError(HostdError, ValueError):
     """Subjective-score data cannot be fitted (degenerate or malformed)."""
+
+
+class ScoresNotFound(FitError, FileNotFoundError):
+    """The scores CSV does not exist."""
 
 
 class QualityError(HostdError, ValueError):

@@ -236,10 +236,12 @@ def read_stream(path: str | Path):
     """A .vtx stream file, decoded (hostd.codec.stream.decode); a file that cannot be read is a
     StreamError naming it (one line, exit 2)."""
     from hostd.codec.stream import decode
-    from hostd.errors import StreamError
+    from hostd.errors import StreamError, StreamNotFound
 
     try:
         data = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise StreamNotFound(f"no such stream file: {path}") from None
     except OSError as exc:
         raise StreamError(f"cannot read {path}: {exc.strerror or exc}") from None
     return decode(data)

@@ -21,17 +21,22 @@ hostd iobj IN.vtx --json                                        # receiver side:
 hostd iobj REFERENCE_PROFILE IN.vtx --json                      # sender side: against the original
 hostd iobj REFERENCE_PROFILE DECODED_PROFILE --json             # another codec's output (e.g. an .hjif)
 hostd fit SCORES.csv [--json] [--nonnegative] [--exclude-saturated] [--bootstrap N]   # (a, b), SE, intervals
-hostd experiment threshold|similarity|calibration|bench ...   # calibrate Iobj on your display (browser page)
+hostd experiment threshold --out thr --token p01                # detection thresholds b(f) on your display
+hostd experiment similarity DESIGN.toml --out sim --token p01   # the paper's test: scores for hostd fit
+hostd experiment calibration -o lab.toml --thresholds thr/thresholds.csv --fit fit.json   # your (a, b), b(f)
+hostd experiment bench [--runs 200] [--json]                    # the procedures on simulated observers
 hostd report rate-quality PROFILE -o DIR [--json]               # CSV, Markdown, PNG: Iobj, Ip, Ia, SPQI, CPU
 hostd render IN.vtx --speed 50 --seconds 5 -o OUT.wav           # what a hand at 50 mm/s feels, as a WAV file
 hostd export IN.vtx|PROFILE -o OUT.hjif [--speed-mm-s 80]       # MPEG-I Haptics .hjif (the standard)
 hostd bench accuracy [--json] [--plot F.png]                    # every render knob: error vs CPU
-hostd bench pipeline | latency | codec | scoring | sim | load | offline   # real-time cost, link latency, ...
+hostd bench pipeline | latency | codec | scoring | sim | load | offline | all   # real-time cost, latency...
 hostd bench soak [--minutes 10] [--load]                        # the daemon for minutes: played fraction
 hostd demo [--sim] [--render host|device]                       # the daemon on the embedded display
 hostd corpus run DIR|MANIFEST... --codec hostd-v2 --codec my.py:Codec -o R.sqlite   # codecs x settings
 hostd corpus report R.sqlite -o DIR                             # BD-rate tables, rate-quality PNGs
 hostd corpus run synthetic:wood:1-5 --codec v2 --codec mpeg-rm --report DIR  # BD-rate vs the standard
+hostd corpus export R.sqlite -o R.parquet                       # the store as Parquet (or .csv)
+hostd bench corpus [--json]                                     # the corpus runner: efficiency, overhead
 hostd bench soak --render device --runs 3 --seconds 40 --check  # device mode's footprint: PSS, threads, CPU
 hostd bench cli | scoring | cycle --compiled-only [--check [ci]]  # guarded figures: exit 1 past a bound
 
@@ -57,6 +62,8 @@ def _commands(piece: str) -> list[tuple[str, ...]]:
     m = re.match(r"hostd (\S+) (\S+(?: \| \S+)+)", piece)
     if m:
         return [(m.group(1), alt) for alt in m.group(2).split(" | ")]
+    if len(head) >= 2 and "|" in head[1]:  # hostd completion bash|zsh|fish
+        return [(head[0], alt) for alt in head[1].split("|")]
     return [tuple(head[:2])]
 
 
@@ -91,8 +98,21 @@ class HelpFormatter(argparse.HelpFormatter):
         return super()._fill_text(text, width, indent)
 
 
+TOP_EPILOG = """\
+examples:
+  hostd encode PROFILE -o OUT.vtx --target-iobj 0.05   # compress: the smallest stream with Iobj <= 0.05
+  hostd render OUT.vtx -o OUT.wav                      # what a hand at 50 mm/s feels
+  hostd send OUT.vtx; hostd select OUT                 # play it on the display (the daemon's socket)
+  hostd demo                                           # the daemon on the embedded display, end to end
+every command's --help ends with its examples; man 8 hostd (hostd manpage) has them all"""
+
+
 def add_epilogs(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()) -> None:
-    """Give every subcommand of parser the README's examples of it as its epilog."""
+    """Give every subcommand of parser the README's examples of it as its epilog (and hostd
+    itself a few, with where to find the rest)."""
+    if not path and not parser.epilog:
+        parser.epilog = TOP_EPILOG
+        parser.formatter_class = HelpFormatter
     for a in parser._actions:
         if isinstance(a, argparse._SubParsersAction):
             for name, sub in a.choices.items():

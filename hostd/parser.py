@@ -73,7 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("decode", help="reconstruct heights (µm, one per line) from a stream")
     p.add_argument("stream")
-    p.add_argument("-o", "--output", default=None, help="output file (default stdout)")
+    p.add_argument("-o", "--output", default=None,
+                   help="output: .csv or .txt (one height per line; default stdout) or .npy")
     p.set_defaults(func=commands.cmd_decode)
 
     p = sub.add_parser("inspect", help="print a stream's header and coefficients")

@@ -4,6 +4,23 @@ from __future__ import annotations
 
 import numpy as np
 
+# what Agg and matplotlib's vector backends write, by the file's extension (savefig honours it)
+IMAGE_SUFFIXES = (".png", ".pdf", ".svg", ".svgz", ".jpg", ".jpeg", ".webp", ".tif", ".tiff", ".eps", ".ps")
+
+
+def check_image_path(path: str, option: str) -> None:
+    """Refuse, before any work, a figure name whose extension no backend writes (a plot of
+    minutes' work must not fail at its last step); one line that says what to use."""
+    from pathlib import Path
+
+    from hostd.errors import ConfigError
+
+    suffix = Path(path).suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise ConfigError(f"{option} {path}: the figure is written in the format its extension names; "
+                          f"{suffix or 'no extension'} is none of {', '.join(IMAGE_SUFFIXES)} "
+                          f"(e.g. {Path(path).with_suffix('.png').name})")
+
 
 def place_labels(ax, items: list[tuple[float, float, str]], fontsize: float = 6.5,
                  draw: bool = True, avoid: list | None = None) -> list:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
-from hostd.errors import ConfigError
+from hostd.errors import ConfigError, ConfigNotFound
 
 
 def read(path: str | Path, what: str, missing_hint: str = "", exc: type[Exception] = ConfigError) -> dict:
@@ -14,7 +14,8 @@ def read(path: str | Path, what: str, missing_hint: str = "", exc: type[Exceptio
     try:
         return tomllib.loads(p.read_text())
     except FileNotFoundError:
-        raise exc(f"{p}: no such {what}{' (' + missing_hint + ')' if missing_hint else ''}") from None
+        missing = ConfigNotFound if exc is ConfigError else exc  # also the built-in FileNotFoundError
+        raise missing(f"{p}: no such {what}{' (' + missing_hint + ')' if missing_hint else ''}") from None
     except PermissionError:
         raise exc(f"{p}: permission denied reading the {what}") from None
     except (OSError, UnicodeDecodeError) as e:

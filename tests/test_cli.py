@@ -91,7 +91,7 @@ def test_real_dektak_file_encodes_from_the_cli(tmp_path):
     (["encode", "synthetic:wood", "-o", "/tmp/x.vtx", "--method", "quant"], "--levels"),
     (["encode", "synthetic:wood", "-o", "/tmp/x.vtx", "--method", "cut", "--fmax", "1e6",
       "--b0", "0"], "N' must be < N"),
-    (["inspect", "/no/such.vtx"], "cannot read"),
+    (["inspect", "/no/such.vtx"], "no such stream file: /no/such.vtx"),
     (["encode", "synthetic:marble", "-o", "/tmp/x.vtx", "--method", "quant", "--levels", "4"],
      "unknown synthetic"),
 ])

@@ -120,7 +120,7 @@ def test_sim_table_combined_row_keeps_the_columns(monkeypatch, capsys):
     from hostd.sim import scene
 
     effects = ["encoder", "transport", "clock_drift", "cpu_load", "dac", "actuator", "finger_load"]
-    runs = [{"effects": e, "ip": 0.1, "ia": 0.2, "iobj": 0.15, "rms_error_um": 0.1,
+    runs = [{"effects": e, "Ip": 0.1, "Ia": 0.2, "Iobj": 0.15, "rms_error_um": 0.1,
              "spectrum_change_um": 0.001, "underruns": 0, "latency_ms": 1.0}
             for e in ([], ["encoder"], effects)]
     fake = {"scene": "worst-case", "description": "d", "duration_s": 1.0, "seed": 1, "codec_iobj": 0.01,

@@ -44,6 +44,30 @@ def test_metrics_off_by_default_and_a_public_bind_refused_at_load(tmp_path):
         load(p)
 
 
+def test_under_the_unit_a_refused_socket_says_which_drop_in(monkeypatch):
+    """The unit allows no IP socket (RestrictAddressFamilies: socket() fails EAFNOSUPPORT): the
+    one-line error gives the drop-in, which the installed user has no docs/ to look up."""
+    import errno
+
+    prometheus_client = pytest.importorskip("prometheus_client")
+    from hostd.service import metrics, notify
+
+    def refused(port, addr, registry=None):
+        raise OSError(errno.EAFNOSUPPORT, "Address family not supported by protocol")
+
+    monkeypatch.setattr(prometheus_client, "start_http_server", refused)
+    monkeypatch.setattr(notify, "service_unit", lambda: "hostd.service")
+    with pytest.raises(ConfigError) as e:
+        metrics.start(("127.0.0.1", 9470), lambda: {}, lambda: [])
+    msg = str(e.value)
+    assert "sudo systemctl edit hostd" in msg and "IPAddressAllow=localhost" in msg and "AF_INET6" in msg
+    assert "\n" not in msg and "docs/" not in msg
+    monkeypatch.setattr(notify, "service_unit", lambda: None)  # outside systemd: no unit to edit
+    with pytest.raises(ConfigError) as e:
+        metrics.start(("127.0.0.1", 9470), lambda: {}, lambda: [])
+    assert "systemctl" not in str(e.value) and "cannot listen" in str(e.value)
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

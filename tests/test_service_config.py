@@ -222,3 +222,25 @@ def test_udev_rule_names_each_display_by_its_serial():
                 names[(m.group(1), serial)] = m.group(2).replace("$attr{serial}", serial)
     assert names == {("hidraw", "A1"): "hostd/by-serial/hid-A1", ("tty", "A1"): "hostd/by-serial/tty-A1",
                      ("hidraw", "B2"): "hostd/by-serial/hid-B2", ("tty", "B2"): "hostd/by-serial/tty-B2"}
+
+
+def test_udev_reads_the_rule_without_complaint(tmp_path):
+    """udev itself (udevadm test, in a private mount namespace where /etc/udev/rules.d holds only
+    this rule) reads every line: a key it does not know ('Invalid key') or a malformed line
+    would be ignored by udev on a display PC without a word. The group hostd need not exist here."""
+    import shutil
+
+    if os.geteuid() != 0 or not shutil.which("udevadm") or not shutil.which("unshare"):
+        pytest.skip("needs root, udevadm and unshare (a private mount namespace)")
+    (tmp_path / "rules").mkdir()
+    shutil.copy(ROOT / "systemd" / "70-hostd.rules", tmp_path / "rules")
+    (tmp_path / "rules" / "71-broken.rules").write_text('SUBSYSTEM=="tty", NOSUCHKEY=="1", SYMLINK+="x"\n')
+    script = (f"mount --bind {tmp_path / 'rules'} /etc/udev/rules.d && "
+              "udevadm test --action=add /sys/class/tty/tty0")
+    r = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True, text=True, timeout=60)
+    if "Reading rules file: /etc/udev/rules.d/70-hostd.rules" not in r.stderr + r.stdout:
+        pytest.skip(f"udevadm test did not read the rule here: {(r.stderr + r.stdout)[-300:]}")
+    said = [ln for ln in (r.stderr + r.stdout).splitlines() if "/etc/udev/rules.d/" in ln
+            and not ln.startswith("Reading rules file")]
+    assert any("71-broken.rules:1" in ln and "NOSUCHKEY" in ln for ln in said), said  # it would tell
+    assert not [ln for ln in said if "70-hostd.rules" in ln and "Unknown group 'hostd'" not in ln], said

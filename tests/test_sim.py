@@ -34,7 +34,7 @@ def test_shipped_scenes_load():
 
 def test_ideal_scene_delivers_the_codec_only_iobj():
     r = scene.run(scene.load(scenes_dir() / "ideal.toml"))
-    assert abs(r["iobj"] - r["codec_iobj"]) <= 1e-6
+    assert abs(r["Iobj"] - r["codec_iobj"]) <= 1e-6
     assert r["rms_error_um"] <= 1e-6 * r["rms_texture_um"]
     assert r["closed_loop"] is False
 
@@ -53,7 +53,7 @@ def test_an_effect_the_scene_does_not_name_is_never_constructed(tmp_path, monkey
         if name != "dac":
             monkeypatch.setitem(fx.REGISTRY, name, forbidden(name))
     r = scene.run(scene.load(write_scene(tmp_path, "[effects.dac]\n")))
-    assert r["effects"] == ["dac"] and np.isfinite(r["iobj"])
+    assert r["effects"] == ["dac"] and np.isfinite(r["Iobj"])
     r0 = scene.run(scene.load(write_scene(tmp_path, "")))  # no effects at all
     assert r0["effects"] == [] and not r0["closed_loop"]
 
@@ -93,7 +93,7 @@ def test_each_effect_worsens_delivered_quality_in_the_expected_direction(tmp_pat
     rms = lambda r: np.sqrt(np.mean(r["_trace"]["delivered"] ** 2))  # noqa: E731
     ratio = rms(f) / rms(f["base"])
     assert 0.7 < ratio < 0.82
-    assert f["iobj"] > f["base"]["iobj"]
+    assert f["Iobj"] > f["base"]["Iobj"]
     # the actuator, equalized by the host: a change, but a small one (the equalizer works)
     a = _change(tmp_path, "[effects.actuator]\n")
     assert 0 < a["spec"] < 0.1 * f["spec"]
@@ -122,7 +122,7 @@ def test_sim_cli_json_and_plots(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out)
     assert [r["effects"] for r in out["runs"]] == [[], ["encoder"], ["dac"], ["encoder", "dac"]]
     for r in out["runs"]:
-        for k in ("ip", "ia", "iobj", "rms_error_um", "underruns", "latency_ms"):
+        for k in ("Ip", "Ia", "Iobj", "rms_error_um", "underruns", "latency_ms"):
             assert k in r and np.isfinite(r[k])
     assert len(out["plots"]) == 2 and all(Path(x).stat().st_size > 5000 for x in out["plots"])
 
@@ -132,7 +132,7 @@ def test_a_hand_at_the_reference_speed_feels_every_kept_component(tmp_path):
     the delivered Iobj is the stream's (before: 0.2674 against 0.2769, 8 % RMS error)."""
     r = scene.run(scene.load(write_scene(tmp_path, hand='model = "constant"\nspeed_mm_s = 50.0',
                                          duration=1.0)))
-    assert abs(r["iobj"] - r["codec_iobj"]) <= 1e-6
+    assert abs(r["Iobj"] - r["codec_iobj"]) <= 1e-6
     assert r["rms_error_um"] <= 1e-6 * r["rms_texture_um"]
 
 

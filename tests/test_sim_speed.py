@@ -69,14 +69,14 @@ def test_vectorized_render_equals_batch_by_batch_with_every_effect(tmp_path, mon
     lsb = pipeline.OutputConfig().um_per_code
     d = np.abs(fast["_trace"]["delivered"] - slow["_trace"]["delivered"])
     assert d.max() <= 1.01 * lsb
-    assert abs(fast["iobj"] - slow["iobj"]) <= 1e-6 and abs(fast["ip"] - slow["ip"]) <= 1e-6
+    assert abs(fast["Iobj"] - slow["Iobj"]) <= 1e-6 and abs(fast["Ip"] - slow["Ip"]) <= 1e-6
     # without the DAC the two paths agree to float rounding
     closed = ["encoder", "transport", "clock_drift", "cpu_load", "actuator", "finger_load"]
     a, b = scene.run(sc, closed, vectorized=True), scene.run(sc, closed, vectorized=False)
     assert np.allclose(a["_trace"]["delivered"], b["_trace"]["delivered"], rtol=0, atol=1e-9)
     # (the least-squares fit of 1 s of texture amplifies that rounding by its conditioning)
     assert np.abs(a["_trace"]["fit"] - b["_trace"]["fit"]).max() <= 1e-6 * np.abs(b["_trace"]["fit"]).max()
-    assert abs(a["iobj"] - b["iobj"]) <= 1e-9
+    assert abs(a["Iobj"] - b["Iobj"]) <= 1e-9
     assert a["underruns"] == b["underruns"]
 
 
@@ -90,7 +90,7 @@ def test_a_report_reuses_renders_and_fits_that_equal_fresh_runs(tmp_path):
         fresh = scene.run(sc, r["effects"])  # its own render and its own fit
         assert np.array_equal(r["_trace"]["delivered"], fresh["_trace"]["delivered"])
         assert np.allclose(r["_trace"]["fit"], fresh["_trace"]["fit"], rtol=0, atol=1e-12)
-        assert r["iobj"] == fresh["iobj"] or abs(r["iobj"] - fresh["iobj"]) <= 1e-12
+        assert r["Iobj"] == fresh["Iobj"] or abs(r["Iobj"] - fresh["Iobj"]) <= 1e-12
 
 
 def test_pruned_band_limited_series_and_nufft_sums_equal_direct_sums():

@@ -82,7 +82,7 @@ def add_parser(sub, parents) -> None:
                          "report at N'=160 < 3 s (CPU time of the working thread)")
     ob.add_argument("--json", action="store_true")
     cb = bsub.add_parser("corpus", help="hostd corpus: machinery overhead per job vs the bare codec call, "
-                         "parallel efficiency, driver memory over 10^4 jobs (needs hostd[corpus] for Dask)")
+                         "parallel efficiency, driver memory over 10^4 jobs (Dask: the corpus extra)")
     cb.add_argument("--json", action="store_true")
     cb.add_argument("--jobs", type=int, default=10_000, metavar="N", help="jobs of the memory run (10^4)")
     cb.add_argument("--workers", type=int, default=None, metavar="N", help="pool size (default every core)")
@@ -180,6 +180,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not 1 <= args.repeats <= 50:
             raise SystemExit("hostd bench: error: --repeats must be 1..50")
         level = args.check
+        if args.plot:
+            from hostd.plotting import check_image_path
+
+            check_image_path(args.plot, "--plot")
         rows = accuracy.run(_textures(args), args.duration, progress=not (args.quiet or args.json),
                             repeats=args.repeats, knobs=("render_at",) if level else None,
                             firmware_cost=not level)

@@ -28,7 +28,7 @@ def add_parser(sub, parents) -> None:
     from hostd.cliopts import needs_subcommand
 
     p = sub.add_parser("corpus", help="evaluate codecs over a texture database: sweep, results store, "
-                       "BD-rate (needs hostd[corpus])",
+                       "BD-rate (needs the corpus extra)",
                        description="Corpus-scale codec evaluation: every texture x codec x "
                        "setting x geometry -> one row in a resumable SQLite store; BD-rate reports.")
     csub = p.add_subparsers(dest="corpus", metavar="WHAT")

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import scipy.optimize
 
-from hostd.errors import FitError
+from hostd.errors import FitError, ScoresNotFound
 from hostd.texture import synth
 
 REQUIRED = ("texture", "method", "level", "score")
@@ -355,6 +355,8 @@ def read_scores(path: str | Path, score_one=None) -> list[Stimulus]:
     p = Path(path)
     try:
         fh = p.open(newline="", encoding="utf-8")
+    except FileNotFoundError:
+        raise ScoresNotFound(f"no such scores file: {p}") from None
     except OSError as exc:
         raise FitError(f"cannot read {p}: {exc.strerror or exc}") from None
     with fh:

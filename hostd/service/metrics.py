@@ -109,6 +109,24 @@ def start(listen: tuple[str, int], status, quality_rows):
     try:
         server, _thread = start_http_server(listen[1], listen[0], registry=reg)
     except OSError as e:
-        raise ConfigError(f"metrics.listen {listen[0]}:{listen[1]}: cannot listen ({e.strerror})") from None
+        raise ConfigError(f"metrics.listen {listen[0]}:{listen[1]}: cannot listen ({e.strerror})"
+                          + _unit_hint(e)) from None
     log.info("metrics on http://%s:%d/metrics", *listen)
     return server
+
+
+def _unit_hint(e: OSError) -> str:
+    """Under the systemd unit, which allows no IP socket (IPAddressDeny=any, AF_UNIX/AF_NETLINK
+    only), the drop-in that lets the endpoint listen on loopback."""
+    import errno
+
+    from hostd.service import notify
+
+    unit = notify.service_unit()
+    if unit is None or e.errno not in (errno.EAFNOSUPPORT, errno.EPERM, errno.EACCES):
+        return ""
+    name = unit.removesuffix(".service")
+    return (f": {unit} allows no IP socket; add a drop-in (sudo systemctl edit {name}) "
+            "with [Service] IPAddressAllow=localhost and RestrictAddressFamilies=AF_UNIX AF_NETLINK AF_INET "
+            "AF_INET6, then restart it")
+

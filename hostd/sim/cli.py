@@ -57,7 +57,7 @@ def cmd_sim(args) -> int:
         label = run_label(r["effects"])
         if label != "+".join(r["effects"]) and r["effects"]:
             combined.append(f"  {label}: {', '.join(r['effects'])}")
-        print(f"  {label:<40} {r['ip']:>8.4f} {r['ia']:>8.4f} {r['iobj']:>8.4f} "
+        print(f"  {label:<40} {r['Ip']:>8.4f} {r['Ia']:>8.4f} {r['Iobj']:>8.4f} "
               f"{r['rms_error_um']:>10.4f} {r['spectrum_change_um']:>9.5f} {r['underruns']:>9} "
               f"{r['latency_ms']:>10.2f}")
     for line in combined:  # a combined row's effects, below the table so the columns stay aligned

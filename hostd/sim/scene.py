@@ -302,8 +302,8 @@ def run(sc: Scene, only: list[str] | None = None, progress: bool = False, shared
     sc_del = indices.scores_from_sums(s.ref_P, s.ref_A, pp, ap)
     codec = score_stream(s)
     chain_ms = (lead_s + (r.latency_s if es.actuator is not None else 0.0)) * 1e3
-    return {"effects": names, "closed_loop": es.closed_loop, "ip": float(sc_del.Ip), "ia": float(sc_del.Ia),
-            "iobj": float(sc_del.Iobj), "codec_iobj": float(codec.Iobj),
+    return {"effects": names, "closed_loop": es.closed_loop, "Ip": float(sc_del.Ip), "Ia": float(sc_del.Ia),
+            "Iobj": float(sc_del.Iobj), "codec_iobj": float(codec.Iobj),
             "rms_error_um": float(np.sqrt(np.mean((y - intended) ** 2))),
             "rms_texture_um": float(np.sqrt(np.mean(intended**2))),
             "underruns": underruns, "latency_ms": chain_ms,

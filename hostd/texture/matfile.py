@@ -70,7 +70,7 @@ def read_mat(p: Path, opts) -> Columns:
             raise ProfileError(f"{p} holds {what}: choose one with --var NAME (or --var X,Y for "
                                "an x and a height vector)")
         ((name, v),) = numeric.items()
-        return Columns(_as_columns(p, name, v), note=f"{p}: variable {name!r}")
+        return Columns(_as_columns(p, name, v), note=f"read its one numeric variable, {name!r}")
     names = [s.strip() for s in member.split(",")]
     for n in names:
         if n not in variables:
@@ -78,11 +78,11 @@ def read_mat(p: Path, opts) -> Columns:
         if not _numeric(variables[n]):
             raise ProfileError(f"{p}: variable {n!r} is not a numeric array (its numeric arrays: {listing})")
     if len(names) == 1:
-        return Columns(_as_columns(p, names[0], variables[names[0]]), note=f"{p}: variable {names[0]!r}")
+        return Columns(_as_columns(p, names[0], variables[names[0]]))  # what --var asked: nothing to note
     if len(names) != 2:
         raise ProfileError(f"--var {member!r}: give NAME, or X,Y (two vectors)")
     x, y = (_as_columns(p, n, variables[n]) for n in names)
     if x.shape[1] != 1 or y.shape[1] != 1 or x.shape[0] != y.shape[0]:
         raise ProfileError(f"--var {member}: {names[0]} and {names[1]} must be vectors of one length "
                            f"({listing})")
-    return Columns(np.column_stack([x[:, 0], y[:, 0]]), note=f"{p}: variables {names[0]!r}, {names[1]!r}")
+    return Columns(np.column_stack([x[:, 0], y[:, 0]]))
