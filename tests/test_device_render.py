@@ -274,6 +274,21 @@ def test_an_upload_not_answered_in_time_is_a_timeout_and_is_sent_once_more(monke
     setup, _ = _setup("wood")
     with pytest.raises(DeviceTimeout, match="no ACK for SET_EQ within 1 s"):
         devrender.send_and_confirm(Deaf(), setup)
+    # an idle display reports every 1 ms: the line is never quiet, and an answer it dropped (its
+    # queue to a paused host full) never comes; the wait still ends (it did not: a re-upload
+    # after a host pause waited for ever while the reports flowed)
+    status = pr.encode("STATUS", **{k: 0 for k, _ in pr.LAYOUTS["STATUS"].fields if k != "id"})
+    taken = []
+
+    class Chatty(Deaf):
+        def recv(self, timeout_s=0.0):
+            clock[0] += 0.001
+            assert clock[0] < 60.0, "still waiting after 60 s of the display's reports"
+            return status
+
+    with pytest.raises(DeviceTimeout, match="no ACK for SET_EQ within 1 s"):
+        devrender.send_and_confirm(Chatty(), setup, on_other=taken.append)
+    assert 900 <= len(taken) <= 1100  # the reports of that second went to the link meanwhile
     monkeypatch.undo()
 
     t = SimTransport(realtime=False)  # its IDENT and CAPS, taken without running its clock

@@ -103,6 +103,10 @@ class DeviceMode:
             self.slot = 2 if self.slot == 1 else 1
             msgs = pr.texture_messages(self.slot, c, n, length_mm)
         else:
+            # a host back from a pause finds the display's reports of it waiting, up to what the
+            # line holds: the display then drops what it sends, the upload's answers too (the
+            # retry below would cover that, a second later)
+            self.link.catch_up()
             self.take_over()
             msgs = devrender.setup_messages(c, n, length_mm, self.cfg, slot=self.slot, params=self.params)
             msgs.append(pr.encode("START_RENDER", host_lost_ms=self.host_lost_ms))

@@ -132,14 +132,16 @@ def send_and_confirm(transport, msgs: list[bytes], timeout_s: float = 1.0, on_ot
         while True:
             if abort is not None and abort():
                 raise UploadAborted("stopping")
+            # (checked whatever arrives: an idle display's 1 ms reports never leave the line
+            # quiet, and an answer it could not send, its queue to the host full, never comes)
+            if time.monotonic() > deadline:
+                raise DeviceTimeout(f"{transport.describe()}: no ACK for {pr.NAMES[m[0]]} within "
+                                    f"{timeout_s:g} s: is the firmware protocol v2?")
             r = transport.recv(0.005)
-            if r is not None and alive is not None:
-                alive()
             if r is None:
-                if time.monotonic() > deadline:
-                    raise DeviceTimeout(f"{transport.describe()}: no ACK for {pr.NAMES[m[0]]} within "
-                                      f"{timeout_s:g} s: is the firmware protocol v2?")
                 continue
+            if alive is not None:
+                alive()
             try:
                 name, f = pr.decode(r)
             except pr.ProtocolError:
