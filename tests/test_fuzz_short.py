@@ -1,6 +1,7 @@
 """A short pass of the fuzzers of device bytes (issue 29): the libFuzzer harnesses of the compiled
-parsers (tests/fuzz/run_fuzzers.sh: _fastpump.c's deframer and _fastlink.c's decoder, ASan +
-UBSan, differential against plain references) and the atheris harness of the Python paths
+parsers (tests/fuzz/run_fuzzers.sh, ASan + UBSan: _fastpump.c's deframer and _fastlink.c's
+decoder, differential against plain references; _fastpump.c's STATUS reader, its properties)
+and the atheris harness of the Python paths
 (tests/fuzz/fuzz_device_link.py: protocol.py against _fastlink, built with ASan + UBSan by
 tests/fuzz/sanitize_device_link.sh). FUZZ_S seconds each; the long
 runs and their counts are in docs/fuzzing.md. Missing clang or atheris fails under CI=true
@@ -34,7 +35,7 @@ def test_compiled_device_parsers_libfuzzer_short_pass(tmp_path):
                        env=dict(os.environ, FUZZ_OUT=str(tmp_path), PYTHON=sys.executable), timeout=600)
     assert r.returncode == 0, (r.stdout + r.stderr)[-4000:]
     counts = dict(re.findall(r"^(fuzz_\w+): (\d+) executions$", r.stdout, re.M))
-    assert set(counts) == {"fuzz_fastpump_deframe", "fuzz_fastlink_decode"}, r.stdout
+    assert set(counts) == {"fuzz_fastpump_deframe", "fuzz_fastpump_status", "fuzz_fastlink_decode"}, r.stdout
     assert all(int(n) > 1000 for n in counts.values()), counts
 
 
