@@ -484,12 +484,13 @@ def pump_main(cfg, conn, stats) -> None:
         h = pump.health
         rate = pr.SAMPLE_RATE_HZ
         sent = link.stats.samples_sent
+        boot = time.clock_gettime(time.CLOCK_BOOTTIME)  # a device's clock runs on while the host sleeps
         most = {"samples": (bounds["samples"].base + sent + pr.BUFFER_CAPACITY, pr.BUFFER_CAPACITY),
-                "elapsed": bounds["elapsed"].within_time(now, 1.0),
-                "underruns": bounds["underruns"].within_time(now, rate / 2),
-                "rendered": bounds["rendered"].within_time(now, rate),
-                "faded": bounds["faded"].within_time(now, rate),
-                "idle": bounds["idle"].within_time(now, rate)}
+                "elapsed": bounds["elapsed"].within_time(boot, 1.0),
+                "underruns": bounds["underruns"].within_time(boot, rate / 2),
+                "rendered": bounds["rendered"].within_time(boot, rate),
+                "faded": bounds["faded"].within_time(boot, rate),
+                "idle": bounds["idle"].within_time(boot, rate)}
         over = {k: bounds[k].take(v, *most[k]) for k, v in claimed(h).items()}
         what = {"samples": "samples played", "elapsed": "s of its clock", "underruns": "underruns",
                 "rendered": "ticks rendered", "faded": "ticks faded", "idle": "ticks idle"}
@@ -497,7 +498,7 @@ def pump_main(cfg, conn, stats) -> None:
                   if v > 0]
         if claims:
             if now - impossible_seen[0] >= 1.0:
-                up_s = now - bounds["samples"].t0
+                up_s = boot - bounds["samples"].t0
                 log(f"device: {transport.describe()} reported the impossible: {', '.join(claims)} more than "
                     f"{up_s:.1f} s of its link and the {sent} samples sent to it allow; its counters are "
                     "shown within what the host knows")
@@ -706,7 +707,7 @@ def pump_main(cfg, conn, stats) -> None:
         # (the old link's counts since the last publish stay the old link's)
         h = pump.health if pump is not None else None
         for k, b in bounds.items():
-            b.link_up(time.monotonic(), 0.0 if h is None else claimed(h)[k])
+            b.link_up(time.clock_gettime(time.CLOCK_BOOTTIME), 0.0 if h is None else claimed(h)[k])
         bad_seen[:] = [0, -math.inf]
         bad_msgs_seen[:] = [0, -math.inf]
         flood[:] = [time.monotonic(), link.stats.statuses, False]
