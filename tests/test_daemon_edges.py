@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from hostd.cli import main
 from hostd.service.client import request
 from tests.daemon_helpers import wait_for
@@ -142,7 +144,7 @@ def _drain(ns: socket.socket) -> list[bytes]:
 
 
 def _counters(**kw) -> dict:
-    c = {"device_time_s": 100.0, "played_fraction": 1.0, "render_at": "host", "device_samples_played": 0,
+    c = {"device_elapsed_s": 100.0, "played_fraction": 1.0, "render_at": "host", "device_samples_played": 0,
          "samples": 0, "device_underruns": 0}
     c.update(kw)
     return c
@@ -155,25 +157,25 @@ def test_forged_device_counters_are_bounded_by_what_the_host_knows():
     from hostd.device.protocol import BUFFER_CAPACITY, SAMPLE_RATE_HZ
     from hostd.service.daemon import bound_play
 
-    honest, bad = bound_play(_counters(), _counters(device_time_s=103.0, device_samples_played=9000,
+    honest, bad = bound_play(_counters(), _counters(device_elapsed_s=103.0, device_samples_played=9000,
                                                    samples=9100, device_underruns=1), 3.0)
     assert not bad and honest["played_s"] == 3.0 and honest["device_s"] == 3.0 and honest["underruns"] == 1
 
     forged = 601.6 * SAMPLE_RATE_HZ
-    row, bad = bound_play(_counters(), _counters(device_time_s=701.6, device_samples_played=forged,
+    row, bad = bound_play(_counters(), _counters(device_elapsed_s=701.6, device_samples_played=forged,
                                                  samples=9000), 3.0)
     assert row["played_s"] <= (9000 + BUFFER_CAPACITY) / SAMPLE_RATE_HZ and row["device_s"] == 3.0
     assert any("of its clock in 3.0 s" in b for b in bad) and any("sent and buffered" in b for b in bad)
 
-    row, bad = bound_play(_counters(device_time_s=5e9, device_underruns=7),
-                          _counters(device_time_s=2.0, device_underruns=2), 3.0)  # back, or wrapped
+    row, bad = bound_play(_counters(device_elapsed_s=5e9, device_underruns=7),
+                          _counters(device_elapsed_s=2.0, device_underruns=2), 3.0)  # back, or wrapped
     assert row["device_s"] == 0.0 and row["underruns"] == 0 and len(bad) == 2
 
-    row, bad = bound_play(_counters(), _counters(device_time_s=103.0, render_at="device",
+    row, bad = bound_play(_counters(), _counters(device_elapsed_s=103.0, render_at="device",
                                                  played_fraction=7.5), 3.0)
     assert row["played_fraction"] == 1.0 and row["played_s"] == 3.0 and bad == ["a played fraction of 7.5"]
 
-    row, bad = bound_play(_counters(), _counters(device_time_s=float("nan"), device_underruns=10**9), 3.0)
+    row, bad = bound_play(_counters(), _counters(device_elapsed_s=float("nan"), device_underruns=10**9), 3.0)
     assert row["device_s"] == 0.0 and row["underruns"] <= 3.0 * 1.01 * SAMPLE_RATE_HZ and len(bad) == 2
 
 
@@ -209,3 +211,40 @@ def test_a_device_that_changes_identity_mid_session_is_a_new_device():
     t2.device.outbox.append(pr.encode("CAPS", **forged))
     with pytest.raises(DeviceGone, match=r"\(CAPS: render 1 -> 0\)"):
         link2.poll()
+
+
+def test_counters_that_leap_within_the_device_s_own_clock_are_shown_within_what_the_host_knows():
+    """A STATUS whose clock is 400 s on and whose samples played 1 M more (333 s' worth) is
+    believed by DeviceHealth (a host may stall that long; the device's figures agree with each
+    other); what the pump shows is bounded by the samples the link sent plus the buffer: the
+    excess is set aside for good, and honest growth after it shows again."""
+    from hostd.device import protocol as pr
+    from hostd.device.health import DeviceHealth, HostBound
+
+    def status(us: int, played: int) -> dict:
+        return {"state": 1, "fault_flags": 0, "device_time_us": us & 0xFFFFFFFF,
+                "samples_played": played & 0xFFFFFFFF, "underruns": 0}
+
+    h = DeviceHealth()
+    h.update(status(1_000_000, 100))
+    h.update(status(2_000_000, 3100))
+    h.update(status(402_000_000, 1_003_100))
+    assert h.samples_played == 1_003_000 and h.resets == 0  # the leap is believed here
+
+    b = HostBound()
+    b.link_up(0.0, 0.0)
+    sent = 3000 + 1000  # what the host sent on this link by then
+    buf = pr.BUFFER_CAPACITY
+    assert b.take(3000, b.base + sent + buf, buf) == 0 and b.shown == 3000
+    over = b.take(h.samples_played, b.base + sent + buf, buf)
+    assert over == h.samples_played - sent - buf and b.shown == sent  # set aside to the bound less its slack
+    # honest counting after it: the buffer drains (a second more played than sent): not a claim
+    sent += 2800
+    assert b.take(h.samples_played + 3000, b.base + sent + buf, buf) == 0 and b.shown == sent + 200
+    # a new link: its counts grow from what the device claims then (what the old link counted
+    # after the last look is not the new link's), within its own time up
+    b.link_up(100.0, h.samples_played + 3500)
+    assert b.base == sent + 700
+    most, slack = b.within_time(101.0, pr.SAMPLE_RATE_HZ)
+    assert most == pytest.approx(sent + 700 + (1.01 + 0.5) * pr.SAMPLE_RATE_HZ)
+    assert slack == 0.5 * pr.SAMPLE_RATE_HZ

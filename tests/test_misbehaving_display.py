@@ -54,6 +54,8 @@ class Cable(threading.Thread):
         self.loads = 0  # LOAD_* frames the daemon sent through this cable
         self.vanished = threading.Event()
         self.backlog = 0  # bytes toward the daemon it has not taken yet
+        self.want_status = threading.Event()  # next_status(): the display's next STATUS, as it sent it
+        self.status: bytes | None = None
         self.lock = threading.Lock()
         self.stop_flag = False
         self.start()
@@ -67,6 +69,24 @@ class Cable(threading.Thread):
         (what it sends meanwhile waits in the cable, as in its own buffer), then the rest."""
         with self.lock:
             self.stall_s = seconds
+
+    def next_status(self) -> dict:
+        """The fields of the next STATUS the display sends (decoded here, on request only)."""
+        self.status = None
+        self.want_status.set()
+        wait_for(lambda: self.status is not None, 10, "a STATUS of the display")
+        return pr.decode(self.status)[1]
+
+    def _catch_status(self, data: bytes) -> None:
+        for body in data.split(b"\0")[:-1]:
+            try:
+                msg = pr.unframe(body)
+            except pr.ProtocolError:
+                continue
+            if msg and msg[0] == pr.IDS["STATUS"]:
+                self.status = msg
+                self.want_status.clear()
+                return
 
     def flood(self, times: int) -> None:
         """Every STATUS the display sends reaches the daemon 1 + times times (0: stop the flood):
@@ -161,6 +181,8 @@ class Cable(threading.Thread):
                     with self.lock:
                         self.stall_s = stall
                 if cut:
+                    if self.want_status.is_set():
+                        self._catch_status(held[:cut])
                     to_host += self._echoed(held[:cut])
                     held = held[cut:]
                     with self.lock:
@@ -254,6 +276,24 @@ def test_a_misbehaving_display_is_named_dropped_or_reconnected_and_the_daemon_ke
         said = _lines(log, at, "went back or leapt")
         assert len(said) == 1 and str(link) in said[0], said
         assert request(sock, {"cmd": "status"})["device_resets"] > resets0
+        # counters that leap forward within what the device's own clock allows (its clock 400 s
+        # on, 1 M samples more played: 333 s' worth, a claim the device's own figures cannot
+        # refute): what the host shows stays within the samples it sent plus the display's buffer,
+        # and one line names the device
+        time.sleep(1.5)
+        at = len(log.read_text().splitlines())
+        st0 = request(sock, {"cmd": "status"})
+        f = {k: v for k, v in cable.next_status().items() if k != "id"}
+        f["device_time_us"] = (f["device_time_us"] + 400_000_000) & 0xFFFFFFFF
+        f["samples_played"] = (f["samples_played"] + 1_000_000) & 0xFFFFFFFF
+        cable.inject(pr.frame(pr.encode("STATUS", **f)))
+        wait_for(lambda: _lines(log, at, "reported the impossible"), 30, "the impossible's line")
+        time.sleep(1.0)
+        said = _lines(log, at, "reported the impossible")
+        st = request(sock, {"cmd": "status"})
+        assert len(said) == 1 and str(link) in said[0] and "samples played" in said[0], said
+        assert st["device_samples_played"] - st0["device_samples_played"] <= (
+            st["samples"] - st0["samples"] + pr.BUFFER_CAPACITY), (st0, st)
         st = request(sock, {"cmd": "status"})  # (recovering: underruns of a loaded machine)
         assert st["connected"] and st["state"] in ("playing", "recovering") and st["texture"] == "wood", st
 
@@ -284,7 +324,7 @@ def test_a_misbehaving_display_is_named_dropped_or_reconnected_and_the_daemon_ke
         rss1 = _pump_rss_kib(daemon.pid)
         assert rss1 - rss0 < 20 * 1024, (rss0, rss1)  # bounded: no buffer grows with what it was sent
     finally:
-        _end(hp, cable, daemon, log, dac)  # (and nothing the display said passed the piezo's limits)
+        _end(hp, cable, daemon, log, dac, honest=False)  # (nothing passed the piezo's limits)
 
 
 def _forged_ident(protocol_version: int) -> bytes:
@@ -320,7 +360,9 @@ def _display_and_daemon(tmp_path: Path, where: str, hp_args: list[str]):
     return hp, cable, daemon, sock, log, dac, link
 
 
-def _end(hp, cable, daemon, log: Path, dac: Path) -> None:
+def _end(hp, cable, daemon, log: Path, dac: Path, honest: bool = True) -> None:
+    """Stop it all; no traceback, nothing past the piezo's limits, and an honest display's
+    counters never called impossible."""
     if daemon.poll() is None:
         daemon.send_signal(signal.SIGTERM)
         daemon.wait(30)
@@ -328,6 +370,7 @@ def _end(hp, cable, daemon, log: Path, dac: Path) -> None:
     hp.close()
     text = log.read_text()
     assert "Traceback" not in text, text[-3000:]
+    assert not honest or "reported the impossible" not in text, text[-3000:]
     codes = hostport.read_log(dac)["code"].astype(np.int64)  # never past the piezo's limits
     assert codes.size > 3000 and np.abs(codes).max() <= pr.LIMIT_CODE
     assert np.abs(np.diff(codes)).max() <= pr.MAX_STEP_CODE

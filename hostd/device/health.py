@@ -34,6 +34,48 @@ HOST_TIMEOUT_BIT = pr.FAULTS["HOST_TIMEOUT"]
 MAX_GAP_US = 600_000_000
 M32 = 0xFFFFFFFF
 FULL_GAIN_STATES = (pr.RENDER_STATES["ON"], pr.RENDER_STATES["CROSSFADE"])
+# a device's clock may run this much faster than the host's, and a report arrive this late
+CLOCK_TOLERANCE = 0.01
+REPORT_SLACK_S = 0.5
+
+
+class HostBound:
+    """One of a device's counters (a total since the daemon started) as the host shows it: never
+    above what the host can vouch for. A device's clock may leap forward by up to MAX_GAP_US
+    between two reports (the host may have stalled that long), and its counters with it, so a
+    device that lies is believed by DeviceHealth; its total is checked here against the host's
+    own knowledge (`most`, which holds `slack` of tolerance), and what is above it is set aside
+    for good: the count goes on from the bound less the slack, so honest counting after a lie
+    (a buffer draining, a late report) is not called impossible again. link_up(now): a new link;
+    its counts may grow from what is shown now."""
+
+    def __init__(self) -> None:
+        self.excess = 0.0  # claimed but not vouched for, since the daemon started
+        self.shown = 0.0
+        self.base = 0.0  # shown when the link came up
+        self.t0 = 0.0
+
+    def link_up(self, now_s: float, claimed: float) -> None:
+        """A new link at now_s; `claimed`: the device's total now (what the old link counted
+        after the last look, too: none of it is the new link's)."""
+        self.base, self.t0 = claimed - self.excess, now_s
+
+    def within_time(self, now_s: float, per_s: float) -> tuple[float, float]:
+        """(most, slack): the count grown at per_s a second since the link came up (the device's
+        clock 1 % fast, a report 0.5 s late)."""
+        slack = REPORT_SLACK_S * per_s
+        return self.base + (now_s - self.t0) * (1 + CLOCK_TOLERANCE) * per_s + slack, slack
+
+    def take(self, claimed: float, most: float, slack: float) -> float:
+        """The device's total `claimed`, at most `most`: sets .shown; returns by how much this
+        claim passed the bound (0 when it holds)."""
+        v = claimed - self.excess
+        over = v - most
+        if over > 0:
+            self.excess += v - (most - slack)
+            v = most - slack
+        self.shown = v
+        return max(over, 0.0)
 
 
 def fault_names(flags: int) -> list[str]:
@@ -135,6 +177,13 @@ class DeviceHealth:
         self._sel_played += d_rend
 
     # ------------------------------------------------------------ output
+    @property
+    def elapsed_s(self) -> float:
+        """Device time elapsed between consecutive reports, summed over every link since the
+        daemon started (a reset, a new device or a clock that went back adds nothing): never goes
+        back, unlike a device's clock."""
+        return self._time_s
+
     @property
     def state_name(self) -> str:
         return STATE_NAMES.get(self.state, "unknown")

@@ -25,8 +25,8 @@ from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
+from hostd.device.health import CLOCK_TOLERANCE, REPORT_SLACK_S, fault_names
 from hostd.device.health import STATE_NAMES as DEVICE_STATES
-from hostd.device.health import fault_names
 from hostd.device.protocol import BUFFER_CAPACITY, SAMPLE_RATE_HZ
 from hostd.errors import ConfigError, HostdError
 from hostd.fileio import open_dir, read_regular_at, write_at
@@ -152,8 +152,6 @@ class PumpWriter:
 
 # what a device's counters may claim over a play, beyond the host's own clock: the device's
 # clock runs at most this much fast (crystal tolerance, with margin), plus its report's age
-CLOCK_TOLERANCE = 0.01
-REPORT_SLACK_S = 0.5
 
 
 def bound_play(c0: dict, c1: dict, host_s: float) -> tuple[dict, list[str]]:
@@ -163,9 +161,12 @@ def bound_play(c0: dict, c1: dict, host_s: float) -> tuple[dict, list[str]]:
     counters that claimed the impossible (empty when none did), each said in a few words."""
     bad: list[str] = []
     limit_s = max(host_s, 0.0) * (1 + CLOCK_TOLERANCE) + REPORT_SLACK_S
-    device_s = c1["device_time_s"] - c0["device_time_s"]
+    # device time elapsed between its reports, summed over links (the pump's, never going back;
+    # bounded there by the links' time up): a play that began before the device's first report,
+    # or spans a replug, compares no two clocks
+    device_s = c1["device_elapsed_s"] - c0["device_elapsed_s"]
     if not math.isfinite(device_s) or device_s < 0:
-        bad.append(f"its clock went from {c0['device_time_s']:.3f} s to {c1['device_time_s']:.3f} s")
+        bad.append(f"its clock went from {c0['device_elapsed_s']:.3f} s to {c1['device_elapsed_s']:.3f} s")
         device_s = 0.0
     elif device_s > limit_s:
         bad.append(f"{device_s:.1f} s of its clock in {host_s:.1f} s")

@@ -28,12 +28,13 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "device_time_s", "render_at", "device_uploads", "wait_ticks", "render_reason",
                "device_host_lost", "device_reuploads", "device_rendered_s", "device_faded_s",
                "device_idle_s", "wakeups", "compiled_cycles", "voluntary_switches", "busy_until_s",
+               "device_elapsed_s",
                "publish_seq")  # odd while publish() writes: readers take a whole snapshot (a seqlock)
 PUBLISH_SEQ = len(STAT_FIELDS) - 1
 STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
                 "batch_p50_us", "batch_p99_us", "batch_p999_us", "device_rendered_s", "device_faded_s",
-                "device_idle_s", "busy_until_s"}
+                "device_idle_s", "busy_until_s", "device_elapsed_s"}
 # why the texture renders where it does (`render_reason`, published as the index)
 RENDER_REASONS = ("the display renders it (protocol v2, its CAPS hold the texture)",
                   "configured: [render] where = \"host\"",
@@ -132,6 +133,7 @@ def pump_main(cfg, conn, stats) -> None:
     from hostd.device import devrender
     from hostd.device import protocol as pr
     from hostd.device.devmode import RENDERING, DeviceMode
+    from hostd.device.health import HostBound
     from hostd.device.hotplug import watch
     from hostd.device.link import DeviceLink
     from hostd.device.pump import JitterConfig, Pump
@@ -427,6 +429,16 @@ def pump_main(cfg, conn, stats) -> None:
     # flood. [window start, link.stats.statuses then, flooding]
     max_status_hz = pr.SAMPLE_RATE_HZ / pr.P["status_period_ticks"]
     flood = [time.monotonic(), 0, False]
+    # the device's counters as shown (status, metrics, the plays rows), bounded by what the host
+    # knows: samples played at most those this link sent plus a buffer; the device time elapsed
+    # and the display's ticks at most the link's time up (+1 %, +0.5 s), underruns one per two
+    # ticks. A claim above: one line per burst naming the device (the first after a quiet second)
+    bounds = {k: HostBound() for k in ("samples", "elapsed", "underruns", "rendered", "faded", "idle")}
+
+    def claimed(h) -> dict:
+        return {"samples": h.samples_played, "elapsed": h.elapsed_s, "underruns": h.underruns,
+                "rendered": h.rendered_ticks, "faded": h.faded_ticks, "idle": h.idle_ticks}
+    impossible_seen = [-math.inf]
 
     def publish() -> None:
         seq = stats[PUBLISH_SEQ]
@@ -470,6 +482,27 @@ def pump_main(cfg, conn, stats) -> None:
             put("malformed", s["malformed"])
             put("device_time_s", link.device_time_s)  # the device's clock, unwrapped
         h = pump.health
+        rate = pr.SAMPLE_RATE_HZ
+        sent = link.stats.samples_sent
+        boot = time.clock_gettime(time.CLOCK_BOOTTIME)  # a device's clock runs on while the host sleeps
+        most = {"samples": (bounds["samples"].base + sent + pr.BUFFER_CAPACITY, pr.BUFFER_CAPACITY),
+                "elapsed": bounds["elapsed"].within_time(boot, 1.0),
+                "underruns": bounds["underruns"].within_time(boot, rate / 2),
+                "rendered": bounds["rendered"].within_time(boot, rate),
+                "faded": bounds["faded"].within_time(boot, rate),
+                "idle": bounds["idle"].within_time(boot, rate)}
+        over = {k: bounds[k].take(v, *most[k]) for k, v in claimed(h).items()}
+        what = {"samples": "samples played", "elapsed": "s of its clock", "underruns": "underruns",
+                "rendered": "ticks rendered", "faded": "ticks faded", "idle": "ticks idle"}
+        claims = [f"{v:.1f} {what[k]}" if k == "elapsed" else f"{v:.0f} {what[k]}" for k, v in over.items()
+                  if v > 0]
+        if claims:
+            if now - impossible_seen[0] >= 1.0:
+                up_s = boot - bounds["samples"].t0
+                log(f"device: {transport.describe()} reported the impossible: {', '.join(claims)} more than "
+                    f"{up_s:.1f} s of its link and the {sent} samples sent to it allow; its counters are "
+                    "shown within what the host knows")
+            impossible_seen[0] = now
         if h.resets > resets_seen[0]:  # counters or clock went back or leapt: one line per burst
             t_reset = time.monotonic()
             if t_reset - resets_seen[1] >= 1.0:
@@ -478,15 +511,15 @@ def pump_main(cfg, conn, stats) -> None:
             resets_seen[:] = [h.resets, t_reset]
         put("device_state", h.state)
         put("device_fault_bits", h.recent_fault_bits())
-        put("device_underruns", h.underruns)
-        put("device_samples_played", h.samples_played)
+        put("device_underruns", bounds["underruns"].shown)
+        put("device_samples_played", bounds["samples"].shown)
         put("played_fraction", h.played_fraction)
         put("device_resets", h.resets)
         put("device_host_lost", h.host_lost)
-        rate = pr.SAMPLE_RATE_HZ
-        put("device_rendered_s", h.rendered_ticks / rate)
-        put("device_faded_s", h.faded_ticks / rate)
-        put("device_idle_s", h.idle_ticks / rate)
+        put("device_rendered_s", bounds["rendered"].shown / rate)
+        put("device_faded_s", bounds["faded"].shown / rate)
+        put("device_idle_s", bounds["idle"].shown / rate)
+        put("device_elapsed_s", bounds["elapsed"].shown)
         if dev is not None and dev.rendering:
             rs = link.render_status
             if rs is not None:  # the display's own measure, from its encoder's edge times
@@ -671,6 +704,10 @@ def pump_main(cfg, conn, stats) -> None:
             put("reconnects", reconnects)
             continue
         connected = True
+        # (the old link's counts since the last publish stay the old link's)
+        h = pump.health if pump is not None else None
+        for k, b in bounds.items():
+            b.link_up(time.clock_gettime(time.CLOCK_BOOTTIME), 0.0 if h is None else claimed(h)[k])
         bad_seen[:] = [0, -math.inf]
         bad_msgs_seen[:] = [0, -math.inf]
         flood[:] = [time.monotonic(), link.stats.statuses, False]

@@ -11,19 +11,36 @@ where two implementations exist:
 
     pip install atheris
     python tests/fuzz/fuzz_device_link.py -atheris_runs=1000000 [corpus_dir]
+    tests/fuzz/sanitize_device_link.sh -atheris_runs=1000000 [corpus_dir]   # _fastlink.c under ASan + UBSan
 
 Anything but ProtocolError (another exception, a divergence, a hang) is a finding. The compiled
 C parsers also have libFuzzer harnesses under ASan + UBSan (tests/fuzz/run_fuzzers.sh).
 """
 
+import importlib.machinery
+import importlib.util
 import math
+import os
 import sys
 
 import atheris
 
+if os.environ.get("HOSTD_FASTLINK_SO"):  # a sanitizer build (tests/fuzz/sanitize_device_link.sh)
+    _loader = importlib.machinery.ExtensionFileLoader("hostd.device._fastlink",
+                                                      os.environ["HOSTD_FASTLINK_SO"])
+    _so = importlib.util.module_from_spec(importlib.util.spec_from_loader(_loader.name, _loader))
+    _loader.exec_module(_so)
+    sys.modules[_loader.name] = _so  # what hostd.compiled.load imports
+
 with atheris.instrument_imports(include=["hostd.device"]):
     from hostd.device import fastlink
     from hostd.device import protocol as pr
+
+# a differential needs both: the reference against itself would find nothing
+if fastlink.IMPLEMENTATION != "c" or (os.environ.get("HOSTD_FASTLINK_SO") and fastlink._C is not _so):
+    sys.exit("fuzz_device_link: the compiled _fastlink is not in use (build it: python setup.py build_ext "
+             "--inplace; HOSTD_PURE_PYTHON unset)")
+print(f"fuzz_device_link: protocol.decode against {fastlink._C.__file__}", file=sys.stderr)
 
 READ = 4096
 
