@@ -4,9 +4,11 @@ survive (raise, hang, wrong length, NaN, not installed)."""
 
 from __future__ import annotations
 
+import os
 import struct
 import time
 import zlib
+from pathlib import Path
 
 import numpy as np
 
@@ -62,6 +64,31 @@ class NotInstalled(UniformZlib):
 
     def available(self):
         return "binary missing: set HOSTD_TEST_CODEC to the encoder (this fixture never has one)"
+
+
+class Gated(UniformZlib):
+    """The uniform quantizer behind a gate the test holds: with HOSTD_TEST_GATE=DIR:N in the
+    environment, N encodes (over all worker processes) pass, the rest wait until DIR/open exists
+    (a run that is surely still going when the test stops it, however slow the machine)."""
+
+    name = "gated-uniform"
+    settings = tuple({"step_um": s} for s in (2.0, 1.0, 0.5, 0.25))
+
+    def encode(self, heights_um, spacing_um, **kw):
+        gate = os.environ.get("HOSTD_TEST_GATE")
+        if gate:
+            d, n = gate.rsplit(":", 1)
+            for i in range(int(n)):  # one pass token each, taken once across processes
+                try:
+                    os.close(os.open(Path(d) / f"pass-{i}", os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+                    break
+                except FileExistsError:
+                    continue
+            else:
+                t_end = time.monotonic() + 600.0
+                while not (Path(d) / "open").exists() and time.monotonic() < t_end:
+                    time.sleep(0.01)
+        return super().encode(heights_um, spacing_um, **kw)
 
 
 class Slow(UniformZlib):

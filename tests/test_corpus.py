@@ -312,8 +312,9 @@ def test_the_daemon_and_other_commands_do_not_import_the_corpus_dependencies():
     assert out.stdout.strip() == "[]"
 
 
-def _cli(args, **kw):
-    return subprocess.Popen([sys.executable, "-m", "hostd", "corpus", *args], env=_env(), cwd=ROOT,
+def _cli(args, gate: str | None = None, **kw):
+    env = _env() if gate is None else {**_env(), "HOSTD_TEST_GATE": gate}
+    return subprocess.Popen([sys.executable, "-m", "hostd", "corpus", *args], env=env, cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                             **kw)
 
@@ -328,10 +329,13 @@ def _count(db: Path) -> int:
 
 def test_kill_9_of_the_driver_then_the_same_command_resumes_with_nothing_lost_or_twice(tmp_path):
     db = tmp_path / "r.sqlite"
-    # 6 textures x 4 settings = 24 jobs of >= 50 ms wall each, batches of 2, on 2 workers: >= 0.6 s
-    args = ["run", "synthetic:wood:1-3", "synthetic:sandpaper:1-3", "--codec", f"{FIX}:Slow",
+    # 6 textures x 4 settings = 24 jobs, batches of 2, on 2 workers; 4 encodes pass, the rest
+    # wait behind the gate until the resumed run: the run is surely going when it is killed
+    gate = tmp_path / "gate"
+    gate.mkdir()
+    args = ["run", "synthetic:wood:1-3", "synthetic:sandpaper:1-3", "--codec", f"{FIX}:Gated",
             "--length-mm", "2", "--no-spqi", "--workers", "2", "--batch", "2", "-o", str(db), "--json"]
-    p = _cli(args)
+    p = _cli(args, gate=f"{gate}:4")
     deadline = time.monotonic() + 120
     while _count(db) < 4 and p.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
@@ -344,7 +348,8 @@ def test_kill_9_of_the_driver_then_the_same_command_resumes_with_nothing_lost_or
         pass
     before = {r["key"]: r for r in _rows(db)}
     assert 4 <= len(before) < 24
-    q = _cli(args)
+    (gate / "open").touch()
+    q = _cli(args, gate=f"{gate}:4")
     out, err = q.communicate(timeout=180)
     assert q.returncode == 0, err
     summ = json.loads(out)
@@ -359,13 +364,16 @@ def test_kill_9_of_the_driver_then_the_same_command_resumes_with_nothing_lost_or
 
 def test_ctrl_c_stops_the_run_and_keeps_the_finished_rows(tmp_path):
     db = tmp_path / "r.sqlite"
-    p = _cli(["run", "synthetic:wood:1-4", "--codec", f"{FIX}:Slow", "--length-mm", "2", "--no-spqi",
-              "--workers", "2", "--batch", "1", "-o", str(db)])
+    gate = tmp_path / "gate"  # 2 encodes pass, the rest wait for the gate: Ctrl-C comes mid-run
+    gate.mkdir()
+    p = _cli(["run", "synthetic:wood:1-4", "--codec", f"{FIX}:Gated", "--length-mm", "2", "--no-spqi",
+              "--workers", "2", "--batch", "1", "-o", str(db)], gate=f"{gate}:2")
     deadline = time.monotonic() + 120
     while _count(db) < 2 and p.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     assert p.poll() is None, "the run ended before Ctrl-C: " + p.stderr.read()
     os.kill(p.pid, signal.SIGINT)
+    (gate / "open").touch()  # (the jobs in the workers' hands may end or be stopped)
     _, err = p.communicate(timeout=60)
     assert p.returncode == 130 and "interrupted: the rows above are kept" in err
     kept = _rows(db)
