@@ -228,6 +228,10 @@ class Pump:
             return
         self._ready()
         self._restart(first=True)
+        # from START the device plays the prime: the next cycle's pause counts from here (a
+        # first cycle held up past the prime was an underrun with no stall to explain it; the
+        # link's clock: time.monotonic() for every transport the compiled cycle drives)
+        self._last_cycle_start = self.link.t.now()
 
     def _ready(self) -> None:
         """Load what the cycles after START need, before START: from START on the device plays
