@@ -312,9 +312,17 @@ def test_the_daemon_and_other_commands_do_not_import_the_corpus_dependencies():
     assert out.stdout.strip() == "[]"
 
 
+def _sigint_default() -> None:
+    """In the child: Ctrl-C as a terminal's foreground job gets it. A runner started in the
+    background (`cmd &` in a script) hands its children SIGINT ignored, and Python then keeps it
+    ignored (no KeyboardInterrupt): the Ctrl-C test then saw a run finish with exit 0."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _cli(args, gate: str | None = None, **kw):
     env = _env() if gate is None else {**_env(), "HOSTD_TEST_GATE": gate}
     return subprocess.Popen([sys.executable, "-m", "hostd", "corpus", *args], env=env, cwd=ROOT,
+                            preexec_fn=_sigint_default,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                             **kw)
 
@@ -330,14 +338,16 @@ def _count(db: Path) -> int:
 def test_kill_9_of_the_driver_then_the_same_command_resumes_with_nothing_lost_or_twice(tmp_path):
     db = tmp_path / "r.sqlite"
     # 6 textures x 4 settings = 24 jobs, batches of 2, on 2 workers; 4 encodes pass, the rest
-    # wait behind the gate until the resumed run: the run is surely going when it is killed
+    # wait behind the gate until the resumed run: the run is surely going when it is killed. (A
+    # batch's rows come together, and a worker may take a second batch's tokens before the other
+    # took its first's: one whole batch, 2 rows, is what the 4 tokens guarantee.)
     gate = tmp_path / "gate"
     gate.mkdir()
     args = ["run", "synthetic:wood:1-3", "synthetic:sandpaper:1-3", "--codec", f"{FIX}:Gated",
             "--length-mm", "2", "--no-spqi", "--workers", "2", "--batch", "2", "-o", str(db), "--json"]
     p = _cli(args, gate=f"{gate}:4")
     deadline = time.monotonic() + 120
-    while _count(db) < 4 and p.poll() is None and time.monotonic() < deadline:
+    while _count(db) < 2 and p.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     assert p.poll() is None, "the run ended before it could be killed: " + p.stderr.read()
     os.kill(p.pid, signal.SIGKILL)
@@ -347,7 +357,7 @@ def test_kill_9_of_the_driver_then_the_same_command_resumes_with_nothing_lost_or
     except ProcessLookupError:
         pass
     before = {r["key"]: r for r in _rows(db)}
-    assert 4 <= len(before) < 24
+    assert 2 <= len(before) < 24
     (gate / "open").touch()
     q = _cli(args, gate=f"{gate}:4")
     out, err = q.communicate(timeout=180)
@@ -356,7 +366,7 @@ def test_kill_9_of_the_driver_then_the_same_command_resumes_with_nothing_lost_or
     assert summ["skipped"] == len(before) and summ["written"] == 24 - len(before)
     after = _rows(db)
     assert len(after) == len({r["key"] for r in after}) == 24
-    assert all(r["error"] is None for r in after)
+    assert all(r["error"] is None for r in after), [r["error"] for r in after if r["error"]][:3]
     for r in after:  # the rows written before the kill are untouched
         if r["key"] in before:
             assert r == before[r["key"]]

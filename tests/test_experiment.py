@@ -285,7 +285,10 @@ def test_the_experimenters_terminal_shows_progress_aborts_and_resumes(tmp_path):
     out = tmp_path / "o"
     args = [sys.executable, "-m", "hostd", "experiment", "threshold", "--out", str(out), "--token", "p1",
             "--frequencies", "40,250", "--trials", "3"]
-    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True)
+    # (SIGINT as a terminal's foreground job has it: a runner started in the background hands
+    # its children SIGINT ignored, and the Ctrl-C below never arrived: a 300 s hang)
+    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         line = proc.stderr.readline()
         m = re.search(r"(http://127\.0\.0\.1:\d+/s/p1)", line)
