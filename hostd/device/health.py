@@ -29,6 +29,7 @@ RUNNING = pr.STATES["RUNNING"]
 RENDERING = pr.STATES.get("RENDERING", -1)  # protocol v2: the device renders itself
 UNDERRUN_BIT = pr.FAULTS["UNDERRUN"]
 HOST_TIMEOUT_BIT = pr.FAULTS["HOST_TIMEOUT"]
+OVERFLOW_BIT = pr.FAULTS["OVERFLOW"]
 # a gap in device time between two STATUS messages longer than this is not a gap: the
 # device clock went back or jumped (a reset, another device); the counters re-baseline
 MAX_GAP_US = 600_000_000

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hostd.device import protocol as pr
-from hostd.device.health import HOST_TIMEOUT_BIT, RUNNING, UNDERRUN_BIT, DeviceHealth
+from hostd.device.health import HOST_TIMEOUT_BIT, OVERFLOW_BIT, RUNNING, UNDERRUN_BIT, DeviceHealth
 from hostd.device.link import DeviceLink
 from hostd.errors import DeviceBusy
 
@@ -81,6 +81,9 @@ class PumpStats:
     recoveries: int = 0  # episodes where the device stopped playing and was brought back
     io_retries: int = 0  # transient write errors retried within the cycle
     io_dropped: int = 0  # messages given up after retries (the device's host timeout covers it)
+    # STATUS reports flagging OVERFLOW: the device's buffer was full and it dropped samples it was
+    # sent (the device's own flag; it has no counter): what it played next was not what followed
+    overflows: int = 0
     implausible_speed: int = 0  # motion estimates rejected as physically impossible
     relocks: int = 0  # motion estimator restarts after a real jump
     # stall intervals in host monotonic time (start, end), the latest 4096, for tests/benches
@@ -162,6 +165,8 @@ class Pump:
     def _on_status(self, f: dict, device_time_s: float, fresh: bool = True) -> None:
         self.health.update(f)
         self._flags_seen |= f["fault_flags"]
+        if f["fault_flags"] & OVERFLOW_BIT:
+            self.stats.overflows += 1
         sp = f["samples_played"]
         if self._last_played_dev_s is not None and device_time_s < self._last_played_dev_s:
             # the device's clock went back (it was reset behind the same port): what it played

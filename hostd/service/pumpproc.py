@@ -28,7 +28,7 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "device_time_s", "render_at", "device_uploads", "wait_ticks", "render_reason",
                "device_host_lost", "device_reuploads", "device_rendered_s", "device_faded_s",
                "device_idle_s", "wakeups", "compiled_cycles", "voluntary_switches", "busy_until_s",
-               "device_elapsed_s",
+               "device_elapsed_s", "device_overflows",
                "publish_seq")  # odd while publish() writes: readers take a whole snapshot (a seqlock)
 PUBLISH_SEQ = len(STAT_FIELDS) - 1
 STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
@@ -342,6 +342,7 @@ def pump_main(cfg, conn, stats) -> None:
         pump.begin(r)  # (STOP if it streamed,) prime, START
         s["first_seq"] = link.next_seq()  # the first SAMPLES after START: once taken, START was too
         s["underruns0"], s["recoveries0"] = pump.health.underruns, pump.stats.recoveries
+        s["overflows0"], s["malformed0"] = pump.stats.overflows, malformed_count()
         playing = True
         put("state", STATE_CODES["playing"])
 
@@ -352,6 +353,11 @@ def pump_main(cfg, conn, stats) -> None:
         pump.health.select(False)
         playing = False
         put("state", STATE_CODES["idle"])
+
+    def malformed_count() -> int | None:
+        """The device's own count of messages it dropped as malformed (a cut SAMPLES frame)."""
+        st = link.stats.last_status
+        return st.get("malformed") if st else None
 
     def stimulus_check() -> None:
         """Once per cycle while a stimulus plays: played whole (the device's own count of samples
@@ -373,6 +379,17 @@ def pump_main(cfg, conn, stats) -> None:
             answer_stimulus(s["id"], f"the display stopped playing the stimulus ({why}: a host stall "
                             f"longer than its buffer) after {n_played} samples: it was not "
                             "played whole; ask again")
+            return
+        elif pump.stats.overflows != s["overflows0"] or malformed_count() != s["malformed0"]:
+            # the device dropped samples it was sent (its buffer full: a display that fell behind
+            # the host's estimate of its clock; or a frame cut on the way): it played on, from
+            # later in the stimulus, without an underrun; the count of samples played cannot tell
+            stim[0] = None
+            why = ("its buffer overflowed" if pump.stats.overflows != s["overflows0"]
+                   else "a message of it arrived damaged")
+            stimulus_end()
+            answer_stimulus(s["id"], f"the display dropped samples of the stimulus ({why}): it was not "
+                            "played as asked; ask again")
             return
         elif h.samples_played - s["p0"] >= s["needed"]:
             stim[0] = None
@@ -533,6 +550,7 @@ def pump_main(cfg, conn, stats) -> None:
                      "longest_stall_ms", "implausible_speed", "relocks", "io_retries", "io_dropped"):
             put(name, getattr(st, name))
         put("recoveries", st.recoveries + (dev.recoveries if dev is not None else 0))
+        put("device_overflows", st.overflows)  # reports with the display's OVERFLOW flag
         if dev is not None:
             put("device_uploads", dev.uploads)
             put("device_reuploads", dev.recoveries)
