@@ -60,7 +60,7 @@ def test_no_procedure_step_asks_beyond_the_reach_and_above_reach_is_reported(rea
 
 
 def test_the_joint_mode_never_asks_beyond_the_reach_and_reports_above_reach():
-    from hostd.experiment.threshold import make_run
+    from hostd.experiment.procedure import make_run
 
     freqs = [40.0, 100.0, 250.0, 500.0]
     reach = [0.5, 5.0, 5.0, 5.0]  # the first frequency's reach is below what this observer needs

@@ -112,7 +112,7 @@ class ThresholdSession(Session):
     kind = "threshold"
 
     def __init__(self, store: Store, token: str, display, cfg) -> None:
-        from hostd.experiment.threshold import make_run
+        from hostd.experiment.procedure import make_run
 
         super().__init__(store, token, display)
         self.cfg = cfg

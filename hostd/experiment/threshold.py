@@ -259,15 +259,6 @@ class ThresholdRun:
         return [s.result() for s in self.stairs]
 
 
-def make_run(cfg: ThresholdConfig):
-    """The run of cfg.procedure: ThresholdRun (a QUEST+ per frequency) or joint.JointRun."""
-    if cfg.procedure == "joint":
-        from hostd.experiment.joint import JointRun
-
-        return JointRun(cfg)
-    return ThresholdRun(cfg)
-
-
 def thresholds_csv(results: list[ThresholdResult], provenance: str = "") -> str:
     """The thresholds CSV every `--thresholds` reads as-is (columns by name; the interval and
     the counts are extra columns). A frequency whose threshold is above the display's reach is
