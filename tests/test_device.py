@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hostd.device import gen_header, hostport
+from hostd.device import fastpump, gen_header, hostport
 from hostd.device import protocol as pr
 from hostd.device.link import DeviceLink
 from hostd.device.pump import Pump
@@ -191,7 +191,7 @@ def test_end_to_end_with_the_firmware_host_port_under_clock_drift(firmware_host,
         t = SerialTransport(line[1])
         link = DeviceLink(t, target_fill=30)  # 10 ms
         link.handshake(timeout_s=2.0)
-        pump = Pump(link, None)
+        pump = Pump(link, None, cycle=fastpump)  # as the daemon runs it
         pump.record = True
         link.poll(0.01)
         pump.begin(_renderer())  # pre-fill, then start
@@ -248,7 +248,7 @@ def test_a_stream_started_after_the_link_went_unread_plays_on_from_its_prime(fir
         link.handshake(timeout_s=2.0)
         r = _renderer()
         time.sleep(2.5)  # nothing reads the link meanwhile: its reports pile up in the pty
-        pump = Pump(link, None)
+        pump = Pump(link, None, cycle=fastpump)  # as the daemon runs it
         pump.begin(r)
         statuses = link.stats.statuses
         assert not link.stale()  # primed on a current report (stale(): older than 2 periods + 5 ms)

@@ -128,6 +128,10 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     assert st["stalls"] >= len(stalls)
     assert abs(st["played_fraction"] - fig["played_fraction"]) < 0.01
     assert st["device_state"] == "running" and st["state"] == "playing"
+    # the daemon's pump streams through the compiled cycle it was handed (where it is built)
+    from hostd.device import fastpump
+
+    assert (st["compiled_cycles"] > 0) == (fastpump.IMPLEMENTATION == "c"), st["compiled_cycles"]
     assert isinstance(st["device_faults"], list)
     # each episode logged once: never more lines than episodes. The journal holds back a line
     # identical to a recent one (hostd.service.logsetup's back-off) and counts it in a later

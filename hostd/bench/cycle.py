@@ -76,7 +76,7 @@ def run(seconds: float = 8.0, host_cycle_ms: int = 1, texture: str = "wood", com
             coeffs, n, length = texture_coeffs(synth.make(texture, seed=1))
             r = Renderer(coeffs, n, length, RenderConfig())
             r.start()
-            pump = Pump(link, None, period_s=host_cycle_ms / 1000)
+            pump = Pump(link, None, period_s=host_cycle_ms / 1000, cycle=fastpump)
             pump.begin(r)
             compiled = compiled and fastpump.usable(pump)
             real_sleep = time.sleep

@@ -52,6 +52,7 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = STEP_P
         step_mm: float = 0.05, adaptive: bool = True) -> dict:
     """One run. adaptive=False holds the fill target (no rise after an underrun)."""
     from hostd.bench.accuracy import texture_coeffs
+    from hostd.device import fastpump
     from hostd.device.link import DeviceLink
     from hostd.device.pump import JitterConfig, Pump
     from hostd.device.seriallink import SerialTransport
@@ -74,7 +75,7 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = STEP_P
             r.start()
             jitter = JitterConfig(base_fill=target_fill, max_fill=max(target_fill, JitterConfig.max_fill),
                                   rise_factor=2.0 if adaptive else 1.0)
-            pump = Pump(link, None, jitter=jitter)
+            pump = Pump(link, None, jitter=jitter, cycle=fastpump)
             link.poll(0.01)
             pump.begin(r)
             pump.run(duration_s)

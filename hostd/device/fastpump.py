@@ -107,7 +107,6 @@ def _ordinary(pump) -> bool:
     each other as Pump.attach wires them."""
     from hostd.device.health import DeviceHealth
     from hostd.device.link import DeviceLink
-    from hostd.device.pump import Pump
     from hostd.render.equalizer import Equalizer
     from hostd.render.height import HeightEvaluator
     from hostd.render.motion import MotionEstimator
@@ -115,7 +114,8 @@ def _ordinary(pump) -> bool:
     from hostd.render.position import EncoderPosition
 
     link, r = pump.link, pump.renderer
-    if not (_plain(pump, Pump) and _plain(link, DeviceLink) and _plain(pump.health, DeviceHealth)
+    if not (vars(type(pump)).get("COMPILED_MIRROR") is True and _plain(pump, type(pump))
+            and _plain(link, DeviceLink) and _plain(pump.health, DeviceHealth)
             and link.on_status == pump._on_status):
         return False
     return r is None or (_renderer_ok(r) and _plain(r.motion, MotionEstimator)

@@ -110,11 +110,23 @@ _NO_LOW = 1 << 16  # above any fill the device can report (u16)
 
 
 class Pump:
-    """One device link, one renderer (None = nothing selected), the recovery state machine."""
+    """One device link, one renderer (None = nothing selected), the recovery state machine.
+
+    cycle: what runs the ordinary cycles in Pump.run, an object with usable(pump) -> bool and
+    run(pump, start_s, k, duration_s, wake_fds) -> (k, why, due_s): the compiled cycle,
+    hostd.device.fastpump, which its owner passes (the daemon's pump process, the benches);
+    None, every cycle is this module's reference. The pump does not import it: the compiled
+    cycle mirrors this class (COMPILED_MIRROR), not the other way round."""
+
+    # the compiled cycle (hostd/device/_fastpump.c) does what this class's methods do: it takes
+    # a pump only when it is exactly this class (a subclass, or an instance with a method
+    # replaced, goes through the reference)
+    COMPILED_MIRROR = True
 
     def __init__(self, link: DeviceLink, renderer, period_s: float = 0.001,
-                 jitter: JitterConfig | None = None, log=None) -> None:
+                 jitter: JitterConfig | None = None, log=None, cycle=None) -> None:
         self.renderer = renderer
+        self.cycle = cycle
         if not 0.001 <= period_s <= 0.010 + 1e-12:
             raise ValueError("pump period must be 1..10 ms")
         self.period_s = period_s
@@ -244,9 +256,8 @@ class Pump:
         it runs dry. The compiled cycle's modules (hostd.device.fastpump and the transports it
         tells apart) were imported by the first run() after begin(): 20-60 ms, measured, so
         every stream began with an underrun (and a doubled fill target)."""
-        from hostd.device import fastpump
-
-        fastpump.usable(self)  # (imports the transports it checks for)
+        if self.cycle is not None:
+            self.cycle.usable(self)  # (imports the transports it checks for)
 
     def end(self) -> None:
         """Stop playing (the device ramps to zero)."""
@@ -418,9 +429,8 @@ class Pump:
         cycle and the ordinary ones after it run compiled, for at most fastpump.BUDGET_S or until
         one of wake_fds is readable (a command, a udev event): each_cycle() and stop() are then
         asked at least that often, and at the next deadline after a command."""
-        from hostd.device import fastpump
-
-        fast = compiled and fastpump.usable(self)
+        cycle = self.cycle
+        fast = compiled and cycle is not None and cycle.usable(self)
         start = time.monotonic()
         k = 0
         st = self.stats
@@ -443,7 +453,7 @@ class Pump:
             if stop is not None and stop():
                 break
             if fast:  # this cycle and the ordinary ones after it, compiled
-                k, why, due = fastpump.run(self, start, k, duration_s, wake_fds)
+                k, why, due = cycle.run(self, start, k, duration_s, wake_fds)
                 if why != "reference":
                     if due:
                         time.sleep(max(0.0, due - time.monotonic()))

@@ -124,6 +124,21 @@ def preload_host_rendering(stats=None) -> None:
             stats[STAT_INDEX["busy_until_s"]] = 0.0
 
 
+class CompiledCycle:
+    """The pump's compiled cycle (hostd.device.fastpump), imported at its first use: host
+    rendering and stimuli load it, device rendering never does (the supervisor stays lean)."""
+
+    def usable(self, pump) -> bool:
+        from hostd.device import fastpump
+
+        return fastpump.usable(pump)
+
+    def run(self, pump, start_s: float, k: int, duration_s, fds=()):
+        from hostd.device import fastpump
+
+        return fastpump.run(pump, start_s, k, duration_s, fds)
+
+
 def pump_main(cfg, conn, stats) -> None:
     """Entry point of the pump process. cfg: hostd.service.config.Config."""
     import resource
@@ -313,7 +328,7 @@ def pump_main(cfg, conn, stats) -> None:
         if not connected:
             answer_stimulus(sid, "no display is connected (hostd status says why): connect it and ask again")
             return
-        from hostd.device import fastpump  # (Pump.run imports it: loaded now, not after START)
+        from hostd.device import fastpump  # (the pump's cycle imports it: now, not after START)
         from hostd.errors import StimulusRefused
         from hostd.render.stimulus import StimulusRenderer  # (the stimulus path only)
 
@@ -737,7 +752,8 @@ def pump_main(cfg, conn, stats) -> None:
         log(f"device: {transport.describe()} firmware {ident['fw_major']}.{ident['fw_minor']}."
             f"{ident['fw_patch']}, protocol v{ident['protocol_version']}")
         if pump is None:
-            pump = Pump(link, None, period_s=cfg.device.host_cycle_ms / 1000, jitter=jitter, log=log)
+            pump = Pump(link, None, period_s=cfg.device.host_cycle_ms / 1000, jitter=jitter, log=log,
+                        cycle=CompiledCycle())
         else:
             pump.attach(link)
         playing = False
