@@ -320,8 +320,10 @@ def test_the_pump_gives_its_host_renderer_loading_a_bounded_deadline_for_the_wat
     assert stats[i] == 0.0
 
 
-@pytest.mark.parametrize("period_ticks", [450, pr.R["status_period_ticks"]], ids=["firmware-0.4", "this-firmware"])
-def test_the_keep_alive_rides_the_report_wake_ups_and_a_stopped_display_is_seen_at_once(monkeypatch, period_ticks):
+@pytest.mark.parametrize("period_ticks", [450, pr.R["status_period_ticks"]],
+                         ids=["firmware-0.4", "this-firmware"])
+def test_the_keep_alive_rides_the_report_wake_ups_and_a_stopped_display_is_seen_at_once(monkeypatch,
+                                                                                        period_ticks):
     """docs/protocol.md, "Reports while rendering": with the default host_lost_ms (1000 ms) the host
     wakes once per report pair (a 0.4 display's 150 ms, this firmware's 300 ms) and never on a
     timer of its own; the display hears a keep-alive at least every host_lost_ms / 3, far within
@@ -371,6 +373,7 @@ def test_the_keep_alive_rides_the_report_wake_ups_and_a_stopped_display_is_seen_
     t.device.render.halt()
     t.device.state = pr.STATES["IDLE"]
     k1 = t.device.ticks
-    dev.run(stop=lambda: dev.recoveries > 0 or t.device.ticks >= k1 + rate, each_wake=lambda ready: dev.tick())
+    dev.run(stop=lambda: dev.recoveries > 0 or t.device.ticks >= k1 + rate,
+            each_wake=lambda ready: dev.tick())
     assert dev.recoveries == 1 and t.device.state == pr.STATES["RENDERING"]
     assert t.device.ticks - k1 <= 2 * pr.P["status_period_ticks"], t.device.ticks - k1
