@@ -15,7 +15,7 @@ from hostd.device import protocol as pr
 from hostd.device.seriallink import SerialTransport
 
 # gather's count is the caller's: device mode takes one report pair per wake-up since the display
-# reports every 150 ms (firmware 0.4); these tests hold it to several, the general case
+# reports every 300 ms (firmware 0.5); these tests hold it to several, the general case
 PAIRS = 3
 
 

@@ -172,7 +172,7 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
     # being served (this test's requests: one at a time, plus one that may still be ending)
     assert footprint["pump_threads"] == 1 and footprint["daemon_threads"] <= 7, footprint
     assert a["played_fraction"] > 0.99
-    # asleep between reports: a wake-up per report (150 ms) plus commands, not one per ms
+    # asleep between reports: a wake-up per report (300 ms) plus commands, not one per ms
     assert (b["wakeups"] - a["wakeups"]) / (t_b - t_a - 2.5) < 60, (a["wakeups"], b["wakeups"])
     assert b["device_host_lost"] == 1 and b["device_reuploads"] == 1 and b["device_state"] == "rendering"
     assert b["device_faded_s"] > 0.09 and b["device_idle_s"] > 0.5  # the fade-out and the idle time
@@ -189,7 +189,7 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
     assert 0.5 < truth < 0.9  # the idle second and a half is not "played"
     # the snapshot's device time comes from the latest STATUS, its played fraction from the latest
     # RENDER_STATUS: under load they can be one report period apart, so the window is known to
-    # within one period (450 ticks of the ~12,000 here: 0.0375)
+    # within one period (900 ticks of the ~12,000 here: 0.075)
     tol = period_ticks / max(1, k1 - k0) + 1e-3
     assert abs(b["played_fraction"] - truth) < tol, (b["played_fraction"], truth, tol)
 
@@ -318,3 +318,62 @@ def test_the_pump_gives_its_host_renderer_loading_a_bounded_deadline_for_the_wat
     with pytest.raises(ImportError):
         pumpproc.preload_host_rendering(stats)
     assert stats[i] == 0.0
+
+
+@pytest.mark.parametrize("period_ticks", [450, pr.R["status_period_ticks"]],
+                         ids=["firmware-0.4", "this-firmware"])
+def test_the_keep_alive_rides_the_report_wake_ups_and_a_stopped_display_is_seen_at_once(monkeypatch,
+                                                                                        period_ticks):
+    """docs/protocol.md, "Reports while rendering": with the default host_lost_ms (1000 ms) the host
+    wakes once per report pair (a 0.4 display's 150 ms, this firmware's 300 ms) and never on a
+    timer of its own; the display hears a keep-alive at least every host_lost_ms / 3, far within
+    host_lost_ms (it never counts its host lost); a display that stops rendering is uploaded to
+    again at its first 1 ms STATUS. On the simulated display's clock (manual: the host's clock
+    follows it), so the figures are exact whatever the machine's load."""
+    from types import SimpleNamespace
+
+    from hostd.device import devmode, fwmodel, simdev
+    from hostd.device.link import DeviceLink
+    from hostd.render.pipeline import RenderConfig
+
+    class Display(simdev.SimDevice):
+        def status_period(self) -> int:
+            return period_ticks if self.state == pr.STATES["RENDERING"] else pr.P["status_period_ticks"]
+
+    monkeypatch.setattr(fwmodel, "R", {**pr.R, "status_period_ticks": period_ticks})  # its RENDER_STATUS
+    t = simdev.SimTransport(device=Display(), realtime=False)
+    rate = pr.SAMPLE_RATE_HZ
+    monkeypatch.setattr(devmode, "time", SimpleNamespace(monotonic=lambda: t.device.ticks / rate))
+    heard = []  # device ticks at which the display took a message from the host
+    on_message = t.device.on_message
+    monkeypatch.setattr(t.device, "on_message", lambda m: (heard.append(t.device.ticks), on_message(m)))
+    link = DeviceLink(t)
+    link.ident = pr.decode(t.device.ident())[1]
+    link.caps = pr.decode(t.device.caps())[1]
+    rng = np.random.default_rng(1)
+    dev = devmode.DeviceMode(link, RenderConfig(), log=lambda m: None)
+    dev._taken_over = True  # (a display known idle: take_over has its own test)
+    dev.begin(("t", rng.normal(0, 0.1, 40).tolist(), 82, 10.0))
+    assert t.device.state == pr.STATES["RENDERING"]
+    k0 = t.device.ticks
+    heard.clear()
+    wakes = []
+    def each_wake(ready) -> None:  # as the pump's: the keep-alive and the re-upload check
+        wakes.append(t.device.ticks)
+        dev.tick()
+
+    dev.run(stop=lambda: t.device.ticks >= k0 + 6 * rate, each_wake=each_wake)
+    reports = 6 * rate // period_ticks
+    assert reports - 1 <= len(wakes) <= reports + 1, (len(wakes), reports)
+    assert all(w % period_ticks == 0 for w in wakes)  # each wake-up a report's, none a timer's
+    gaps_ms = np.diff([k0, *heard]) * 1000 / rate
+    assert len(heard) >= 6 / 0.34 and gaps_ms.max() <= 1000 / 3 + 1, gaps_ms  # every host_lost_ms / 3
+    assert t.device.render.host_lost_count == 0 and dev.recoveries == 0
+    # the display stops rendering on its own (a reset): its 1 ms STATUS brings the upload at once
+    t.device.render.halt()
+    t.device.state = pr.STATES["IDLE"]
+    k1 = t.device.ticks
+    dev.run(stop=lambda: dev.recoveries > 0 or t.device.ticks >= k1 + rate,
+            each_wake=lambda ready: dev.tick())
+    assert dev.recoveries == 1 and t.device.state == pr.STATES["RENDERING"]
+    assert t.device.ticks - k1 <= 2 * pr.P["status_period_ticks"], t.device.ticks - k1

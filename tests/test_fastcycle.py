@@ -97,6 +97,52 @@ def test_samples_encode_to_the_same_bytes(seq, codes):
         assert fastlink.encode_samples(seq, big[: arr.size]) == ref[1]
 
 
+def _deframed(compiled: bool, pieces) -> tuple:
+    d = pr.Deframer()
+    if not compiled:
+        d._compiled = None  # the reference loop
+    got = [d.feed(p) for p in pieces]
+    return got, d.bad_frames, bytes(d._buf)
+
+
+# a stream's parts: valid frames, frames cut or with a byte changed, empty frames, bare COBS
+# without CRC, garbage with and without zero bytes, long runs without a delimiter (the resync)
+_FRAME_PART = st.one_of(
+    st.binary(min_size=1, max_size=70).map(pr.frame),
+    st.tuples(st.binary(min_size=1, max_size=70), st.integers(0, 80)).map(
+        lambda a: pr.frame(a[0])[: a[1]]),
+    st.tuples(st.binary(min_size=1, max_size=70), st.integers(0, 80), st.integers(1, 255)).map(
+        lambda a: bytes(b ^ (a[2] if i == a[1] else 0) for i, b in enumerate(pr.frame(a[0])))),
+    st.just(b"\x00"), st.binary(max_size=12).map(lambda b: b + b"\x00"),
+    st.binary(max_size=90), st.integers(250, 700).map(lambda n: b"\x01" * n),
+    st.integers(1, 3).map(lambda n: b"\xff" * 254 * n + b"\x00"))
+
+
+@needs_c
+@settings(max_examples=300, deadline=None)
+@given(st.lists(_FRAME_PART, max_size=30), st.lists(st.integers(1, 400), min_size=1, max_size=20))
+def test_compiled_deframing_gives_the_reference_messages_and_counts(parts, cuts):
+    """_fastlink.deframe against protocol.Deframer's loop: the same messages from each feed, the
+    same bad-frame count and the same bytes left waiting, whatever the stream and its pieces."""
+    stream = b"".join(parts)
+    pieces, i, k = [], 0, 0
+    while i < len(stream):
+        n = cuts[k % len(cuts)]
+        pieces.append(bytearray(stream[i : i + n]) if k % 2 else stream[i : i + n])
+        i, k = i + n, k + 1
+    assert pr.Deframer()._compiled is fastlink.DEFRAME is not None
+    assert _deframed(True, pieces) == _deframed(False, pieces)
+
+
+@needs_c
+def test_compiled_deframing_of_the_golden_frames():
+    lines = [ln.split() for ln in VECTORS.read_text().splitlines() if ln.startswith(("frame ", "badframe "))]
+    assert len(lines) >= 3
+    for row in lines:
+        raw = bytes.fromhex(row[-1])
+        assert _deframed(True, [raw]) == _deframed(False, [raw]), row[1]
+
+
 # ---------------------------------------------------------------- render tail
 def _stages(eq_enabled: bool, seed: int):
     rng = np.random.default_rng(seed)

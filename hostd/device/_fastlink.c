@@ -23,6 +23,13 @@
  *       fd reads what arrived (non-blocking fd) onto the bytearray buf. hung_up: fd reported
  *       POLLHUP/POLLERR or its read ended (0 bytes) or failed (not EAGAIN): the caller's next
  *       read says what happened. No REVISION change: fastlink looks the function up by name.
+ *   deframe(buf, max_frame) -> (messages, bad_frames)
+ *       protocol.Deframer's loop over its bytearray buf (serial framing: COBS(msg + CRC16 LE) +
+ *       0x00): takes every complete frame off the front of buf, returns the valid messages (bytes)
+ *       and how many frames were bad (COBS, too short, CRC); with no delimiter left and more than
+ *       4 x max_frame bytes waiting, buf is cleared and one more bad frame counted (a resync).
+ *       The same messages and counts as the reference (tests/test_device.py compares them);
+ *       device mode's wake-up deframes a report pair here instead of in Python. Looked up by name.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -276,7 +283,102 @@ static PyObject *fl_gather(PyObject *self, PyObject *args) {
     return Py_BuildValue("(Nii)", ready, runs, hup);
 }
 
+/* ------------------------------------------------------------------ serial framing */
+static uint16_t crc16(const unsigned char *p, Py_ssize_t n) { /* CRC-16/CCITT-FALSE = binascii.crc_hqx */
+    uint16_t c = 0xFFFF;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        c ^= (uint16_t)(p[i] << 8);
+        for (int b = 0; b < 8; b++)
+            c = (c & 0x8000) ? (uint16_t)((c << 1) ^ 0x1021) : (uint16_t)(c << 1);
+    }
+    return c;
+}
+
+/* cobs.decode of one frame body of n > 0 bytes, none zero (the delimiter cut it); out holds n
+ * bytes (COBS never lengthens); returns the length or -1 (cobs.DecodeError) */
+static Py_ssize_t cobs_decode(const unsigned char *in, Py_ssize_t n, unsigned char *out) {
+    Py_ssize_t i = 0, k = 0;
+    for (;;) {
+        unsigned len = in[i];
+        i++;
+        Py_ssize_t end = i + (Py_ssize_t)len - 1;
+        if (end > n)
+            return -1; /* not enough input bytes for length code */
+        memcpy(out + k, in + i, (size_t)(end - i));
+        k += end - i;
+        i = end;
+        if (i < n) {
+            if (len < 0xFF)
+                out[k++] = 0;
+        } else
+            return k;
+    }
+}
+
+static PyObject *fl_deframe(PyObject *self, PyObject *args) {
+    PyObject *buf;
+    Py_ssize_t max_frame;
+    if (!PyArg_ParseTuple(args, "O!n", &PyByteArray_Type, &buf, &max_frame))
+        return NULL;
+    PyObject *out = PyList_New(0);
+    if (!out)
+        return NULL;
+    long bad = 0;
+    unsigned char small[256], *raw = small, *big = NULL;
+    Py_ssize_t len = PyByteArray_GET_SIZE(buf), at = 0;
+    /* (nothing here runs Python code: buf cannot change under us) */
+    const unsigned char *b = (const unsigned char *)PyByteArray_AS_STRING(buf);
+    for (;;) {
+        const unsigned char *z = at < len ? memchr(b + at, 0, (size_t)(len - at)) : NULL;
+        if (!z)
+            break;
+        Py_ssize_t i = z - b, n = i - at;
+        const unsigned char *body = b + at;
+        at = i + 1;
+        if (n == 0)
+            continue;
+        if (n > (Py_ssize_t)sizeof small) {
+            unsigned char *nb = PyMem_Realloc(big, (size_t)n);
+            if (!nb) {
+                PyErr_NoMemory();
+                goto fail;
+            }
+            raw = big = nb;
+        } else
+            raw = small;
+        Py_ssize_t m = cobs_decode(body, n, raw);
+        if (m < 3 || crc16(raw, m - 2) != (uint16_t)(raw[m - 2] | (raw[m - 1] << 8))) {
+            bad++;
+            continue;
+        }
+        PyObject *msg = PyBytes_FromStringAndSize((const char *)raw, m - 2);
+        if (!msg || PyList_Append(out, msg) < 0) {
+            Py_XDECREF(msg);
+            goto fail;
+        }
+        Py_DECREF(msg);
+    }
+    PyMem_Free(big);
+    big = NULL;
+    /* del buf[:at]; then, no delimiter in sight and too much waiting: resync */
+    if (len - at > 4 * max_frame) {
+        at = len;
+        bad++;
+    }
+    if (at > 0) {
+        memmove(PyByteArray_AS_STRING(buf), PyByteArray_AS_STRING(buf) + at, (size_t)(len - at));
+        if (PyByteArray_Resize(buf, len - at) < 0)
+            goto fail;
+    }
+    return Py_BuildValue("(Nl)", out, bad);
+fail:
+    PyMem_Free(big);
+    Py_DECREF(out);
+    return NULL;
+}
+
 static PyMethodDef methods[] = {
+    {"deframe", fl_deframe, METH_VARARGS, "deframe(bytearray, max_frame) -> (messages, bad_frames)"},
     {"gather", fl_gather, METH_VARARGS,
      "gather(fd, other_fds, timeout_ms, count, buf) -> (ready_other_fds, wake_ups, hung_up)"},
     {"init", fl_init, METH_VARARGS, "init(samples_id, max_samples)"},

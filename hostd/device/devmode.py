@@ -13,8 +13,8 @@ A host stall does not interrupt the texture: the display keeps rendering; after 
 it flags the host as lost and still renders while the hand moves (docs/protocol.md).
 
 The host sleeps meanwhile (`run`): no periodic loop, it blocks on the transport until the
-display reports (STATUS and RENDER_STATUS every 150 ms while it renders, firmware 0.4; 50 ms
-before), a command arrives (the daemon's pipe, a hotplug monitor: any descriptor in `fds`) or
+display reports (STATUS and RENDER_STATUS every 300 ms while it renders, firmware 0.5; 150 ms in
+0.4, 50 ms in 0.3), a command arrives (the daemon's pipe, a hotplug monitor: any descriptor in `fds`) or
 the next keep-alive is due. Each report pair wakes the loop once (over serial: one read,
 deframed, Transport.gather with a count of REPORTS_PER_WAKE pairs, so a 0.3 display's 50 ms
 pairs also wake it once each); the counters are cumulative and every STATUS's fault bits
@@ -43,7 +43,7 @@ RENDERING = pr.STATES["RENDERING"]
 class DeviceMode:
     IDLE_WAIT_S = 0.05  # nothing to render: read the display's 1 ms statuses in batches
     RETRY_ACK_S = 3.0  # an upload not answered within 1 s is sent once more with this long to wait
-    REPORTS_PER_WAKE = 1  # report pairs taken in at once while rendering (one per 150 ms, firmware 0.4)
+    REPORTS_PER_WAKE = 1  # report pairs taken in at once while rendering (one per 300 ms, firmware 0.5)
 
     def __init__(self, link: DeviceLink, cfg, log, host_lost_ms: int = 1000,
                  timeout_ms: int = 50, params: dict | None = None) -> None:
@@ -132,7 +132,7 @@ class DeviceMode:
         """Once per connection, before the first upload: STOP_RENDER (answered ACK whatever the
         display does), then its first STATUS of a state other than RENDERING. A display may
         still render what a previous host gave it (that host was killed: a lost host's texture
-        plays on while the hand moves), and says so only every 150 ms, so the host cannot know
+        plays on while the hand moves), and says so only every 300 ms, so the host cannot know
         from what it has heard; this upload starts from idle (its SET_EQ would be refused BUSY
         while the display renders: the VM rig after SIGKILL rendered on the host with the old
         texture still under it)."""
@@ -171,7 +171,7 @@ class DeviceMode:
             self._last_keepalive = now
         s = self.link.stats.last_status
         # (only a STATUS sent after START_RENDER's answer says what the display does now: the
-        # display reports every 150 ms while rendering, so the last one heard may predate it)
+        # display reports every 300 ms while rendering, so the last one heard may predate it)
         if (self.texture is None or not s or now - self._started_at < 0.1
                 or self.link.stats.statuses == self._statuses_at_start):
             return

@@ -33,6 +33,8 @@ _C = _load_compiled()
 IMPLEMENTATION = "c" if _C is not None else "python"
 # device mode's sleep over a byte stream (SerialTransport.gather), when this build has it
 GATHER = getattr(_C, "gather", None)
+# protocol.Deframer's loop (serial framing), when this build has it
+DEFRAME = getattr(_C, "deframe", None)
 # message id -> (name, struct codes, field names) of the fixed layouts the compiled decoder reads
 _FIXED = {pr.IDS[name]: (name, "".join(c for _, c in lay.fields).encode(), lay.names)
           for name, lay in pr.LAYOUTS.items()

@@ -175,17 +175,27 @@ def unframe(body: bytes) -> bytes:
 
 
 class Deframer:
-    """Accumulates serial bytes; yields complete messages, counting bad frames."""
+    """Accumulates serial bytes; yields complete messages, counting bad frames. The loop below is
+    the reference; hostd/device/_fastlink.c's deframe runs the same loop compiled when it is built
+    (HOSTD_PURE_PYTHON=1 selects this one): device mode's wake-up then deframes its report pair
+    without Python's per-frame work."""
 
     MAX_FRAME = REPORT_SIZE + 8
 
     def __init__(self) -> None:
+        from hostd.device import fastlink  # (it imports this module)
+
         self._buf = bytearray()
         self.bad_frames = 0
+        self._compiled = fastlink.DEFRAME
 
     def feed(self, data: bytes) -> list[bytes]:
-        out = []
         self._buf += data
+        if self._compiled is not None:
+            out, bad = self._compiled(self._buf, self.MAX_FRAME)
+            self.bad_frames += bad
+            return out
+        out = []
         while True:
             i = self._buf.find(0)
             if i < 0:

@@ -161,7 +161,7 @@ class SerialTransport(Transport):
             raw = bytearray()
             ready, runs, hung_up = fastlink.GATHER(self.ser.fd, tuple(fds), timeout_ms, want, raw)
             if raw:
-                self._queue += self.deframer.feed(bytes(raw))
+                self._queue += self.deframer.feed(raw)
             if hung_up:  # (or a read error): the read says which, DeviceGone when it is gone
                 self._queue = self.drain()
             return set(ready), runs

@@ -202,7 +202,7 @@ class SimDevice:
             self.faults = 0
 
     def status_period(self) -> int:
-        """Ticks between STATUS messages: every 1 ms, every 150 ms while rendering (core.c)."""
+        """Ticks between STATUS messages: every 1 ms, every 300 ms while rendering (core.c)."""
         return pr.R["status_period_ticks"] if self.state == S["RENDERING"] else pr.P["status_period_ticks"]
 
     def ticks_to_next_message(self) -> int:
