@@ -48,6 +48,19 @@ CHECK_UNDERRUNS_PER_MIN = 6.0
 CHECK_PLAYED = 0.99  # median over the runs, from the DAC log
 
 
+def steal_s() -> float | None:
+    """CPU time the hypervisor took from this machine's CPUs so far (/proc/stat "steal", summed over
+    the CPUs), None where it is not known. A virtual CPU the host deschedules stops the port's tick
+    and the pump alike for milliseconds, however they are scheduled inside the guest: a run's
+    steal says how quiet the machine really was (docs/benchmarks.md, "Link latency")."""
+    try:
+        with open("/proc/stat") as f:
+            line = f.readline().split()
+        return int(line[8]) / os.sysconf("SC_CLK_TCK") if line[0] == "cpu" and len(line) > 8 else None
+    except (OSError, ValueError):
+        return None
+
+
 class PumpPolicy:
     """The pump's thread SCHED_FIFO at `priority` while the block runs, as the daemon's pump takes
     it with `[realtime] sched_fifo_priority` (0: SCHED_OTHER, the daemon's default, unchanged).
@@ -103,11 +116,13 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = STEP_P
             jitter = JitterConfig(base_fill=target_fill, max_fill=max(target_fill, JitterConfig.max_fill),
                                   rise_factor=2.0 if adaptive else 1.0)
             pump = Pump(link, None, jitter=jitter)
+            steal0 = steal_s()
             with PumpPolicy(sched_fifo) as policy:
                 link.poll(0.01)
                 pump.begin(r)
                 pump.run(duration_s)
                 link.poll(0.01)
+            steal1 = steal_s()
             underruns = pump.health.underruns  # the device's own counter (STATUS), episodes
             final_fill = pump.target_fill
             link.stop()
@@ -150,6 +165,7 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = STEP_P
     nan = None
     return {"bench": "latency", "link": "pty (firmware host port)", "pump": policy.policy,
             "pump_stalls": pump.stats.stalls, "pump_longest_stall_ms": pump.stats.longest_stall_ms,
+            "steal_s": None if steal0 is None or steal1 is None else round(steal1 - steal0, 3),
             "target_fill": target_fill,
             "target_ms": target_fill / RATE_HZ * 1e3, "adaptive": adaptive, "duration_s": duration_s,
             "events": int(lat_ms.size), "events_not_at_rest": skipped, "underruns": underruns,
@@ -197,6 +213,7 @@ def summary(rows: list[dict]) -> dict:
             "underruns_per_min": float(np.median([r["underruns_per_min"] for r in rows])),
             "link_underruns_per_min": float(np.median([r["link_underruns_per_min"] for r in rows])),
             "played_fraction": float(np.median([r["played_fraction"] for r in rows])),
+            "steal_s": [r.get("steal_s") for r in rows],
             "played_fraction_min": min(r["played_fraction"] for r in rows)}
 
 
