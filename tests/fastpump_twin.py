@@ -16,6 +16,12 @@ it reads both masters until they hold as many bytes as the reference's transport
 (counted at SerialTransport._write). Device bytes per host action are kept below the line
 discipline's 4 KiB read buffer (a fuller one would be read in timing-dependent pieces).
 
+A cycle on a serial port never reads a tty that holds nothing (a read that finds the line
+discipline empty waits for the kernel's buffer work: hostd/device/seriallink.py): the harness
+counts each cycle's read() calls (the thread's syscr, /proc/thread-self/io) and a cycle, of
+either setup, that issued more than the bytes waiting call for (none when none wait, one for
+less than 4 KiB) is a Mismatch.
+
 The HID twin (transport="hid") is the same comparison with HidrawTransport(fd=...) on one end
 of an AF_UNIX SOCK_SEQPACKET socket pair per setup, which keeps message boundaries as hidraw
 keeps reports: the device writes each message as one 64-byte report (zero padding, or raw
@@ -51,6 +57,7 @@ from hostd.device.simdev import SimDevice
 from hostd.errors import DeviceBusy
 from hostd.render.pipeline import Renderer
 from hostd.texture import synth
+from tests.readcount import ReadCounter
 
 M32 = 0xFFFFFFFF
 HOST_T0_S = 5000.0  # the fake host monotonic clock at slot 0 (a machine up for a while)
@@ -522,13 +529,15 @@ class Twin:
                            "irregular_fit": 0, "rest": 0, "buckets": set(), "not_running": 0,
                            "raw_count_high": 0, "raw_count_low": 0, "pending_bytes_max": 0,
                            "empty_reads": 0, "input_left": 0, "busy_dropped": 0, "busy_partial": 0,
-                           "raised": 0}
+                           "raised": 0, "empty_port_cycles": 0}
+        self.reads = ReadCounter()  # read() calls of this thread (a cycle's, on a serial port)
         self._loose: dict = {}  # LOOSE field -> (reference's, compiled's) at the last comparison
         self._compare(f"{scenario}: after construction")
 
     def close(self) -> None:
         self.a.close()
         self.b.close()
+        self.reads.close()
 
     def reconnect(self, **device) -> None:
         """Unplug and re-plug: a new device (ScriptedDevice(**device), counters and clock from
@@ -614,8 +623,19 @@ class Twin:
             s.now_s = host_t
         statuses_before = self.a.link.stats.statuses
         if action is None:
+            waiting = (self.a.unread, self.b.unread)
+            r0 = self.reads()
             ra = _outcome(self.a.pump.step)
+            r1 = self.reads()
             rb = _outcome(self.step_b, self.b.pump, host_t)
+            r2 = self.reads()
+            if r0 is not None and self.a.kind == "serial":
+                for who, n, w in (("reference", r1 - r0, waiting[0]), ("compiled", r2 - r1, waiting[1])):
+                    if n > math.ceil(w / 4096):
+                        raise Mismatch(f"{where}: the {who} cycle issued {n} read() call(s) with {w} bytes "
+                                       "waiting on the port: a read of an empty tty waits for the kernel's "
+                                       "buffer work")
+                self.seen["empty_port_cycles"] += waiting[0] == 0
         else:
             ra = _outcome(action, self.a.pump)
             rb = _outcome(action, self.b.pump)

@@ -488,6 +488,36 @@ def test_the_comparison_catches_a_perturbed_cycle(textures, name):
                for k in range(at, at + late + 1)), str(e.value)
 
 
+def test_no_cycle_reads_an_empty_port_and_the_harness_sees_one_that_does(textures):
+    """Neither cycle reads a tty that holds nothing (a read that finds the line discipline empty
+    waits for the kernel's buffer work, which held a 1 ms cycle 9-14 ms on a busy machine): the
+    harness counts each cycle's read() calls. Cycles with nothing waiting happen (lost STATUS
+    frames), and a compiled cycle with one more read() of the empty port is caught there."""
+    script, kw = SCENARIOS["lost_status"]
+    tw = _twin(textures, "empty_port", **kw)
+    try:
+        script(tw)
+    finally:
+        tw.close()
+    if tw.reads.fd is None and tw.seen["empty_port_cycles"] == 0:
+        pytest.skip("this kernel does not count a thread's read() calls (/proc/thread-self/io)")
+    assert tw.seen["empty_port_cycles"] >= 20, tw.seen["empty_port_cycles"]
+
+    def one_more_read(pump, now):
+        try:
+            os.read(pump.link.t.ser.fd, 4096)
+        except BlockingIOError:
+            pass
+        return fastpump.step(pump, now)
+
+    tw = _twin(textures, "empty_port+read", step_b=one_more_read, **kw)
+    try:
+        with pytest.raises(Mismatch, match=r"the compiled cycle issued 1 read\(\) call\(s\) with 0 bytes"):
+            script(tw)
+    finally:
+        tw.close()
+
+
 def test_a_mismatch_names_the_field_the_step_and_the_scenario(textures):
     tw = _twin(textures, "naming", step_b=_perturbed(50, _then(_nudge_c1)))
     try:

@@ -51,3 +51,18 @@ def test_a_run_through_the_firmware_reports_the_devices_own_figures():
     assert 0.0 < r["played_fraction"] <= 1.0
     assert r["events"] + r["events_not_at_rest"] >= 1  # the hand stepped (every 0.4 s, after 1 s)
     assert r["p50_ms"] is None or 0.0 < r["p50_ms"] < 300.0
+    # the machine's state beside the figures: the pump's policy, the hypervisor's steal meanwhile
+    assert r["pump"] == "SCHED_OTHER" and (r["steal_s"] is None or r["steal_s"] >= 0.0)
+
+
+def test_a_pump_policy_that_is_not_permitted_says_so_and_runs_as_before(monkeypatch):
+    import os
+
+    def refused(*_a):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refused)
+    with L.PumpPolicy(10) as p:
+        assert p.policy == "SCHED_OTHER (SCHED_FIFO 10 not permitted: Operation not permitted)"
+    with L.PumpPolicy(0) as p:
+        assert p.policy == "SCHED_OTHER"

@@ -549,6 +549,55 @@ def test_serial_hangup_mid_read_is_device_gone_at_once():
     t.close()
 
 
+@pytest.mark.parametrize("gather", ["compiled", "python"])
+def test_serial_never_reads_an_empty_port_and_a_hung_up_one_is_gone(gather, monkeypatch):
+    """drain(), recv() and gather() read only what the line discipline holds (TIOCINQ): a read()
+    of a tty that holds nothing waits for the kernel's buffer work (n_tty_read ->
+    tty_buffer_flush_work), which held the pump's 1 ms cycle 9-14 ms on a busy machine. The
+    kernel counts the thread's read() calls (tests/readcount.py)."""
+    from hostd.device import fastlink
+    from hostd.device.seriallink import SerialTransport
+    from tests.readcount import ReadCounter
+
+    if gather == "python":
+        monkeypatch.setattr(fastlink, "GATHER", None)
+    elif fastlink.GATHER is None:
+        pytest.skip("the compiled link module is not built")
+    reads = ReadCounter()
+    if reads() is None:
+        pytest.skip("this kernel does not count a thread's read() calls (/proc/thread-self/io)")
+    master, slave = os.openpty()
+    t = SerialTransport(os.ttyname(slave))
+    try:
+        n0 = reads()
+        assert t.drain() == [] and t.recv(0.0) is None and t.recv(0.02) is None  # (waits in select)
+        assert t.gather((), 20, 2) == (set(), 1)
+        assert reads() == n0  # nothing there: not one read
+        start = pr.encode("START")
+        os.write(master, pr.frame(start) * 3)
+        assert t.recv(2.0) == start  # (select until the bytes are in, then one read of them)
+        assert t.drain() == [start, start]  # (read already)
+        assert t.drain() == [] and t.recv(0.0) is None
+        assert reads() == n0 + 1
+        os.write(master, pr.frame(start) * 2)
+        others, runs = t.gather((), 2000, 2)  # (a wake-up per arrival, each with one read)
+        assert others == set() and runs >= 1 and t.take() == [start, start]
+        assert t.drain() == []
+        assert reads() == n0 + 1 + runs
+        os.close(master)  # unplugged: TIOCINQ answers EIO
+        master = None
+        with pytest.raises(DeviceGone, match="hostd reconnects"):
+            t.drain()
+        with pytest.raises(DeviceGone, match="hostd reconnects"):
+            t.recv(0.0)
+    finally:
+        t.close()
+        os.close(slave)
+        if master is not None:
+            os.close(master)
+        reads.close()
+
+
 def test_serial_permission_denied_names_the_port_and_the_rule(monkeypatch, tmp_path):
     import serial
 

@@ -48,9 +48,50 @@ CHECK_UNDERRUNS_PER_MIN = 6.0
 CHECK_PLAYED = 0.99  # median over the runs, from the DAC log
 
 
+def steal_s() -> float | None:
+    """CPU time the hypervisor took from this machine's CPUs so far (/proc/stat "steal", summed over
+    the CPUs), None where it is not known. A virtual CPU the host deschedules stops the port's tick
+    and the pump alike for milliseconds, however they are scheduled inside the guest: a run's
+    steal says how quiet the machine really was (docs/benchmarks.md, "Link latency")."""
+    try:
+        with open("/proc/stat") as f:
+            line = f.readline().split()
+        return int(line[8]) / os.sysconf("SC_CLK_TCK") if line[0] == "cpu" and len(line) > 8 else None
+    except (OSError, ValueError):
+        return None
+
+
+class PumpPolicy:
+    """The pump's thread SCHED_FIFO at `priority` while the block runs, as the daemon's pump takes
+    it with `[realtime] sched_fifo_priority` (0: SCHED_OTHER, the daemon's default, unchanged).
+    Not permitted (no root, no RLIMIT_RTPRIO): it says so in `policy` and runs SCHED_OTHER.
+    SCHED_RESET_ON_FORK: what the thread starts meanwhile is not real-time."""
+
+    def __init__(self, priority: int = 0) -> None:
+        self.priority = priority
+        self.policy = "SCHED_OTHER"
+
+    def __enter__(self) -> PumpPolicy:
+        if self.priority > 0:
+            self._old = (os.sched_getscheduler(0), os.sched_getparam(0))
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK,
+                                      os.sched_param(self.priority))
+                self.policy = f"SCHED_FIFO {self.priority}"
+            except OSError as e:
+                self.policy = f"SCHED_OTHER (SCHED_FIFO {self.priority} not permitted: {e.strerror})"
+                self.priority = 0
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.priority > 0:
+            os.sched_setscheduler(0, self._old[0], self._old[1])
+
+
 def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = STEP_PERIOD_S,
-        step_mm: float = 0.05, adaptive: bool = True) -> dict:
-    """One run. adaptive=False holds the fill target (no rise after an underrun)."""
+        step_mm: float = 0.05, adaptive: bool = True, sched_fifo: int = 0) -> dict:
+    """One run. adaptive=False holds the fill target (no rise after an underrun); sched_fifo > 0:
+    the pump runs SCHED_FIFO at that priority (PumpPolicy)."""
     from hostd.bench.accuracy import texture_coeffs
     from hostd.device import fastpump
     from hostd.device.link import DeviceLink
@@ -76,10 +117,13 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = STEP_P
             jitter = JitterConfig(base_fill=target_fill, max_fill=max(target_fill, JitterConfig.max_fill),
                                   rise_factor=2.0 if adaptive else 1.0)
             pump = Pump(link, None, jitter=jitter, cycle=fastpump)
-            link.poll(0.01)
-            pump.begin(r)
-            pump.run(duration_s)
-            link.poll(0.01)
+            steal0 = steal_s()
+            with PumpPolicy(sched_fifo) as policy:
+                link.poll(0.01)
+                pump.begin(r)
+                pump.run(duration_s)
+                link.poll(0.01)
+            steal1 = steal_s()
             underruns = pump.health.underruns  # the device's own counter (STATUS), episodes
             final_fill = pump.target_fill
             link.stop()
@@ -120,7 +164,10 @@ def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = STEP_P
     port_late = sum(1 for i in starts if late[max(0, i - 30) : i + 1].any())
     link_underruns = max(0, underruns - port_late)
     nan = None
-    return {"bench": "latency", "link": "pty (firmware host port)", "target_fill": target_fill,
+    return {"bench": "latency", "link": "pty (firmware host port)", "pump": policy.policy,
+            "pump_stalls": pump.stats.stalls, "pump_longest_stall_ms": pump.stats.longest_stall_ms,
+            "steal_s": None if steal0 is None or steal1 is None else round(steal1 - steal0, 3),
+            "target_fill": target_fill,
             "target_ms": target_fill / RATE_HZ * 1e3, "adaptive": adaptive, "duration_s": duration_s,
             "events": int(lat_ms.size), "events_not_at_rest": skipped, "underruns": underruns,
             "underruns_per_min": underruns / minutes, "link_underruns_per_min": link_underruns / minutes,
@@ -157,6 +204,7 @@ def summary(rows: list[dict]) -> dict:
     """Medians over runs of one setting; underruns summed and per minute of playback."""
     p50 = [r["p50_ms"] for r in rows if r["p50_ms"] is not None]
     return {"target_fill": rows[0]["target_fill"], "target_ms": rows[0]["target_ms"],
+            "pump": sorted({r.get("pump", "SCHED_OTHER") for r in rows}),
             "adaptive": rows[0]["adaptive"], "load": rows[0].get("load", False), "runs": len(rows),
             "p50_ms": float(np.median(p50)) if p50 else None,
             "p50_ms_range": [min(p50), max(p50)] if p50 else None,
@@ -166,14 +214,16 @@ def summary(rows: list[dict]) -> dict:
             "underruns_per_min": float(np.median([r["underruns_per_min"] for r in rows])),
             "link_underruns_per_min": float(np.median([r["link_underruns_per_min"] for r in rows])),
             "played_fraction": float(np.median([r["played_fraction"] for r in rows])),
+            "steal_s": [r.get("steal_s") for r in rows],
             "played_fraction_min": min(r["played_fraction"] for r in rows)}
 
 
-def repeat(runs: int, duration_s: float, target_fill: int, adaptive: bool = True, load: bool = False) -> dict:
+def repeat(runs: int, duration_s: float, target_fill: int, adaptive: bool = True, load: bool = False,
+           sched_fifo: int = 0) -> dict:
     rows = []
     with Hog(load):
         for _ in range(runs):
-            r = run(duration_s, target_fill, adaptive=adaptive)
+            r = run(duration_s, target_fill, adaptive=adaptive, sched_fifo=sched_fifo)
             r["load"] = load
             rows.append(r)
     s = summary(rows)
@@ -184,9 +234,11 @@ def repeat(runs: int, duration_s: float, target_fill: int, adaptive: bool = True
 SWEEP_FILLS = (6, 9, 12, 18, 24, 36)
 
 
-def sweep(runs: int = 3, duration_s: float = 8.0, fills=SWEEP_FILLS, loads=(False, True)) -> list[dict]:
+def sweep(runs: int = 3, duration_s: float = 8.0, fills=SWEEP_FILLS, loads=(False, True),
+          sched_fifo: int = 0) -> list[dict]:
     """Fixed fill targets (the adaptive rise off), quiet and beside a CPU hog per core."""
-    return [repeat(runs, duration_s, f, adaptive=False, load=load) for load in loads for f in fills]
+    return [repeat(runs, duration_s, f, adaptive=False, load=load, sched_fifo=sched_fifo)
+            for load in loads for f in fills]
 
 
 def table(sums: list[dict]) -> str:
@@ -198,8 +250,10 @@ def table(sums: list[dict]) -> str:
             lo, hi = s["p50_ms_range"]
             lat = f"{s['p50_ms']:.2f} ms ({lo:.2f}-{hi:.2f})"
         how = ", adaptive" if s["adaptive"] else ""
+        fifo = [p for p in s.get("pump", []) if p.startswith("SCHED_FIFO")]
+        pump = f", pump {'/'.join(fifo)}" if fifo else ""
         lines.append(f"| {s['target_fill']} ({s['target_ms']:.0f} ms){how} "
-                     f"| {'CPU hog' if s['load'] else 'quiet'} "
+                     f"| {'CPU hog' if s['load'] else 'quiet'}{pump} "
                      f"| {lat} | {s['underruns_per_min']:.1f} ({s.get('link_underruns_per_min', 0):.1f}) "
                      f"| {s['runs_with_underruns']}/{s['runs']} "
                      f"| {s['underruns_port_late']}/{s['underruns']} "

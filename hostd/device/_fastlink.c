@@ -20,9 +20,11 @@
  *       device mode's sleep over a byte stream (hostd.device.seriallink.SerialTransport.gather):
  *       poll() on fd and other_fds, the GIL released, until `count` frame delimiters (0x00)
  *       have arrived, another descriptor is readable or timeout_ms has passed; each wake-up by
- *       fd reads what arrived (non-blocking fd) onto the bytearray buf. hung_up: fd reported
- *       POLLHUP/POLLERR or its read ended (0 bytes) or failed (not EAGAIN): the caller's next
- *       read says what happened. No REVISION change: fastlink looks the function up by name.
+ *       fd reads what arrived (non-blocking fd, only the bytes TIOCINQ counts: a read of an
+ *       empty tty waits for the kernel's buffer work) onto the bytearray buf. hung_up: fd
+ *       reported POLLHUP/POLLERR with nothing to read, TIOCINQ failed (EIO: hung up) or its
+ *       read ended (0 bytes) or failed (not EAGAIN): the caller's next read says what happened.
+ *       No REVISION change: fastlink looks the function up by name.
  *   deframe(buf, max_frame) -> (messages, bad_frames)
  *       protocol.Deframer's loop over its bytearray buf (serial framing: COBS(msg + CRC16 LE) +
  *       0x00): takes every complete frame off the front of buf, returns the valid messages (bytes)
@@ -35,6 +37,7 @@
 #include <Python.h>
 #include <errno.h>
 #include <poll.h>
+#include <sys/ioctl.h>
 #include <stdint.h>
 #include <string.h>
 #include <time.h>
@@ -221,11 +224,26 @@ static PyObject *fl_gather(PyObject *self, PyObject *args) {
             r = 0;
         }
         if (r > 0 && pfd[0].revents) {
-            for (;;) { /* what arrived, until the fd has no more (one read, normally) */
+            int first = 1;
+            for (;;) { /* what arrived (one read, normally): only what TIOCINQ says is there, never
+                        * a read of an empty tty, which waits for the kernel's buffer work */
                 ssize_t got;
-                int rerr = 0;
+                int rerr = 0, avail = 0;
+                if (ioctl(fd, TIOCINQ, &avail) < 0) {
+                    hup = 1; /* hung up (EIO), or not a tty: the caller's read says which */
+                    break;
+                }
+                if (avail <= 0 && !first) /* (the first: poll said readable; a descriptor that does
+                                           * not count its bytes is read as before) */
+                    break;
+                if (avail <= 0 && (pfd[0].revents & (POLLHUP | POLLERR | POLLNVAL))) {
+                    hup = 1;
+                    break;
+                }
+                first = 0;
+                const size_t want = avail > 0 && (size_t)avail < sizeof chunk ? (size_t)avail : sizeof chunk;
                 Py_BEGIN_ALLOW_THREADS
-                got = read(fd, chunk, sizeof chunk);
+                got = read(fd, chunk, want);
                 if (got < 0)
                     rerr = errno;
                 Py_END_ALLOW_THREADS

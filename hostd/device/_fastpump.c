@@ -35,6 +35,7 @@
 #include <errno.h>
 #include <math.h>
 #include <poll.h>
+#include <sys/ioctl.h>
 #include <stdint.h>
 #include <string.h>
 #include <time.h>
@@ -43,7 +44,7 @@
 #include "../render/render_core.h"
 
 #define STALL_MARGIN_CYCLES 2 /* pump.STALL_MARGIN_CYCLES */
-#define REVISION 5 /* fastpump.C_REVISION must equal this */
+#define REVISION 6 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
 #define MAX_MSGS 64
 #define MAX_UNACKED 64
@@ -1266,9 +1267,18 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
             if (pr_ <= 0 || empties > 64)
                 break;
         }
-    } else {
+    } else { /* SerialTransport.drain: only what the line discipline holds (TIOCINQ), never a read
+              * of an empty tty (it waits for the kernel's buffer work: seriallink's header) */
         while (1) {
-            ssize_t r = read(s->fd, rb, READ_SIZE);
+            int avail = 0;
+            if (ioctl(s->fd, TIOCINQ, &avail) < 0) {
+                if (errno == EINTR)
+                    continue;
+                return HAND(H_READ, HAND_READERR); /* hung up (EIO): the reference asks again and says so */
+            }
+            if (avail <= 0)
+                break;
+            ssize_t r = read(s->fd, rb, avail < READ_SIZE ? (size_t)avail : READ_SIZE);
             if (r < 0) {
                 if (errno == EAGAIN || errno == EWOULDBLOCK)
                     break;
@@ -1276,12 +1286,8 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
                     continue;
                 return HAND(H_READ, HAND_READERR); /* the reference reads again and says what happened */
             }
-            if (r == 0) { /* VMIN 0: nothing waiting, or the other end hung up (the reference asks) */
-                struct pollfd hp = {s->fd, POLLIN, 0};
-                if (poll(&hp, 1, 0) > 0 && (hp.revents & (POLLHUP | POLLERR)))
-                    return HAND(H_READ, HAND_READERR);
-                break;
-            }
+            if (r == 0) /* bytes were there and the read ended: the other end hung up */
+                return HAND(H_READ, HAND_READERR);
             if (deframe(s, rb, r, msgs, &nm) < 0)
                 return -1;
             if (r < READ_SIZE)

@@ -29,7 +29,7 @@ from hostd.errors import DeviceBusy
 from hostd.render import equalizer, fastrender, motion
 from hostd.render.pipeline import Renderer
 
-C_REVISION = 5  # _fastpump.c's REVISION this module is written for
+C_REVISION = 6  # _fastpump.c's REVISION this module is written for
 _STATUS = ["id:u8", "state:u8", "fault_flags:u16", "device_time_us:u32", "encoder_count:u32",
            "samples_played:u32", "buffer_fill:u16", "last_seq:u16", "underruns:u16",
            "malformed:u16", "encoder_errors:u16"]  # the layout _fastpump.c reads

@@ -2,11 +2,21 @@
 
 Reads wait in select() on the port's descriptor (`wait`, `fileno`), so the pump can block
 on it; a port that hangs up (a CDC-ACM display unplugged) reads as gone.
+
+A read never asks a tty that has nothing: `drain`, `recv` and `gather` read only the bytes the
+line discipline holds (TIOCINQ, which does not wait). A `read()` that finds the line discipline
+empty first waits for the kernel's buffer work (n_tty_read -> tty_buffer_flush_work: a kworker
+that moves bytes the other side wrote from the tty's flip buffer into the line discipline), and
+on a busy machine that kworker waits for a core: the pump's 1 ms cycle was held 9-14 ms
+(docs/benchmarks.md, "Link latency"). Bytes still in the flip buffer are read by the next
+cycle instead. A port that hung up answers TIOCINQ with EIO: gone.
 """
 
 from __future__ import annotations
 
+import fcntl
 import os
+import termios
 import time
 
 from hostd.device import fastlink
@@ -64,14 +74,13 @@ class SerialTransport(Transport):
         # Writes go straight to the non-blocking fd (one layer less on the real-time path, and
         # pyserial's write() can report a timeout after writing everything): what the port
         # does not take now waits here, in order, and goes out first on the next call.
-        import fcntl
-
         fcntl.fcntl(self.ser.fd, fcntl.F_SETFL, fcntl.fcntl(self.ser.fd, fcntl.F_GETFL) | os.O_NONBLOCK)
         self._pending = b""
         import select
 
-        # pyserial sets VMIN = VTIME = 0: a read with nothing waiting returns b"" like a hang-up
-        # does, so every empty read asks this (made once, not per read)
+        # a poll() that said the port hung up or failed, while its line discipline still answers
+        # (made once, not per call; a poll of an empty tty waits for the buffer work too, so
+        # only a wake-up that read nothing asks it)
         self._hup_poll = select.poll()
         self._hup_poll.register(self.ser.fd, select.POLLIN)
         self._vmin = 0  # the line discipline's VMIN: left at 0 (the compiled cycle checks it)
@@ -111,7 +120,7 @@ class SerialTransport(Transport):
             self._pending = self._pending[self._write(self._pending):]
 
     def _hung_up(self) -> bool:
-        """os.read() returned b"" (not EAGAIN): the other end hung up, unless nothing was there."""
+        """The port reports a hang-up or an error (poll)."""
         import select
 
         return any(ev & (select.POLLHUP | select.POLLERR) for _, ev in self._hup_poll.poll(0))
@@ -122,25 +131,44 @@ class SerialTransport(Transport):
     def pending(self) -> bool:
         return bool(self._queue)
 
+    def waiting(self) -> int:
+        """Bytes the line discipline holds now (TIOCINQ: it does not wait for the kernel's
+        buffer work, as a read that finds nothing does). DeviceGone when the port hung up."""
+        try:
+            return int.from_bytes(fcntl.ioctl(self.ser.fd, termios.FIONREAD, b"\0\0\0\0"), "little")
+        except OSError as e:
+            raise self._gone(e) from None
+
+    def _read_waiting(self) -> bytes:
+        """One read of what the line discipline holds (at most READ_SIZE bytes), b"" when it holds
+        nothing: never a read of an empty tty."""
+        n = self.waiting()
+        if n <= 0:
+            return b""
+        try:
+            data = os.read(self.ser.fd, min(n, self.READ_SIZE))
+        except BlockingIOError:  # (TIOCINQ said they were there: another reader took them)
+            return b""
+        except OSError as e:
+            raise self._gone(e) from None
+        if not data:  # bytes were there and the read ended: the other end hung up
+            raise self._gone(OSError("end of file"))
+        return data
+
     def recv(self, timeout_s: float = 0.0) -> bytes | None:
         self.flush_pending()
         deadline = time.monotonic() + timeout_s
         while not self._queue:
-            try:  # the non-blocking fd itself (pyserial's read() adds a select() per call)
-                data = os.read(self.ser.fd, self.READ_SIZE)
-                if not data and self._hung_up():
-                    raise self._gone(OSError("end of file"))
-            except BlockingIOError:
-                data = b""
-            except OSError as e:
-                raise self._gone(e) from None
+            data = self._read_waiting()  # (the non-blocking fd itself: pyserial's read() adds a select())
             if data:
                 self._queue += self.deframer.feed(data)
                 continue
             left = deadline - time.monotonic()
             if left <= 0:
                 return None
-            self.wait(left)  # sleeps in select() until bytes arrive, not in a polling loop
+            # sleeps in select() until bytes arrive (or the port hangs up: the next TIOCINQ
+            # says so), not in a polling loop
+            self.wait(left)
         return self._queue.pop(0)
 
     gathers = True
@@ -163,7 +191,10 @@ class SerialTransport(Transport):
             if raw:
                 self._queue += self.deframer.feed(raw)
             if hung_up:  # (or a read error): the read says which, DeviceGone when it is gone
+                n0 = len(self._queue)
                 self._queue = self.drain()
+                if len(self._queue) == n0 and self._hung_up():
+                    raise self._gone(OSError("hang-up"))
             return set(ready), runs
         return self._gather_py(fds, timeout_ms, count)
 
@@ -185,13 +216,18 @@ class SerialTransport(Transport):
             runs += 1
             others = set()
             port = False
-            for f, _ in events:
+            hup = False
+            for f, ev in events:
                 if f == fd:
                     port = True
+                    hup = bool(ev & (select.POLLHUP | select.POLLERR))
                 else:
                     others.add(f)
-            if port:  # readable or hung up: the read says which
+            if port:  # readable or hung up: TIOCINQ and the read say which
+                n0 = len(self._queue)
                 self._queue = self.drain()  # (what was queued, then what arrived)
+                if hup and len(self._queue) == n0:
+                    raise self._gone(OSError("hang-up"))
             if others or not events or len(self._queue) >= count:
                 return others, runs
             timeout_ms = max(0, math.ceil((deadline - time.monotonic()) * 1000.0))
@@ -201,21 +237,15 @@ class SerialTransport(Transport):
     READ_SIZE = 4096
 
     def drain(self) -> list[bytes]:
-        """Every message waiting, with one read of the port (another only if the first filled
-        its buffer): a short read took all the port had. The sleeping device-mode loop calls
-        this once per wake-up; bytes that arrive after the read wake it again."""
+        """Every message waiting, with one read of what the line discipline holds (another only
+        if the first filled its buffer), none when it holds nothing: bytes the kernel's buffer
+        work has not handed over yet wait for the next call (the next cycle, or the next
+        wake-up of the sleeping device-mode loop), the caller is never held up for them."""
         self.flush_pending()
         out, self._queue = self._queue, []
         while True:
-            try:
-                data = os.read(self.ser.fd, self.READ_SIZE)
-            except BlockingIOError:
-                return out
-            except OSError as e:
-                raise self._gone(e) from None
+            data = self._read_waiting()
             if not data:
-                if self._hung_up():
-                    raise self._gone(OSError("end of file"))
                 return out
             out += self.deframer.feed(data)
             if len(data) < self.READ_SIZE:

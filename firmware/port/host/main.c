@@ -25,6 +25,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/ioctl.h>
 #include <termios.h>
 #include <unistd.h>
 
@@ -69,12 +70,20 @@ static int open_pty(char *name, size_t cap, int *slave_keep) {
     return m;
 }
 
-/* everything the host has written to the pty so far, through the deframer */
+/* everything the host has written to the pty so far, through the deframer: only what the line
+ * discipline holds (TIOCINQ). A read that finds it empty waits for the kernel's buffer work (a
+ * kworker moving the host's bytes from the pty's flip buffer into it: n_tty_read ->
+ * tty_buffer_flush_work), and this tick, SCHED_FIFO where permitted, then waited for a
+ * SCHED_OTHER kworker on every tick (3 kHz) whose bytes were still on their way: the port's own
+ * late ticks (docs/benchmarks.md, "Link latency"). Bytes not handed over yet are the next tick's,
+ * as a UART's bytes still in its shift register are. */
 static void poll_pty(fw_t *f, double t_s) {
     (void)t_s;
     uint8_t rx[4096];
     for (;;) {
-        ssize_t n = read(g_master, rx, sizeof rx);
+        int avail = 0;
+        if (ioctl(g_master, TIOCINQ, &avail) < 0 || avail <= 0) break;
+        ssize_t n = read(g_master, rx, (size_t)avail < sizeof rx ? (size_t)avail : sizeof rx);
         if (n <= 0) break;
         fw_deframer_feed(f, rx, (size_t)n);
         sim_scenario_rx(rx, (size_t)n);
