@@ -306,7 +306,8 @@ def test_sdist_builds_a_complete_wheel_and_ships_no_tests(tmp_path):
     names = [n.split("/", 1)[1] for n in tarfile.open(sdist).getnames() if "/" in n]
     assert not [n for n in names if n.startswith(("tests/", "firmware/"))], names
     for f in ("hostd/codec/_rangecoder.c", "hostd/device/_fastpump.c", "hostd/render/_fastrender.c",
-              "hostd/render/render_core.h", "docs/daemon.md", "README.md", "LICENSE", "setup.py",
+              "hostd/render/render_core.h", "hostd/device/framing.h", "docs/daemon.md", "README.md",
+              "LICENSE", "setup.py",
               "hostd/data/hostd.toml", "hostd/systemd/hostd.service"):  # the symlinks' files
         assert f in names, f
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",

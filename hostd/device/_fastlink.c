@@ -42,6 +42,7 @@
 #include <string.h>
 #include <time.h>
 #include <unistd.h>
+#include "framing.h" /* crc16, cobs_decode */
 
 #define REVISION 1 /* fastlink.C_REVISION must equal this */
 
@@ -301,37 +302,8 @@ static PyObject *fl_gather(PyObject *self, PyObject *args) {
     return Py_BuildValue("(Nii)", ready, runs, hup);
 }
 
-/* ------------------------------------------------------------------ serial framing */
-static uint16_t crc16(const unsigned char *p, Py_ssize_t n) { /* CRC-16/CCITT-FALSE = binascii.crc_hqx */
-    uint16_t c = 0xFFFF;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        c ^= (uint16_t)(p[i] << 8);
-        for (int b = 0; b < 8; b++)
-            c = (c & 0x8000) ? (uint16_t)((c << 1) ^ 0x1021) : (uint16_t)(c << 1);
-    }
-    return c;
-}
-
-/* cobs.decode of one frame body of n > 0 bytes, none zero (the delimiter cut it); out holds n
- * bytes (COBS never lengthens); returns the length or -1 (cobs.DecodeError) */
-static Py_ssize_t cobs_decode(const unsigned char *in, Py_ssize_t n, unsigned char *out) {
-    Py_ssize_t i = 0, k = 0;
-    for (;;) {
-        unsigned len = in[i];
-        i++;
-        Py_ssize_t end = i + (Py_ssize_t)len - 1;
-        if (end > n)
-            return -1; /* not enough input bytes for length code */
-        memcpy(out + k, in + i, (size_t)(end - i));
-        k += end - i;
-        i = end;
-        if (i < n) {
-            if (len < 0xFF)
-                out[k++] = 0;
-        } else
-            return k;
-    }
-}
+/* ------------------------------------------------------------------ serial framing
+ * (decoding: framing.h, shared by both compiled modules) */
 
 static PyObject *fl_deframe(PyObject *self, PyObject *args) {
     PyObject *buf;

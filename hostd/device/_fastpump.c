@@ -42,6 +42,7 @@
 #include <unistd.h>
 
 #include "../render/render_core.h"
+#include "framing.h" /* crc16, cobs_decode */
 
 #define STALL_MARGIN_CYCLES 2 /* pump.STALL_MARGIN_CYCLES */
 #define REVISION 6 /* fastpump.C_REVISION must equal this */
@@ -789,39 +790,8 @@ static int store(S *s) {
     return e ? -1 : 0;
 }
 
-/* ------------------------------------------------------------------ serial framing */
-static uint16_t crc16(const unsigned char *p, Py_ssize_t n) { /* CRC-16/CCITT-FALSE = binascii.crc_hqx */
-    uint16_t c = 0xFFFF;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        c ^= (uint16_t)(p[i] << 8);
-        for (int b = 0; b < 8; b++)
-            c = (c & 0x8000) ? (uint16_t)((c << 1) ^ 0x1021) : (uint16_t)(c << 1);
-    }
-    return c;
-}
-
-/* cobs.decode of one frame body (no zero bytes in it); returns the length or -1 (DecodeError) */
-static Py_ssize_t cobs_decode(const unsigned char *in, Py_ssize_t n, unsigned char *out) {
-    Py_ssize_t i = 0, k = 0;
-    while (1) {
-        unsigned len = in[i];
-        if (len == 0)
-            return -1;
-        i++;
-        Py_ssize_t end = i + len - 1;
-        if (end > n)
-            return -1;
-        memcpy(out + k, in + i, (size_t)(end - i));
-        k += end - i;
-        i = end;
-        if (i < n) {
-            if (len < 0xFF)
-                out[k++] = 0;
-        } else
-            break;
-    }
-    return k;
-}
+/* ------------------------------------------------------------------ serial framing
+ * (decoding: framing.h, shared by both compiled modules) */
 
 static Py_ssize_t cobs_encode(const unsigned char *in, Py_ssize_t n, unsigned char *out) {
     Py_ssize_t code_at = 0, k = 1;
