@@ -28,9 +28,10 @@ class Guard:
 # device rendering, `hostd bench soak --render device`: daemon + pump together
 DEVICE_PSS_MB = Guard("pss_mb", 60.0, 60.0, unit="MB")
 DEVICE_THREADS = Guard("threads", 12, 12)
-# (the goal is not met: 0.281 % on a quiet machine, 0.20-0.26 % at load 5-16; the CI bound sits
-# above today's quiet figure, so it catches a regression, not the goal)
-DEVICE_CPU_SHARE = Guard("cpu_share", 0.0015, 0.0045, unit="of a core")
+# (met since firmware 0.5's 300 ms reports: 0.112 % quiet, --runs 3 --seconds 40; the CI-length
+# run, --runs 3 --seconds 6, gave 0.136 % quiet and 0.113 % beside stress-ng --cpu 2 at load
+# 4, 2026-11-27 07:07-07:12 UTC; the CI bound is twice the goal, as issue 28 asks)
+DEVICE_CPU_SHARE = Guard("cpu_share", 0.0015, 0.0030, unit="of a core")
 # the pump's voluntary context switches (the kernel's count, getrusage) per run of its loop, both
 # published by the pump at the same instant. Every poll() return is a run (strace: each followed
 # by its read); the switches beyond the runs (2-5 % here) are waits inside the loop's own read and
