@@ -58,12 +58,20 @@ def test_device_mode_daemon_survives_a_2s_sigstop_and_swaps_without_a_jump(tmp_p
         t_cont = hp.wait_ticks(t_stop, 6000)
         os.killpg(daemon.pid, signal.SIGCONT)
         time.sleep(0.5)
+        uploads0 = request(sock, {"cmd": "status"})["device_uploads"]
         t_swap = time.monotonic()
         request(sock, {"cmd": "select", "name": "wood8"})  # a swap: the display crossfades
-        speeds = []
-        for _ in range(10):  # the hand's speed, as the display measures it
-            time.sleep(0.1)
+        # the swap's upload holds the status where it was (a loaded machine: most of a second);
+        # then the hand's speed, as the display measures it, over one whole metronome period
+        # (2.4 s) of the display's clock and two report periods (300 ms) and publish periods
+        # (0.5 s) more: it moves faster than 5 mm/s for most of a period, slower only near
+        # its turns, so at least one report in it is fast
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_uploads"] > uploads0, 60, "the swap")
+        t_sample, speeds = time.monotonic(), []
+        while not hp.ticks_since(t_sample, round((2.4 + 2 * 0.3 + 2 * 0.5) * 3000)):
             speeds.append(request(sock, {"cmd": "status"})["speed_mm_s"])
+            time.sleep(0.05)
+        speeds.append(request(sock, {"cmd": "status"})["speed_mm_s"])
         st = request(sock, {"cmd": "status"})
     finally:
         hp.close()

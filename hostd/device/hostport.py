@@ -86,13 +86,19 @@ class HostPort:
             raise RuntimeError("wait_ticks needs the port's --clock log")
         t_end = time.monotonic() + timeout_s
         while time.monotonic() < t_end:
-            raw = self.clock.read_bytes()
-            c = np.frombuffer(raw[: len(raw) // 12 * 12], dtype=CLOCK_DTYPE)
-            i = int(np.searchsorted(c["t"], since_host_s))
-            if 0 < i < c.size and int(c["tick"][-1]) - int(c["tick"][i - 1]) >= ticks:
+            if self.ticks_since(since_host_s, ticks):
                 return time.monotonic()
             time.sleep(0.002)
         raise TimeoutError(f"the host port ran fewer than {ticks} ticks in {timeout_s:g} s")
+
+    def ticks_since(self, since_host_s: float, ticks: int) -> bool:
+        """Whether the port has run `ticks` ticks since host time since_host_s (its --clock log)."""
+        if self.clock is None:
+            raise RuntimeError("ticks_since needs the port's --clock log")
+        raw = self.clock.read_bytes()
+        c = np.frombuffer(raw[: len(raw) // 12 * 12], dtype=CLOCK_DTYPE)
+        i = int(np.searchsorted(c["t"], since_host_s))
+        return 0 < i < c.size and int(c["tick"][-1]) - int(c["tick"][i - 1]) >= ticks
 
     def close(self) -> None:
         if self.proc.poll() is None:

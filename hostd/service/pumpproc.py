@@ -329,7 +329,6 @@ def pump_main(cfg, conn, stats) -> None:
         if not connected:
             answer_stimulus(sid, "no display is connected (hostd status says why): connect it and ask again")
             return
-        from hostd.device import fastpump  # (the pump's cycle imports it: now, not after START)
         from hostd.errors import StimulusRefused
         from hostd.render.stimulus import StimulusRenderer  # (the stimulus path only)
 
@@ -341,7 +340,6 @@ def pump_main(cfg, conn, stats) -> None:
         except Exception as e:  # (the daemon checked it: whatever slipped through never stops the pump)
             answer_stimulus(sid, f"stimulus refused: {type(e).__name__}: {e}", retry=False)
             return
-        fastpump.usable(pump)  # (its first call imports the transports' modules: not after START)
         texture = None  # the stimulus ends what played; the display is idle after it
         now = time.monotonic()
         # (kept before any message goes out: a display lost from here on is answered as such)
@@ -355,7 +353,7 @@ def pump_main(cfg, conn, stats) -> None:
         # host gone for longer still ramps the display to zero); set back at the end
         link.set_timeout(max(cfg.device.host_timeout_ms, STIMULUS_TIMEOUT_MS))
         r.start()
-        pump.begin(r)  # (STOP if it streamed,) prime, START
+        pump.begin(r)  # (STOP if it streamed,) load the compiled cycle, prime, START
         s["first_seq"] = link.next_seq()  # the first SAMPLES after START: once taken, START was too
         s["underruns0"], s["recoveries0"] = pump.health.underruns, pump.stats.recoveries
         s["overflows0"], s["malformed0"] = pump.stats.overflows, malformed_count()
@@ -383,6 +381,10 @@ def pump_main(cfg, conn, stats) -> None:
         if s is None:
             return
         h = pump.health
+        if s["malformed0"] is None:
+            # (no STATUS heard before the stimulus: cannot be on a connected link, whose
+            # handshake has one; the first one heard is the baseline, never read as damage)
+            s["malformed0"] = malformed_count()
         if s["p0"] is None:
             if link.acked(s["first_seq"]):  # it took STOP (if any), the prime and START: what it
                 s["p0"] = h.samples_played  # played before is counted here (what since, at most, later)
