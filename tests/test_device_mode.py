@@ -142,7 +142,8 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
         # BLAS pool), and the daemon's threads sleep until needed (one control handler at rest)
         pump = soak._pump_pid(daemon.pid)
         footprint = {"pump_libs": soak.mapped_libs(pump), "daemon_libs": soak.mapped_libs(daemon.pid),
-                     "pump_threads": soak.threads(pump), "daemon_threads": soak.threads(daemon.pid)}
+                     "pump_threads": soak.threads(pump), "daemon_threads": soak.threads(daemon.pid),
+                     "pump_policy": os.sched_getscheduler(pump), "pump_priority": os.sched_getparam(pump)}
         # stop the daemon just after a jump, for 2.5 s: lost after 1 s, the hand has rested
         # 0.5 s by then, so the display fades out and idles until the daemon is back
         # (every span on the display's own clock, its ticks: a loaded machine stretches the port's
@@ -179,6 +180,16 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
     # the daemon: main, pump writer, control accept, quality, spool, a control handler per client
     # being served (this test's requests: one at a time, plus one that may still be ending)
     assert footprint["pump_threads"] == 1 and footprint["daemon_threads"] <= 7, footprint
+    # the default pump policy (issue 28): SCHED_FIFO 10 where permitted, and what the pump starts
+    # is not real-time (SCHED_RESET_ON_FORK); elsewhere one line says why not
+    import resource
+
+    if os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] >= 10:
+        assert footprint["pump_policy"] == os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, footprint
+        assert footprint["pump_priority"].sched_priority == 10 and "pump runs SCHED_FIFO priority 10" in journal
+    else:
+        assert footprint["pump_policy"] == os.SCHED_OTHER
+        assert "pump: SCHED_FIFO 10 not permitted" in journal
     assert a["played_fraction"] > 0.99
     # asleep between reports: a wake-up per report (300 ms) plus commands, not one per ms
     assert (b["wakeups"] - a["wakeups"]) / (t_b - t_a - 2.5) < 60, (a["wakeups"], b["wakeups"])

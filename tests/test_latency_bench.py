@@ -29,23 +29,31 @@ def _row(p50, under_min, link_min, played, port_late=0, runs=5):
 
 
 def test_check_passes_within_its_bounds_and_names_each_bound_it_breaks():
-    ok = L.summary(_row(3.6, 0.0, 0.0, 0.9999))
-    assert L.check(ok) == []
+    ok = L.summary(_row(3.4, 0.0, 0.0, 0.9999, runs=10))
+    assert L.check(ok) == [] and L.check(ok, "ci") == []
     # the port's own underruns are reported, not held against the link
-    assert L.check(L.summary(_row(3.6, 40.0, 0.0, 0.995, port_late=40))) == []
-    bad = L.check(L.summary(_row(7.5, 9.0, 9.0, 0.98)))
-    assert len(bad) == 3 and "p50 latency 7.50 ms > 7.0 ms" in bad[0]
-    assert "9.0 underruns per minute > 6.0" in bad[1] and "played 98.00 % < 99 %" in bad[2]
+    assert L.check(L.summary(_row(3.4, 40.0, 0.0, 0.995, port_late=40))) == []
+    # the goal: p50 <= 3.5 ms and not one underrun of the link's own in all the runs
+    goal = L.check(L.summary(_row(3.6, 7.5, 7.5, 0.999)))
+    assert goal == ["p50 latency 3.60 ms > 3.50 ms (median of 5 runs; goal)",
+                    "underruns of the link's own 35 > 0 (in 5 runs: the device's counters less the port's "
+                    "own; goal)"]
+    # CI: twice the p50, a median of 6 a minute, 99 % played; what the goal alone holds is not held
+    assert L.check(L.summary(_row(3.6, 6.0, 6.0, 0.999)), "ci") == []
+    bad = L.check(L.summary(_row(7.5, 9.0, 9.0, 0.98)), "ci")
+    assert bad == ["p50 latency 7.50 ms > 7.00 ms (median of 5 runs; ci)",
+                   "underruns of the link's own per minute 9.0 > 6.0 (median of 5 runs; ci)",
+                   "played 98.00 % < 99.00 % (DAC log, median of 5 runs; ci)"]
     none = L.check(L.summary(_row(None, 0.0, 0.0, 1.0)))
     assert none and "no step of the hand was measured from rest" in none[0]
-    assert "| 12 (4 ms), adaptive | quiet | 3.60 ms (3.60-3.60) |" in L.table([ok])
+    assert "| 12 (4 ms), adaptive | quiet | 3.40 ms (3.40-3.40) |" in L.table([ok])
 
 
 def test_a_run_through_the_firmware_reports_the_devices_own_figures():
     """One short run on the host port: its underruns are the device's counter, which the DAC
     log's own episodes equal (the log runs on past the last STATUS read, until STOP: one more at
     most); the played fraction is the log's."""
-    r = L.run(duration_s=2.0)
+    r = L.run(duration_s=2.0, sched_fifo=0)
     assert r["dac_underrun_episodes"] - r["underruns"] in (0, 1), r
     assert r["dac_underrun_episodes"] >= r["underruns_port_late"] >= 0
     assert 0.0 < r["played_fraction"] <= 1.0

@@ -87,7 +87,12 @@ class OutputCfg:
 
 @dataclass
 class RealtimeCfg:
-    sched_fifo_priority: int = 0
+    # the pump SCHED_FIFO at this priority where permitted (the systemd unit grants LimitRTPRIO=20;
+    # not permitted: one line, and it runs SCHED_OTHER); 0: never asked. The link's own underruns
+    # on a quiet machine were a SCHED_OTHER pump behind a busier neighbour (docs/benchmarks.md,
+    # "Link latency"); 10 is below the kernel's threaded interrupts (50), which the display's
+    # bytes pass through
+    sched_fifo_priority: int = 10
     mlockall: bool = False
     cpu: int = -1
 

@@ -67,11 +67,15 @@ def _realtime(rt, log) -> None:
             log(f"pump: cannot pin to CPU {rt.cpu} ({e.strerror}); running unpinned")
     if rt.sched_fifo_priority > 0:
         try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt.sched_fifo_priority))
+            # (SCHED_RESET_ON_FORK: what the pump starts, its equalizer's design for one, is not
+            # real-time)
+            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK,
+                                  os.sched_param(rt.sched_fifo_priority))
             log(f"pump runs SCHED_FIFO priority {rt.sched_fifo_priority}")
         except (OSError, AttributeError) as e:
             log(f"pump: SCHED_FIFO {rt.sched_fifo_priority} not permitted ({getattr(e, 'strerror', e)}); "
-                "running SCHED_OTHER: grant LimitRTPRIO/CAP_SYS_NICE (see systemd/hostd.service)")
+                "running SCHED_OTHER: grant LimitRTPRIO/CAP_SYS_NICE (systemd/hostd.service does), or "
+                "set [realtime] sched_fifo_priority = 0 not to ask")
     if rt.mlockall:
         import ctypes
 
