@@ -186,7 +186,8 @@ def test_default_config_renders_on_the_device_and_played_fraction_is_the_display
 
     if os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] >= 10:
         assert footprint["pump_policy"] == os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, footprint
-        assert footprint["pump_priority"].sched_priority == 10 and "pump runs SCHED_FIFO priority 10" in journal
+        assert footprint["pump_priority"].sched_priority == 10
+        assert "pump runs SCHED_FIFO priority 10" in journal
     else:
         assert footprint["pump_policy"] == os.SCHED_OTHER
         assert "pump: SCHED_FIFO 10 not permitted" in journal

@@ -31,9 +31,10 @@ print("\n".join(lines))
 
 
 def _probe(mode: str) -> tuple[list[int], list[str]]:
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in [os.getcwd(), os.environ.get("PYTHONPATH")] if p))
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p))
     out = subprocess.run([sys.executable, "-c", PROBE, mode], capture_output=True, text=True, env=env,
-                         timeout=60, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+                         timeout=60, cwd=root)
     assert out.returncode == 0, out.stderr
     first, *lines = out.stdout.splitlines()
     return [int(x) for x in first.split()], lines

@@ -205,7 +205,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from hostd.bench import latency
 
         if not (1.0 <= args.duration <= 3600 and 1 <= args.target_fill <= 200
-                and (args.runs is None or 1 <= args.runs <= 100) and (args.sched_fifo is None or 0 <= args.sched_fifo <= 99)):
+                and (args.runs is None or 1 <= args.runs <= 100)
+                and (args.sched_fifo is None or 0 <= args.sched_fifo <= 99)):
             raise SystemExit("hostd bench latency: error: --duration 1..3600, --target-fill 1..200, "
                              "--runs 1..100, --sched-fifo 0..99")
         try:

@@ -48,11 +48,15 @@ SCORING_PER_S = Guard("scores_per_s", 1.0e6, 0.5e6, upper=False, unit="scores/s"
 CYCLE_US = Guard("cpu_us_per_cycle", 50.0, None, unit="µs")
 CYCLE_STEP_P50_US = Guard("step_p50_us", 15.0, 30.0, unit="µs")
 # `hostd bench latency`, the firmware's host port on a pty, 8-s runs at the default fill target and
-# pump policy (docs/benchmarks.md, "Link latency"). Goal, on a quiet 2-core machine: p50 <= 3.5 ms
-# and no underrun of the link's own in 10 runs (the port's own, after the OS held it up, are a
-# real device's never). CI, 5 runs beside whatever the machine does: twice the p50, and a median
-# of the runs' underruns that a busy machine's steal and neighbours stay under
-LATENCY_P50_MS = Guard("p50_ms", 3.5, 7.0, unit=" ms")
+# pump policy (docs/benchmarks.md, "Link latency"). Goal, on a quiet 2-core machine: issue 28's
+# p50 <= 3.5 ms and no underrun of the link's own in 10 runs (the port's own, after the OS held it
+# up, are a real device's never). Issue 28 measured its 3.3 ms on a rig whose steps all landed on
+# a STATUS tick; this rig's steps land at every phase of the STATUS period (every 3rd tick) and
+# wait for the report 1 tick (1/3 ms) on average, which the p50 of all the steps includes: 3.5 ms
+# on the old rig is 3.83 ms on this one (the steps on a STATUS tick alone are reported beside it).
+# CI, 5 runs beside whatever the machine does: about twice the p50, and a median of the runs'
+# underruns that a busy machine's steal and neighbours stay under
+LATENCY_P50_MS = Guard("p50_ms", 3.5 + 1000.0 / 3000.0, 7.0, unit=" ms")
 LATENCY_LINK_UNDERRUNS = Guard("link_underruns", 0, None)  # over all the runs
 LATENCY_LINK_UNDERRUNS_PER_MIN = Guard("link_underruns_per_min", None, 6.0)  # median of the runs
 LATENCY_PLAYED = Guard("played_fraction", None, 0.99, upper=False)  # median of the runs, DAC log
