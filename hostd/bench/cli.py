@@ -40,7 +40,8 @@ def add_parser(sub, parents) -> None:
     lat.add_argument("--target-fill", type=int, default=12, metavar="SAMPLES",
                      help="the device buffer's target fill (default 12 = 4 ms)")
     lat.add_argument("--runs", type=int, default=None, metavar="N",
-                     help="runs per setting, medians reported (default 1; --check 5, --sweep 3)")
+                     help="runs per setting, medians reported (default 1; --check 10, --check ci 5, "
+                          "--sweep 3)")
     lat.add_argument("--load", action="store_true", help="a CPU hog per core meanwhile")
     lat.add_argument("--sched-fifo", type=int, default=None, metavar="PRIO",
                      help="the pump SCHED_FIFO at PRIO (0: SCHED_OTHER), as the daemon's [realtime] "
