@@ -1,6 +1,7 @@
-"""The pump's real-time policy (`[realtime]`, hostd.service.pumpproc._realtime): SCHED_FIFO 10 by
-default where permitted, nothing it starts inherits it, and where it is not permitted one line says
-what to do and the pump runs as before."""
+"""The pump's scheduling policy (hostd.device.realtime.SchedPolicy, `[realtime]
+sched_fifo_priority`, 10 by default): SCHED_FIFO while it streams, SCHED_OTHER while it
+supervises, nothing it starts inherits real time; where real time is not permitted one line says
+what to do, once, and the pump streams as before."""
 
 from __future__ import annotations
 
@@ -11,21 +12,33 @@ import sys
 
 import pytest
 
+from hostd.device.pump import Pump
+from hostd.device.simdev import SimTransport
+
 PROBE = r"""
 import os, resource, sys
+from hostd.device.realtime import SchedPolicy
 from hostd.service.config import RealtimeCfg
-from hostd.service.pumpproc import _realtime
 if sys.argv[1] == "drop":  # a user without the right: no RLIMIT_RTPRIO, not root
     resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
     os.setresgid(65534, 65534, 65534)
     os.setresuid(65534, 65534, 65534)
 lines = []
-_realtime(RealtimeCfg(), lines.append)
+sp = SchedPolicy(RealtimeCfg().sched_fifo_priority, lines.append)
+seen = [os.sched_getscheduler(0)]
+sp.streaming(True)
+seen += [os.sched_getscheduler(0), os.sched_getparam(0).sched_priority]
 pid = os.fork()
 if pid == 0:
-    os._exit(0 if os.sched_getscheduler(0) == os.SCHED_OTHER else 3)
+    os._exit(0 if os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK == os.SCHED_OTHER else 3)
 _, status = os.waitpid(pid, 0)
-print(os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.waitstatus_to_exitcode(status))
+seen.append(os.waitstatus_to_exitcode(status))
+sp.streaming(False)
+seen.append(os.sched_getscheduler(0))
+sp.streaming(True)  # a second stream: said once
+seen.append(os.sched_getscheduler(0))
+sp.streaming(False)
+print(*seen)
 print("\n".join(lines))
 """
 
@@ -40,18 +53,61 @@ def _probe(mode: str) -> tuple[list[int], list[str]]:
     return [int(x) for x in first.split()], lines
 
 
+FIFO = os.SCHED_FIFO | os.SCHED_RESET_ON_FORK
+OTHER = os.SCHED_OTHER | os.SCHED_RESET_ON_FORK
+
+
 @pytest.mark.skipif(os.geteuid() != 0 and resource.getrlimit(resource.RLIMIT_RTPRIO)[0] < 10,
-                    reason="SCHED_FIFO 10 is not permitted to this user (the not-permitted case runs below)")
-def test_the_pump_runs_sched_fifo_10_by_default_and_nothing_it_starts_inherits_it():
-    (policy, prio, child), lines = _probe("keep")
-    assert policy == os.SCHED_FIFO | os.SCHED_RESET_ON_FORK and prio == 10
+                    reason="SCHED_FIFO 10 is not permitted to this user (the refused case runs as root)")
+def test_the_pump_streams_sched_fifo_10_supervises_sched_other_and_what_it_starts_is_not_real_time():
+    (before, streaming, prio, child, after, again), lines = _probe("keep")
+    assert before == os.SCHED_OTHER and streaming == FIFO and prio == 10
     assert child == 0  # the forked child runs SCHED_OTHER
-    assert lines == ["pump runs SCHED_FIFO priority 10"]
+    assert after == OTHER and again == FIFO
+    assert lines == ["pump streams SCHED_FIFO priority 10 (supervises SCHED_OTHER)"]
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="dropping to an unprivileged user needs root")
-def test_a_pump_not_permitted_sched_fifo_says_what_to_do_and_runs_as_before():
-    (policy, prio, child), lines = _probe("drop")
-    assert policy == os.SCHED_OTHER and prio == 0 and child == 0
+def test_a_pump_not_permitted_sched_fifo_says_what_to_do_once_and_streams_as_before():
+    (before, streaming, prio, child, after, again), lines = _probe("drop")
+    assert before == streaming == after == again == os.SCHED_OTHER and prio == 0 and child == 0
     assert len(lines) == 1 and lines[0].startswith("pump: SCHED_FIFO 10 not permitted (")
     assert "LimitRTPRIO" in lines[0] and "sched_fifo_priority = 0" in lines[0]
+
+
+class _Policy:
+    def __init__(self) -> None:
+        self.calls: list[bool] = []
+
+    def streaming(self, on: bool) -> None:
+        self.calls.append(on)
+
+
+def test_the_pump_is_real_time_from_before_its_prime_until_it_stops():
+    from hostd.bench.accuracy import texture_coeffs
+    from hostd.device.link import DeviceLink
+    from hostd.render import RenderConfig, Renderer
+    from hostd.texture import synth
+
+    t = SimTransport(realtime=False)
+    link = DeviceLink(t, target_fill=12)
+    link.handshake(timeout_s=2.0)
+    policy = _Policy()
+    sent: list[tuple[bool, bytes]] = []  # each message to the display, and whether it streamed then
+    real_send = t.send
+
+    def send(msg: bytes) -> None:
+        sent.append((bool(policy.calls and policy.calls[-1]), msg))
+        real_send(msg)
+
+    pump = Pump(link, None, realtime=policy)
+    assert policy.calls == [False]  # a pump with nothing to stream supervises
+    c, n, length = texture_coeffs(synth.make("wood", seed=1))
+    r = Renderer(c, n, length, RenderConfig())
+    r.start()
+    t.send = send
+    pump.begin(r)
+    # the prime and START went out, and all of it real-time
+    assert policy.calls == [False, True] and sent and all(on for on, _ in sent), sent[:3]
+    pump.end()
+    assert policy.calls == [False, True, False]

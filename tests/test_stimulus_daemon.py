@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import shutil
 import signal
 import subprocess
@@ -321,11 +322,18 @@ def test_a_stimulus_stops_device_rendering_and_the_display_idles_after(rig, tmp_
     th = threading.Thread(target=long_stimulus)
     th.start()
     wait_for(lambda: rig.status()["state"] == "playing", 10, "the stimulus playing")
+    streaming = os.sched_getscheduler(pump), os.sched_getparam(pump).sched_priority
     request(rig.sock, {"cmd": "select", "name": "wood"})
     th.join(20)
     assert "error" in res and res["error"].reply.get("retry"), res  # (interrupted, or cut by a stall)
     wait_for(lambda: rig.status()["device_state"] == "rendering", 30, "device rendering again")
+    supervising = os.sched_getscheduler(pump), os.sched_getparam(pump).sched_priority
     request(rig.sock, {"cmd": "stop"})
+    # the pump streams the stimulus real-time where permitted ([realtime] sched_fifo_priority, 10
+    # by default) and supervises the display's own rendering as an ordinary process again
+    if os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] >= 10:
+        assert streaming == (os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, 10), streaming
+    assert supervising[0] & ~os.SCHED_RESET_ON_FORK == os.SCHED_OTHER and supervising[1] == 0, supervising
 
 
 HOSTILE = r"""

@@ -69,30 +69,23 @@ def steal_s() -> float | None:
 
 
 class PumpPolicy:
-    """The pump's thread SCHED_FIFO at `priority` while the block runs, as the daemon's pump takes
-    it with `[realtime] sched_fifo_priority` (0: SCHED_OTHER, the daemon's default, unchanged).
-    Not permitted (no root, no RLIMIT_RTPRIO): it says so in `policy` and runs SCHED_OTHER.
-    SCHED_RESET_ON_FORK: what the thread starts meanwhile is not real-time."""
+    """The pump's thread as the daemon's pump streams, while the block runs: SCHED_FIFO at
+    `priority` (hostd.device.realtime.SchedPolicy; 0: SCHED_OTHER). Not permitted (no root, no
+    RLIMIT_RTPRIO): it says so in `policy` and runs SCHED_OTHER."""
 
     def __init__(self, priority: int = 0) -> None:
-        self.priority = priority
-        self.policy = "SCHED_OTHER"
+        from hostd.device.realtime import SchedPolicy
+
+        self._sched = SchedPolicy(priority)
+        self.policy = self._sched.policy
 
     def __enter__(self) -> PumpPolicy:
-        if self.priority > 0:
-            self._old = (os.sched_getscheduler(0), os.sched_getparam(0))
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK,
-                                      os.sched_param(self.priority))
-                self.policy = f"SCHED_FIFO {self.priority}"
-            except OSError as e:
-                self.policy = f"SCHED_OTHER (SCHED_FIFO {self.priority} not permitted: {e.strerror})"
-                self.priority = 0
+        self._sched.streaming(True)
+        self.policy = self._sched.policy
         return self
 
     def __exit__(self, *exc) -> None:
-        if self.priority > 0:
-            os.sched_setscheduler(0, self._old[0], self._old[1])
+        self._sched.streaming(False)
 
 
 def run(duration_s: float = 8.0, target_fill: int = 12, period_s: float = STEP_PERIOD_S,

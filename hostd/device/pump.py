@@ -124,9 +124,13 @@ class Pump:
     COMPILED_MIRROR = True
 
     def __init__(self, link: DeviceLink, renderer, period_s: float = 0.001,
-                 jitter: JitterConfig | None = None, log=None, cycle=None) -> None:
+                 jitter: JitterConfig | None = None, log=None, cycle=None, realtime=None) -> None:
         self.renderer = renderer
         self.cycle = cycle
+        # the scheduling policy (hostd.device.realtime.SchedPolicy): real-time while it streams
+        self.realtime = realtime
+        if realtime is not None:
+            realtime.streaming(renderer is not None)
         if not 0.001 <= period_s <= 0.010 + 1e-12:
             raise ValueError("pump period must be 1..10 ms")
         self.period_s = period_s
@@ -235,6 +239,8 @@ class Pump:
             self._motion_base = (self._motion_base[0] + old.motion.relocks,
                                  self._motion_base[1] + old.motion.implausible)
         self.renderer = renderer
+        if self.realtime is not None:
+            self.realtime.streaming(renderer is not None)  # (before the prime and START)
         self.link.target_fill = self._link_fill()
         self.health.select(renderer is not None)
         self._episode = None

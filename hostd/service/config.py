@@ -87,11 +87,12 @@ class OutputCfg:
 
 @dataclass
 class RealtimeCfg:
-    # the pump SCHED_FIFO at this priority where permitted (the systemd unit grants LimitRTPRIO=20;
-    # not permitted: one line, and it runs SCHED_OTHER); 0: never asked. The link's own underruns
-    # on a quiet machine were a SCHED_OTHER pump behind a busier neighbour (docs/benchmarks.md,
-    # "Link latency"); 10 is below the kernel's threaded interrupts (50), which the display's
-    # bytes pass through
+    # the pump SCHED_FIFO at this priority while it streams (host rendering, stimuli), where
+    # permitted (the systemd unit grants LimitRTPRIO=20; not permitted: one line, and it streams
+    # SCHED_OTHER); 0: never asked. The link's own underruns on a quiet machine were a SCHED_OTHER
+    # pump behind a busier neighbour (docs/benchmarks.md, "Link latency"); 10 is below the
+    # kernel's threaded interrupts (50), which the display's bytes pass through. A pump that
+    # supervises a display rendering itself stays SCHED_OTHER (hostd.device.realtime)
     sched_fifo_priority: int = 10
     mlockall: bool = False
     cpu: int = -1

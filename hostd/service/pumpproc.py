@@ -65,17 +65,7 @@ def _realtime(rt, log) -> None:
             log(f"pump pinned to CPU {rt.cpu}")
         except OSError as e:
             log(f"pump: cannot pin to CPU {rt.cpu} ({e.strerror}); running unpinned")
-    if rt.sched_fifo_priority > 0:
-        try:
-            # (SCHED_RESET_ON_FORK: what the pump starts, its equalizer's design for one, is not
-            # real-time)
-            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK,
-                                  os.sched_param(rt.sched_fifo_priority))
-            log(f"pump runs SCHED_FIFO priority {rt.sched_fifo_priority}")
-        except (OSError, AttributeError) as e:
-            log(f"pump: SCHED_FIFO {rt.sched_fifo_priority} not permitted ({getattr(e, 'strerror', e)}); "
-                "running SCHED_OTHER: grant LimitRTPRIO/CAP_SYS_NICE (systemd/hostd.service does), or "
-                "set [realtime] sched_fifo_priority = 0 not to ask")
+    # (rt.sched_fifo_priority: the pump takes it while it streams, hostd.device.realtime)
     if rt.mlockall:
         import ctypes
 
@@ -157,6 +147,7 @@ def pump_main(cfg, conn, stats) -> None:
     from hostd.device.hotplug import watch
     from hostd.device.link import DeviceLink
     from hostd.device.pump import JitterConfig, Pump
+    from hostd.device.realtime import SchedPolicy
     from hostd.device.transport import open_transport, present
     from hostd.errors import DeviceBusy, DeviceError, DeviceGone, DeviceNotFound
 
@@ -768,7 +759,7 @@ def pump_main(cfg, conn, stats) -> None:
             f"{ident['fw_patch']}, protocol v{ident['protocol_version']}")
         if pump is None:
             pump = Pump(link, None, period_s=cfg.device.host_cycle_ms / 1000, jitter=jitter, log=log,
-                        cycle=CompiledCycle())
+                        cycle=CompiledCycle(), realtime=SchedPolicy(cfg.realtime.sched_fifo_priority, log))
         else:
             pump.attach(link)
         playing = False
