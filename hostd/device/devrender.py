@@ -248,10 +248,11 @@ def read_scenario(path) -> list[tuple]:
 
 def run_model(events: list[tuple]) -> tuple[np.ndarray, object]:
     """The Python model (a SimDevice without a hand) on a scenario: (DAC code per tick, device)."""
+    from hostd.device.fastlink import deframer as make_deframer
     from hostd.device.simdev import SimDevice
 
     dev = SimDevice()
-    deframer = pr.Deframer()
+    deframer = make_deframer()
     codes = []
     for e in events:
         if e[0] == "m":

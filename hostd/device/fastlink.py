@@ -59,3 +59,9 @@ def encode_samples(seq: int, codes) -> bytes:
         if m is not None:
             return m
     return pr.encode("SAMPLES", seq=seq, codes=codes)
+
+
+def deframer() -> pr.Deframer:
+    """A serial deframer: the compiled loop when this build has it (HOSTD_PURE_PYTHON=1: the
+    reference), protocol.Deframer's otherwise."""
+    return pr.Deframer(compiled=DEFRAME)

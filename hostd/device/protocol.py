@@ -176,18 +176,16 @@ def unframe(body: bytes) -> bytes:
 
 class Deframer:
     """Accumulates serial bytes; yields complete messages, counting bad frames. The loop below is
-    the reference; hostd/device/_fastlink.c's deframe runs the same loop compiled when it is built
-    (HOSTD_PURE_PYTHON=1 selects this one): device mode's wake-up then deframes its report pair
-    without Python's per-frame work."""
+    the reference; `compiled` (hostd/device/_fastlink.c's deframe, handed in by
+    hostd.device.fastlink.deframer() when it is built) runs the same loop compiled: device mode's
+    wake-up then deframes its report pair without Python's per-frame work."""
 
     MAX_FRAME = REPORT_SIZE + 8
 
-    def __init__(self) -> None:
-        from hostd.device import fastlink  # (it imports this module)
-
+    def __init__(self, compiled=None) -> None:
         self._buf = bytearray()
         self.bad_frames = 0
-        self._compiled = fastlink.DEFRAME
+        self._compiled = compiled
 
     def feed(self, data: bytes) -> list[bytes]:
         self._buf += data

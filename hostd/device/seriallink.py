@@ -69,7 +69,7 @@ class SerialTransport(Transport):
                     raise permission_error(port) from None
                 raise err from None
             raise DeviceNotFound(f"cannot open serial port {port} ({e})") from None
-        self.deframer = pr.Deframer()
+        self.deframer = fastlink.deframer()
         self._queue: list[bytes] = []
         # Writes go straight to the non-blocking fd (one layer less on the real-time path, and
         # pyserial's write() can report a timeout after writing everything): what the port
