@@ -224,7 +224,8 @@ def summary(rows: list[dict]) -> dict:
             "underruns_port_late": sum(r["underruns_port_late"] for r in rows),
             "underruns_per_min": float(np.median([r["underruns_per_min"] for r in rows])),
             "link_underruns_per_min": float(np.median([r["link_underruns_per_min"] for r in rows])),
-            "link_underruns": sum(r["underruns"] - r["underruns_port_late"] for r in rows),
+            # (clamped as run() clamps its own)
+            "link_underruns": sum(max(0, r["underruns"] - r["underruns_port_late"]) for r in rows),
             "played_fraction": float(np.median([r["played_fraction"] for r in rows])),
             "steal_s": [r.get("steal_s") for r in rows],
             "played_fraction_min": min(r["played_fraction"] for r in rows)}
