@@ -293,3 +293,31 @@ def test_a_display_that_opens_but_does_not_answer_is_closed_before_the_retry(tmp
         assert Path(str(pc.flag) + ".closed").exists()
     finally:
         pc.close()
+
+
+def test_a_hidraw_node_unplugged_while_listed_is_skipped_not_a_crash(tmp_path, monkeypatch):
+    """The VM rig's replug (2026-11-27, under load): /sys/class/hidraw/hidraw0 went away between
+    the listing and its resolve(); the FileNotFoundError ended the pump. A node gone meanwhile is
+    not there; the others are listed."""
+    from pathlib import Path
+
+    from hostd.device import hidlink
+    from hostd.device import protocol as pr
+
+    for name in ("hidraw0", "hidraw1"):
+        dev = tmp_path / "devices" / name
+        (dev / "device").mkdir(parents=True)
+        (dev / "device" / "uevent").write_text(f"HID_ID=0003:{pr.USB_VID:08X}:{pr.USB_PID:08X}\nHID_NAME=x\n")
+        (dev / "uevent").write_text(f"DEVNAME={name}\n")
+        (tmp_path / "class" / "hidraw").mkdir(parents=True, exist_ok=True)
+        (tmp_path / "class" / "hidraw" / name).symlink_to(dev)
+    real = Path.resolve
+
+    def resolve(self, strict=False):
+        if self.name == "hidraw0":
+            raise FileNotFoundError(2, "No such file or directory", str(self))
+        return real(self, strict=strict)
+
+    monkeypatch.setattr(Path, "resolve", resolve)
+    found = hidlink.enumerate_hidraw(str(tmp_path))
+    assert [d["node"] for d in found] == ["/dev/hidraw1"]

@@ -69,9 +69,13 @@ def enumerate_hidraw(sysfs: str = SYSFS) -> list[dict]:
             continue
         hid = _uevent(d / "device" / "uevent")
         devname = _uevent(d / "uevent").get("DEVNAME", d.name)
+        try:
+            where = str(d.resolve(strict=True))
+        except OSError:  # unplugged since the listing (a replug under way): not there
+            continue
         out.append({"node": f"/dev/{devname}", "bus": ids[0], "vid": ids[1], "pid": ids[2],
                     "name": hid.get("HID_NAME", ""), "serial": hid.get("HID_UNIQ", ""),
-                    "sysfs": str(d.resolve())})
+                    "sysfs": where})
     return out
 
 
