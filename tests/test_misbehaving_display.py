@@ -35,7 +35,7 @@ class Cable(threading.Thread):
     new cable is the same display path: a replug). inject() adds bytes toward the daemon at a
     frame boundary; pull() makes the display vanish (the daemon's side hangs up)."""
 
-    def __init__(self, device_pty: str, link: Path) -> None:
+    def __init__(self, device_pty: str, link: Path, vanish_after: str = "", drop_caps: bool = False) -> None:
         super().__init__(daemon=True)
         self.dev = os.open(device_pty, os.O_RDWR | os.O_NOCTTY)
         tty.setraw(self.dev)
@@ -51,6 +51,8 @@ class Cable(threading.Thread):
         self.echo = 0  # flood(): each STATUS of the display repeated this many times more
         self.flood_times: list[float] = []  # when each flooded STATUS went toward the daemon
         self.vanish_at_load = 0  # vanish_during_upload(): the LOAD_* frame toward the display that cuts it
+        self.vanish_after = vanish_after  # the daemon's message (a name) after which the display vanishes
+        self.drop_caps = drop_caps  # the display's CAPS never reach the daemon (it waits for them)
         self.loads = 0  # LOAD_* frames the daemon sent through this cable
         self.vanished = threading.Event()
         self.backlog = 0  # bytes toward the daemon it has not taken yet
@@ -100,7 +102,7 @@ class Cable(threading.Thread):
 
     def _to_device(self, data: bytes, frames: bytearray) -> bytes:
         """What the daemon sent, up to the frame that makes the display vanish (b"" after it)."""
-        if not self.vanish_at_load:
+        if not self.vanish_at_load and not self.vanish_after:
             return data
         out = bytearray()
         for b in data:
@@ -114,15 +116,33 @@ class Cable(threading.Thread):
             except pr.ProtocolError:
                 msg = b""
             frames.clear()
-            if msg and pr.NAMES.get(msg[0], "").startswith("LOAD_"):
+            if msg and self.vanish_after and pr.NAMES.get(msg[0]) == self.vanish_after:
+                self.vanished.set()
+                return bytes(out)  # this frame reached it, nothing after
+            if msg and self.vanish_at_load and pr.NAMES.get(msg[0], "").startswith("LOAD_"):
                 self.loads += 1
                 if self.loads >= self.vanish_at_load:
                     self.vanished.set()
                     return bytes(out[: max(0, len(out) - n_frame)])  # this frame never reaches it
         return bytes(out)
 
+    def _without_caps(self, data: bytes) -> bytes:
+        """Whole frames of the display, its CAPS left out."""
+        caps = pr.IDS["CAPS"]
+        out = bytearray()
+        for body in data.split(b"\0")[:-1]:
+            try:
+                msg = pr.unframe(body)
+            except pr.ProtocolError:
+                msg = b""
+            if not (msg and msg[0] == caps):
+                out += body + b"\0"
+        return bytes(out)
+
     def _echoed(self, data: bytes) -> bytes:
         """Whole frames of the display, each STATUS repeated self.echo times more."""
+        if self.drop_caps:
+            data = self._without_caps(data)
         k = self.echo
         if not k:
             return data
@@ -177,9 +197,11 @@ class Cable(threading.Thread):
                     hold_until = time.monotonic() + stall
                     self.stalls += 1
                     continue
-                if stall:
+                if stall:  # a frame and the next one's first half are needed: hold what came (one
+                    # frame, a read apart on a quiet machine) until the next frame is in too
                     with self.lock:
                         self.stall_s = stall
+                    continue
                 if cut:
                     if self.want_status.is_set():
                         self._catch_status(held[:cut])
@@ -336,9 +358,10 @@ def _forged_ident(protocol_version: int) -> bytes:
                      max_samples=pr.MAX_SAMPLES, um_per_count_nm=pr.P["um_per_count_nm"])
 
 
-def _display_and_daemon(tmp_path: Path, where: str, hp_args: list[str]):
-    """The host port behind a cable, a daemon on the cable's path that renders `where`, a texture
-    in its library: (host port, cable, daemon, control socket, journal, DAC log, display path)."""
+def _display_and_daemon(tmp_path: Path, where: str, hp_args: list[str], **cable_kw):
+    """The host port behind a cable (Cable(**cable_kw)), a daemon on the cable's path that renders
+    `where`, a texture in its library: (host port, cable, daemon, control socket, journal, DAC
+    log, display path)."""
     try:
         hostport.build()
     except RuntimeError as e:
@@ -348,7 +371,7 @@ def _display_and_daemon(tmp_path: Path, where: str, hp_args: list[str]):
     dac = tmp_path / "dac.bin"
     hp = hostport.HostPort(hp_args, log=dac)
     link = tmp_path / "display"
-    cable = Cable(hp.pty, link)
+    cable = Cable(hp.pty, link, **cable_kw)
     cfg = tmp_path / "hostd.toml"
     cfg.write_text(f'[device]\ntransport = "serial:{link}"\nreconnect_s = 0.5\n[render]\nwhere = "{where}"\n'
                    '[library]\ndir = "lib"\nspool = "spool"\n'
@@ -486,5 +509,33 @@ def test_a_display_that_vanishes_during_a_texture_upload_is_uploaded_to_again_wh
         assert not _lines(log, at, "rendering on the host"), log.read_text().splitlines()[at:]
         rss1 = _pump_rss_kib(daemon.pid)
         assert rss1 - rss0 < 20 * 1024, (rss0, rss1)  # the cut upload left nothing growing
+    finally:
+        _end(hp, cable, daemon, log, dac)
+
+
+def test_a_display_that_vanishes_while_its_caps_are_awaited_is_a_loss_not_the_end_of_the_daemon(tmp_path):
+    """A display unplugged within a second of its arrival: after the handshake and its limits, while
+    the pump waits for its CAPS (which this cable holds back). That is a loss like one during play:
+    one line names it, the daemon keeps serving, and the display is taken again when it returns
+    (before, the DeviceGone of that wait ended the pump, and the daemon with it)."""
+    hp, cable, daemon, sock, log, dac, link = _display_and_daemon(
+        tmp_path, "device", ["--motion", "metronome", "--duration", "120"], vanish_after="SET_TIMEOUT",
+        drop_caps=True)
+    try:
+        wait_for(cable.vanished.is_set, 2 * START_S, "the daemon's first connection")
+        wait_for(lambda: _lines(log, 0, "device lost"), 30, "the loss")
+        lost = _lines(log, 0, "device lost")
+        assert len(lost) == 1 and str(link) in lost[0], lost
+        st = request(sock, {"cmd": "status"}, timeout_s=5)  # the daemon serves on, its pump alive
+        assert daemon.poll() is None and st["pump_alive"] and not st["connected"], st
+        send_file(sock, str(tmp_path / "wood.vtx"), "wood")
+        request(sock, {"cmd": "select", "name": "wood"})
+        cable.pull()
+        cable = Cable(hp.pty, link)  # the display is back (a replug), its CAPS with it
+        wait_for(lambda: request(sock, {"cmd": "status"})["device_state"] == "rendering", 60,
+                 "rendering after the replug")
+        st = request(sock, {"cmd": "status"})
+        assert st["connected"] and st["render_at"] == "device" and st["texture"] == "wood", st
+        assert "pump exited" not in log.read_text()
     finally:
         _end(hp, cable, daemon, log, dac)

@@ -380,11 +380,9 @@ class PumpProcess:
         self.conn_fd = self.conn.fileno()
 
     def connect(self) -> bool:
-        """Open the display, shake hands, set its limits; then what plays on it (where it renders,
-        the selection again). False when there is none (yet): after waiting for it."""
-        from hostd.device import devrender
-        from hostd.device import protocol as pr
-        from hostd.device.devmode import DeviceMode
+        """Open the display, shake hands, set its limits. False when there is none (yet): after
+        waiting for it. What plays on it is serve()'s (set_up(): where it renders, the selection
+        again), where a display lost meanwhile is a loss like any other."""
         from hostd.device.link import DeviceLink
         from hostd.device.pump import Pump
         from hostd.device.realtime import SchedPolicy
@@ -428,6 +426,18 @@ class PumpProcess:
         else:
             self.pump.attach(link)
         self.dev = None
+        return True
+
+    def set_up(self) -> None:
+        """Where the texture renders on this display: the display itself when it can (a v2
+        display's CAPS, waited for), else the host. A display lost while its CAPS are waited
+        for (unplugged within a second of its arrival) raises DeviceError to serve(): a loss,
+        as during play, not the end of the pump."""
+        from hostd.device import devrender
+        from hostd.device import protocol as pr
+        from hostd.device.devmode import DeviceMode
+
+        cfg, link, transport = self.cfg, self.link, self.transport
         if self.where == "host":
             self.choose(False, 1)
         else:
@@ -446,7 +456,6 @@ class PumpProcess:
                 self.choose(False, _REASON_OF_REFUSAL[why[0]], why[1])
         if self.dev is None:  # the host renders: its renderer's imports now, not at the first texture
             preload_host_rendering(self.stats)
-        return True
 
     def serve(self) -> None:
         """Connected: play until the display is lost or the process stops; then the link is
@@ -455,6 +464,7 @@ class PumpProcess:
 
         pump = self.pump
         try:
+            self.set_up()
             if self.texture is not None:
                 self.begin()
             else:
