@@ -111,3 +111,42 @@ def test_the_pump_is_real_time_from_before_its_prime_until_it_stops():
     assert policy.calls == [False, True] and sent and all(on for on, _ in sent), sent[:3]
     pump.end()
     assert policy.calls == [False, True, False]
+
+
+@pytest.mark.parametrize("files, version, want", [
+    # debugfs names the running model in parentheses: it wins over everything else
+    ({"/sys/kernel/debug/sched/preempt": "none voluntary (full) lazy\n",
+      "/proc/cmdline": "quiet preempt=none", "/proc/config.gz": "CONFIG_PREEMPT_NONE=y\n"}, "#1 SMP", "full"),
+    ({"/proc/cmdline": "quiet preempt=full"}, "#1 SMP PREEMPT_RT", "rt"),
+    ({"/proc/cmdline": "ro quiet preempt=voluntary splash", "/proc/config.gz": "CONFIG_PREEMPT=y\n"},
+     "#1 SMP PREEMPT_DYNAMIC", "voluntary"),
+    # the build default: CONFIG_PREEMPT_DYNAMIC=y beside CONFIG_PREEMPT_NONE=y is "none"
+    ({"/proc/cmdline": "quiet", "/proc/config.gz": "CONFIG_PREEMPT_BUILD=y\nCONFIG_PREEMPT_NONE=y\n"
+      "CONFIG_PREEMPT_DYNAMIC=y\nCONFIG_PREEMPTION=y\n"}, "#1 SMP PREEMPT_DYNAMIC", "none"),
+    ({"/boot/config-6.1.0-test": "# CONFIG_PREEMPT_NONE is not set\nCONFIG_PREEMPT_VOLUNTARY=y\n"},
+     "#1 SMP", "voluntary"),
+    ({"/boot/config-6.1.0-test": "CONFIG_PREEMPT=y\nCONFIG_PREEMPT_COUNT=y\n"}, "#1 SMP", "full"),
+    ({"/sys/kernel/debug/sched/preempt": "garbage", "/proc/cmdline": "preempt=bogus"}, "#1 SMP", "unknown"),
+    ({}, "#1 SMP", "unknown"),
+])
+def test_the_kernel_preemption_model_is_read_from_where_the_kernel_says_it(files, version, want):
+    from hostd.device.realtime import preemption_model
+
+    model, source = preemption_model(read=files.get, uname_version=version, release="6.1.0-test")
+    assert model == want, (model, source)
+    assert source
+
+
+def test_doctor_says_the_kernels_preemption_model_and_what_to_do_when_it_holds_a_real_time_pump(capsys):
+    from hostd.device.realtime import preemption_model
+    from hostd.service.doctor import doctor
+
+    doctor(None)
+    out = capsys.readouterr().out
+    model, _ = preemption_model()  # this machine's own
+    line = next(ln for ln in out.splitlines() if "kernel preemption:" in ln)
+    assert f"kernel preemption: {model}" in line
+    if model in ("none", "voluntary", "unknown"):
+        assert line.lstrip().startswith("note") and "preempt=full" in line, line
+    else:
+        assert line.lstrip().startswith("ok"), line

@@ -59,3 +59,58 @@ class SchedPolicy:
     def _say(self, msg: str) -> None:
         if self.log is not None:
             self.log(msg)
+
+
+# The kernel's preemption model decides whether a real-time pump gets its CPU back from kernel code
+# at once ("full", "lazy", "rt") or only where that code yields ("none", "voluntary"). On this
+# project's VM (6.18, PREEMPT_DYNAMIC, preempt=none by its build default) the SCHED_FIFO pump
+# and the SCHED_FIFO host port were held 4-7 ms at a time with no time stolen by the hypervisor,
+# and the 4 ms buffer ran dry; traced once, the pump waited runnable while kernel code ran on its
+# CPU (docs/benchmarks.md, "Link latency"). `hostd doctor` says which model runs.
+PREEMPT_MODELS = ("none", "voluntary", "full", "lazy", "rt")
+_CONFIG_MODELS = (("CONFIG_PREEMPT_RT", "rt"), ("CONFIG_PREEMPT_LAZY", "lazy"), ("CONFIG_PREEMPT", "full"),
+                  ("CONFIG_PREEMPT_VOLUNTARY", "voluntary"), ("CONFIG_PREEMPT_NONE", "none"))
+
+
+def _read(path: str) -> str | None:
+    try:
+        if path.endswith(".gz"):
+            import gzip
+
+            with gzip.open(path, "rt") as fh:
+                return fh.read()
+        with open(path) as fh:
+            return fh.read()
+    except (OSError, EOFError, UnicodeDecodeError):  # absent, not permitted (debugfs), damaged
+        return None
+
+
+def preemption_model(read=_read, uname_version: str | None = None,
+                     release: str | None = None) -> tuple[str, str]:
+    """(model, where it was read): the running model from debugfs where it can be read (the one
+    in parentheses), else a PREEMPT_RT kernel from uname, else `preempt=` on the kernel's command
+    line, else the kernel's build default (/proc/config.gz, /boot/config-RELEASE); ("unknown", why)
+    when none says."""
+    un = os.uname()
+    version = un.version if uname_version is None else uname_version
+    release = un.release if release is None else release
+    text = read("/sys/kernel/debug/sched/preempt")
+    if text:
+        for word in text.split():
+            if word.startswith("(") and word.endswith(")") and word[1:-1] in PREEMPT_MODELS:
+                return word[1:-1], "/sys/kernel/debug/sched/preempt"
+    if "PREEMPT_RT" in version.split():
+        return "rt", "uname -v"
+    cmdline = read("/proc/cmdline") or ""
+    for arg in cmdline.split():
+        if arg.startswith("preempt=") and arg[len("preempt="):] in PREEMPT_MODELS:
+            return arg[len("preempt="):], "preempt= on the kernel's command line"
+    for path in ("/proc/config.gz", f"/boot/config-{release}"):
+        config = read(path)
+        if not config:
+            continue
+        on = {line.split("=", 1)[0] for line in config.splitlines() if line.endswith("=y")}
+        for key, model in _CONFIG_MODELS:
+            if key in on:
+                return model, f"the kernel's build default, {path}"
+    return "unknown", "no debugfs, no preempt= and no kernel config to read"

@@ -119,6 +119,16 @@ def doctor(config: str | None, json_out: bool = False) -> int:
     else:
         note("SCHED_FIFO not allowed for this user (RLIMIT_RTPRIO 0): the pump runs SCHED_OTHER; "
              "the systemd unit grants LimitRTPRIO=20")
+    from hostd.device.realtime import preemption_model
+
+    model, source = preemption_model()
+    if model in ("full", "lazy", "rt"):
+        ok(f"kernel preemption: {model} ({source}): a real-time pump gets its CPU back from kernel code")
+    else:
+        note(f"kernel preemption: {model} ({source}): a real-time pump can wait for kernel code on its "
+             "CPU (a SCHED_FIFO pump stalled 4-7 ms on a preempt=none VM, and the display's 4 ms buffer "
+             "ran dry: docs/benchmarks.md); on a display PC boot with preempt=full (a PREEMPT_DYNAMIC "
+             "kernel) or run a PREEMPT_RT kernel")
     ml_soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
     note(f"RLIMIT_MEMLOCK {ml_soft if ml_soft >= 0 else 'unlimited'} bytes (mlockall needs it large)")
     head("storage")
