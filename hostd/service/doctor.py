@@ -127,8 +127,8 @@ def doctor(config: str | None, json_out: bool = False) -> int:
     else:
         note(f"kernel preemption: {model} ({source}): a real-time pump can wait for kernel code on its "
              "CPU (a SCHED_FIFO pump stalled 4-7 ms on a preempt=none VM, and the display's 4 ms buffer "
-             "ran dry: docs/benchmarks.md); on a display PC boot with preempt=full (a PREEMPT_DYNAMIC "
-             "kernel) or run a PREEMPT_RT kernel")
+             "ran dry); on a display PC boot with preempt=full (a PREEMPT_DYNAMIC kernel) or run a "
+             "PREEMPT_RT kernel")
     ml_soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
     note(f"RLIMIT_MEMLOCK {ml_soft if ml_soft >= 0 else 'unlimited'} bytes (mlockall needs it large)")
     head("storage")
