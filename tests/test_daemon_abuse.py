@@ -492,12 +492,16 @@ def test_concurrent_selects_of_large_textures_keep_the_pump_alive(daemon):
     # the host renders in auto mode loads the host renderer then: device mode never loads it)
     wait_for(lambda: request(sock, {"cmd": "status"})["samples"] > s0, 30, "the samples to advance")
     assert "UnpicklingError" not in (d / "log.txt").read_text()
-    # idempotent: selecting what plays sends nothing to the pump (its serial does not move)
-    serial = request(sock, {"cmd": "status"})["texture_serial"]
+    # idempotent: selecting what plays sends nothing to the pump. Counted where the daemon decides
+    # it (selects_sent). The pump's texture_serial is no count of that: under load the pipe's one
+    # writer was still handing the burst's last select (128 kB) over when the status said the
+    # samples advanced, and the serial moved after the check (a stressed run, 2026-11-27)
+    sent = request(sock, {"cmd": "status"})["selects_sent"]
     for _ in range(5):
         request(sock, {"cmd": "select", "name": st["texture"]})
-    time.sleep(0.3)
-    assert request(sock, {"cmd": "status"})["texture_serial"] == serial
+    assert request(sock, {"cmd": "status"})["selects_sent"] == sent
+    request(sock, {"cmd": "select", "name": "big2" if st["texture"] == "big" else "big"})
+    assert request(sock, {"cmd": "status"})["selects_sent"] == sent + 1  # (one that is sent on counts)
 
 
 def test_spool_symlink_swap_writes_nothing_outside(hostile):

@@ -265,6 +265,7 @@ class Daemon:
         self.stop_r, self.stop_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
         self.wake_r, self.wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
         self.selected: str | None = None
+        self.selects_sent = 0  # selects handed to the pump (status: an idempotent one is not)
         self.play: tuple[str, str, float, dict] | None = None  # name, sha256, started, counters
         self.accepted = 0
         self.refused = 0
@@ -322,6 +323,7 @@ class Daemon:
             s = self.library.decode(data)  # the library's limits, again: it may predate them
             self.end_play()
             self.pump_writer.send(("select", (name, s.coefficients, s.n, s.length_mm)))
+            self.selects_sent += 1
             self.selected, self.selected_sha = name, sha
             self.play = (name, sha, time.time(), self.counters())
         log.info("playing %s", name)
@@ -397,6 +399,7 @@ class Daemon:
         st = self.counters()
         st.update({"texture": self.selected, "pid": os.getpid(), "pump_alive": self.proc.is_alive(),
                    "accepted": self.accepted, "refused": self.refused, "library": len(self.library.names()),
+                   "selects_sent": self.selects_sent,
                    "quality_pending": self.quality_q.qsize() + len(self.quality_pending),
                    "device": self.cfg.device.transport})
         st.update(self.pump_info)
