@@ -150,3 +150,41 @@ def test_doctor_says_the_kernels_preemption_model_and_what_to_do_when_it_holds_a
         assert line.lstrip().startswith("note") and "preempt=full" in line, line
     else:
         assert line.lstrip().startswith("ok"), line
+
+
+@pytest.mark.parametrize("files, says", [
+    ({"/proc/cpuinfo": "processor\t: 0\nflags\t\t: fpu vme de pse tsc msr hypervisor lahf_lm\n"},
+     "hypervisor flag"),
+    ({"/proc/cpuinfo": "flags\t\t: fpu vme de pse tsc msr\n", "/sys/hypervisor/type": "xen\n"}, "xen"),
+    ({"/sys/class/dmi/id/sys_vendor": "QEMU\n", "/sys/class/dmi/id/product_name": "Standard PC (Q35)\n"},
+     "QEMU"),
+    ({"/sys/class/dmi/id/sys_vendor": "Microsoft Corporation\n",
+      "/sys/class/dmi/id/product_name": "Virtual Machine\n"}, "Microsoft"),
+    # bare metal: a flag list without it, a maker's DMI, a Surface (Microsoft, but no virtual machine)
+    ({"/proc/cpuinfo": "flags\t\t: fpu vme de pse tsc msr hypervisorish\n",
+      "/sys/class/dmi/id/sys_vendor": "Dell Inc.\n"}, None),
+    ({"/sys/class/dmi/id/sys_vendor": "Microsoft Corporation\n",
+      "/sys/class/dmi/id/product_name": "Surface Pro\n"}, None),
+    ({}, None),
+])
+def test_a_virtual_machine_is_told_from_what_the_kernel_says(files, says):
+    from hostd.device.realtime import hypervisor
+
+    where = hypervisor(read=files.get)
+    if says is None:
+        assert where is None, where
+    else:
+        assert where is not None and says in where, where
+
+
+def test_doctor_says_a_virtual_machine_and_what_its_hypervisor_costs_a_real_time_pump(capsys):
+    from hostd.device.realtime import hypervisor
+    from hostd.service.doctor import doctor
+
+    doctor(None)
+    out = capsys.readouterr().out
+    lines = [ln for ln in out.splitlines() if "virtual machine (" in ln]
+    if hypervisor() is None:  # bare metal: nothing to say
+        assert not lines, lines
+    else:
+        assert len(lines) == 1 and lines[0].lstrip().startswith("note") and "bare metal" in lines[0], lines

@@ -62,11 +62,12 @@ class SchedPolicy:
 
 
 # The kernel's preemption model decides whether a real-time pump gets its CPU back from kernel code
-# at once ("full", "lazy", "rt") or only where that code yields ("none", "voluntary"). On this
-# project's VM (6.18, PREEMPT_DYNAMIC, preempt=none by its build default) the SCHED_FIFO pump
-# and the SCHED_FIFO host port were held 4-7 ms at a time with no time stolen by the hypervisor,
-# and the 4 ms buffer ran dry; traced once, the pump waited runnable while kernel code ran on its
-# CPU (docs/benchmarks.md, "Link latency"). `hostd doctor` says which model runs.
+# at once ("full", "lazy", "rt") or only where that code yields ("none", "voluntary"); a display
+# PC runs one of the first three. `hostd doctor` says which model runs. On this project's VM
+# (6.18, preempt=none by its build default) the model was not what held the pump: in 60 traced
+# latency runs no real-time task waited runnable over 1.5 ms, while the hypervisor left one or
+# both virtual CPUs unrun for 2.3-7 ms, unaccounted as steal, and the 4 ms buffer ran dry
+# (docs/benchmarks.md, "Link latency"). `hypervisor()` lets doctor say so.
 PREEMPT_MODELS = ("none", "voluntary", "full", "lazy", "rt")
 _CONFIG_MODELS = (("CONFIG_PREEMPT_RT", "rt"), ("CONFIG_PREEMPT_LAZY", "lazy"), ("CONFIG_PREEMPT", "full"),
                   ("CONFIG_PREEMPT_VOLUNTARY", "voluntary"), ("CONFIG_PREEMPT_NONE", "none"))
@@ -83,6 +84,31 @@ def _read(path: str) -> str | None:
             return fh.read()
     except (OSError, EOFError, UnicodeDecodeError):  # absent, not permitted (debugfs), damaged
         return None
+
+
+# A guest's virtual CPU runs when its hypervisor runs it; time it is not run while it halts, or
+# while a busy host runs something else, need not show as steal in /proc/stat.
+_DMI_VIRTUAL = ("QEMU", "KVM", "VMware", "innotek", "Xen", "Parallels", "Bochs", "BHYVE", "Amazon EC2",
+                "Google")
+
+
+def hypervisor(read=_read) -> str | None:
+    """Where this kernel says it runs under a hypervisor (the CPU's `hypervisor` flag in
+    /proc/cpuinfo, /sys/hypervisor/type, a virtual machine's DMI vendor), or None on bare metal
+    or when nothing says."""
+    for line in (read("/proc/cpuinfo") or "").splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "flags" and "hypervisor" in value.split():
+            return "the CPU's hypervisor flag, /proc/cpuinfo"
+    kind = (read("/sys/hypervisor/type") or "").strip()
+    if kind:
+        return f"/sys/hypervisor/type: {kind}"
+    vendor = (read("/sys/class/dmi/id/sys_vendor") or "").strip()
+    product = (read("/sys/class/dmi/id/product_name") or "").strip()
+    if any(vendor.startswith(v) for v in _DMI_VIRTUAL) or (
+            vendor.startswith("Microsoft") and product == "Virtual Machine"):
+        return f"DMI vendor {vendor!r}"
+    return None
 
 
 def preemption_model(read=_read, uname_version: str | None = None,

@@ -119,16 +119,21 @@ def doctor(config: str | None, json_out: bool = False) -> int:
     else:
         note("SCHED_FIFO not allowed for this user (RLIMIT_RTPRIO 0): the pump runs SCHED_OTHER; "
              "the systemd unit grants LimitRTPRIO=20")
-    from hostd.device.realtime import preemption_model
+    from hostd.device.realtime import hypervisor, preemption_model
 
     model, source = preemption_model()
     if model in ("full", "lazy", "rt"):
         ok(f"kernel preemption: {model} ({source}): a real-time pump gets its CPU back from kernel code")
     else:
         note(f"kernel preemption: {model} ({source}): a real-time pump can wait for kernel code on its "
-             "CPU (a SCHED_FIFO pump stalled 4-7 ms on a preempt=none VM, and the display's 4 ms buffer "
-             "ran dry); on a display PC boot with preempt=full (a PREEMPT_DYNAMIC kernel) or run a "
-             "PREEMPT_RT kernel")
+             "CPU for as long as that code runs without yielding, and the display's buffer holds 4 ms; "
+             "on a display PC boot with preempt=full (a PREEMPT_DYNAMIC kernel) or run a PREEMPT_RT kernel")
+    where = hypervisor()
+    if where is not None:
+        note(f"virtual machine ({where}): the hypervisor can leave a virtual CPU unrun for "
+             "milliseconds without counting it as steal (2.3-7 ms seen, and the display's 4 ms buffer "
+             "ran dry); a display PC that renders on the host runs on bare metal, or on virtual CPUs "
+             "pinned to host cores of their own")
     ml_soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
     note(f"RLIMIT_MEMLOCK {ml_soft if ml_soft >= 0 else 'unlimited'} bytes (mlockall needs it large)")
     head("storage")
