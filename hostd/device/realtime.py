@@ -66,7 +66,7 @@ class SchedPolicy:
 # PC runs one of the first three. `hostd doctor` says which model runs. On this project's VM
 # (6.18, preempt=none by its build default) the model was not what held the pump: in 60 traced
 # latency runs no real-time task waited runnable over 1.5 ms, while the hypervisor left one or
-# both virtual CPUs unrun for 2.3-7 ms, unaccounted as steal, and the 4 ms buffer ran dry
+# both virtual CPUs unrun for 2.3-4.4 ms, unaccounted as steal, and the 4 ms buffer ran dry
 # (docs/benchmarks.md, "Link latency"). `hypervisor()` lets doctor say so.
 PREEMPT_MODELS = ("none", "voluntary", "full", "lazy", "rt")
 _CONFIG_MODELS = (("CONFIG_PREEMPT_RT", "rt"), ("CONFIG_PREEMPT_LAZY", "lazy"), ("CONFIG_PREEMPT", "full"),

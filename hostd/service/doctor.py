@@ -131,7 +131,7 @@ def doctor(config: str | None, json_out: bool = False) -> int:
     where = hypervisor()
     if where is not None:
         note(f"virtual machine ({where}): the hypervisor can leave a virtual CPU unrun for "
-             "milliseconds without counting it as steal (2.3-7 ms seen, and the display's 4 ms buffer "
+             "milliseconds without counting it as steal (2.3-4.4 ms traced, and the display's 4 ms buffer "
              "ran dry); a display PC that renders on the host runs on bare metal, or on virtual CPUs "
              "pinned to host cores of their own")
     ml_soft, _ = resource.getrlimit(resource.RLIMIT_MEMLOCK)
