@@ -165,6 +165,9 @@ def test_doctor_says_the_kernels_preemption_model_and_what_to_do_when_it_holds_a
       "/sys/class/dmi/id/sys_vendor": "Dell Inc.\n"}, None),
     ({"/sys/class/dmi/id/sys_vendor": "Microsoft Corporation\n",
       "/sys/class/dmi/id/product_name": "Surface Pro\n"}, None),
+    # a Chromebook, a bare-metal EC2 instance: vendors that virtual machines share with real ones
+    ({"/sys/class/dmi/id/sys_vendor": "Google\n", "/sys/class/dmi/id/product_name": "Eve\n"}, None),
+    ({"/sys/class/dmi/id/sys_vendor": "Amazon EC2\n", "/sys/class/dmi/id/product_name": "c7g.metal\n"}, None),
     ({}, None),
 ])
 def test_a_virtual_machine_is_told_from_what_the_kernel_says(files, says):

@@ -87,9 +87,10 @@ def _read(path: str) -> str | None:
 
 
 # A guest's virtual CPU runs when its hypervisor runs it; time it is not run while it halts, or
-# while a busy host runs something else, need not show as steal in /proc/stat.
-_DMI_VIRTUAL = ("QEMU", "KVM", "VMware", "innotek", "Xen", "Parallels", "Bochs", "BHYVE", "Amazon EC2",
-                "Google")
+# while a busy host runs something else, need not show as steal in /proc/stat. DMI vendors that
+# only ever name a virtual machine (not "Google", a Chromebook's too, nor "Amazon EC2", its bare
+# metal instances' too; on x86 their guests have the CPU flag).
+_DMI_VIRTUAL = ("QEMU", "KVM", "VMware", "innotek", "Xen", "Parallels", "Bochs", "BHYVE")
 
 
 def hypervisor(read=_read) -> str | None:
