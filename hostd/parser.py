@@ -164,7 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
     from hostd.experiment.cli import add_parser as add_experiment
     from hostd.service.cli import add_parsers as add_service
     from hostd.sim.cli import add_parser as add_sim
-    from hostd.texture.hjif_cli import add_parser as add_export
+    from hostd.export_cli import add_parser as add_export
 
     add_export(sub)
     add_bench(sub, [loader_parent(None)])
