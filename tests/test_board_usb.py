@@ -1,4 +1,4 @@
-"""The board firmware's USB descriptors (firmware/port/stm32g4/usbd.c) against the host
+"""The board firmware's USB descriptors (firmware/src/usb/usbd.c) against the host
 transports' constants (protocol.toml via hostd.device.protocol, as hidlink.py and usblink.py
 use them): VID/PID, endpoints, 64-byte reports without report IDs, 1 ms interval.
 

@@ -1,4 +1,4 @@
-/* The display's USB identity: one source for the board port (port/stm32g4/usbd.c builds its
+/* The display's USB identity: one source for the board port (src/usb/usbd.c builds its
  * descriptors from it) and the Linux USB gadget port (port/gadget/main.c writes it into
  * configfs), so what the VM rig (tests/hil) enumerates is what the board enumerates as.
  * VID/PID, endpoints and the report size come from hostd_proto.h (generated from

@@ -8,7 +8,7 @@
  * interface class are the board's, byte for byte. Not the board's, and not settable through
  * usb_f_hid: the endpoints' bInterval (the kernel's 10 at full / 4 at high speed, the board's
  * 1 ms) and bcdHID (1.01 vs 1.11); FunctionFS could set those too, but then this program
- * would have to answer the HID class requests itself, which is the board's usbd.c and is
+ * would have to answer the HID class requests itself, which is the USB stack's src/usb/usbd.c and is
  * tested there (tests/test_board_usb.py): what this port adds is the real kernel's host side.
  * The tick, the simulated hand and the DAC log are port/common/sim.c, as in the host port.
  *

@@ -1,6 +1,7 @@
 /* A minimal USB full-speed HID device for the display: descriptors and the endpoint-0
  * control-request state machine. Portable C11: the peripheral sits behind usbd_hw_t (the
- * STM32G4 driver in usb_fs.c; a simulated endpoint 0 in tests/test_usbd.c).
+ * STM32G4 driver in port/stm32g4/usb_fs.c; a simulated endpoint 0 in port/stm32g4/tests/test_usbd.c).
+ * The stack every board shares (TinyUSB's usbd/dcd cut): a new board brings its usbd_hw_t only.
  *
  * One HID interface, no report IDs, one interrupt IN (HP_USB_EP_IN) and one interrupt OUT
  * (HP_USB_EP_OUT) endpoint, 1 ms interval, HP_REPORT_SIZE-byte reports: one protocol message
