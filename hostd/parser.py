@@ -162,9 +162,9 @@ def build_parser() -> argparse.ArgumentParser:
     from hostd.bench.cli import add_parser as add_bench
     from hostd.corpus.cli import add_parser as add_corpus
     from hostd.experiment.cli import add_parser as add_experiment
+    from hostd.export_cli import add_parser as add_export
     from hostd.service.cli import add_parsers as add_service
     from hostd.sim.cli import add_parser as add_sim
-    from hostd.export_cli import add_parser as add_export
 
     add_export(sub)
     add_bench(sub, [loader_parent(None)])

@@ -175,7 +175,7 @@ def test_device_serial_picks_one_of_two_displays(monkeypatch):
              "serial": []}
 
     def attr(kind, which):
-        if which == 2:
+        if which == "enumerator":
             return lambda: found[kind]
         return lambda arg: opened.append((kind, arg)) or f"{kind}:{arg}"
 

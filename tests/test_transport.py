@@ -615,3 +615,37 @@ def test_serial_permission_denied_names_the_port_and_the_rule(monkeypatch, tmp_p
     monkeypatch.setattr(serial, "Serial", denied)
     with pytest.raises(DevicePermission, match=rf"{port} \(.*\).*70-hostd\.rules.*'hostd' group"):
         SerialTransport(str(port))
+
+
+def test_a_new_transport_is_its_module_plus_one_backend_entry(monkeypatch, tmp_path):
+    """One descriptor per transport: the config's grammar, hotplug's udev subsystems, auto's
+    order and the opener all follow an entry added to BACKENDS, and nothing else."""
+    import types
+
+    from hostd.device import transport
+    from hostd.device.transport import Backend
+    from hostd.errors import ConfigError
+    from hostd.service import config
+
+    mod = types.ModuleType("hostd_test_ble")
+    mod.open_ble = lambda arg: f"opened {arg}"
+    mod.enumerate_displays = lambda: [{"spec": "ble:AA-BB", "node": None, "serial": "S9"}]
+    monkeypatch.setitem(sys.modules, "hostd_test_ble", mod)
+    entry = Backend("ble", "hostd_test_ble", "open_ble", "enumerate_displays", ("bluetooth",),
+                    arg="ADDR", arg_re=r"[0-9A-F]{2}-[0-9A-F]{2}")
+    backends = {**transport.BACKENDS, "ble": entry}
+    monkeypatch.setattr(transport, "BACKENDS", backends)
+    monkeypatch.setattr(transport, "AUTO_ORDER", (*transport.AUTO_ORDER, "ble"))
+    assert transport.parse_spec("ble:AA-BB") == ("ble", "AA-BB")
+    with pytest.raises(ValueError, match="must be"):
+        transport.parse_spec("ble:nonsense")
+    assert transport.subsystems("ble") == ("bluetooth",)
+    assert "bluetooth" in transport.subsystems("auto")
+    assert transport.open_transport("ble:AA-BB") == "opened AA-BB"
+    assert transport.open_transport("ble", serial="S9") == "opened AA-BB"
+    p = tmp_path / "h.toml"
+    p.write_text('[device]\ntransport = "ble:AA-BB"\n')
+    assert config.load(p).device.transport == "ble:AA-BB"
+    p.write_text('[device]\ntransport = "ble:zz"\n')
+    with pytest.raises(ConfigError, match=r"device.transport must be auto, hid\[:PATH\].*not 'ble:zz'"):
+        config.load(p)

@@ -3,11 +3,11 @@
 The daemon's pump opens the display; when it is not there it waits. With udev running
 (`/run/udev/control`) and pyudev installed, it waits on a udev monitor (netlink, the events udev
 sends once its rules ran, so the node already has its group and mode), filtered in the kernel to
-the subsystems of the configured transport (hidraw for hid, usb for usb, tty for serial; all
-three for auto), as Solaar does: a display that appears is opened at once, one that goes away
-is dropped at once. Without udev (a container, a minimal system) or without pyudev it falls
-back to trying every `device.reconnect_s`, and says so (`hostd status --json` `hotplug`,
-`hostd doctor`).
+the subsystems of the configured transport (its backend's, hostd.device.transport.BACKENDS: hidraw
+for hid, usb for usb, tty for serial; all three for auto), as Solaar does: a display that appears
+is opened at once, one that goes away is dropped at once. Without udev (a container, a minimal
+system) or without pyudev it falls back to trying every `device.reconnect_s`, and says so
+(`hostd status --json` `hotplug`, `hostd doctor`).
 
 Each event carries the instant it happened on CLOCK_MONOTONIC (udev's USEC_INITIALIZED for an
 arrival, else when it was read), so the time from the event to playing again can be reported
@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from hostd.device import protocol as pr
 
 UDEV_CONTROL = "/run/udev/control"
-SUBSYSTEMS = {"hid": ("hidraw",), "usb": ("usb",), "serial": ("tty",), "auto": ("hidraw", "usb", "tty")}
 ACTIONS = ("add", "remove")
 
 
@@ -147,9 +146,11 @@ class Hotplug:
 
 def watch(spec: str, source: str = "udev", control: str = UDEV_CONTROL) -> Hotplug:
     """The hotplug source for a transport spec: udev events where possible, else poll mode."""
+    from hostd.device.transport import subsystems  # the backends' table: each kind's subsystems
+
     kind, _, arg = spec.partition(":")
-    subs = SUBSYSTEMS.get(kind)
-    if subs is None:
+    subs = subsystems(spec)
+    if not subs:
         return Hotplug(why_poll=f"a {kind} display is not plugged", plugged=False)
     if kind == "serial" and arg.startswith("/dev/pts/"):
         return Hotplug(why_poll="a pseudo-terminal has no udev events")

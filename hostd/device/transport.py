@@ -4,32 +4,79 @@ Specs: "hid[:PATH]" (Linux: /dev/hidrawN directly; elsewhere hidapi), "usb[:BUS/
 libusb-package), "serial[:PORT]" (pyserial, COBS frames), "sim" (an in-process simulated
 device). "auto" tries hid, usb, serial, in that order.
 
-The registry maps each name to "module:attribute" and imports the backend only when it is
-used: the backends import hostd.device.backend (the interface), never this module, so there is
-no import circle, and a missing optional library (hidapi, pyusb) costs only its own backend.
+BACKENDS is the one table of transport kinds: each backend's descriptor names its module, opener
+and enumerator, the udev subsystems its displays arrive on, and the grammar of its spec's
+argument. The config's validation, the hotplug filter, `hostd doctor` and the messages below all
+read it, so a new transport is its module plus one entry here (Solaar's habit). The backend is
+imported only when it is used: the backends import hostd.device.backend (the interface), never
+this module, so there is no import circle, and a missing optional library (hidapi, pyusb) costs
+only its own backend.
 """
 
 from __future__ import annotations
 
 import importlib
+import re
+from dataclasses import dataclass
 
 from hostd.device import protocol as pr
 from hostd.device.backend import UDEV_FIX, UDEV_RULE, Transport, os_error  # noqa: F401  (re-exported)
 from hostd.errors import DeviceError, DeviceNotFound, DevicePermission
 
-# name -> (module, opener, enumerator); the opener takes the spec's argument (None if absent)
-BACKENDS: dict[str, tuple[str, str, str | None]] = {
-    "hid": ("hostd.device.hidlink", "open_hid", "enumerate_displays"),
-    "usb": ("hostd.device.usblink", "UsbTransport", "enumerate_displays"),
-    "serial": ("hostd.device.seriallink", "SerialTransport", "enumerate_displays"),
-    "sim": ("hostd.device.simdev", "SimTransport", None),
-}
-AUTO_ORDER = ("hid", "usb", "serial")
+
+@dataclass(frozen=True)
+class Backend:
+    """One transport kind. The opener takes the spec's argument (None if absent) and the
+    enumerator lists the displays plugged in (None: nothing to enumerate, e.g. the simulation)."""
+    name: str
+    module: str
+    opener: str
+    enumerator: str | None
+    subsystems: tuple[str, ...]  # udev subsystems its displays arrive on (hotplug's kernel filter)
+    arg: str = ""           # what may follow "name:" in a spec, for messages ("" = nothing)
+    arg_re: str = ""        # the argument's grammar (a full match)
+    arg_is_node: bool = False  # the argument is the display's device node (checked as a path)
+    auto: bool = True       # tried, in table order, by "auto"
+
+    def spec_forms(self) -> str:
+        return f"{self.name}[:{self.arg}]" if self.arg else self.name
 
 
-def _attr(kind: str, which: int):
-    mod = importlib.import_module(BACKENDS[kind][0])
-    return getattr(mod, BACKENDS[kind][which])
+BACKENDS: dict[str, Backend] = {b.name: b for b in (
+    Backend("hid", "hostd.device.hidlink", "open_hid", "enumerate_displays", ("hidraw",),
+            arg="PATH", arg_re=r".+", arg_is_node=True),
+    Backend("usb", "hostd.device.usblink", "UsbTransport", "enumerate_displays", ("usb",),
+            arg="BUS/ADDR", arg_re=r"\d+/\d+"),
+    Backend("serial", "hostd.device.seriallink", "SerialTransport", "enumerate_displays", ("tty",),
+            arg="PORT", arg_re=r".+", arg_is_node=True),
+    Backend("sim", "hostd.device.simdev", "SimTransport", None, (), auto=False),
+)}
+AUTO_ORDER = tuple(b.name for b in BACKENDS.values() if b.auto)
+_FORMS = ["auto", *(b.spec_forms() for b in BACKENDS.values())]
+SPEC_FORMS = f"{', '.join(_FORMS[:-1])} or {_FORMS[-1]}"  # auto, hid[:PATH], ... or sim
+
+
+def parse_spec(spec: str) -> tuple[str, str]:
+    """(kind, argument) of a transport spec; ValueError naming the forms when it is none of them."""
+    kind, colon, arg = spec.partition(":")
+    b = BACKENDS.get(kind)
+    ok = (kind == "auto" and not colon) or (
+        b is not None and (not colon or bool(b.arg_re and re.fullmatch(b.arg_re, arg))))
+    if not ok:
+        raise ValueError(f"must be {SPEC_FORMS}, not {spec!r}")
+    return kind, arg
+
+
+def subsystems(spec: str) -> tuple[str, ...]:
+    """The udev subsystems a display of this spec arrives on (auto: every auto backend's)."""
+    kind = spec.partition(":")[0]
+    names = AUTO_ORDER if kind == "auto" else (kind,)
+    return tuple(s for n in names if n in BACKENDS for s in BACKENDS[n].subsystems)
+
+
+def _attr(kind: str, which: str):
+    b = BACKENDS[kind]
+    return getattr(importlib.import_module(b.module), getattr(b, which))
 
 
 def find_displays() -> list[dict]:
@@ -37,7 +84,7 @@ def find_displays() -> list[dict]:
     found: list[dict] = []
     for kind in AUTO_ORDER:
         try:
-            found += _attr(kind, 2)()
+            found += _attr(kind, "enumerator")()
         except (DeviceError, ImportError):
             pass
     return found
@@ -52,14 +99,15 @@ def present(spec: str, serial: str | None = None) -> list[dict]:
     import os
 
     kind, _, arg = spec.partition(":")
-    if kind == "sim":
+    b = BACKENDS.get(kind)
+    if b is not None and b.enumerator is None:
         return []
-    if arg and kind in ("hid", "serial"):
+    if arg and b is not None and b.arg_is_node:
         return [{"spec": spec, "node": arg}] if os.path.exists(arg) else []
     found = []
     for name in AUTO_ORDER if kind == "auto" else (kind,):
         try:
-            found += _attr(name, 2)()
+            found += _attr(name, "enumerator")()
         except (DeviceError, ImportError, OSError):
             pass
     return [d for d in found if not arg or d["spec"] == spec]
@@ -83,22 +131,24 @@ def by_serial(spec: str, serial: str) -> str:
 
 
 def open_transport(spec: str = "auto", serial: str | None = None, **kw) -> Transport:
-    """Open a transport from a spec: auto | hid[:PATH] | usb[:BUS/ADDR] | serial[:PORT] | sim;
-    with serial, the display of that USB serial number (auto, hid, usb or serial without a path)."""
-    if serial and not spec.startswith("sim"):
-        spec = by_serial(spec, serial)
+    """Open a transport from a spec (SPEC_FORMS); with serial, the display of that USB serial
+    number (auto, or a kind that enumerates, without an argument)."""
     kind, _, arg = spec.partition(":")
-    if kind == "sim":
-        return _attr("sim", 1)(**kw)
-    if kind in BACKENDS:
-        return _attr(kind, 1)(arg or None)
+    b = BACKENDS.get(kind)
+    if serial and (b is None or b.enumerator is not None):
+        spec = by_serial(spec, serial)
+        kind, _, arg = spec.partition(":")
+        b = BACKENDS.get(kind)
+    if b is not None and b.enumerator is None:  # nothing to find: built in-process
+        return _attr(kind, "opener")(**kw)
+    if b is not None:
+        return _attr(kind, "opener")(arg or None)
     if kind != "auto":
-        raise DeviceError(f"unknown device {spec!r}: use auto, hid[:PATH], usb[:BUS/ADDR], serial[:PORT] "
-                          "or sim")
+        raise DeviceError(f"unknown device {spec!r}: use {SPEC_FORMS}")
     seen: list[str] = []
     for name in AUTO_ORDER:
         try:
-            return _attr(name, 1)(None)
+            return _attr(name, "opener")(None)
         except DevicePermission:
             raise
         except DeviceNotFound as e:

@@ -171,7 +171,6 @@ RANGES = {
     ("library", "max_n_keep"): (1, 1 << 22),
     ("control", "max_clients"): (1, 256),
 }
-TRANSPORT_KINDS = ("auto", "hid", "usb", "serial", "sim")
 PATHS = {("library", "dir"), ("library", "spool"), ("control", "socket"), ("quality", "db")}
 
 
@@ -199,12 +198,12 @@ def _check(path: str, section: str, key: str, value, default):
     if (section, key) in PATHS and not value:
         raise ConfigError(f"{where} must not be empty")
     if (section, key) == ("device", "transport"):
-        kind, colon, arg = value.partition(":")
-        usb_at = kind == "usb" and arg.count("/") == 1 and all(x.isdigit() for x in arg.split("/"))
-        path_ok = bool(arg) and (kind in ("hid", "serial") or usb_at)
-        if kind not in TRANSPORT_KINDS or (colon and not path_ok):
-            raise ConfigError(f"{where} must be auto, hid, hid:/dev/hidrawN, usb, usb:BUS/ADDR, serial, "
-                              f"serial:PORT or sim, not {value!r}")
+        from hostd.device.transport import parse_spec  # the backends' table holds the grammar
+
+        try:
+            parse_spec(value)
+        except ValueError as e:
+            raise ConfigError(f"{where} {e}") from None
     if (section, key) == ("device", "serial") and (any(ord(c) < 32 for c in value) or "/" in value):
         raise ConfigError(f"{where} must be a USB serial number (as /dev/hostd/by-serial/ names it), "
                           f"not {value!r}")

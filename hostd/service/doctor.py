@@ -53,10 +53,11 @@ def doctor(config: str | None, json_out: bool = False) -> int:
     head("device")
     from hostd.device.backend import node_owner
     from hostd.device.hotplug import watch
-    from hostd.device.transport import find_displays
+    from hostd.device.transport import BACKENDS, find_displays
 
     transport = cfg.device.transport
     kind, _, node = transport.partition(":")
+    backend = BACKENDS.get(kind)
     # every display plugged in, with its transport spec and who may open its node
     displays = []
     for d in find_displays():
@@ -67,9 +68,9 @@ def doctor(config: str | None, json_out: bool = False) -> int:
         where = (f" ({entry['node']} {entry['owner']}:{entry['group']} {entry['mode']}"
                  f"{'' if entry['access'] else ', NOT accessible to this user'})" if "mode" in entry else "")
         note(f"display {entry['spec']}{where}, serial number {entry['serial'] or 'none'}")
-    if kind == "sim":
-        ok("transport = sim (simulated display)")
-    elif node and kind != "usb":  # hid:/dev/hidrawN or serial:PORT: check exactly that node
+    if backend is not None and backend.enumerator is None:
+        ok(f"transport = {kind} (simulated display)")
+    elif node and backend is not None and backend.arg_is_node:  # hid:/dev/hidrawN, serial:PORT: that node
         if not os.path.exists(node):
             bad(f"device.transport = {transport!r}: {node} does not exist",
                 "plug the display in, or correct device.transport (hostd doctor lists what it finds)")
