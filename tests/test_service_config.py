@@ -244,3 +244,40 @@ def test_udev_reads_the_rule_without_complaint(tmp_path):
             and not ln.startswith("Reading rules file")]
     assert any("71-broken.rules:1" in ln and "NOSUCHKEY" in ln for ln in said), said  # it would tell
     assert not [ln for ln in said if "70-hostd.rules" in ln and "Unknown group 'hostd'" not in ln], said
+
+
+def test_each_config_key_is_declared_once_and_the_shipped_file_and_reference_are_generated():
+    """One declaration per key (hostd.service.config.key): its doc is not empty, and the shipped
+    hostd.toml and docs/config.md are exactly what the declarations generate
+    (python -m hostd.service.config toml|markdown)."""
+    from dataclasses import fields
+
+    from hostd.service import config
+
+    root = Path(__file__).resolve().parent.parent
+    for section, _doc, keys in config._declared():
+        for name, _default, meta in keys:
+            assert meta.get("doc"), f"{section}.{name} has no doc"
+    assert (root / "config" / "hostd.toml").read_text() == config.shipped_toml(), \
+        "config/hostd.toml is stale: python -m hostd.service.config toml > config/hostd.toml"
+    assert (root / "docs" / "config.md").read_text() == config.reference_markdown(), \
+        "docs/config.md is stale: python -m hostd.service.config markdown > docs/config.md"
+    assert config.load(root / "config" / "hostd.toml") == config.load(None).__class__(
+        path=str(root / "config" / "hostd.toml"))
+    assert [f.name for f in fields(config.Config)][-1] == "path"
+
+
+def test_a_key_declared_with_bounds_and_choices_is_validated_from_the_declaration(tmp_path):
+    p = tmp_path / "h.toml"
+    p.write_text('[render]\nsamples_per_batch = 30\n')
+    with pytest.raises(ConfigError, match=r"render.samples_per_batch must be within 1..29, not 30"):
+        load(p)
+    p.write_text('[render]\ndtype = "float16"\n')
+    with pytest.raises(ConfigError, match=r"render.dtype must be one of float32, float64"):
+        load(p)
+    p.write_text('[control]\nsocket = ""\n')
+    with pytest.raises(ConfigError, match=r"control.socket must not be empty"):
+        load(p)
+    p.write_text('[quality]\nthresholds = "curve.csv"\n')
+    with pytest.raises(ConfigError, match=r"quality\.thresholds"):  # resolved beside the file, then read
+        load(p)

@@ -15,32 +15,60 @@ from hostd.errors import ConfigError
 from hostd.perception.indices import DEFAULT_AB
 
 
+def key(default, doc: str, *, choices: tuple | None = None, bounds: tuple | None = None,
+        path: bool = False, required: bool = False):
+    """One config key, declared once: its default (hence its type), what it does (doc), and what
+    it may be (choices, bounds = (lo, hi) inclusive; path: a relative value is relative to the
+    config file's folder; required: not empty). The validation (_check), the shipped hostd.toml
+    and the reference (reference_markdown) are generated from these declarations."""
+    return field(default=default, metadata={"doc": doc, "choices": choices, "bounds": bounds,
+                                            "path": path, "required": required})
+
+
 @dataclass
 class DeviceCfg:
-    transport: str = "auto"
-    serial: str = ""  # the display's USB serial number: one of several on this PC ("" = any)
-    target_fill: int = 12
-    max_fill: int = 90
-    host_timeout_ms: int = 50
-    reconnect_s: float = 1.0
-    host_cycle_ms: int = 1  # host rendering: one pump wake-up (and SAMPLES message) per this many ms
+    """The display: which one, and how the host keeps its buffer."""
+    transport: str = key("auto", "which display: auto | hid | hid:/dev/hidrawN | usb | usb:BUS/ADDR | "
+                         "serial | serial:/dev/ttyACM0 | sim (without a path the display is found by "
+                         "its VID:PID; hostd doctor lists the displays it finds)")
+    serial: str = key("", "two displays on one PC: the USB serial number of this daemon's one (\"\" = "
+                      "any; hostd doctor lists them; udev names each /dev/hostd/by-serial/hid-SERIAL)")
+    target_fill: int = key(12, "device buffer target, samples (12 = 4 ms at 3 kHz)", bounds=(1, 227))
+    max_fill: int = key(90, "after an underrun the target rises up to this (90 = 30 ms), then falls "
+                        "after 1 s quiet by what the device's buffer did not use", bounds=(1, 227))
+    host_timeout_ms: int = key(50, "the device ramps to zero after this much host silence",
+                               bounds=(5, 60000))
+    reconnect_s: float = key(1.0, "retry interval: without udev (else udev's event), or a display "
+                             "that failed", bounds=(0.05, 3600))
+    host_cycle_ms: int = key(1, "host rendering: pump wake-ups every this many ms; longer costs less "
+                             "CPU but renders further ahead (less accurate; hostd bench cycle)",
+                             bounds=(1, 10))
 
 
 @dataclass
 class LibraryCfg:
-    dir: str = "/var/lib/hostd/library"
-    spool: str = "/var/spool/hostd"
-    max_stream_bytes: int = 1 << 20
-    max_n: int = 1 << 20
-    max_n_keep: int = 16384
-    spool_settle_s: float = 1.0
+    """Where accepted streams are kept, and what is refused."""
+    dir: str = key("/var/lib/hostd/library", "accepted streams, stored atomically", path=True,
+                   required=True)
+    spool: str = key("/var/spool/hostd", "drop .vtx files here to have them taken in", path=True,
+                     required=True)
+    max_stream_bytes: int = key(1 << 20, "larger uploads are refused", bounds=(100, 1 << 30))
+    max_n: int = key(1 << 20, "streams with more samples N are refused (memory of the pump)",
+                     bounds=(2, 1 << 22))
+    max_n_keep: int = key(16384, "streams with more coefficients N' are refused (render cost)",
+                          bounds=(1, 1 << 22))
+    spool_settle_s: float = key(1.0, "a spooled file is taken once unchanged (size, mtime) this long",
+                                bounds=(0.05, 600))
 
 
 @dataclass
 class ControlCfg:
-    socket: str = "/run/hostd/hostd.sock"
-    group: str = "hostd"
-    max_clients: int = 16
+    """The control socket clients (hostd send, status, ...) talk to."""
+    socket: str = key("/run/hostd/hostd.sock", "Unix-domain socket, mode 0660; nothing listens on "
+                      "the network", path=True, required=True)
+    group: str = key("hostd", "group owning the socket (\"\" = the daemon's own)")
+    max_clients: int = key(16, "clients served at once; more are refused with a message",
+                           bounds=(1, 256))
 
 
 # the paper's fit over both materials: the one default (a, b) of the CLI, the daemon and the log
@@ -49,65 +77,88 @@ _A, _B = DEFAULT_AB
 
 @dataclass
 class QualityCfg:
-    db: str = "/var/lib/hostd/quality.sqlite"
-    a: float = _A
-    b: float = _B
-    thresholds: str = ""
-    calibration: str = ""  # a calibration file: its curve and (a, b) instead of the three above
+    """The quality log and what scores it."""
+    db: str = key("/var/lib/hostd/quality.sqlite", "the quality log (SQLite): one row per accepted "
+                  "stream, one per play", path=True, required=True)
+    a: float = key(_A, "Iobj = a Ip + b Ia: the paper's fit (both materials), as in the CLI; hostd "
+                   "fit estimates it from your scores; each log row records a and b", bounds=(-1e6, 1e6))
+    b: float = key(_B, "the weight of Ia in Iobj (see a)", bounds=(-1e6, 1e6))
+    thresholds: str = key("", "CSV of a detection-threshold curve; \"\" = the shipped default",
+                          path=True)
+    calibration: str = key("", "a calibration file (hostd experiment calibration): its curve and "
+                           "(a, b) instead of the three keys above; each log row records NAME@ID of it",
+                           path=True)
 
 
 @dataclass
 class RenderCfg:
-    # auto: the display renders when its CAPS say it can hold the texture and its parameters,
-    # else the host; host: the daemon always renders and streams samples; device: as auto, but
-    # a fallback to the host is a warning
-    where: str = "auto"
-    host_lost_ms: int = 1000  # device mode: host silence after which the display counts it lost
-    height_method: str = "series"
-    band_end_hz: float = 1000.0  # the speed-aware fade runs from 400 Hz (f_max at v_ref) to here
-    dtype: str = "float64"
-    samples_per_batch: int = 3
-    predict_order: int = 3  # = MotionConfig's (tests/test_daemon.py)
-    predict_window: int = 40
-    equalizer: bool = True
-    equalizer_reg_hz: float = 1400.0
-    actuator: str = "paper-parametric"
+    """How the texture becomes the piezo's displacement."""
+    where: str = key("auto", "auto: the display renders from its own encoder whenever its CAPS say it "
+                     "can hold the texture (protocol v2 firmware), else hostd renders and streams 3 kHz "
+                     "samples (the reason: hostd status); host: always hostd; device: as auto, a "
+                     "fallback to the host is a warning", choices=("auto", "device", "host"))
+    host_lost_ms: int = key(1000, "device mode: host silence before the display counts the host as "
+                            "lost", bounds=(100, 60000))
+    height_method: str = key("series", "how the height at a position is evaluated",
+                             choices=("series", "table-cubic", "table-linear", "nearest"))
+    band_end_hz: float = key(1000.0, "the speed-aware fade runs from 400 Hz (f_max at v_ref) to here "
+                             "(higher asks the equalized actuator for more slew than the piezo allows)",
+                             bounds=(401.0, 1200.0))
+    dtype: str = key("float64", "the host renderer's arithmetic", choices=("float32", "float64"))
+    samples_per_batch: int = key(3, "samples rendered per pump step", bounds=(1, 29))
+    predict_order: int = key(3, "motion prediction: 0 hold, 1 velocity, 2 + acceleration, 3 + jerk "
+                             "(= MotionConfig's)", bounds=(0, 3))
+    predict_window: int = key(40, "encoder readings in the motion fit", bounds=(2, 256))
+    equalizer: bool = key(True, "equalize the actuator's response")
+    equalizer_reg_hz: float = key(1400.0, "corner of the equalizer's regularizing low-pass",
+                                  bounds=(300, 1499))
+    actuator: str = key("paper-parametric", "a shipped actuator's name (or NAME.toml in "
+                        "/etc/hostd/actuators/), or a path to a .toml")
 
 
 @dataclass
 class OutputCfg:
-    travel_um: float = 80.0
-    slew_um_s: float = 60000.0
-    um_per_volt: float = 80.0 / 150.0
-    amp_gain: float = 15.0
-    dac_full_scale_v: float = 10.0
-    dac_bits: int = 16
-    ramp_s: float = 0.05
+    """The piezo's limits and the amplifier and DAC that drive it."""
+    travel_um: float = key(80.0, "full piezo travel, µm (output is +-travel/2)", bounds=(0.1, 1000))
+    slew_um_s: float = key(60000.0, "the fastest the piezo may move, µm/s", bounds=(1, 1e7))
+    um_per_volt: float = key(80.0 / 150.0, "the piezo's displacement per volt at its input, µm/V")
+    amp_gain: float = key(15.0, "the amplifier's voltage gain")
+    dac_full_scale_v: float = key(10.0, "the DAC's output at full scale, V")
+    dac_bits: int = key(16, "the DAC's resolution, bits", bounds=(8, 24))
+    ramp_s: float = key(0.05, "soft start and stop: ramps to and from zero take this long",
+                        bounds=(0.001, 10))
 
 
 @dataclass
 class RealtimeCfg:
-    # the pump SCHED_FIFO at this priority while it streams (host rendering, stimuli), where
-    # permitted (the systemd unit grants LimitRTPRIO=20; not permitted: one line, and it streams
-    # SCHED_OTHER); 0: never asked. The link's own underruns on a quiet machine were a SCHED_OTHER
-    # pump behind a busier neighbour (docs/benchmarks.md, "Link latency"); 10 is below the
-    # kernel's threaded interrupts (50), which the display's bytes pass through. A pump that
-    # supervises a display rendering itself stays SCHED_OTHER (hostd.device.realtime)
-    sched_fifo_priority: int = 10
-    mlockall: bool = False
-    cpu: int = -1
+    """Scheduling of the real-time pump."""
+    # The link's own underruns on a quiet machine were a SCHED_OTHER pump behind a busier
+    # neighbour (docs/benchmarks.md, "Link latency"); 10 is below the kernel's threaded interrupts
+    # (50), which the display's bytes pass through. A pump that supervises a display rendering
+    # itself stays SCHED_OTHER (hostd.device.realtime).
+    sched_fifo_priority: int = key(10, "SCHED_FIFO at 1..99 for the pump while it streams, where "
+                                   "permitted (the unit grants LimitRTPRIO=20; not permitted: one line, "
+                                   "and it streams SCHED_OTHER); 0 = do not ask", bounds=(0, 99))
+    mlockall: bool = key(False, "lock the pump's memory (needs CAP_IPC_LOCK or a memlock limit)")
+    cpu: int = key(-1, "pin the pump to this CPU (-1 = do not)", bounds=(-1, 4095))
 
 
 @dataclass
 class MetricsCfg:
-    listen: str = ""  # off; "127.0.0.1:9470": the Prometheus endpoint (loopback only)
+    """The optional Prometheus endpoint."""
+    listen: str = key("", "\"127.0.0.1:9470\": a Prometheus endpoint (health and quality figures) on "
+                      "loopback only (no authentication; other addresses are refused; \"\" = off); "
+                      "needs the metrics extra; under the unit, which allows no IP socket, a drop-in "
+                      "(systemctl edit hostd): [Service] IPAddressAllow=localhost and "
+                      "RestrictAddressFamilies=AF_UNIX AF_NETLINK AF_INET AF_INET6")
 
 
 @dataclass
 class ExperimentCfg:
-    # play sinusoidal stimuli for `hostd experiment threshold --display daemon` (the control
-    # socket's `stimulus` command): off by default, see docs/experiments.md
-    stimuli: bool = False
+    """Experiments through the daemon (docs/experiments.md)."""
+    stimuli: bool = key(False, "true: members of control.group may play sinusoidal stimuli on the "
+                        "display (hostd experiment threshold --display daemon), whatever the hand "
+                        "does; each is checked against the display's reach")
 
 
 @dataclass
@@ -150,32 +201,9 @@ class Config:
                                 dac_bits=o.dac_bits, ramp_s=o.ramp_s))
 
 
-CHOICES = {
-    ("render", "where"): ("auto", "device", "host"),
-    ("render", "height_method"): ("series", "table-cubic", "table-linear", "nearest"),
-    ("render", "dtype"): ("float32", "float64"),
-}
-RANGES = {
-    ("device", "target_fill"): (1, 227), ("device", "max_fill"): (1, 227),
-    ("device", "host_timeout_ms"): (5, 60000), ("device", "host_cycle_ms"): (1, 10),
-    ("device", "reconnect_s"): (0.05, 3600), ("library", "max_stream_bytes"): (100, 1 << 30),
-    ("render", "samples_per_batch"): (1, 29), ("render", "host_lost_ms"): (100, 60000),
-    ("render", "band_end_hz"): (401.0, 1200.0),
-    ("render", "predict_order"): (0, 3),
-    ("render", "predict_window"): (2, 256), ("render", "equalizer_reg_hz"): (300, 1499),
-    ("output", "travel_um"): (0.1, 1000), ("output", "slew_um_s"): (1, 1e7),
-    ("output", "dac_bits"): (8, 24), ("output", "ramp_s"): (0.001, 10),
-    ("realtime", "sched_fifo_priority"): (0, 99), ("realtime", "cpu"): (-1, 4095),
-    ("quality", "a"): (-1e6, 1e6), ("quality", "b"): (-1e6, 1e6),
-    ("library", "spool_settle_s"): (0.05, 600), ("library", "max_n"): (2, 1 << 22),
-    ("library", "max_n_keep"): (1, 1 << 22),
-    ("control", "max_clients"): (1, 256),
-}
-PATHS = {("library", "dir"), ("library", "spool"), ("control", "socket"), ("quality", "db")}
-
-
-def _check(path: str, section: str, key: str, value, default):
+def _check(path: str, section: str, key: str, value, default, meta=None):
     where = f"{path}: {section}.{key}"
+    meta = meta or {}
     if isinstance(default, bool):
         if not isinstance(value, bool):
             raise ConfigError(f"{where} must be true or false, not {value!r}")
@@ -189,13 +217,13 @@ def _check(path: str, section: str, key: str, value, default):
         value = float(value)
     elif isinstance(default, str) and not isinstance(value, str):
         raise ConfigError(f"{where} must be a string, not {value!r}")
-    if (section, key) in CHOICES and value not in CHOICES[(section, key)]:
-        raise ConfigError(f"{where} must be one of {', '.join(CHOICES[(section, key)])}, not {value!r}")
-    if (section, key) in RANGES:
-        lo, hi = RANGES[(section, key)]
+    if meta.get("choices") and value not in meta["choices"]:
+        raise ConfigError(f"{where} must be one of {', '.join(meta['choices'])}, not {value!r}")
+    if meta.get("bounds"):
+        lo, hi = meta["bounds"]
         if not lo <= value <= hi:
             raise ConfigError(f"{where} must be within {lo}..{hi}, not {value!r}")
-    if (section, key) in PATHS and not value:
+    if meta.get("required") and not value:
         raise ConfigError(f"{where} must not be empty")
     if (section, key) == ("device", "transport"):
         from hostd.device.transport import parse_spec  # the backends' table holds the grammar
@@ -212,6 +240,72 @@ def _check(path: str, section: str, key: str, value, default):
 
         parse_listen(value, where)
     return value
+
+
+def _declared():
+    """(section, its class's docstring, [(key, default, metadata)]) for every section, in order."""
+    for sf in fields(Config):
+        if sf.name == "path":
+            continue
+        cls = sf.default_factory
+        yield sf.name, (cls.__doc__ or "").strip(), [(f.name, f.default, f.metadata) for f in fields(cls)]
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(v)
+
+
+def _allowed(meta) -> str:
+    if meta.get("choices"):
+        return "one of " + " | ".join(meta["choices"])
+    if meta.get("bounds"):
+        lo, hi = meta["bounds"]
+        return f"{lo}..{hi}"
+    return ""
+
+
+def shipped_toml() -> str:
+    """The shipped hostd.toml (config/hostd.toml): every key with its default and its doc,
+    generated from the declarations above (tests/test_service_config.py keeps the file current:
+    python -m hostd.service.config toml > config/hostd.toml)."""
+    import textwrap
+
+    out = ["# hostd daemon configuration. Every key is optional; shown here with its default.",
+           "# `hostd run --config FILE` reads it; `hostd doctor --config FILE` checks it.",
+           "# Relative paths are relative to this file's directory.",
+           "# (Generated from hostd/service/config.py, where each key is declared once.)"]
+    for section, doc, keys in _declared():
+        out += ["", f"[{section}]", f"# {doc}"]
+        for name, default, meta in keys:
+            allowed = _allowed(meta)
+            text = meta["doc"] + (f" ({allowed})" if allowed else "")
+            out += textwrap.wrap(text, 98, initial_indent="# ", subsequent_indent="#   ")
+            out.append(f"{name} = {_toml_value(default)}")
+    return "\n".join(out) + "\n"
+
+
+def reference_markdown() -> str:
+    """The config reference (docs/config.md), generated from the same declarations."""
+    out = ["# Configuration reference", "",
+           "Every key of the daemon's configuration file (`hostd run --config FILE`, default "
+           "`$HOSTD_CONFIG`, else `/etc/hostd/hostd.toml`), with its type, default and the values it "
+           "takes. A wrong key, type or value stops the daemon with one line naming the key and the "
+           "file. Generated from `hostd/service/config.py`, where each key is declared once "
+           "(`python -m hostd.service.config markdown`).", ""]
+    for section, doc, keys in _declared():
+        out += [f"## [{section}]", "", doc, "", "| key | type | default | allowed | what it does |",
+                "|---|---|---|---|---|"]
+        for name, default, meta in keys:
+            kind = type(default).__name__.replace("str", "string").replace("bool", "boolean")
+            allowed = _allowed(meta) + (" (a path; relative to the config file)" if meta.get("path") else "")
+            cell = meta["doc"].replace("|", "\\|")
+            out.append(f"| `{name}` | {kind} | `{_toml_value(default)}` | {allowed} | {cell} |")
+        out.append("")
+    return "\n".join(out)
 
 
 DEFAULT_PATH = "/etc/hostd/hostd.toml"  # what `hostd install-service` installs and the unit names
@@ -257,9 +351,8 @@ def load(path: str | Path | None) -> Config:
             if key not in known:
                 raise ConfigError(f"{p}: unknown key {section}.{key} (expected one of "
                                   f"{', '.join(sorted(known))})")
-            value = _check(str(p), section, key, value, getattr(sub, key))
-            if (section, key) in PATHS or (section, key) in (("quality", "thresholds"),
-                                                             ("quality", "calibration")):
+            value = _check(str(p), section, key, value, getattr(sub, key), known[key].metadata)
+            if known[key].metadata.get("path"):
                 if value and not Path(value).is_absolute():
                     value = str((p.parent / value).resolve())
             setattr(sub, key, value)
@@ -320,3 +413,9 @@ def check_paths(cfg: Config) -> None:
             raise ConfigError(f"{cfg.path}: {section}.{key} = {value!r}: {why} (give the daemon's user a "
                               "writable path; sudo hostd install-service sets up /var/lib/hostd, "
                               "/var/spool/hostd and /run/hostd)")
+
+
+if __name__ == "__main__":  # python -m hostd.service.config toml|markdown: the generated files
+    import sys
+
+    sys.stdout.write({"toml": shipped_toml, "markdown": reference_markdown}[sys.argv[1]]())
