@@ -111,8 +111,9 @@ def _heights(profile: Profile | np.ndarray, length_mm: float | None) -> tuple[np
 _ARG_NAMES = (("--target-iobj", "target_iobj="), ("--guard-ssnr-db", "ssnr_db="), ("--guard-db", "guard_db="),
               ("--spqi-min", "spqi_min="), ("--no-guard", "spqi_min=None"), ("--method", "method="),
               ("--format", "format="), ("--levels", "levels="), ("--value-bits", "value_bits="),
-              ("--b0", "b0_db="), ("--g", "g_db="), ("--coder", "coder="), ("--speed", "speed_mm_s="),
-              ("--fmax", "fmax_hz="), ("--length-mm", "length_mm="), ("--thresholds", "thresholds="),
+              ("--b0-db", "b0_db="), ("--g-db", "g_db="), ("--coder", "coder="),
+              ("--ref-speed-mm-s", "speed_mm_s="), ("--fmax-hz", "fmax_hz="), ("--length-mm", "length_mm="),
+              ("--thresholds", "thresholds="),
               ("--y-unit", "y_unit= of load_profile"), ("--x-unit", "x_unit= of load_profile"),
               ("--a", "a="), ("--b", "b="))
 _ARG_RE = None
@@ -260,9 +261,9 @@ def encode_heights(y_um: np.ndarray, length_mm: float, *, method: str | None, fm
     elif method is None:
         raise CodecError("give --method shaped|quant|cut (or --target-iobj X)")
     else:
-        for opt, val, m in (("--b0", b0_db, "quant"), ("--b0", b0_db, "shaped"),
+        for opt, val, m in (("--b0-db", b0_db, "quant"), ("--b0-db", b0_db, "shaped"),
                             ("--levels", levels, "cut"), ("--levels", levels, "shaped"),
-                            ("--g", g_db, "quant"), ("--g", g_db, "cut"),
+                            ("--g-db", g_db, "quant"), ("--g-db", g_db, "cut"),
                             ("--value-bits", value_bits or None, "quant")):
             if val is not None and method == m:
                 notes.append(f"{opt} is ignored with --method {method}")

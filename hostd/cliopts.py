@@ -46,6 +46,41 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
+class _OldSpelling(argparse.Action):
+    """A renamed option's old spelling: hidden from help, completion and the man page; it does
+    what the new spelling does, after a note on stderr (once per spelling and process)."""
+
+    def __init__(self, option_strings, dest, target: argparse.Action, new: str):
+        super().__init__(option_strings, dest, nargs=target.nargs, const=target.const,
+                         default=argparse.SUPPRESS, type=target.type, choices=target.choices,
+                         help=argparse.SUPPRESS, metavar=target.metavar)
+        self.target, self.new = target, new
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        warn_once(f"hostd: {option_string} is deprecated: use {self.new} (the old spelling goes in the "
+                  "next release)")
+        self.target(parser, namespace, values, self.new)
+
+
+def renamed(container, new: str, *old: str) -> None:
+    """Keep the old spellings `old` of the option `new` (already added to `container`, a parser or
+    an argument group) working for one release, as hidden deprecated aliases. One name per
+    concept, with its unit (tests/test_toolkit_cli.py walks the parser for the spellings that
+    must not come back)."""
+    target = container._option_string_actions[new]
+    for o in old:
+        container._add_action(_OldSpelling([o], target.dest, target, new))
+
+
+_NOTED: set[str] = set()
+
+
+def warn_once(line: str) -> None:
+    if line not in _NOTED:
+        _NOTED.add(line)
+        print(line, file=sys.stderr)
+
+
 _INVALID_CHOICE = re.compile(r"^(argument [^:]+: )invalid choice: '(.*?)' \(choose from (.*)\)$")
 
 
@@ -120,15 +155,17 @@ def loader_parent(length_default: float | None = 10.0) -> argparse.ArgumentParse
 
 
 def geometry_parent(from_stream: bool = False) -> argparse.ArgumentParser:
-    """--speed, --fmax, --thresholds. from_stream: a command that reads a stream, whose header
+    """--ref-speed-mm-s, --fmax-hz, --thresholds. from_stream: a command that reads a stream, whose header
     carries v_ref and f_max (default None: the stream's; given, they are checked against it)."""
     p = Parser(add_help=False)
     g = p.add_argument_group("geometry and perception")
-    g.add_argument("--speed", type=_positive, default=None if from_stream else 50.0,
-                   help="reference hand speed v_ref, mm/s (default " + ("the stream's)" if from_stream
-                                                                         else "50)"))
-    g.add_argument("--fmax", type=_positive, default=None if from_stream else 400.0,
+    g.add_argument("--ref-speed-mm-s", dest="speed", type=_positive, default=None if from_stream else 50.0,
+                   help="reference hand speed v_ref, mm/s: the speed the texture's frequencies "
+                   "f_k = k v / 2L refer to (default " + ("the stream's)" if from_stream else "50)"))
+    renamed(g, "--ref-speed-mm-s", "--speed")
+    g.add_argument("--fmax-hz", dest="fmax", type=_positive, default=None if from_stream else 400.0,
                    help="band limit at v_ref, Hz (default " + ("the stream's)" if from_stream else "400)"))
+    renamed(g, "--fmax-hz", "--fmax")
     g.add_argument("--thresholds", default=None, metavar="CSV",
                    help="detection-threshold curve (default: the stream's if embedded, else "
                    "shipped default curve)" if from_stream else

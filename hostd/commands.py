@@ -129,8 +129,8 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     if decoded is not None:
         return _iobj_of_profiles(ref_spec, decoded, args)
     s = _read_iobj_stream(stream_path, ref_spec)
-    for opt, given, header, unit in (("--speed", args.speed, s.speed_mm_s, "mm/s"),
-                                     ("--fmax", args.fmax, s.fmax_hz, "Hz")):
+    for opt, given, header, unit in (("--ref-speed-mm-s", args.speed, s.speed_mm_s, "mm/s"),
+                                     ("--fmax-hz", args.fmax, s.fmax_hz, "Hz")):
         if given is not None and not math.isclose(given, header, rel_tol=1e-9):
             warn("iobj", f"{opt} {given:g} ignored: the stream was made for {header:g} {unit} (its "
                  "header's geometry defines the components scored)")
@@ -215,7 +215,7 @@ def _decoded_profile(path: str, ref_spec: str | None, args: argparse.Namespace):
 
 def _iobj_of_profiles(ref_spec: str, profiles, args: argparse.Namespace) -> int:
     """Ip, Ia, Iobj (and SPQI) of a decoded profile against its reference: the N' DCT amplitudes
-    of each (N' from --speed and --fmax, default 50 mm/s and 400 Hz), as for a stream."""
+    of each (N' from --ref-speed-mm-s and --fmax-hz, default 50 mm/s and 400 Hz), as for a stream."""
     import numpy as np
 
     from hostd.codec import transform
@@ -350,7 +350,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     if not (0 < args.seconds <= 3600):
         raise ConfigError(f"--seconds must be within 0..3600, got {args.seconds:g}")
     if not (1000 <= args.rate <= 384000):
-        raise ConfigError(f"--rate must be 1000..384000 Hz, got {args.rate:g}")
+        raise ConfigError(f"--rate-hz must be 1000..384000 Hz, got {args.rate:g}")
     out = render_stroke(s, speed_mm_s=args.speed, seconds=args.seconds, rate_hz=args.rate,
                         x0_mm=args.start_mm)
     h = out["height_um"]

@@ -40,7 +40,7 @@ def _in_dir(out_dir: str | None, body) -> int:
     finally:
         if ok:
             shutil.rmtree(out, ignore_errors=True)
-            print(f"  removed {out} (--out DIR keeps the demo's files)")
+            print(f"  removed {out} (-o DIR keeps the demo's files)")
         else:
             import sys
 

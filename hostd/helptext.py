@@ -11,9 +11,9 @@ import re
 EXAMPLES = """\
 hostd encode PROFILE -o OUT.vtx --target-iobj 0.05              # rate control: the smallest stream with
                                                                 #   Iobj <= 0.05 and SPQI >= 0.9 (measured)
-hostd encode PROFILE -o OUT.vtx --method shaped --g -10         # threshold-shaped steps 10^(g/20) b(f_k) (v2)
+hostd encode PROFILE -o OUT.vtx --method shaped --g-db -10   # threshold-shaped steps 10^(g/20) b(f_k) (v2)
 hostd encode PROFILE -o OUT.vtx --method quant --levels 14      # linear quantization (eq. 5, 6)
-hostd encode PROFILE -o OUT.vtx --method cut --b0 -4            # threshold-cut (eq. 7)
+hostd encode PROFILE -o OUT.vtx --method cut --b0-db -4         # threshold-cut (eq. 7)
 hostd encode PROFILE -o OUT.vtx --format v1 --method quant --levels 14   # the original v1 stream
 hostd encode ... --json                                         # the setting, bytes, Ip, Ia, Iobj as JSON
 hostd decode IN.vtx -o PROFILE.csv                              # reconstructed heights, µm, one per line
@@ -22,16 +22,16 @@ hostd iobj IN.vtx --json                                        # receiver side:
 hostd iobj REFERENCE_PROFILE IN.vtx --json                      # sender side: against the original
 hostd iobj REFERENCE_PROFILE DECODED_PROFILE --json             # another codec's output (e.g. an .hjif)
 hostd fit SCORES.csv [--json] [--nonnegative] [--exclude-saturated] [--bootstrap N]   # (a, b), SE, intervals
-hostd experiment threshold --out thr --token p01                # detection thresholds b(f) on your display
-hostd experiment similarity DESIGN.toml --out sim --token p01   # the paper's test: scores for hostd fit
+hostd experiment threshold -o thr --token p01                   # detection thresholds b(f) on your display
+hostd experiment similarity DESIGN.toml -o sim --token p01      # the paper's test: scores for hostd fit
 hostd experiment calibration -o lab.toml --thresholds thr/thresholds.csv --fit fit.json   # your (a, b), b(f)
 hostd experiment bench [--runs 200] [--json]                    # the procedures on simulated observers
 hostd report rate-quality PROFILE -o DIR [--json]               # CSV, Markdown, PNG: Iobj, Ip, Ia, SPQI, CPU
-hostd render IN.vtx --speed 50 --seconds 5 -o OUT.wav           # what a hand at 50 mm/s feels, as a WAV file
+hostd render IN.vtx --speed-mm-s 50 --seconds 5 -o OUT.wav      # what a hand at 50 mm/s feels, as a WAV file
 hostd export IN.vtx|PROFILE -o OUT.hjif [--speed-mm-s 80]       # MPEG-I Haptics .hjif (the standard)
 hostd bench accuracy [--json] [--plot F.png]                    # every render knob: error vs CPU
 hostd bench pipeline | latency | codec | scoring | sim | load | offline | all   # real-time cost, latency...
-hostd bench soak [--minutes 10] [--load]                        # the daemon for minutes: played fraction
+hostd bench soak [--seconds 600] [--load]                       # the daemon for minutes: played fraction
 hostd demo [--sim] [--render host|device]                       # the daemon on the embedded display
 hostd corpus run DIR|MANIFEST... --codec hostd-v2 --codec my.py:Codec -o R.sqlite   # codecs x settings
 hostd corpus report R.sqlite -o DIR                             # BD-rate tables, rate-quality PNGs

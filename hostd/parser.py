@@ -20,6 +20,7 @@ from hostd.cliopts import (
     index_parent,
     loader_parent,
     needs_subcommand,
+    renamed,
 )
 
 
@@ -41,10 +42,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="stream format (default v2; v1 is the original 84-byte-header format)")
     p.add_argument("--method", choices=["shaped", "quant", "cut"], default=None,
                    help="shaped: step g·b(f_k) (v2 only); quant, cut: the paper's methods")
-    p.add_argument("--g", type=_finite, default=None,
+    p.add_argument("--g-db", dest="g", type=_finite, default=None,
                    help="shaped: step relative to the detection threshold, dB (multiple of 0.25)")
+    renamed(p, "--g-db", "--g")
     p.add_argument("--levels", type=int, default=None, help="quantization steps L (quant)")
-    p.add_argument("--b0", type=_finite, default=None, help="threshold shift b0 in dB (cut)")
+    p.add_argument("--b0-db", dest="b0", type=_finite, default=None, help="threshold shift b0 in dB (cut)")
+    renamed(p, "--b0-db", "--b0")
     p.add_argument("--value-bits", type=int, default=None, choices=[0, 8, 16, 32],
                    help="cut survivors: 0 = exact float64 (v1 only; the v1 default), else "
                    "integers of this width (v2 default 16)")
@@ -88,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Ip, Ia, Iobj of a .vtx stream, against REFERENCE_PROFILE or its own "
                        "header; or of DECODED_PROFILE (another codec's output in any profile format, e.g. "
                        "an .hjif) against REFERENCE_PROFILE, both read with the same options, N' from "
-                       "--speed and --fmax (default 50 mm/s and 400 Hz for a decoded profile).")
+                       "--ref-speed-mm-s and --fmax-hz (default 50 mm/s and 400 Hz for a decoded profile).")
     p.add_argument("first", metavar="[REFERENCE_PROFILE] STREAM|DECODED_PROFILE")
     p.add_argument("stream", nargs="?", default=None, help=argparse.SUPPRESS)
     p.add_argument("--json", action="store_true")
@@ -97,10 +100,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="the displacement a hand at constant speed feels, as a WAV file")
     p.add_argument("stream", help=".vtx stream")
     p.add_argument("-o", "--output", required=True, help="output .wav file")
-    p.add_argument("--speed", type=_finite, default=50.0, help="hand speed, mm/s (default 50)")
+    p.add_argument("--speed-mm-s", dest="speed", type=_finite, default=50.0,
+                   help="hand speed, mm/s (default 50)")
+    renamed(p, "--speed-mm-s", "--speed")
     p.add_argument("--seconds", type=_positive, default=5.0, help="duration, s (default 5)")
-    p.add_argument("--rate", type=_positive, default=48000.0,
+    p.add_argument("--rate-hz", dest="rate", type=_positive, default=48000.0,
                    help="WAV sample rate, Hz (default 48000; 3000 = the device's rate)")
+    renamed(p, "--rate-hz", "--rate")
     p.add_argument("--start-mm", type=_finite, default=0.0, help="start position, mm (default 0)")
     p.add_argument("--full-scale-um", type=_positive, default=40.0,
                    help="displacement at WAV full scale (±1.0), µm (default 40 = half the piezo's "
@@ -111,7 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=commands.cmd_render)
 
     p = sub.add_parser("demo", help="the main job: the daemon on the embedded default device, end to end")
-    p.add_argument("--out", default=None, help="directory for the demo's files")
+    p.add_argument("-o", "--output", dest="out", default=None, help="directory for the demo's files")
+    renamed(p, "--output", "--out")
     p.add_argument("--sim", action="store_true", help="use the simulated display, not the firmware host port")
     p.add_argument("--render", choices=["auto", "host", "device"], default="auto",
                    help="who renders: auto (the display when it can, protocol v2; the default, as "
@@ -141,7 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = rsub.add_parser("rate-quality", parents=[loader, geom, idx],
                         help="sweep both methods: bytes vs Ip, Ia, Iobj (CSV, Markdown, PNG)")
     r.add_argument("profile", help="profile file or synthetic:wood[:SEED]")
-    r.add_argument("-o", "--out", default="rate-quality", help="output directory")
+    r.add_argument("-o", "--output", dest="out", default="rate-quality", help="output directory")
+    renamed(r, "--output", "--out")
     r.add_argument("--no-progress", action="store_true")
     r.add_argument("--json", action="store_true", help="print notes and every row as JSON")
     r.set_defaults(func=commands.cmd_report_rate_quality)

@@ -67,7 +67,7 @@ def test_encode_inspect_decode_iobj(tmp_path, wood_csv):
 def test_cut_and_target_iobj(tmp_path, wood_csv):
     path, _ = wood_csv
     out = tmp_path / "c.vtx"
-    run("encode", str(path), "-o", str(out), "--method", "cut", "--b0", "-4", "--x-unit", "mm")
+    run("encode", str(path), "-o", str(out), "--method", "cut", "--b0-db", "-4", "--x-unit", "mm")
     info = json.loads(run("inspect", str(out), "--json").stdout)
     assert info["method"] == "cut" and info["b0_db"] == -4.0
     p = run("encode", str(path), "-o", str(out), "--target-iobj", "0.1", "--x-unit", "mm")
@@ -89,8 +89,8 @@ def test_real_dektak_file_encodes_from_the_cli(tmp_path):
     (["encode", "synthetic:wood", "-o", "/tmp/x.vtx", "--method", "quant", "--levels", "1"],
      ">= 2"),
     (["encode", "synthetic:wood", "-o", "/tmp/x.vtx", "--method", "quant"], "--levels"),
-    (["encode", "synthetic:wood", "-o", "/tmp/x.vtx", "--method", "cut", "--fmax", "1e6",
-      "--b0", "0"], "N' must be < N"),
+    (["encode", "synthetic:wood", "-o", "/tmp/x.vtx", "--method", "cut", "--fmax-hz", "1e6",
+      "--b0-db", "0"], "N' must be < N"),
     (["inspect", "/no/such.vtx"], "no such stream file: /no/such.vtx"),
     (["encode", "synthetic:marble", "-o", "/tmp/x.vtx", "--method", "quant", "--levels", "4"],
      "unknown synthetic"),

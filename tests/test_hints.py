@@ -58,11 +58,11 @@ def test_iobj_swapped_arguments_name_the_file_and_the_order(tmp_path, capsys):
     assert main(["iobj", s, DEKTAK]) == 2
     err = capsys.readouterr().err
     assert DEKTAK in err and "REFERENCE_PROFILE then STREAM" in err and "swapped" in err, err
-    assert main(["iobj", s, "--fmax", "400", "--speed", "50", "--json"]) == 0  # the stream's: accepted
+    assert main(["iobj", s, "--fmax-hz", "400", "--ref-speed-mm-s", "50", "--json"]) == 0  # accepted
     assert capsys.readouterr().err == ""
-    assert main(["iobj", DEKTAK, s, "--speed", "30", "--json"]) == 0
+    assert main(["iobj", DEKTAK, s, "--ref-speed-mm-s", "30", "--json"]) == 0
     captured = capsys.readouterr()
-    assert "--speed 30 ignored" in captured.err and json.loads(captured.out)["Iobj"] >= 0
+    assert "--ref-speed-mm-s 30 ignored" in captured.err and json.loads(captured.out)["Iobj"] >= 0
 
 
 def test_iobj_prints_aligned_keys_with_sensible_precision(tmp_path, capsys):

@@ -125,17 +125,17 @@ def test_huge_heights_do_not_ask_for_a_g_nobody_gave(tmp_path, capsys):
                                            "0.05", "-o", str(out)])
     if code == 2:
         assert len(lines) == 1
-        assert "--g" not in lines[0].replace("--guard", "") and "--y-unit" in lines[0]
+        assert "--g-db" not in lines[0] and "--y-unit" in lines[0]
     else:
         assert code == 0 and float(score_stream(vtx.decode(out.read_bytes())).Iobj) <= 0.05
 
 
 def test_a_tiny_speed_prints_a_readable_n_keep(capsys):
-    code, lines = _one_line_error(capsys, ["encode", "synthetic:wood:1", "--speed", "1e-300",
+    code, lines = _one_line_error(capsys, ["encode", "synthetic:wood:1", "--ref-speed-mm-s", "1e-300",
                                            "--target-iobj", "0.05", "-o", "/dev/null"])
     assert code == 2 and len(lines) == 1
     assert not re.search(r"\d{13,}", lines[0]), lines[0]
-    assert "8e+303" in lines[0] and "--speed" in lines[0]
+    assert "8e+303" in lines[0] and "--ref-speed-mm-s" in lines[0]
 
 
 # ---------------------------------------------------------------- the Python API
@@ -148,7 +148,7 @@ def test_api_errors_name_api_arguments_not_cli_flags():
     assert "target_iobj=" in str(e.value) and "--" not in str(e.value)
     with pytest.raises(CodecError) as e:
         api.encode(prof, method="shaped")
-    assert "g_db=" in str(e.value) and "--g" not in str(e.value)
+    assert "g_db=" in str(e.value) and "--g-db" not in str(e.value)
     with pytest.raises(CodecError) as e:
         api.encode(prof, method="shaped", format="v1", g_db=0.0)
     assert "format=" in str(e.value) and "--format" not in str(e.value)

@@ -46,7 +46,7 @@ def test_reference_mismatch_is_flagged_and_warned(wood_vtx):
     (["encode", "synthetic:wood:1"], "--output"),
     (["iobj", "--bogus", "a.vtx"], "unrecognized"),
     (["encode", "synthetic:wood:1", "-o", "/tmp/x.vtx", "--method", "quant", "--levels", "4",
-      "--speed", "9000"], "--x-unit"),
+      "--ref-speed-mm-s", "9000"], "--x-unit"),
 ])
 def test_mistakes_are_one_line_with_a_hint(args, msg):
     p = run(*args)
@@ -72,10 +72,10 @@ def test_bench_all_runs_pipeline_codec_and_scoring(monkeypatch, capsys):
 
 def test_ignored_options_warn_once(tmp_path):
     out = str(tmp_path / "o.vtx")
-    p = run("encode", "synthetic:wood:1", "-o", out, "--method", "quant", "--levels", "8", "--b0", "3",
+    p = run("encode", "synthetic:wood:1", "-o", out, "--method", "quant", "--levels", "8", "--b0-db", "3",
             "--x-unit", "mm", "--spacing", "2", "--json")
     assert p.returncode == 0, p.stderr
-    assert p.stderr.count("--b0 is ignored with --method quant") == 1
+    assert p.stderr.count("--b0-db is ignored with --method quant") == 1
     assert p.stderr.count("--spacing, --x-unit ignored for synthetic:wood:1") == 1
     info = json.loads(p.stdout)
     assert info["method"] == "quant" and info["levels"] == 8 and info["bytes"] > 0
@@ -86,7 +86,7 @@ def test_wrong_y_unit_leaving_nothing_kept_warns(tmp_path):
     prof = synth.wood(seed=3)
     f = tmp_path / "w.csv"
     np.savetxt(f, np.column_stack([np.arange(prof.n) * 0.5, prof.heights_um]), delimiter=",")
-    p = run("encode", str(f), "-o", str(tmp_path / "o.vtx"), "--method", "cut", "--b0", "0",
+    p = run("encode", str(f), "-o", str(tmp_path / "o.vtx"), "--method", "cut", "--b0-db", "0",
             "--y-unit", "nm", "--json")
     assert p.returncode == 0, p.stderr
     assert json.loads(p.stdout)["kept"] == 0
@@ -155,7 +155,8 @@ def test_fit_reads_synthetic_profiles_refuses_off_scale_and_gives_intervals(tmp_
         rows.append(f"wood,quant,{lv},{sc},{out.name},synthetic:wood:1")
     for b0, sc in ((-8, 0.4), (0, 1.1), (8, 2.2)):
         out = tmp_path / f"c{b0}.vtx"
-        assert main(["encode", "synthetic:wood:1", "-o", str(out), "--method", "cut", "--b0", str(b0)]) == 0
+        assert main(["encode", "synthetic:wood:1", "-o", str(out), "--method", "cut",
+                     "--b0-db", str(b0)]) == 0
         rows.append(f"wood,cut,{b0},{sc},{out.name},synthetic:wood:1")
     f = tmp_path / "scores.csv"
     f.write_text("\n".join(rows) + "\n")

@@ -7,6 +7,16 @@ import json
 import sys
 from pathlib import Path
 
+from hostd.cliopts import renamed, warn_once
+
+
+class _Minutes(argparse.Action):
+    """bench soak's old --minutes M: --seconds 60 M, with a note."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        warn_once("hostd: --minutes is deprecated: use --seconds (the old spelling goes in the next release)")
+        namespace.seconds = float(values) * 60.0
+
 
 def add_parser(sub, parents) -> None:
     p = sub.add_parser("bench", help="benchmarks: what accuracy costs in time, and what each part costs",
@@ -17,8 +27,9 @@ def add_parser(sub, parents) -> None:
                         help="every render knob: RMS error vs CPU ms per second of output")
     a.add_argument("--json", action="store_true", help="print the rows as JSON")
     a.add_argument("--plot", metavar="FILE.png", help="write error against CPU time, one point per setting")
-    a.add_argument("--duration", type=float, default=4.8, metavar="S",
+    a.add_argument("--seconds", dest="duration", type=float, default=4.8, metavar="S",
                    help="simulated seconds per setting and texture (default 4.8 = two metronome cycles)")
+    renamed(a, "--seconds", "--duration")
     a.add_argument("--profile", action="append", default=[], metavar="FILE",
                    help="a real profile to include (repeatable; loader options apply); default: the "
                    "bundled instrument profile when present")
@@ -29,14 +40,18 @@ def add_parser(sub, parents) -> None:
                "rendering within 5 %% of a core; runs only the render_at rows")
     q = bsub.add_parser("pipeline", help="time per 1 ms batch at default settings (p50/p99/p99.9)")
     q.add_argument("--json", action="store_true")
-    q.add_argument("--duration", type=float, default=60.0, metavar="S", help="simulated seconds (default 60)")
+    q.add_argument("--seconds", dest="duration", type=float, default=60.0, metavar="S",
+                   help="simulated seconds (default 60)")
+    renamed(q, "--seconds", "--duration")
     q.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS",
                    help="one batch of MS x 3 samples per wake-up, as the pump's [device] host_cycle_ms "
                         "(1..10, default 1); reports the accuracy it costs")
     q.add_argument("--texture", default="wood", help="synthetic texture (default wood)")
     lat = bsub.add_parser("latency", help="encoder change to first DAC sample, through the firmware on a pty")
     lat.add_argument("--json", action="store_true")
-    lat.add_argument("--duration", type=float, default=8.0, metavar="S", help="seconds per run (default 8)")
+    lat.add_argument("--seconds", dest="duration", type=float, default=8.0, metavar="S",
+                     help="seconds per run (default 8)")
+    renamed(lat, "--seconds", "--duration")
     lat.add_argument("--target-fill", type=int, default=12, metavar="SAMPLES",
                      help="the device buffer's target fill (default 12 = 4 ms)")
     lat.add_argument("--runs", type=int, default=None, metavar="N",
@@ -55,13 +70,13 @@ def add_parser(sub, parents) -> None:
     so = bsub.add_parser("soak", help="the daemon playing for minutes on the firmware's host port: "
                          "played fraction, underruns, silences from the DAC log")
     so.add_argument("--json", action="store_true")
-    so.add_argument("--minutes", type=float, default=10.0, metavar="M", help="how long (default 10)")
     so.add_argument("--load", action="store_true", help="a CPU hog on the other core meanwhile")
     so.add_argument("--host-cycle-ms", type=int, default=1, metavar="MS",
                     help="the daemon's [device] host_cycle_ms (1..10, default 1)")
-    so.add_argument("--seconds", type=float, default=None, metavar="S",
-                    help="how long each run lasts, instead of --minutes (the device-mode goal: --runs 3 "
+    so.add_argument("--seconds", type=float, default=600.0, metavar="S",
+                    help="how long each run lasts (default 600; the device-mode goal: --runs 3 "
                     "--seconds 40)")
+    so.add_argument("--minutes", action=_Minutes, help=argparse.SUPPRESS)  # the old spelling
     _check_opt(so, "device rendering: PSS <= 60 MB, <= 12 threads, <= 0.15 %% of a core for daemon + pump, "
                "pump wake-ups <= its loop runs")
     cy = bsub.add_parser("cycle", help="the host-rendering pump's CPU time per cycle on the firmware's "
@@ -180,7 +195,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     what = args.bench
     if what == "accuracy":
         if not (0.5 <= args.duration <= 600):
-            raise SystemExit("hostd bench: error: --duration must be 0.5..600 s")
+            raise SystemExit("hostd bench: error: --seconds must be 0.5..600 s")
         if not 1 <= args.repeats <= 50:
             raise SystemExit("hostd bench: error: --repeats must be 1..50")
         level = args.check
@@ -209,7 +224,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if not (1.0 <= args.duration <= 3600 and 1 <= args.target_fill <= 200
                 and (args.runs is None or 1 <= args.runs <= 100)
                 and (args.sched_fifo is None or 0 <= args.sched_fifo <= 99)):
-            raise SystemExit("hostd bench latency: error: --duration 1..3600, --target-fill 1..200, "
+            raise SystemExit("hostd bench latency: error: --seconds 1..3600, --target-fill 1..200, "
                              "--runs 1..100, --sched-fifo 0..99")
         try:
             if args.sweep:
@@ -233,16 +248,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if what == "soak":
         from hostd.bench import soak
 
-        if not (0.05 <= args.minutes <= 24 * 60):
-            raise SystemExit("hostd bench soak: error: --minutes must be 0.05..1440")
         try:
             if not 1 <= args.host_cycle_ms <= 10:
                 raise SystemExit("hostd bench soak: error: --host-cycle-ms must be 1..10")
             if not 1 <= args.runs <= 100:
                 raise SystemExit("hostd bench soak: error: --runs must be 1..100")
-            if args.seconds is not None and not 1 <= args.seconds <= 24 * 3600:
+            if not 1 <= args.seconds <= 24 * 3600:
                 raise SystemExit("hostd bench soak: error: --seconds must be 1..86400")
-            rows.append(soak.run_many(args.runs, minutes=args.minutes, load=args.load,
+            rows.append(soak.run_many(args.runs, minutes=args.seconds / 60, load=args.load,
                                       progress=not args.json, render=args.render,
                                       host_cycle_ms=args.host_cycle_ms, seconds=args.seconds))
         except (RuntimeError, HostdError) as e:

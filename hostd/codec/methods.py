@@ -97,7 +97,7 @@ def db_to_ratio(db: float) -> float:
 def cut_level_um(threshold_um: np.ndarray, b0_db: float) -> np.ndarray:
     """b(f_k) 10^(b0/20): the shifted threshold below which amplitudes are removed."""
     if not math.isfinite(b0_db):
-        raise CodecError(f"--b0 must be a finite number of dB, got {b0_db}")
+        raise CodecError(f"--b0-db must be a finite number of dB, got {b0_db}")
     return np.asarray(threshold_um, dtype=np.float64) * db_to_ratio(float(b0_db))
 
 
@@ -135,12 +135,12 @@ G_MAX_DB = 120.0
 def check_g_db(g_db: float) -> float:
     """g must be finite, within G_MIN_DB..G_MAX_DB and a multiple of 0.25 dB."""
     if isinstance(g_db, bool) or not math.isfinite(g_db):
-        raise CodecError(f"--g must be a finite number of dB, got {g_db!r}")
+        raise CodecError(f"--g-db must be a finite number of dB, got {g_db!r}")
     units = round(g_db / G_UNIT_DB)
     if units * G_UNIT_DB != g_db:
-        raise CodecError(f"--g must be a multiple of {G_UNIT_DB} dB, got {g_db}")
+        raise CodecError(f"--g-db must be a multiple of {G_UNIT_DB} dB, got {g_db}")
     if not G_MIN_DB <= g_db <= G_MAX_DB:
-        raise CodecError(f"--g must be within {G_MIN_DB:g}..{G_MAX_DB:g} dB, got {g_db}")
+        raise CodecError(f"--g-db must be within {G_MIN_DB:g}..{G_MAX_DB:g} dB, got {g_db}")
     return float(g_db)
 
 
@@ -157,7 +157,7 @@ def shaped_quantize(coeffs_um: np.ndarray, threshold_um: np.ndarray, g_db: float
         raise CodecError("one threshold per coefficient is needed")
     mag = np.floor(np.add(np.divide(np.abs(c), step), SHAPED_RHO))
     if np.any(mag >= float(1 << 40)):
-        raise CodecError(f"g = {g_db} dB is too fine for these amplitudes: raise --g")
+        raise CodecError(f"g = {g_db} dB is too fine for these amplitudes: raise --g-db")
     q = mag.astype(np.int64)
     return np.where(c < 0, -q, q)
 

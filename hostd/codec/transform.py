@@ -56,14 +56,14 @@ class Geometry:
                 f"fmax {self.fmax_hz} Hz is below the first component "
                 f"({self.speed_mm_s / (2 * self.length_mm):.4g} Hz at {self.speed_mm_s} mm/s over "
                 f"{self.length_mm:.4g} mm): the patch is too short for this speed; check --x-unit (is x "
-                f"really in that unit?), lower --speed, or raise --length-mm / --fmax"
+                f"really in that unit?), lower --ref-speed-mm-s, or raise --length-mm / --fmax-hz"
             )
         if k >= self.n:
             raise CodecError(
                 f"fmax {self.fmax_hz:g} Hz asks for N' = {k if k < 10**9 else f'{float(k):.3g}'} "
                 f"components at {self.speed_mm_s:g} mm/s but the patch has only N = {self.n} samples "
                 f"(N' must be < N; spacing {self.spacing_um:.4g} µm): check --x-unit (is x really in "
-                "that unit?), or lower --fmax, raise --speed or sample more finely"
+                "that unit?), or lower --fmax-hz, raise --ref-speed-mm-s or sample more finely"
             )
         return k
 

@@ -25,7 +25,7 @@ def _ints(v: str) -> list[int]:
 
 
 def add_parser(sub, parents) -> None:
-    from hostd.cliopts import needs_subcommand
+    from hostd.cliopts import needs_subcommand, renamed
 
     p = sub.add_parser("corpus", help="evaluate codecs over a texture database: sweep, results store, "
                        "BD-rate (needs the corpus extra)",
@@ -38,8 +38,9 @@ def add_parser(sub, parents) -> None:
     r.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="a directory of profiles, a manifest (.toml, or .csv whose header starts with "
                    "'file'), a profile file, or synthetic:KIND[:SEED] / synthetic:KIND:FIRST-LAST")
-    r.add_argument("-o", "--out", default="corpus.sqlite", metavar="FILE.sqlite",
+    r.add_argument("-o", "--output", dest="out", default="corpus.sqlite", metavar="FILE.sqlite",
                    help="the results store (default corpus.sqlite); created, or resumed")
+    renamed(r, "--output", "--out")
     r.add_argument("--codec", action="append", default=None, metavar="NAME",
                    help="hostd-v2 (default), hostd-v1, mpeg-rm / mpeg-rm-cf0 (the MPEG-I Haptics "
                    "reference software: the standard's codec), vc-pwq (a research codec, CC BY-NC), or "
@@ -48,15 +49,21 @@ def add_parser(sub, parents) -> None:
                    help="settings per codec: [codec.\"NAME\"] settings = [{...}, ...]")
     r.add_argument("--methods", type=lambda v: [t.strip() for t in v.split(",") if t.strip()],
                    help="hostd codecs: methods to sweep (shaped,quant,cut; default all of the format)")
-    r.add_argument("--g", type=_floats, help="shaped step g in dB, comma list (default -18..18 by 6; "
-                   "a list that starts negative needs '=': --g=-12,0,12)")
+    r.add_argument("--g-db", dest="g", type=_floats, help="shaped step g in dB, comma list (default -18..18 "
+                   "by 6; a list that starts negative needs '=': --g-db=-12,0,12)")
+    renamed(r, "--g-db", "--g")
     r.add_argument("--levels", type=_ints, help="quant levels, comma list (default 4..128)")
-    r.add_argument("--b0", type=_floats,
-                   help="cut shift b0 in dB, comma list (default -18..12 by 6; --b0=-6,0,6)")
+    r.add_argument("--b0-db", dest="b0", type=_floats,
+                   help="cut shift b0 in dB, comma list (default -18..12 by 6; --b0-db=-6,0,6)")
+    renamed(r, "--b0-db", "--b0")
     r.add_argument("--target-iobj", type=_floats, default=[],
                    help="rate-control points of hostd codecs (comma list, e.g. 0.02,0.05,0.1)")
-    r.add_argument("--speed", type=_floats, default=[50.0], help="reference speeds, mm/s (comma list; 50)")
-    r.add_argument("--fmax", type=_floats, default=[400.0], help="band limits, Hz (comma list; 400)")
+    r.add_argument("--ref-speed-mm-s", dest="speed", type=_floats, default=[50.0],
+                   help="reference speeds v_ref, mm/s (comma list; 50)")
+    renamed(r, "--ref-speed-mm-s", "--speed")
+    r.add_argument("--fmax-hz", dest="fmax", type=_floats, default=[400.0],
+                   help="band limits, Hz (comma list; 400)")
+    renamed(r, "--fmax-hz", "--fmax")
     r.add_argument("--workers", type=int, default=None, metavar="N",
                    help="processes (default: every core; 1 = in this process)")
     r.add_argument("--dask", metavar="ADDRESS",
@@ -79,7 +86,9 @@ def add_parser(sub, parents) -> None:
 
     rep = csub.add_parser("report", help="BD-rate tables (CSV, Markdown) and rate-quality PNGs")
     rep.add_argument("store", help="the results store of `hostd corpus run`")
-    rep.add_argument("-o", "--out", default="corpus-report", help="output directory (default corpus-report)")
+    rep.add_argument("-o", "--output", dest="out", default="corpus-report",
+                     help="output directory (default corpus-report)")
+    renamed(rep, "--output", "--out")
     rep.add_argument("--anchor", help="the curve to compare against (default hostd-v2/shaped when present)")
     rep.add_argument("--interpolation", choices=["pchip", "akima"], default="pchip",
                      help="BD-rate interpolation (default pchip, as the video standards' spreadsheets)")
@@ -90,7 +99,9 @@ def add_parser(sub, parents) -> None:
 
     ex = csub.add_parser("export", help="the store as Parquet or CSV")
     ex.add_argument("store")
-    ex.add_argument("-o", "--out", required=True, metavar="FILE", help="FILE.parquet or FILE.csv")
+    ex.add_argument("-o", "--output", dest="out", required=True, metavar="FILE",
+                    help="FILE.parquet or FILE.csv")
+    renamed(ex, "--output", "--out")
     ex.set_defaults(func=cmd_export)
 
 

@@ -38,7 +38,7 @@ class Store:
             raise StoreError(f"cannot open the results file {self.path}: {exc} (is it an SQLite "
                              "file this user may write?)") from None
         if have != list(COLUMNS):
-            raise StoreError(f"{self.path} holds results of another schema: write to a new file (--out)")
+            raise StoreError(f"{self.path} holds results of another schema: write to a new file (-o)")
 
     def close(self) -> None:
         self.db.close()

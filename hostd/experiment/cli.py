@@ -25,13 +25,15 @@ def _freqs(v: str) -> list[float]:
 def add_parser(sub, parents=()) -> None:
     p = sub.add_parser("experiment", help="calibrate Iobj on your display: thresholds, similarity test")
     esub = p.add_subparsers(dest="experiment", metavar="EXPERIMENT")
-    from hostd.cliopts import needs_subcommand
+    from hostd.cliopts import needs_subcommand, renamed
 
     p.set_defaults(func=needs_subcommand(p, "an experiment"))
 
     session = argparse.ArgumentParser(add_help=False)
     g = session.add_argument_group("session")
-    g.add_argument("--out", required=True, metavar="DIR", help="where the session store and results go")
+    g.add_argument("-o", "--output", dest="out", required=True, metavar="DIR",
+                   help="where the session store and results go")
+    renamed(g, "--output", "--out")
     g.add_argument("--token", required=True, help="this session's token (one session per token)")
     g.add_argument("--resume", action="store_true", help="resume the session of --token where it stopped")
     g.add_argument("--port", type=int, default=0,
@@ -80,6 +82,7 @@ def add_parser(sub, parents=()) -> None:
     c.add_argument("--b", type=float, default=None)
     c.add_argument("--name", default=None, help="one word (default: the file's stem)")
     c.add_argument("--note", default="", help="free text for the provenance (display, participants, ...)")
+    c.add_argument("--json", action="store_true", help="the calibration written (file, label, a, b) as JSON")
     c.set_defaults(func=cmd_calibration)
 
     b = esub.add_parser("bench", help="simulated observers and participants: the procedures' statistics")
@@ -291,6 +294,10 @@ def cmd_calibration(args) -> int:
     named = th.ThresholdCurve(curve.freq_hz, curve.threshold_um, name=name)
     cal = calibration.Calibration(named, a, b, name, prov)
     calibration.write(args.output, cal)
+    if args.json:
+        print(json.dumps({"file": str(args.output), "label": cal.label, "thresholds": int(curve.freq_hz.size),
+                          "a": a, "b": b}))
+        return 0
     print(f"{args.output}: calibration {cal.label}: {curve.freq_hz.size} thresholds, "
           f"a = {a:.4g}, b = {b:.4g}")
     return 0

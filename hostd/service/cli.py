@@ -54,14 +54,27 @@ def cmd_send(args) -> int:
     from hostd.service.client import send_file
 
     r = send_file(_sock(args), args.file, args.name)
+    if _json_out(args, {k: v for k, v in r.items() if k != "ok"}):
+        return 0
     print(f"accepted {r['name']}: {r['bytes']} bytes, {r['method']}, sha256 {r['sha256'][:16]}")
     return 0
+
+
+def _json_out(args, result: dict) -> bool:
+    """--json: the result as one JSON object on stdout (True), else nothing (False)."""
+    if getattr(args, "json", False):
+        json.dump(result, sys.stdout, indent=1)
+        print()
+        return True
+    return False
 
 
 def cmd_list(args) -> int:
     from hostd.service.client import request
 
     r = request(_sock(args), {"cmd": "list"})
+    if _json_out(args, {"textures": r["textures"], "playing": r["playing"]}):
+        return 0
     for name in r["textures"]:
         print(("* " if name == r["playing"] else "  ") + name)
     return 0
@@ -71,6 +84,8 @@ def cmd_select(args) -> int:
     from hostd.service.client import request
 
     request(_sock(args), {"cmd": "select", "name": args.name})
+    if _json_out(args, {"playing": args.name}):
+        return 0
     print(f"playing {args.name}")
     return 0
 
@@ -80,10 +95,12 @@ def cmd_stop(args) -> int:
 
     if args.daemon:
         request(_sock(args), {"cmd": "shutdown"})
-        print("hostd is shutting down")
+        if not _json_out(args, {"stopped": "daemon"}):
+            print("hostd is shutting down")
     else:
         request(_sock(args), {"cmd": "stop"})
-        print("output ramped to zero")
+        if not _json_out(args, {"stopped": "output"}):
+            print("output ramped to zero")
     return 0
 
 
@@ -224,11 +241,15 @@ def add_parsers(sub) -> None:
     p = sub.add_parser("send", parents=[conn], help="send a .vtx stream to the daemon's library")
     p.add_argument("file")
     p.add_argument("--name", default=None, help="name in the library (default: the file's stem)")
+    p.add_argument("--json", action="store_true",
+                   help="the accepted stream (name, bytes, method, sha256) as JSON")
     p.set_defaults(func=cmd_send)
     p = sub.add_parser("list", parents=[conn], help="list the daemon's textures (* = playing)")
+    p.add_argument("--json", action="store_true", help="{textures: [...], playing: NAME or null} as JSON")
     p.set_defaults(func=cmd_list)
     p = sub.add_parser("select", parents=[conn], help="play a texture from the library")
     p.add_argument("name")
+    p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_select)
     p = sub.add_parser("status", parents=[conn], help="the daemon's state and real-time counters")
     p.add_argument("--json", action="store_true")
@@ -237,6 +258,7 @@ def add_parsers(sub) -> None:
     p.add_argument("--daemon", action="store_true",
                    help="shut the daemon down (root or the daemon's own user only; under systemd: "
                    "systemctl stop hostd)")
+    p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_stop)
     p = sub.add_parser("quality", parents=[conn], help="read the quality log (Ip, Ia, Iobj per stream)")
     p.add_argument("--since", default=None, metavar="T",

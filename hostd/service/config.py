@@ -155,7 +155,7 @@ class MetricsCfg:
 
 @dataclass
 class ExperimentCfg:
-    """Experiments through the daemon (docs/experiments.md)."""
+    """Experiments through the daemon (hostd experiment threshold --display daemon)."""
     stimuli: bool = key(False, "true: members of control.group may play sinusoidal stimuli on the "
                         "display (hostd experiment threshold --display daemon), whatever the hand "
                         "does; each is checked against the display's reach")

@@ -261,7 +261,7 @@ def encode_coefficients(
         )
     if method == "cut":
         if b0_db is None:
-            raise CodecError("--method cut needs --b0 DB")
+            raise CodecError("--method cut needs --b0-db DB")
         if value_bits not in VALUE_BITS:
             raise CodecError(f"survivor bits must be one of {VALUE_BITS} (0 = exact float64)")
         keep = threshold_cut(c, curve(geometry.frequencies_hz(n_keep)), b0_db)

@@ -117,8 +117,8 @@ def int_geometry(geometry: transform.Geometry) -> IntGeometry:
         raise CodecError("stream v2 stores spacing in pm, speed in µm/s and fmax in mHz: this "
                          "geometry rounds to zero; use --format v1")
     if not 1 <= g.n_keep < g.n:
-        raise CodecError(f"this geometry gives N' = {g.n_keep}, outside 1..N-1: change --fmax or "
-                         "--speed")
+        raise CodecError(f"this geometry gives N' = {g.n_keep}, outside 1..N-1: change --fmax-hz or "
+                         "--ref-speed-mm-s")
     return g
 
 
@@ -245,7 +245,7 @@ def encode_coefficients(
         raise CodecError(f"unknown method {method!r}: use shaped, quant or cut")
     if method == "shaped":
         if g_db is None:
-            raise CodecError("--method shaped needs --g DB (step relative to the threshold)")
+            raise CodecError("--method shaped needs --g-db DB (step relative to the threshold)")
         g_db = check_g_db(float(g_db))
         params = _zigzag(round(g_db / G_UNIT_DB))
         q = shaped_quantize(c, b_k, g_db)
@@ -261,7 +261,7 @@ def encode_coefficients(
         decoded = q.astype(np.float64) * qz.step_um
     else:
         if b0_db is None:
-            raise CodecError("--method cut needs --b0 DB")
+            raise CodecError("--method cut needs --b0-db DB")
         if value_bits not in CUT_VALUE_BITS:
             raise CodecError("stream v2 stores cut survivors on an 8, 16 or 32-bit grid "
                              "(--value-bits 8|16|32); exact float64 survivors need --format v1")
