@@ -233,21 +233,25 @@ def encode_heights(y_um: np.ndarray, length_mm: float, *, method: str | None, fm
                    b0_db: float | None, value_bits: int | None, coder: str, speed_mm_s: float,
                    fmax_hz: float, thresholds: str | None, ab: tuple[float, float]) -> dict:
     """`encode` and `hostd encode`'s one code path (errors name the CLI's options)."""
-    from hostd.codec import ratecontrol, stream, transform
-    from hostd.codec.stream import v2 as stream2
+    from hostd.codec import formats, ratecontrol, stream, transform
     from hostd.errors import CodecError
     from hostd.perception import calibration, guard, peer
     from hostd.quality import score_stream
 
     curve = calibration.resolve_curve(thresholds)
     geom = transform.Geometry(y_um.size, length_mm, speed_mm_s, fmax_hz)
-    if fmt not in ratecontrol.FORMATS:
-        raise CodecError(f"unknown stream format {fmt!r}: use --format v2 or v1")
-    if fmt == "v2" and coder != "auto":
-        raise CodecError("--coder applies to --format v1 only (v2 has one entropy coder, the "
-                         "adaptive range coder)")
-    if fmt == "v1" and method == "shaped":
-        raise CodecError("--method shaped needs --format v2 (the default)")
+    fm = formats.get(fmt)
+    if coder != "auto" and "--coder" not in fm.options:
+        with_it = [f.name for f in formats.FORMATS.values() if "--coder" in f.options]
+        raise CodecError(f"--coder applies to --format {' or '.join(with_it)} only ({fmt} has one "
+                         "entropy coder of its own, the adaptive range coder)")
+    if method is not None and method not in fm.methods:
+        with_it = [f.name for f in formats.FORMATS.values() if method in f.methods]
+        if not with_it:
+            known = sorted({m for f in formats.FORMATS.values() for m in f.methods})
+            raise CodecError(f"unknown method {method!r}: use {', '.join(known)}")
+        raise CodecError(f"--method {method} needs --format {' or '.join(with_it)}"
+                         + (" (the default)" if formats.DEFAULT in with_it else ""))
     notes: list[str] = []
     out: dict = {}
     if target_iobj is not None:
@@ -267,13 +271,11 @@ def encode_heights(y_um: np.ndarray, length_mm: float, *, method: str | None, fm
                             ("--value-bits", value_bits or None, "quant")):
             if val is not None and method == m:
                 notes.append(f"{opt} is ignored with --method {method}")
-        vb = value_bits if value_bits is not None else (16 if fmt == "v2" else 0)
-        if fmt == "v2":
-            data = stream2.encode_profile(y_um, geom, curve, method=method, g_db=g_db,
-                                          levels=levels, b0_db=b0_db, value_bits=vb)
-        else:
-            data = stream.encode_profile(y_um, geom, curve, method=method, levels=levels,
-                                         b0_db=b0_db, value_bits=vb, coder=coder)
+        knobs = {"g_db": g_db} if "shaped" in fm.methods else {}
+        extra = {"coder": coder} if "--coder" in fm.options else {}
+        data = stream.encode_profile(y_um, geom, curve, format=fmt, method=method, levels=levels,
+                                     b0_db=b0_db, **knobs, **extra,
+                                     value_bits=value_bits if value_bits is not None else fm.value_bits)
         out.update(chosen=None)
     s = stream.decode(data)
     kept = int(np.count_nonzero(s.coefficients))

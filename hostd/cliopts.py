@@ -29,9 +29,17 @@ class Parser(argparse.ArgumentParser):
             return super().parse_known_args(args, namespace)
         self._intermixing = True
         try:
-            return super().parse_known_intermixed_args(args, namespace)
+            ns, extras = super().parse_known_intermixed_args(args, namespace)
         finally:
             self._intermixing = False
+        # a required option with an old spelling (renamed): argparse cannot see that the alias
+        # gave it, so it is checked here, after both spellings had their chance
+        missing = [a for a in self._actions if getattr(a, "required_by_name", False)
+                   and getattr(ns, a.dest, None) is None]
+        if missing:
+            self.error("the following arguments are required: "
+                       + ", ".join("/".join(a.option_strings) for a in missing))
+        return ns, extras
 
     def error(self, message: str):
         message = " ".join(message.split())
@@ -68,6 +76,8 @@ def renamed(container, new: str, *old: str) -> None:
     concept, with its unit (tests/test_toolkit_cli.py walks the parser for the spellings that
     must not come back)."""
     target = container._option_string_actions[new]
+    if target.required:  # checked by Parser.parse_known_args, so that an old spelling satisfies it
+        target.required, target.required_by_name = False, True
     for o in old:
         container._add_action(_OldSpelling([o], target.dest, target, new))
 

@@ -60,7 +60,7 @@ def _codec_demo(out: Path) -> int:
         prof = synth.make(kind, seed=1)
         geom = transform.Geometry(prof.n, prof.length_mm)
         for s in DEMO_SETTINGS:
-            data = vtx.encode_profile(prof.heights_um, geom, curve, **s)
+            data = vtx.v1.encode_profile(prof.heights_um, geom, curve, **s)
             tag = (f"quant L={s['levels']}" if s["method"] == "quant"
                    else f"cut b0={s['b0_db']:+.0f}dB 16-bit")
             name = f"{kind}-{tag.replace(' ', '_').replace('=', '')}.vtx"
@@ -147,7 +147,7 @@ def _daemon_demo(out: Path, seconds_per_texture: float, force_sim: bool, render_
             geom = transform.Geometry(prof.n, prof.length_mm)
             for tag, s in PLAY_SETTINGS:
                 f = out / f"{kind}-{tag}.vtx"
-                f.write_bytes(vtx.encode_profile(prof.heights_um, geom, curve, **s))
+                f.write_bytes(vtx.v1.encode_profile(prof.heights_um, geom, curve, **s))
                 r = send_file(str(sock), str(f), None)
                 names.append(r["name"])
         # and one corrupt stream, to show it is refused without disturbing anything

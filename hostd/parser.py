@@ -22,6 +22,7 @@ from hostd.cliopts import (
     needs_subcommand,
     renamed,
 )
+from hostd.codec import formats
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,10 +39,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="compress a height profile into a .vtx stream")
     p.add_argument("profile", help="profile file (csv/txt/npy) or synthetic:wood[:SEED]")
     p.add_argument("-o", "--output", required=True, help="output .vtx file")
-    p.add_argument("--format", choices=["v2", "v1"], default="v2",
-                   help="stream format (default v2; v1 is the original 84-byte-header format)")
-    p.add_argument("--method", choices=["shaped", "quant", "cut"], default=None,
-                   help="shaped: step g·b(f_k) (v2 only); quant, cut: the paper's methods")
+    p.add_argument("--format", choices=list(formats.FORMATS), default=formats.DEFAULT,
+                   help="stream format (default " + formats.DEFAULT + "; "
+                   + "; ".join(f"{f.name}: {f.summary}" for f in formats.FORMATS.values()) + ")")
+    p.add_argument("--method", choices=sorted({m for f in formats.FORMATS.values() for m in f.methods}),
+                   default=None, help="shaped: step g·b(f_k) (v2 only); quant, cut: the paper's methods")
     p.add_argument("--g-db", dest="g", type=_finite, default=None,
                    help="shaped: step relative to the detection threshold, dB (multiple of 0.25)")
     renamed(p, "--g-db", "--g")

@@ -149,7 +149,7 @@ def _encode(label: str, kw: dict, c: np.ndarray, geometry: transform.Geometry,
         if ig.n_keep != c.size:
             raise ValueError("this geometry is not representable exactly in stream v2")
         return stream2.encode_coefficients(c, ig, curve, **kw)
-    return vtx.encode_coefficients(c, geometry, curve, **kw)
+    return vtx.v1.encode_coefficients(c, geometry, curve, **kw)
 
 
 def guard_column(c: np.ndarray, decoded: np.ndarray, b_k: np.ndarray) -> float:

@@ -86,6 +86,7 @@ def test_every_command_that_prints_results_takes_json(commands):
     (["corpus", "run", "synthetic:wood", "--out", "c.sqlite", "--speed", "40,60", "--g=-6,0"],
      ["corpus", "run", "synthetic:wood", "--output", "c.sqlite", "--ref-speed-mm-s", "40,60", "--g-db=-6,0"]),
     (["bench", "latency", "--duration", "3"], ["bench", "latency", "--seconds", "3"]),
+    (["corpus", "export", "c.sqlite", "--out", "c.csv"], ["corpus", "export", "c.sqlite", "-o", "c.csv"]),
     (["bench", "soak", "--minutes", "2"], ["bench", "soak", "--seconds", "120"]),
 ])
 def test_old_spellings_still_work_with_a_note(old, new, capsys, monkeypatch):
@@ -103,3 +104,10 @@ def test_old_spellings_still_work_with_a_note(old, new, capsys, monkeypatch):
     strip = ("func", "root_parser")
     assert {k: v for k, v in got_old.items() if k not in strip} == \
         {k: v for k, v in got_new.items() if k not in strip}
+
+
+def test_a_required_output_is_still_required(capsys):
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(["corpus", "export", "c.sqlite"])
+    assert e.value.code == 2
+    assert "the following arguments are required: -o/--output" in capsys.readouterr().err

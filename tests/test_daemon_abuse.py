@@ -292,7 +292,7 @@ def _quant_stream(n_keep: int) -> bytes:
     n = max(4 * n_keep, 64)
     geom = transform.Geometry(n, n_keep * 50.0 / 800.0, 50.0, 400.0)
     rng = np.random.default_rng(1)
-    return vtx.encode_profile(rng.normal(size=n), geom, thresholds.default_curve(), method="quant",
+    return vtx.v1.encode_profile(rng.normal(size=n), geom, thresholds.default_curve(), method="quant",
                               levels=8)
 
 

@@ -185,7 +185,7 @@ settings = [-4, 0, 8]
 def test_a_bad_design_is_one_line(tmp_path, capsys, edit, needle):
     d = tmp_path / "design.toml"
     d.write_text(DESIGN.replace(*edit))
-    assert main(["experiment", "similarity", str(d), "--out", str(tmp_path / "o"), "--token", "x",
+    assert main(["experiment", "similarity", str(d), "-o", str(tmp_path / "o"), "--token", "x",
                  "--simulate", "linear"]) == 2
     err = capsys.readouterr().err.strip()
     assert needle in err and "\n" not in err
@@ -195,7 +195,7 @@ def test_similarity_plan_scores_fit_and_calibration_end_to_end(tmp_path, capsys)
     d = tmp_path / "design.toml"
     d.write_text(DESIGN)
     out = tmp_path / "sim"
-    assert main(["experiment", "similarity", str(d), "--out", str(out), "--token", "s1",
+    assert main(["experiment", "similarity", str(d), "-o", str(out), "--token", "s1",
                  "--simulate", "linear"]) == 0
     st = Store(out / "session.sqlite")
     plan = st.load("s1", "similarity")
@@ -215,14 +215,14 @@ def test_similarity_plan_scores_fit_and_calibration_end_to_end(tmp_path, capsys)
     (tmp_path / "fit.json").write_text(json.dumps(fit))
     # the same session token again: refused, nothing overwritten
     before = (out / "scores.csv").read_bytes()
-    assert main(["experiment", "similarity", str(d), "--out", str(out), "--token", "s1",
+    assert main(["experiment", "similarity", str(d), "-o", str(out), "--token", "s1",
                  "--simulate", "linear"]) == 2
     assert "already" in capsys.readouterr().err and (out / "scores.csv").read_bytes() == before
     tout = tmp_path / "thr"
-    assert main(["experiment", "threshold", "--out", str(tout), "--token", "t", "--frequencies", "40,250",
+    assert main(["experiment", "threshold", "-o", str(tout), "--token", "t", "--frequencies", "40,250",
                  "--trials", "5", "--simulate", "weibull"]) == 0
     jout = tmp_path / "thr-joint"  # the joint mode through the same session machinery
-    assert main(["experiment", "threshold", "--out", str(jout), "--token", "j", "--frequencies", "40,100,250",
+    assert main(["experiment", "threshold", "-o", str(jout), "--token", "j", "--frequencies", "40,100,250",
                  "--trials", "4", "--joint", "--simulate", "weibull"]) == 0
     assert len(th.load_csv(jout / "thresholds.csv").freq_hz) == 3
     assert "joint" in (jout / "thresholds.csv").read_text()
@@ -283,7 +283,7 @@ def test_the_experimenters_terminal_shows_progress_aborts_and_resumes(tmp_path):
     import urllib.request
 
     out = tmp_path / "o"
-    args = [sys.executable, "-m", "hostd", "experiment", "threshold", "--out", str(out), "--token", "p1",
+    args = [sys.executable, "-m", "hostd", "experiment", "threshold", "-o", str(out), "--token", "p1",
             "--frequencies", "40,250", "--trials", "3"]
     # (SIGINT as a terminal's foreground job has it: a runner started in the background hands
     # its children SIGINT ignored, and the Ctrl-C below never arrived: a 300 s hang)

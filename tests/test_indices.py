@@ -52,7 +52,7 @@ def test_indices_match_direct_formulas_on_real_profiles(name):
     prof = load_profile(real_profile_path(name), LoadOptions(**REAL[name]))
     geom = transform.Geometry(prof.n, prof.length_mm, speed_mm_s=REAL_SPEED[name])
     c = transform.analyze(prof.heights_um, geom.n_keep)
-    s = vtx.decode(vtx.encode_profile(prof.heights_um, geom, CURVE, method="quant", levels=5))
+    s = vtx.decode(vtx.v1.encode_profile(prof.heights_um, geom, CURVE, method="quant", levels=5))
     _check(c, s.coefficients, CURVE(geom.frequencies_hz()))
 
 
@@ -102,7 +102,7 @@ def test_presets_are_the_papers_fits():
 def test_receiver_with_only_the_stream_scores_like_the_sender(kw):
     prof = synth.sandpaper(seed=9)
     geom = transform.Geometry(prof.n, prof.length_mm)
-    s = vtx.decode(vtx.encode_profile(prof.heights_um, geom, CURVE, **kw))
+    s = vtx.decode(vtx.v1.encode_profile(prof.heights_um, geom, CURVE, **kw))
     receiver = score_stream(s)
     sender = score_stream(s, reference_um=prof.heights_um)
     for k in ("P", "A", "Ip", "Ia", "Iobj"):

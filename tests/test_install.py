@@ -105,7 +105,7 @@ def test_wheel_works_outside_the_tree(venv, tmp_path):
     assert r.returncode == 0 and '"Iobj"' in r.stdout, r.stderr
     r = _run(venv, tmp_path, "sim", "ideal", "--json", "--quiet")
     assert r.returncode == 0, r.stderr
-    r = _run(venv, tmp_path, "demo", "--sim", "--seconds", "0.3", "--out", str(tmp_path / "demo"))
+    r = _run(venv, tmp_path, "demo", "--sim", "--seconds", "0.3", "-o", str(tmp_path / "demo"))
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     assert "quality log" in r.stdout and "6 rows" in r.stdout
 

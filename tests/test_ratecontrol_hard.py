@@ -64,8 +64,10 @@ def test_peak_db_stays_finite_where_the_ratio_overflows():
     lb = ctx.log10(decimal.Decimal(float(b[0])))  # the float's exact value
     want = max(float(20 * (ctx.log10(decimal.Decimal(abs(x))) - lb)) for x in c if x != 0)
     assert ratecontrol.peak_db(c, b) == pytest.approx(want, rel=1e-12)
-    for fmt in ("v2", "v1"):
-        for m in ratecontrol.METHODS_BY_FORMAT[fmt]:
+    from hostd.codec import formats
+
+    for fmt, f in formats.FORMATS.items():
+        for m in f.methods:
             for knob in ratecontrol._knobs(fmt, m, c, b):  # no OverflowError; a finite range
                 assert knob.lo <= knob.hi and knob.setting(knob.lo) and knob.setting(knob.hi)
 

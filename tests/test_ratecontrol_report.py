@@ -120,7 +120,7 @@ def test_search_only_searches_the_given_method_and_finds_the_exhaustive_optimum(
     b = CURVE(f)
     passing = {}
     for L in range(2, ratecontrol.MAX_L + 1):
-        s = vtx.decode(vtx.encode_coefficients(c, wood[1], CURVE, method="quant", levels=L))
+        s = vtx.decode(vtx.v1.encode_coefficients(c, wood[1], CURVE, method="quant", levels=L))
         if float(score_stream(s).Iobj) <= 0.05 and guard.check(c, s.coefficients, b, f).passed:
             passing[L] = s.nbytes
     L = r.best.setting["levels"]

@@ -160,7 +160,7 @@ def test_a_threshold_session_through_the_daemon_plays_every_stimulus_whole(rig, 
     out = tmp_path / "o"
     t0_tick = dac_log(rig.log).size
     r = subprocess.run([sys.executable, "-m", "hostd", "experiment", "threshold", "--display", "daemon",
-                        "--socket", rig.sock, "--config", str(rig.cfg_path), "--out", str(out),
+                        "--socket", rig.sock, "--config", str(rig.cfg_path), "-o", str(out),
                         "--token", "s1", "--frequencies", "40,250", "--trials", "2", "--afc", "2",
                         "--simulate", "weibull"], capture_output=True, text=True, timeout=180)
     assert r.returncode == 0, (r.stderr[-2000:], rig.journal())

@@ -26,7 +26,7 @@ def _wood():
 
 
 def _roundtrip(y, geom, **kw):
-    data = vtx.encode_profile(y, geom, CURVE, **kw)
+    data = vtx.v1.encode_profile(y, geom, CURVE, **kw)
     return data, vtx.decode(data)
 
 
@@ -113,10 +113,10 @@ def test_custom_curve_is_embedded_and_found_again(tmp_path):
     p.write_text("10,2.0\n100,0.5\n300,0.2\n")
     mine = thresholds.load_csv(p)
     y, geom = _wood()
-    s = vtx.decode(vtx.encode_profile(y, geom, mine, method="quant", levels=8))
+    s = vtx.decode(vtx.v1.encode_profile(y, geom, mine, method="quant", levels=8))
     assert s.curve is not None and s.curve.id_bytes == mine.id_bytes
     assert vtx.curve_for(s) is s.curve
-    plain = vtx.decode(vtx.encode_profile(y, geom, CURVE, method="quant", levels=8))
+    plain = vtx.decode(vtx.v1.encode_profile(y, geom, CURVE, method="quant", levels=8))
     assert plain.curve is None
     with pytest.raises(StreamError, match="pass the curve"):
         vtx.curve_for(plain, mine)
@@ -147,7 +147,7 @@ def test_uncompressed_vectors_are_reproduced_byte_for_byte(name):
     from tests.vectors.make_stream_vectors import CASES, profile
 
     y = profile()
-    data = vtx.encode_profile(y, transform.Geometry(y.size, 2.0), CURVE, **CASES[name])
+    data = vtx.v1.encode_profile(y, transform.Geometry(y.size, 2.0), CURVE, **CASES[name])
     assert data == (VECTORS / f"{name}.vtx").read_bytes()
 
 
@@ -240,10 +240,32 @@ def test_deflate_bomb_is_bounded():
 def test_encoder_refuses_bad_parameters():
     y, geom = _wood()
     with pytest.raises(CodecError):
-        vtx.encode_profile(y, geom, CURVE, method="quant")
+        vtx.v1.encode_profile(y, geom, CURVE, method="quant")
     with pytest.raises(CodecError):
-        vtx.encode_profile(y, geom, CURVE, method="cut")
+        vtx.v1.encode_profile(y, geom, CURVE, method="cut")
     with pytest.raises(CodecError):
-        vtx.encode_profile(y, geom, CURVE, method="zip", levels=3)
+        vtx.v1.encode_profile(y, geom, CURVE, method="zip", levels=3)
     with pytest.raises(CodecError):
-        vtx.encode_profile(y, geom, CURVE, method="cut", b0_db=0.0, value_bits=12)
+        vtx.v1.encode_profile(y, geom, CURVE, method="cut", b0_db=0.0, value_bits=12)
+
+
+def test_the_stream_formats_are_one_registry_and_the_default_is_the_default():
+    """hostd.codec.formats declares each format once: the package-level encoders write the
+    default (v2, as the CLI and the API), decode tells the formats apart by their magic, the
+    CLI's choices and the corpus codecs come from the same table."""
+    from hostd.codec import formats
+    from hostd.corpus.codecs import BUILTIN
+    from hostd.parser import build_parser
+
+    y = np.random.default_rng(3).normal(size=4000)
+    geom = transform.Geometry(y.size, 2.0)
+    data = vtx.encode_profile(y, geom, CURVE, method="quant", levels=8)
+    assert vtx.format_of(data) == formats.DEFAULT == "v2"
+    assert vtx.format_of(vtx.encode_profile(y, geom, CURVE, format="v1", method="quant", levels=8)) == "v1"
+    assert vtx.decode(data).n_keep == vtx.v2.int_geometry(geom).n_keep
+    enc = next(a for a in build_parser()._subparsers._group_actions[0].choices["encode"]._actions
+               if "--format" in a.option_strings)
+    assert list(enc.choices) == list(formats.FORMATS) and enc.default == formats.DEFAULT
+    assert {BUILTIN[f"hostd-{n}"] for n in formats.FORMATS} == set(formats.FORMATS)
+    with pytest.raises(CodecError, match="unknown stream format 'v9': use --format v2 or v1"):
+        vtx.encode_profile(y, geom, CURVE, format="v9", method="quant", levels=8)

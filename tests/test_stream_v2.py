@@ -59,7 +59,7 @@ def test_shaped_decodes_to_the_direct_formula(g_db):
 def test_the_papers_methods_in_v2_decode_like_v1(kw):
     y, geom = _wood()
     s2 = vtx.decode(stream2.encode_profile(y, geom, CURVE, **kw))
-    s1 = vtx.decode(vtx.encode_profile(y, geom, CURVE, **kw))
+    s1 = vtx.decode(vtx.v1.encode_profile(y, geom, CURVE, **kw))
     assert s2.version == 2 and s1.version == 1
     assert np.array_equal(s2.coefficients, s1.coefficients)
     assert s2.nbytes < s1.nbytes
@@ -298,7 +298,7 @@ def test_daemon_library_and_quality_log_read_v1_and_v2(tmp_path):
     y, geom = _wood()
     lib = Library(tmp_path)
     for data in (stream2.encode_profile(y, geom, CURVE, method="shaped", g_db=-6.0),
-                 vtx.encode_profile(y, geom, CURVE, method="quant", levels=8)):
+                 vtx.v1.encode_profile(y, geom, CURVE, method="quant", levels=8)):
         s = lib.validate(data)
         row = score_row(data, "t", "0" * 64, 0.0, *indices.DEFAULT_AB)
         assert row["method"] == s.method and 0 <= row["iobj"] < 0.5

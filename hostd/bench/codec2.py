@@ -182,7 +182,7 @@ def time_rows() -> list[dict]:
     for label, enc in (
         ("v2 shaped g=-10", lambda: stream2.encode_profile(p.heights_um, geom, curve,
                                                            method="shaped", g_db=-10.0)),
-        ("v1 quant L=14", lambda: vtx.encode_profile(p.heights_um, geom, curve, method="quant",
+        ("v1 quant L=14", lambda: vtx.v1.encode_profile(p.heights_um, geom, curve, method="quant",
                                                      levels=14)),
     ):
         data = enc()

@@ -23,8 +23,9 @@ def bench_codec(step=lambda: None) -> list[dict]:
         prof = synth.make(kind, seed=1)
         geom = transform.Geometry(prof.n, prof.length_mm)
         for kw in (dict(method="quant", levels=14), dict(method="cut", b0_db=0.0, value_bits=16)):
-            data = vtx.encode_profile(prof.heights_um, geom, curve, **kw)
-            enc = cpu_median_s(lambda kw=kw, p=prof, g=geom: vtx.encode_profile(p.heights_um, g, curve, **kw),
+            data = vtx.v1.encode_profile(prof.heights_um, geom, curve, **kw)
+            enc = cpu_median_s(lambda kw=kw, p=prof, g=geom: vtx.v1.encode_profile(p.heights_um, g, curve,
+                                                                                    **kw),
                                repeat=15, inner=20)
             dec = cpu_median_s(lambda data=data: vtx.decode(data), repeat=15, inner=50)
             recon = cpu_median_s(lambda data=data: vtx.decode(data).reconstruct(), repeat=15,

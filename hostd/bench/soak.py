@@ -190,7 +190,7 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
                 time.sleep(0.1)
             prof = synth.make(texture, seed=1)
             f = d / "texture.vtx"
-            f.write_bytes(vtx.encode_profile(prof.heights_um, transform.Geometry(prof.n, prof.length_mm),
+            f.write_bytes(vtx.v1.encode_profile(prof.heights_um, transform.Geometry(prof.n, prof.length_mm),
                                              thresholds.default_curve(), method="quant", levels=14))
             send_file(sock, str(f), "soak")
             request(sock, {"cmd": "select", "name": "soak"})

@@ -33,11 +33,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hostd.codec import formats, transform
 from hostd.codec import methods as qmethods
 from hostd.codec import stream as vtx
-from hostd.codec import transform
 from hostd.codec.methods import db_to_ratio
-from hostd.codec.stream import v2 as stream2
 from hostd.errors import CodecError, HostdError, QualityError
 from hostd.perception import guard, indices, spqi
 from hostd.perception.thresholds import ThresholdCurve
@@ -102,7 +101,7 @@ def candidates(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdC
     P, A = indices.weighted_sums(c, b_k)
     out = []
     for s in _settings(c, b_k):
-        data = vtx.encode_coefficients(c, geometry, curve, **s)
+        data = vtx.v1.encode_coefficients(c, geometry, curve, **s)
         dec = vtx.decode(data)
         Pp, Ap = indices.weighted_sums(dec.coefficients, b_k)
         sc = indices.scores_from_sums(P, A, Pp, Ap, *ab)
@@ -126,8 +125,6 @@ def smallest_within(y_um: np.ndarray, geometry: transform.Geometry, curve: Thres
 
 # ---------------------------------------------------------------- knob search (bisection)
 
-FORMATS = ("v2", "v1")
-METHODS_BY_FORMAT = {"v2": ("shaped", "quant", "cut"), "v1": ("quant", "cut")}
 LOOKAHEAD = 3  # probes past the found boundary (Iobj is not strictly monotone in a knob)
 DEFAULT_SPQI_MIN = spqi.CRITERION
 
@@ -204,11 +201,11 @@ def _knobs(fmt: str, method: str, c: np.ndarray, b_k: np.ndarray) -> list[_Knob]
     if method == "quant":
         # u = MAX_L - L: larger u, fewer levels, lower quality
         return [_Knob("quant", 0, MAX_L - 2, lambda u: {"method": "quant", "levels": MAX_L - u})]
-    unit = 4 if fmt == "v2" else 2  # steps per dB
+    unit = formats.get(fmt).cut_steps_per_db
     top_db = max(-1000.0, min(1000.0, top_db))  # b0 = 10^(b0/20) must stay a finite factor
     u_hi = math.ceil((top_db + 1.0) * unit)  # everything cut
     u_lo = u_hi - 80 * unit
-    bits = (16,) if fmt == "v2" else (0, 16)
+    bits = tuple(sorted({formats.get(fmt).value_bits, 16}))  # the format's default, and 16-bit
     return [_Knob("cut", u_lo, u_hi, lambda u, vb=vb: {"method": "cut", "b0_db": u / unit,
                                                          "value_bits": vb}) for vb in bits]
 
@@ -230,9 +227,8 @@ def search(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve
         raise CodecError(f"--target-iobj must be a finite number >= 0, got {target_iobj}")
     if spqi_min is not None and not (math.isfinite(spqi_min) and 0.0 <= spqi_min <= 1.0):
         raise CodecError(f"--spqi-min must be a number in 0..1, got {spqi_min}")
-    if fmt not in FORMATS:
-        raise CodecError(f"unknown stream format {fmt!r}: use --format v2 or v1")
-    allowed = METHODS_BY_FORMAT[fmt]
+    fm = formats.get(fmt)
+    allowed = fm.methods
     if method is not None and method not in allowed:
         raise CodecError(f"method {method} is not available in stream {fmt}: use one of "
                          f"{', '.join(allowed)}")
@@ -241,21 +237,14 @@ def search(y_um: np.ndarray, geometry: transform.Geometry, curve: ThresholdCurve
         notes.append(f"--target-iobj {target_iobj:g} is degenerate: no stream can score "
                      f"above {max_iobj(ab):g} (a Ip + b Ia with Ip, Ia <= 2), so only the waveform "
                      "criterion limits the choice")
-    if fmt == "v2":
-        ig = stream2.int_geometry(geometry)
-        c = transform.analyze(y_um, ig.n_keep)
-        f_k = ig.frequencies_hz()
-        b_k = curve(f_k)
+    module = fm.load()
+    cg = module.coding_geometry(geometry)  # the geometry as the format stores it
+    c = transform.analyze(y_um, cg.n_keep)
+    f_k = cg.frequencies_hz()
+    b_k = curve(f_k)
 
-        def encode(s: dict) -> bytes:
-            return stream2.encode_coefficients(c, ig, curve, **s)
-    else:
-        c = transform.analyze(y_um, geometry.n_keep)
-        f_k = geometry.frequencies_hz()
-        b_k = curve(f_k)
-
-        def encode(s: dict) -> bytes:
-            return vtx.encode_coefficients(c, geometry, curve, **s)
+    def encode(s: dict) -> bytes:
+        return module.encode_coefficients(c, cg, curve, **s)
 
     cache: dict[tuple, Probe | None] = {}
     refused: set[str] = set()  # methods whose coder refused some setting

@@ -96,6 +96,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from hostd.codec import formats as _formats
 from hostd.errors import HostdError
 
 GEOMETRY_KEYS = ("speed_mm_s", "fmax_hz")
@@ -221,7 +222,8 @@ def run_codec(codec: Codec, heights_um: np.ndarray, spacing_um: float, setting: 
 # ----------------------------------------------------------------------------- naming codecs
 
 
-BUILTIN = {"hostd-v1": "v1", "hostd-v2": "v2", "v1": "v1", "v2": "v2"}
+# hostd's own stream formats (hostd.codec.formats), as hostd-NAME or NAME
+BUILTIN = {alias: name for name in _formats.FORMATS for alias in (f"hostd-{name}", name)}
 # the peers of hostd.corpus.peercodecs by their short names (each runs only when its programs are
 # present; otherwise its rows are "unavailable" with what to do)
 PEERS = {"mpeg-rm": "hostd.corpus.peercodecs:MpegRm", "mpeg-rm-cf0": "hostd.corpus.peercodecs:MpegRmCf0",

@@ -19,13 +19,14 @@ from hostd.codec import transform
 SHAPED_G_DB = (-18.0, -12.0, -6.0, 0.0, 6.0, 12.0, 18.0)
 QUANT_LEVELS = (4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128)
 CUT_B0_DB = (-18.0, -12.0, -6.0, 0.0, 6.0, 12.0)
-METHODS = {"v1": ("quant", "cut"), "v2": ("shaped", "quant", "cut")}
 KNOB = {"shaped": "g_db", "quant": "levels", "cut": "b0_db"}
 
 
 def default_settings(fmt: str) -> list[dict]:
     grid = {"shaped": SHAPED_G_DB, "quant": QUANT_LEVELS, "cut": CUT_B0_DB}
-    return [{"method": m, KNOB[m]: v} for m in METHODS[fmt] for v in grid[m]]
+    from hostd.codec import formats
+
+    return [{"method": m, KNOB[m]: v} for m in formats.get(fmt).methods for v in grid[m]]
 
 
 class HostdStream:
@@ -44,9 +45,7 @@ class HostdStream:
                fmax_hz: float = 400.0, method: str | None = None, target_iobj: float | None = None,
                g_db: float | None = None, levels: int | None = None, b0_db: float | None = None,
                value_bits: int | None = None, spqi_min: float | None = 0.9, **unknown: Any) -> bytes:
-        from hostd.codec import ratecontrol
-        from hostd.codec import stream as v1
-        from hostd.codec.stream import v2
+        from hostd.codec import formats, ratecontrol, stream
         from hostd.errors import CodecError
         from hostd.perception import thresholds as th
 
@@ -63,14 +62,13 @@ class HostdStream:
             return res.best.data
         if method is None:
             raise CodecError(f"{self.name}: a setting needs method (shaped, quant, cut) or target_iobj")
-        if self.fmt == "v2":
-            vb = 16 if value_bits is None else value_bits
-            return v2.encode_profile(y, geom, curve, method=method, g_db=g_db, levels=levels,
-                                     b0_db=b0_db, value_bits=vb)
-        if method == "shaped":
-            raise CodecError("method shaped needs stream v2")
-        return v1.encode_profile(y, geom, curve, method=method, levels=levels, b0_db=b0_db,
-                                 value_bits=0 if value_bits is None else value_bits, coder="auto")
+        fm = formats.get(self.fmt)
+        if method not in fm.methods:
+            raise CodecError(f"{self.name} has no method {method} (it has {', '.join(fm.methods)})")
+        knobs = {"g_db": g_db} if "shaped" in fm.methods else {}
+        return stream.encode_profile(y, geom, curve, format=self.fmt, method=method, levels=levels,
+                                     b0_db=b0_db, **knobs,
+                                     value_bits=fm.value_bits if value_bits is None else value_bits)
 
     def decode(self, data: bytes, n: int, spacing_um: float, **_: Any) -> np.ndarray:
         from hostd.codec import stream

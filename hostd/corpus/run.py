@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from hostd.codec import formats
 from hostd.corpus import codecs, jobs
 from hostd.corpus.jobs import JobSpec, Scoring, Task, TextureSpec
 from hostd.errors import HostdError
@@ -114,7 +115,7 @@ def make_plan(codec_specs: Sequence[str], *, speeds_mm_s: Sequence[float] = (50.
         codec = codecs.resolve(spec)
         if isinstance(codec, hostdcodec.HostdStream):
             grid = {"shaped": g_db, "quant": levels, "cut": b0_db}
-            ms = [m for m in hostdcodec.METHODS[codec.fmt] if methods is None or m in methods]
+            ms = [m for m in formats.get(codec.fmt).methods if methods is None or m in methods]
             if methods is not None:
                 bad = set(methods) - {"shaped", "quant", "cut"}
                 if bad:

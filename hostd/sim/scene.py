@@ -141,7 +141,7 @@ def _stream(sc: Scene):
     except ProfileError as e:
         raise ValueError(f"texture.profile: {e}") from None
     geom = transform.Geometry(prof.n, prof.length_mm, fmax_hz=fmax_hz)
-    return vtx.decode(vtx.encode_profile(prof.heights_um, geom, thresholds.default_curve(), **kw))
+    return vtx.decode(vtx.v1.encode_profile(prof.heights_um, geom, thresholds.default_curve(), **kw))
 
 
 class Shared:

@@ -82,7 +82,7 @@ def build() -> dict[str, bytes]:
     y = profile()
     geom = transform.Geometry(n=y.size, length_mm=2.0)
     curve = thresholds.default_curve()
-    out = {name: vtx.encode_profile(y, geom, curve, **kw) for name, kw in CASES.items()}
+    out = {name: vtx.v1.encode_profile(y, geom, curve, **kw) for name, kw in CASES.items()}
     out.update({name: build_v2(name) for name in CASES_V2})
     return out
 

@@ -229,6 +229,16 @@ def _assemble(
     return body + struct.pack("<I", zlib.crc32(body))
 
 
+def sniff(data: bytes) -> bool:
+    """Whether these bytes claim to be a version-1 stream (its magic)."""
+    return data[:3] == MAGIC
+
+
+def coding_geometry(geometry: transform.Geometry) -> transform.Geometry:
+    """The geometry as this format codes it (v1 stores the float geometry as it is)."""
+    return geometry
+
+
 def encode_coefficients(
     coeffs_um: np.ndarray,
     geometry: transform.Geometry,

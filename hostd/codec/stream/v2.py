@@ -108,6 +108,12 @@ def _thresholds_memo(curve: th.ThresholdCurve, ig: IntGeometry) -> np.ndarray:
 PAPER_GEOMETRY = IntGeometry(n=20000, spacing_pm=500_000, speed_um_s=50_000, fmax_mhz=400_000)
 
 
+def sniff(data: bytes) -> bool:
+    """Whether these bytes claim to be a version-2 stream: "V" then (layout << 4 | flags), layout
+    2 or 3 (version 1 starts "VTX")."""
+    return len(data) >= 2 and data[0] == MAGIC0 and data[1] >> 4 in (LAYOUT_FIRST, LAYOUT_COMPACT_GEOMETRY)
+
+
 def int_geometry(geometry: transform.Geometry) -> IntGeometry:
     """The v2 geometry of a float one: spacing in pm, speed in µm/s, fmax in mHz (rounded)."""
     geometry.n_keep  # noqa: B018 - refuses N' outside 1..N-1 with the option to change
@@ -120,6 +126,9 @@ def int_geometry(geometry: transform.Geometry) -> IntGeometry:
         raise CodecError(f"this geometry gives N' = {g.n_keep}, outside 1..N-1: change --fmax-hz or "
                          "--ref-speed-mm-s")
     return g
+
+
+coding_geometry = int_geometry  # the geometry as this format codes it
 
 
 # ---------------------------------------------------------------- small codings
