@@ -114,6 +114,9 @@ def cmd_inspect(args: argparse.Namespace) -> int:
         if k != "coefficients":
             print(f"{k:>15}: {v}")
     print(f"{'coefficients':>15}: {len(info['coefficients'])} values (use --json to list them)")
+    from hostd.perception.indices import IOBJ_LEGEND
+
+    print(f"hostd iobj {args.stream} scores it. {IOBJ_LEGEND}")
     return 0
 
 
@@ -172,7 +175,10 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     if args.json:
         _dump(out)
     else:
+        from hostd.perception.indices import IOBJ_LEGEND, grade
+
         print(format_fields(out))
+        print(f"Iobj {out['Iobj']:.4g}: nearest grade '{grade(out['Iobj'])}'. {IOBJ_LEGEND}")
     return 0
 
 
@@ -246,7 +252,10 @@ def _iobj_of_profiles(ref_spec: str, profiles, args: argparse.Namespace) -> int:
     if args.json:
         _dump(out)
     else:
+        from hostd.perception.indices import IOBJ_LEGEND, grade
+
         print(format_fields(out))
+        print(f"Iobj {out['Iobj']:.4g}: nearest grade '{grade(out['Iobj'])}'. {IOBJ_LEGEND}")
     return 0
 
 
@@ -415,7 +424,7 @@ def cmd_completion(args: argparse.Namespace) -> int:
 
 
 def cmd_manpage(args: argparse.Namespace) -> int:
-    from hostd.docgen import man_page
+    from hostd.docgen import cli_markdown, man_page
 
-    sys.stdout.write(man_page(args.root_parser))
+    sys.stdout.write(cli_markdown(args.root_parser) if args.markdown else man_page(args.root_parser))
     return 0

@@ -9,7 +9,7 @@ import numpy as np
 
 from hostd.codec import stream as vtx
 from hostd.codec import transform
-from hostd.perception import thresholds
+from hostd.perception import indices, thresholds
 from hostd.quality import score_stream
 from hostd.texture import synth
 
@@ -55,7 +55,7 @@ def codec_demo(out_dir: str | None = None) -> int:
 def _codec_demo(out: Path) -> int:
     curve = thresholds.default_curve()
     print(f"{'texture':<10} {'setting':<22} {'bytes':>6} {'%coeffs':>8} {'Ip':>7} {'Ia':>7} "
-          f"{'Iobj':>7}")
+          f"{'Iobj':>7}  nearest grade")
     for kind in ("wood", "sandpaper"):
         prof = synth.make(kind, seed=1)
         geom = transform.Geometry(prof.n, prof.length_mm)
@@ -68,7 +68,9 @@ def _codec_demo(out: Path) -> int:
             st = vtx.decode(data)
             sc = score_stream(st)
             print(f"{kind:<10} {tag:<22} {st.nbytes:>6} {100 * st.ratio_coeffs:>7.1f}% "
-                  f"{float(sc.Ip):>7.4f} {float(sc.Ia):>7.4f} {float(sc.Iobj):>7.4f}")
+                  f"{float(sc.Ip):>7.4f} {float(sc.Ia):>7.4f} {float(sc.Iobj):>7.4f}  "
+                  f"{indices.grade(float(sc.Iobj))}")
+    print(indices.IOBJ_LEGEND)
     print(f"streams written to {out}")
     return 0
 
@@ -218,10 +220,11 @@ def _daemon_demo(out: Path, seconds_per_texture: float, force_sim: bool, render_
                   f"longest silence {fig['longest_silence_ms']:.0f} ms")
     print(f"  quality log ({out / 'quality.sqlite'}): {len(rows)} rows")
     print(f"  {'name':<16} {'bytes':>6} {'method':<6} {'Ip':>8} {'Ia':>8} {'Iobj':>8} {'played':>8} "
-          f"{'underruns':>9}")
+          f"{'underruns':>9}  nearest grade")
     for r in rows:  # received (Iobj) next to delivered (the device's counters while it played)
         pf = "-" if r.get("played_fraction") is None else f"{r['played_fraction']:.2%}"
         un = "-" if r.get("underruns") is None else str(r["underruns"])
         print(f"  {r['name']:<16} {r['bytes']:>6} {r['method']:<6} {r['ip']:>8.4f} {r['ia']:>8.4f} "
-              f"{r['iobj']:>8.4f} {pf:>8} {un:>9}")
+              f"{r['iobj']:>8.4f} {pf:>8} {un:>9}  {indices.grade(r['iobj'])}")
+    print(f"  {indices.IOBJ_LEGEND}")
     return 0

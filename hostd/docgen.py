@@ -279,3 +279,62 @@ def fish_completion(ap: argparse.ArgumentParser) -> str:
                 value = " -x"
             lines.append(f"complete -c hostd -n {leaf_cond}{opts}{value}{d}")
     return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------- the CLI reference (Markdown)
+
+
+def _md_escape(text: str) -> str:
+    return (text or "").replace("|", "\\|").replace("<", "&lt;").replace(">", "&gt;").replace("%%", "%")
+
+
+def cli_markdown(ap: argparse.ArgumentParser) -> str:
+    """The command-line reference of the docs site (docs/reference/cli.md), from the same parser
+    as the man page: every command, its usage, arguments and options with their help and
+    defaults. Hidden options (old spellings kept for a release) are left out."""
+    out = ["# Command-line reference", "",
+           "Every `hostd` command with its arguments and options, generated from the parser that "
+           "parses them (the same source as `hostd manpage`): `hostd manpage --markdown > "
+           "docs/reference/cli.md`. Each command also prints this with `--help`.", ""]
+    for path, p in walk(ap):
+        if not path:
+            continue
+        subs = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
+        name = "hostd " + " ".join(path)
+        depth = min(len(path) + 1, 4)
+        out += ["#" * depth + f" `{name}`", ""]
+        desc = p.description or _help_of(ap, path)
+        if desc:
+            out += [_md_escape(" ".join(desc.split())), ""]
+        usage = " ".join(p.format_usage().split())
+        out += ["```text", usage.replace("usage: ", "", 1), "```", ""]
+        if subs:
+            continue
+        rows = []
+        for a in p._actions:
+            if a.help == argparse.SUPPRESS or isinstance(a, argparse._HelpAction):
+                continue
+            spell = ", ".join(f"`{o}`" for o in a.option_strings) or f"`{a.metavar or a.dest}`"
+            help_ = _md_escape(" ".join((a.help or "").split()))
+            if a.choices and not isinstance(a, argparse._SubParsersAction):
+                help_ += f" (one of {', '.join(f'`{c}`' for c in a.choices)})"
+            if a.option_strings and a.nargs != 0 and a.default not in (None, argparse.SUPPRESS, [], False) \
+                    and "default" not in help_:
+                help_ += f" (default `{a.default}`)"
+            rows.append(f"| {spell} | {help_} |")
+        if rows:
+            out += ["| argument | what it does |", "|---|---|", *rows, ""]
+    return "\n".join(out)
+
+
+def _help_of(ap: argparse.ArgumentParser, path: tuple[str, ...]) -> str:
+    """The one-line help its parent gave the command `path`."""
+    parent = ap
+    for name in path[:-1]:
+        parent = next(a for a in parent._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+    for a in parent._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for choice in a._choices_actions:
+                if choice.dest == path[-1]:
+                    return choice.help or ""
+    return ""

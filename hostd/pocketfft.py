@@ -1,7 +1,7 @@
 """scipy.fft's transforms (pocketfft), without importing scipy.fft.
 
 `import scipy.fft` costs a command line about 0.2 s of CPU (it imports scipy.special and the
-array-API layer), a third of `hostd encode --target-iobj` (docs/benchmarks.md, "Guards"), for
+array-API layer), a third of `hostd encode --target-iobj` (DEVELOPMENT.md, "Guards"), for
 the one C++ routine the codec and SPQI use. This module loads that routine, scipy's compiled
 `scipy.fft._pocketfft.pypocketfft`, by its file (about 1 ms) and calls it exactly as
 scipy.fft.dct, fft, ifft and irfft do with their default arguments (the same code, so the same bits:

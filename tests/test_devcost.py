@@ -2,7 +2,7 @@
 each arrival is read as it wakes the loop and the messages are taken in once a few report pairs
 are in (Transport.gather), one read takes every message waiting (Transport.drain), and
 everything else still wakes at the first byte. The CPU figure itself is
-`hostd bench soak --render auto` (docs/benchmarks.md)."""
+`hostd bench soak --render auto` (DEVELOPMENT.md)."""
 
 from __future__ import annotations
 

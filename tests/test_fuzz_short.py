@@ -4,7 +4,7 @@ decoder, differential against plain references; _fastpump.c's STATUS reader, its
 and the atheris harness of the Python paths
 (tests/fuzz/fuzz_device_link.py: protocol.py against _fastlink, built with ASan + UBSan by
 tests/fuzz/sanitize_device_link.sh). FUZZ_S seconds each; the long
-runs and their counts are in docs/fuzzing.md. Missing clang or atheris fails under CI=true
+runs and their counts are in development/fuzzing.md. Missing clang or atheris fails under CI=true
 (`./run test` installs both), and skips, saying so, elsewhere."""
 
 from __future__ import annotations

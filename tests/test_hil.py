@@ -78,7 +78,7 @@ def _run(share: Path) -> dict:
                           check=True)
     board = dict(line.split() for line in dump.stdout.splitlines())
     res["board"] = board
-    keep = rig.cache_root() / "last-results.json"  # for docs/benchmarks.md
+    keep = rig.cache_root() / "last-results.json"  # for DEVELOPMENT.md
     try:
         keep.write_text(json.dumps(res, indent=1))
     except OSError:
@@ -219,7 +219,7 @@ def test_service_under_systemd(hil):
     assert s["dac_playing"]["ticks_rendering"] > 3000  # the service renders on the device
     assert s["restart_after_kill_s"] is not None
     assert s["security_exposure"] is not None and s["security_exposure"] < 2.0
-    # both were known problems (docs/hil-findings.md 4 and 5), fixed: asserted now
+    # both were known problems (development/hil-findings.md 4 and 5), fixed: asserted now
     assert s["dac_final_code"] == 0, ("after `systemctl stop` in device rendering the display keeps "
                                       f"rendering: last DAC records {s.get('dac_after_stop_tail')}, "
                                       f"stop took {s.get('stop_s')} s; journal: {s.get('stop_journal')}")

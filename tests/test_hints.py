@@ -178,3 +178,24 @@ def test_parser_lives_below_cli_and_docgen():
                         "d.man_page(b()); d.completion('bash', b()); print('hostd.cli' in sys.modules)"],
                        capture_output=True, text=True, timeout=120)
     assert r.stdout.strip() == "False", r.stderr
+
+
+def test_the_cli_says_what_iobj_means(tmp_path, capsys):
+    """hostd iobj and hostd inspect print the scale in text mode (0 = identical, the paper's
+    grades), and hostd demo's table gives the nearest grade."""
+    from hostd.perception.indices import GRADES, grade
+
+    s = str(tmp_path / "w.vtx")
+    assert main(["encode", "synthetic:wood:1", "-o", s, "--method", "quant", "--levels", "4"]) == 0
+    capsys.readouterr()
+    assert main(["iobj", s]) == 0
+    out = capsys.readouterr().out
+    assert "0 = identical, larger = more degraded" in out and "nearest grade" in out
+    assert main(["inspect", s]) == 0
+    assert "0 = identical" in capsys.readouterr().out
+    assert [grade(x) for x in (0.0, 0.49, 0.51, 1.6, 2.5, 9.0)] == \
+        ["same", "same", "probably the same", "probably different", "different", "different"]
+    assert len(GRADES) == 4
+    assert main(["demo", "--codec-only", "-o", str(tmp_path / "d")]) == 0
+    demo = capsys.readouterr().out
+    assert "nearest grade" in demo and "0 = identical" in demo

@@ -10,7 +10,7 @@ calibration set), measured by an independent scorer written here from the defini
   against the exact sums of the original (within the header's 2^-16 precision);
 - SPQI by vibromaf (where installed; else hostd's) on played signals synthesized by the direct
   cosine sum h(t_m) = sum_k C_k cos(k theta(v t_m)), theta(x) = pi (x/dx + 1/2) / N.
-The full set runs in `hostd bench codec --holdout` (docs/benchmarks.md)."""
+The full set runs in `hostd bench codec --holdout` (DEVELOPMENT.md)."""
 
 from __future__ import annotations
 

@@ -226,7 +226,7 @@ def test_pump_reconnects_on_the_udev_event_at_once_and_drops_on_removal(tmp_path
         flag.touch()
         mon.push(action="add", subsystem="hidraw", node="/dev/hidraw9", parent_hid=DISPLAY_HID)
         # what the design guarantees, in order and by cause (how fast is a speed goal: the VM rig
-        # measures udev add -> playing, docs/benchmarks.md; a loaded machine stretches it here):
+        # measures udev add -> playing, DEVELOPMENT.md; a loaded machine stretches it here):
         # the event, not a retry by the clock (there was none while absent), brought it back
         assert pump_says(lambda: info.get("transport") == "hid:/dev/hidraw9", 60), lines
         assert pump_says(lambda: info.get("last_reconnect_s") is not None, 60), lines

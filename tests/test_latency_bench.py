@@ -1,5 +1,5 @@
 """`hostd bench latency`: the guard's arithmetic and the rig's step phases (no timing here: the
-figures themselves are the benchmark's, docs/benchmarks.md "Link latency")."""
+figures themselves are the benchmark's, DEVELOPMENT.md "Link latency")."""
 
 from __future__ import annotations
 

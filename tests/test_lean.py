@@ -5,7 +5,7 @@ it starts whatever OPENBLAS_NUM_THREADS the user's environment says; `hostd enco
 load what it never uses; the control pool holds one handler at rest; and the replacements that
 keep scipy.signal out (the chirp-z transform, the equalizer designed in a child) give the same
 numbers. The footprint of a running daemon in device mode is asserted in test_device_mode.py;
-its figures (PSS, threads, CPU, wake-ups) are `hostd bench soak --check` (docs/benchmarks.md).
+its figures (PSS, threads, CPU, wake-ups) are `hostd bench soak --check` (DEVELOPMENT.md).
 """
 
 from __future__ import annotations

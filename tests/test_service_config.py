@@ -248,7 +248,7 @@ def test_udev_reads_the_rule_without_complaint(tmp_path):
 
 def test_each_config_key_is_declared_once_and_the_shipped_file_and_reference_are_generated():
     """One declaration per key (hostd.service.config.key): its doc is not empty, and the shipped
-    hostd.toml and docs/config.md are exactly what the declarations generate
+    hostd.toml and docs/reference/config.md are exactly what the declarations generate
     (python -m hostd.service.config toml|markdown)."""
     from dataclasses import fields
 
@@ -260,8 +260,9 @@ def test_each_config_key_is_declared_once_and_the_shipped_file_and_reference_are
             assert meta.get("doc"), f"{section}.{name} has no doc"
     assert (root / "config" / "hostd.toml").read_text() == config.shipped_toml(), \
         "config/hostd.toml is stale: python -m hostd.service.config toml > config/hostd.toml"
-    assert (root / "docs" / "config.md").read_text() == config.reference_markdown(), \
-        "docs/config.md is stale: python -m hostd.service.config markdown > docs/config.md"
+    assert (root / "docs" / "reference" / "config.md").read_text() == config.reference_markdown(), \
+        "docs/reference/config.md is stale: python -m hostd.service.config markdown > " \
+        "docs/reference/config.md"
     assert config.load(root / "config" / "hostd.toml") == config.load(None).__class__(
         path=str(root / "config" / "hostd.toml"))
     assert [f.name for f in fields(config.Config)][-1] == "path"

@@ -4,7 +4,7 @@
 `--check ci` to the CI bound: about twice the goal for a figure that moves with the machine's
 load (CPU time), the goal itself for one that does not (memory, threads, a ratio of counts), so
 that `.ci/run` catches a regression the day it lands without failing on a busy machine.
-docs/benchmarks.md ("Guards") states these numbers and the commands; change them there too.
+DEVELOPMENT.md ("Guards") states these numbers and the commands; change them there too.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ SCORING_PER_S = Guard("scores_per_s", 1.0e6, 0.5e6, upper=False, unit="scores/s"
 CYCLE_US = Guard("cpu_us_per_cycle", 50.0, None, unit="µs")
 CYCLE_STEP_P50_US = Guard("step_p50_us", 15.0, 30.0, unit="µs")
 # `hostd bench latency`, the firmware's host port on a pty, 8-s runs at the default fill target and
-# pump policy (docs/benchmarks.md, "Link latency"). Goal, on a quiet 2-core machine: issue 28's
+# pump policy (DEVELOPMENT.md, "Link latency"). Goal, on a quiet 2-core machine: issue 28's
 # p50 <= 3.5 ms and no underrun of the link's own in 10 runs (the port's own, after the OS held it
 # up, are a real device's never). Issue 28 measured its 3.3 ms on a rig whose steps all landed on
 # a STATUS tick; this rig's steps land at every phase of the STATUS period (every 3rd tick) and

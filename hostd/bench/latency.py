@@ -18,7 +18,7 @@ every STEP_PERIOD_S = 0.4 s + 1/9000 s, a third of a tick later each time, so th
 sampled evenly and the p50 is the link's, not the phase's.
 
 `sweep()` runs fixed fill targets (the adaptive rise off, so each row is that target's cost),
-quiet and beside a CPU hog per core; `check()` is the guard of docs/benchmarks.md.
+quiet and beside a CPU hog per core; `check()` is the guard of DEVELOPMENT.md.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ SKIP_TICKS = 3000  # the first second: start-up and the soft start
 HOG = "while True:\n    pass\n"
 STEP_PERIOD_S = 0.4 + 1.0 / 9000.0  # 1200 1/3 ticks: the steps sample every phase of the STATUS period
 
-# the guard (docs/benchmarks.md, "Guards" and "Link latency"; the bounds: hostd.bench.guards): the
+# the guard (DEVELOPMENT.md, "Guards" and "Link latency"; the bounds: hostd.bench.guards): the
 # goal, p50 <= 3.83 ms on this rig (3.5 ms + the mean 1/3 ms wait for a STATUS) with no underrun
 # of the link's own in 10 runs, on a quiet 2-core machine; the CI bounds hold on a busy one, about
 # twice the goal. Underruns "of the link's own": the device's underrun episodes less those the
@@ -60,7 +60,7 @@ def steal_s() -> float | None:
     """CPU time the hypervisor took from this machine's CPUs so far (/proc/stat "steal", summed over
     the CPUs), None where it is not known. A virtual CPU the host deschedules stops the port's tick
     and the pump alike for milliseconds, however they are scheduled inside the guest: a run's
-    steal says how quiet the machine really was (docs/benchmarks.md, "Link latency")."""
+    steal says how quiet the machine really was (DEVELOPMENT.md, "Link latency")."""
     try:
         with open("/proc/stat") as f:
             line = f.readline().split()

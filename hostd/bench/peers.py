@@ -5,7 +5,7 @@ programs through the corpus codec protocol (hostd.corpus.peercodecs: the same ob
 `hostd corpus` runs) and scored exactly like hostd's streams.
 
 Their code is not part of hostd (VC-PWQ is CC BY-NC): they are built outside the repository
-(docs/benchmarks.md, "Peer codecs", and docs/interchange.md give the commits and the build
+(DEVELOPMENT.md, "Peer codecs", and docs/interchange.md give the commits and the build
 commands) and only run; each is used only when its programs are present.
 
 What every codec is scored on (the same for hostd v2 and the peers):
@@ -64,7 +64,7 @@ class PeerCodec:
         return {self.knob_key: knob}
 
 
-# where the build commands of docs/benchmarks.md put them, relative to --peers DIR
+# where the build commands of DEVELOPMENT.md put them, relative to --peers DIR
 VCPWQ_REL = "VC-PWQ/build/source/testprogram/VC_PWQ"
 MPEG_ENCODER_REL = "HapticReferenceSoftware/build/source/Encoder/Encoder"
 MPEG_SYNTH_REL = "HapticReferenceSoftware/build/source/Synthesizer/Synthesizer"

@@ -2,7 +2,7 @@
 
 A pump that streams samples (host rendering, a stimulus) must write every millisecond, and the
 display's buffer covers only a few: a SCHED_OTHER pump waited 4-6 ms behind a busier neighbour
-on a quiet machine, and the display ran dry (docs/benchmarks.md, "Link latency"). SCHED_FIFO
+on a quiet machine, and the display ran dry (DEVELOPMENT.md, "Link latency"). SCHED_FIFO
 removes those waits. A pump that supervises a display rendering itself (device mode) sleeps
 between reports 300 ms apart and needs none of it; at SCHED_FIFO it woke while the kernel still
 handed the display's report over, and its read (TIOCINQ takes the line discipline's lock) waited
@@ -67,7 +67,7 @@ class SchedPolicy:
 # (6.18, preempt=none by its build default) the model was not what held the pump: in 60 traced
 # latency runs no real-time task waited runnable over 1.5 ms, while the hypervisor left one or
 # both virtual CPUs unrun for 2.3-4.4 ms, unaccounted as steal, and the 4 ms buffer ran dry
-# (docs/benchmarks.md, "Link latency"). `hypervisor()` lets doctor say so.
+# (DEVELOPMENT.md, "Link latency"). `hypervisor()` lets doctor say so.
 PREEMPT_MODELS = ("none", "voluntary", "full", "lazy", "rt")
 _CONFIG_MODELS = (("CONFIG_PREEMPT_RT", "rt"), ("CONFIG_PREEMPT_LAZY", "lazy"), ("CONFIG_PREEMPT", "full"),
                   ("CONFIG_PREEMPT_VOLUNTARY", "voluntary"), ("CONFIG_PREEMPT_NONE", "none"))

@@ -8,7 +8,7 @@ line discipline holds (TIOCINQ, which does not wait). A `read()` that finds the 
 empty first waits for the kernel's buffer work (n_tty_read -> tty_buffer_flush_work: a kworker
 that moves bytes the other side wrote from the tty's flip buffer into the line discipline), and
 on a busy machine that kworker waits for a core: the pump's 1 ms cycle was held 9-14 ms
-(docs/benchmarks.md, "Link latency"). Bytes still in the flip buffer are read by the next
+(DEVELOPMENT.md, "Link latency"). Bytes still in the flip buffer are read by the next
 cycle instead. A port that hung up answers TIOCINQ with EIO: gone.
 """
 

@@ -24,14 +24,14 @@ same form, each a weighted power sum of the texture over the same sum of the err
   low-frequency texture about 16 dB more than wSNR does.
 
 Errors add as squares whatever their sign, so neither SNR can be matched by a wrong spectrum.
-Why two: on the 32 textures of the calibration (docs/benchmarks.md, "Waveform guard") the
+Why two: on the 32 textures of the calibration (DEVELOPMENT.md, "Waveform guard") the
 largest wSNR at which a stream still had SPQI < 0.9 was 35.5 dB (real profile dektak-1 at
 25 mm/s; 22-25 dB on most textures), so no wSNR default gave SPQI >= 0.9 everywhere; the
 largest such sSNR was at most 24.8 dB on every texture (synthetic, real, 7 to 160 components).
 The former defaults wSNR >= 25 dB AND sSNR >= 27 dB (2 dB above the worst case measured) gave
 SPQI >= 0.945 on all 32 textures and 12 held-out ones, against 0.489-0.834 on 6 of 32 with
 wSNR >= 25 dB alone, but SPQI 0.20-0.86 on 5 of the 25 held-out textures of
-hostd/bench/holdout.py (docs/benchmarks.md); they remain the proxy floors (DEFAULT_*).
+hostd/bench/holdout.py (DEVELOPMENT.md); they remain the proxy floors (DEFAULT_*).
 The largest per-component error relative to b_k (`nmr_max_db`) is reported, not guarded: a
 single component decides it, and it is unreachable for strong textures at low rates.
 

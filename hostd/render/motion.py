@@ -45,7 +45,7 @@ class MotionConfig:
     # changes, and only a short window keeps that lag small, which leaves the 0.4 µm encoder
     # steps little averaging (order 2 over 16 ms: 1.31 % RMS on sandpaper, where both errors are
     # about equal). A cubic follows the changing acceleration, so the window can grow until the
-    # steps average out: 0.74 % (docs/rendering.md, docs/benchmarks.md)
+    # steps average out: 0.74 % (docs/rendering.md, DEVELOPMENT.md)
     window: int = 40  # samples in the fit (1 kHz status -> 40 ms)
     order: int = 3  # 0 = hold, 1 = velocity, 2 = + acceleration, 3 = + jerk
     glitch_um: float = 200.0

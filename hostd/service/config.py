@@ -133,7 +133,7 @@ class OutputCfg:
 class RealtimeCfg:
     """Scheduling of the real-time pump."""
     # The link's own underruns on a quiet machine were a SCHED_OTHER pump behind a busier
-    # neighbour (docs/benchmarks.md, "Link latency"); 10 is below the kernel's threaded interrupts
+    # neighbour (DEVELOPMENT.md, "Link latency"); 10 is below the kernel's threaded interrupts
     # (50), which the display's bytes pass through. A pump that supervises a display rendering
     # itself stays SCHED_OTHER (hostd.device.realtime).
     sched_fifo_priority: int = key(10, "SCHED_FIFO at 1..99 for the pump while it streams, where "
@@ -289,7 +289,7 @@ def shipped_toml() -> str:
 
 
 def reference_markdown() -> str:
-    """The config reference (docs/config.md), generated from the same declarations."""
+    """The config reference (docs/reference/config.md), generated from the same declarations."""
     out = ["# Configuration reference", "",
            "Every key of the daemon's configuration file (`hostd run --config FILE`, default "
            "`$HOSTD_CONFIG`, else `/etc/hostd/hostd.toml`), with its type, default and the values it "

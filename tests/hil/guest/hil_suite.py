@@ -37,7 +37,7 @@ class Pace:
     """How slow this guest is, measured at boot, and the deadlines that follow.
 
     Each wait below names its budget for a guest at nominal speed (TCG on a quiet 2-core host,
-    docs/benchmarks.md); the guest's own boot time (kernel start to the 9p share mounted, its
+    DEVELOPMENT.md); the guest's own boot time (kernel start to the 9p share mounted, its
     uptime then, written by hil-boot to /mnt/hil/booted) scales it: a guest that booted 4x
     slower than NOMINAL_BOOT_S waits 4x longer, never less than nominal. Everything in a TCG
     guest (a daemon's start, systemd's restart, the emulated USB) slows alike with the host's
@@ -583,7 +583,7 @@ def _service_checks(rec) -> Gadget:
         wait_playing(g, 60)
         rec["late_plug_picked_up"] = True
     except TimeoutError:
-        # recorded (docs/hil-findings.md), then the cold-plug case: a restart finds the display
+        # recorded (development/hil-findings.md), then the cold-plug case: a restart finds the display
         rec["late_plug_picked_up"] = False
         rec["late_plug_status"] = pick(status(sock, user="alice"))
         rec["late_plug_journal"] = sh(["journalctl", "-u", "hostd", "--no-pager", "-n", "25"],
