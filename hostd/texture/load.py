@@ -365,6 +365,12 @@ def read_text(p: Path, opts: LoadOptions) -> np.ndarray:
     """The text reader of the format registry: any suffix no other format claims."""
     if not p.exists():
         raise ProfileNotFound(f"no such profile file: {p}")
+    from hostd.texture import manifest
+
+    if manifest.looks_like_manifest(p):
+        fields = ", ".join(f for f in manifest.header_fields(p) if f)
+        raise ProfileError(f"{p} is a texture manifest (columns {fields}), not a profile: give it to "
+                           "`hostd corpus run`, or give the profile files it lists")
     stop_x = None
     if opts.length_mm is not None and math.isfinite(opts.length_mm):
         # a patch of a two-column file: read no further than it needs (plus a margin)
