@@ -428,7 +428,7 @@ def load_profile(path: str | Path, opts: LoadOptions | None = None) -> Profile:
         x_um, y_um = _sorted_unique(x_um, y_um, str(path))
         dx_um = spacing * fx if spacing else (x_um[-1] - x_um[0]) / (x_um.size - 1)
         _check_spacing(dx_um)
-        y_um = _resample(x_um, y_um, dx_um)
+        y_um, opts = _resample(x_um, y_um, dx_um, opts, str(path))
     prof = cut_patch(y_um, dx_um, opts, str(path))
     return replace(prof, note=cols.note) if cols.note else prof
 
@@ -448,12 +448,29 @@ def _sorted_unique(x: np.ndarray, y: np.ndarray, name: str) -> tuple[np.ndarray,
     return x, y
 
 
-def _resample(x_um: np.ndarray, y_um: np.ndarray, dx_um: float) -> np.ndarray:
-    """Linear interpolation onto x0 + i dx; a no-op for data already uniform at dx."""
-    span = x_um[-1] - x_um[0]
-    count = math.floor(span / dx_um * (1 + 1e-9)) + 1
-    grid = x_um[0] + dx_um * np.arange(count)
-    return np.interp(grid, x_um, y_um)
+def _resample(x_um: np.ndarray, y_um: np.ndarray, dx_um: float, opts: LoadOptions,
+              name: str) -> tuple[np.ndarray, LoadOptions]:
+    """Linear interpolation onto x0 + i dx (a no-op for data already uniform at dx), of the patch's
+    samples only: an x range wide for its spacing never allocates a grid of its own size. Returns
+    the samples from the patch's start and the options that cut the patch from them."""
+    ratio = (x_um[-1] - x_um[0]) / dx_um
+    if not math.isfinite(ratio) or ratio > 1e15:
+        raise ProfileError(f"{name}: x spans {x_um[-1] - x_um[0]:.6g} µm at a spacing of {dx_um:.6g} µm: "
+                           "check --x-unit and --spacing")
+    count = math.floor(ratio * (1 + 1e-9)) + 1
+    start = round(opts.offset_mm * 1000.0 / dx_um)
+    if start < 0 or start >= count - 1:
+        raise ProfileError(f"{name}: offset {opts.offset_mm} mm is outside the profile")
+    n = count - start
+    if opts.length_mm is not None and math.isfinite(opts.length_mm) and opts.length_mm > 0:
+        n = min(n, round(opts.length_mm * 1000.0 / dx_um))
+    from hostd.codec.transform import MAX_SAMPLES
+
+    if n > MAX_SAMPLES:
+        raise ProfileError(f"{name}: the patch would hold {n:,} samples, more than {MAX_SAMPLES:,}: "
+                           "take a shorter patch with --length-mm, or resample with a coarser --spacing")
+    grid = x_um[0] + dx_um * np.arange(start, start + max(n, 2), dtype=np.float64)
+    return np.interp(grid, x_um, y_um), replace(opts, offset_mm=0.0)
 
 
 def cut_patch(y_um: np.ndarray, dx_um: float, opts: LoadOptions, name: str = "") -> Profile:
