@@ -1,7 +1,7 @@
 """A short pass of the fuzzers of device bytes and of the profile readers: the libFuzzer
-harnesses of the compiled parsers (tests/fuzz/run_fuzzers.sh, ASan + UBSan: _fastpump.c's deframer and _fastlink.c's
-decoder, differential against plain references; _fastpump.c's STATUS reader, its properties)
-and the atheris harness of the Python paths
+harnesses of the compiled parsers (tests/fuzz/run_fuzzers.sh, ASan + UBSan: _fastpump.c's
+deframer and _fastlink.c's decoder, differential against plain references; _fastpump.c's
+STATUS reader, its properties) and the atheris harness of the Python paths
 (tests/fuzz/fuzz_device_link.py: protocol.py against _fastlink, built with ASan + UBSan by
 tests/fuzz/sanitize_device_link.sh); the atheris harness of the profile readers
 (tests/fuzz/fuzz_profiles.py: text, .npy, .mat, .wav under an RSS limit) and its kept inputs.
