@@ -15,8 +15,10 @@ secs=${2:-60}
 [ $# -ge 2 ] && shift 2 || shift $#
 py=${PYTHON:-$root/.venv/bin/python}
 [ -x "$py" ] || py=python3
+case "$py" in /*) ;; */*) py="$(pwd)/$py" ;; esac  # the run goes on in $FUZZ_OUT
 out=${FUZZ_OUT:-$(mktemp -d)}
 mkdir -p "$out/$h.corpus"
+out=$(cd "$out" && pwd)
 case "$h" in
   fuzz_profiles) cp "$here/corpus/profiles/"* "$out/$h.corpus/" ;;
   fuzz_stream) cp "$root/tests/vectors/"*.vtx "$out/$h.corpus/" 2>/dev/null || true ;;
