@@ -256,6 +256,8 @@ def encode_heights(y_um: np.ndarray, length_mm: float, *, method: str | None, fm
         data = res.best.data
         out.update(target_iobj=target_iobj, spqi_min=res.spqi_min,
                    waveform_verified=res.waveform_verified, size_set_by=res.size_set_by,
+                   binding=(f"SPQI >= {res.spqi_min:g}" if res.size_set_by == "waveform"
+                            else f"Iobj <= {target_iobj:g}"),  # what set the size, as the CLI leads with it
                    chosen=res.best.describe(), encodes=res.encodes, search_cpu_s=res.seconds)
     elif method is None:
         raise CodecError("give --method shaped|quant|cut (or --target-iobj X)")
