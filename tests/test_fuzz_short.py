@@ -65,7 +65,7 @@ def test_device_link_python_paths_atheris_short_pass(tmp_path):
 # ----------------------------------------------------------------- the profile readers (.mat/.wav/.npy/text)
 
 
-def test_profile_readers_seed_and_regression_inputs():
+def test_profile_readers_seed_and_regression_inputs(tmp_path):
     """Every input kept in tests/fuzz/corpus/profiles, in-process (no atheris needed): the seeds
     load a finite profile, the regression inputs (declared sizes the bytes do not back, a zlib
     bomb, WAV headers that once escaped as ZeroDivisionError or struct.error) are refused in one
@@ -82,18 +82,15 @@ def test_profile_readers_seed_and_regression_inputs():
     for p in sorted(folder.iterdir()):
         data = p.read_bytes()
         suffix, opts = pin.options(data[0])
-        f = Path(os.environ.get("TMPDIR", "/tmp")) / f"hostd-fuzz-{os.getpid()}{suffix}"
+        f = tmp_path / f"{p.stem}{suffix}"
         f.write_bytes(data[1:])
-        try:
-            if p.name.startswith("seed-"):
-                prof = load_profile(f, opts)
-                assert prof.n >= 2 and np.all(np.isfinite(prof.heights_um)), p.name
-            else:
-                with pytest.raises(HostdError) as e:
-                    load_profile(f, opts)
-                assert len(str(e.value).strip().splitlines()) == 1, (p.name, str(e.value))
-        finally:
-            f.unlink()
+        if p.name.startswith("seed-"):
+            prof = load_profile(f, opts)
+            assert prof.n >= 2 and np.all(np.isfinite(prof.heights_um)), p.name
+        else:
+            with pytest.raises(HostdError) as e:
+                load_profile(f, opts)
+            assert len(str(e.value).strip().splitlines()) == 1, (p.name, str(e.value))
 
 
 def _atheris_pass(tmp_path, harness: str, seconds: int) -> str:
