@@ -181,6 +181,7 @@ EXPECTED = {
 FIX = {
     "numpy": "save the array with numpy.save(path, a), or give it as CSV",
     "WAV": "convert it: ffmpeg -i IN -c:a pcm_f32le OUT.wav",
+    "matlab": "save the array in MATLAB with save('profile.mat', 'NAME', '-v7'), or as CSV (writematrix)",
 }
 
 
@@ -208,7 +209,8 @@ def check_kind(p: Path, fmt: Format, head: bytes) -> None:
     if accepts is None:
         return
     kind, words = sniff(head)
-    if kind in accepts or (kind is None and words == "binary data" and None in accepts):
+    unsigned = kind is None and words == "binary data"  # a MATLAB v4 file has no signature
+    if (kind is not None and kind in accepts) or (unsigned and None in accepts):
         return
     if not head:
         raise ProfileError(f"{p} is empty: give a profile file")

@@ -4,7 +4,8 @@
 scale to -1..1 (8-bit, unsigned: (x - 128) / 128; 16/24/32/64-bit: x / 2^(bits-1)), IEEE float
 as stored. Before scipy reads anything, the RIFF chunks are walked and checked against the file:
 a chunk that claims more bytes than the file has, a `fmt ` chunk that is not 16 to 1024 bytes,
-zero channels, or a block alignment that does not fit the channels is refused in one line, so
+zero channels, a block alignment that does not fit the channels, or more samples than a profile
+file may hold (hostd.texture.load.MAX_VALUES) is refused in one line, so
 scipy never sizes a buffer from a number the file made up. The data chunk is read by scipy with
 np.fromfile, which reads no more than the file holds.
 
@@ -35,13 +36,13 @@ class WavError(ProfileError):
     """A WAV file that cannot be read (one line, naming the file)."""
 
 
-def _check_chunks(fh, name: str, size: int) -> None:
+def _check_chunks(fh, name: str, size: int, max_values: int) -> None:
     """Walk the RIFF chunks; refuse one whose declared size the file cannot hold."""
     head = fh.read(12)
     if len(head) < 12 or head[:4] not in (b"RIFF", b"RIFX", b"RF64") or head[8:12] != b"WAVE":
         raise WavError(f"{name} is not a WAV file (no RIFF/WAVE header): {CONVERT}")
     big = head[:4] == b"RIFX"
-    pos, seen_fmt = 12, False
+    pos, seen_fmt, align, channels = 12, False, 1, 1
     while pos + 8 <= size:
         fh.seek(pos)
         cid, n = struct.unpack(f"{'>' if big else '<'}4sI", fh.read(8))
@@ -61,6 +62,10 @@ def _check_chunks(fh, name: str, size: int) -> None:
         elif cid == b"data":
             if not seen_fmt:
                 raise WavError(f"{name}: the samples come before the fmt chunk: the file is damaged")
+            samples = min(n, left) // (align // channels)
+            if samples > max_values:
+                raise WavError(f"{name} holds {samples:,} samples, more than the {max_values:,} a "
+                               "profile file may: cut the recording first")
             return  # scipy reads the samples; np.fromfile stops at the end of the file
         elif n > left:
             raise WavError(f"{name}: a {cid!r} chunk declares {n} bytes but {left} are left in the "
@@ -77,6 +82,7 @@ def read_samples(path: str | Path) -> tuple[int, np.ndarray]:
     import scipy.io.wavfile
 
     from hostd.fileio import NotRegular, open_regular
+    from hostd.texture.load import MAX_VALUES
 
     p = Path(path)
     try:
@@ -91,7 +97,7 @@ def read_samples(path: str | Path) -> tuple[int, np.ndarray]:
         size = fh.seek(0, 2)
         fh.seek(0)
         try:
-            _check_chunks(fh, str(p), size)
+            _check_chunks(fh, str(p), size, MAX_VALUES)
         except struct.error:
             raise WavError(f"{p}: a chunk header is cut short: the file is truncated") from None
         fh.seek(0)
