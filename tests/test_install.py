@@ -417,3 +417,41 @@ def test_an_extra_installs_from_the_wheel_and_the_corpus_example_runs_outside_th
     out = json.loads(r.stdout)
     assert out["written"] == 10 and "unreadable_profile" not in out.get("failed_by_reason", {}), out
     assert out["ok"] >= 9, out
+
+
+def test_run_test_says_what_it_will_install_before_it_starts(tmp_path):
+    """`./run test` as root on a machine that lacks everything: before anything starts it lists the
+    Debian packages and the VM image it would install, and HOSTD_HIL=0 drops the VM rig's part
+    (its packages and its image); HOSTD_APT=0 installs nothing, so announces nothing."""
+    import re
+
+    run = (ROOT / "run").read_text()
+    test_case = run[run.index("\n  test)\n"):run.index("\n  wheel)\n")]
+    assert test_case.index("announce_test_plan") < test_case.index("ensure_venv")
+    assert '[ "${HOSTD_HIL:-}" = 0 ] || ensure_hil_tools' in test_case
+    functions = r"^(can_apt|have_arm_tools|announce_test_plan)\(\) .*?^}\n"
+    variables = r"^(ARM_PKGS|HIL_PKGS|BROWSER_PKGS|RM_SRC)=.*?\n"
+    parts = [m.group(0) for m in re.finditer(f"{functions}|{variables}", run, re.M | re.S)]
+    stubs = tmp_path / "bin"
+    stubs.mkdir()
+    for name, body in (("id", "echo 0"), ("uname", "echo x86_64"), ("apt-get", "exit 0")):
+        (stubs / name).write_text(f"#!/bin/sh\n{body}\n")
+        (stubs / name).chmod(0o755)
+    for tool in ("ls", "grep", "cat", "sleep"):
+        (stubs / tool).symlink_to(shutil.which(tool))
+    script = "set -euo pipefail\n" + "".join(parts) + "announce_test_plan\n"
+
+    def said(**env):
+        r = subprocess.run([shutil.which("bash"), "-c", script], cwd=tmp_path, capture_output=True, text=True,
+                           stdin=subprocess.DEVNULL, timeout=30,
+                           env={"PATH": str(stubs), "HOSTD_HIL_CACHE": str(tmp_path / "cache"),
+                                "HOSTD_MPEG_RM_SRC": str(tmp_path / "no-rm"), **env})
+        assert r.returncode == 0, r.stderr
+        return r.stderr
+
+    out = said()
+    assert "will install" in out and "clang" in out and "qemu-system-x86 mmdebstrap" in out, out
+    assert "chromium chromium-driver" in out and "~1.1 GB" in out and "HOSTD_HIL=0" in out, out
+    out = said(HOSTD_HIL="0")
+    assert "clang" in out and "qemu-system-x86" not in out and "GB" not in out, out
+    assert said(HOSTD_APT="0") == ""
