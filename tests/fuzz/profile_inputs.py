@@ -150,6 +150,8 @@ def regressions() -> dict[str, bytes]:
         "wav-zero-channels.wav": as_input(".wav", wav(b"\0" * 64, channels=0, align=0)),
         "wav-fmt-4gb.wav": as_input(".wav", wav(b"\0" * 64, fmt_size=0xFFFFFFF0)),
         "wav-cut-short.wav": as_input(".wav", wav(b"\0" * 64)[:30]),
+        # a fmt chunk and no data chunk (scipy's reader once ended with UnboundLocalError)
+        "wav-no-data-chunk.wav": as_input(".wav", wav(b"")[:-8].replace(b"RIFF\x24", b"RIFF\x1c", 1)),
         "wav-align-not-channels.wav": as_input(".wav", wav(b"\0" * 64, channels=3, align=4)),
         "npy-random-bytes.npy": as_input(".npy", bytes(range(256)) * 4),
         "npy-declared-huge.npy": as_input(".npy", b"\x93NUMPY\x01\x00v\x00" + (
