@@ -197,6 +197,7 @@ def encode(profile: Profile | np.ndarray, *, method: str | None = None, format: 
         ``waveform_verified`` (True: SPQI >= spqi_min measured on this stream; False: SPQI
         could not be computed, see notes), ``size_set_by`` ("Iobj" or "waveform": which
         criterion kept a smaller stream out; ``size_note`` says so when it was the waveform),
+        ``binding`` (that criterion in words: "SPQI >= 0.9" or "Iobj <= 0.05"),
         ``encodes`` and ``search_cpu_s``.
     """
     y, length = _heights(profile, length_mm)
