@@ -125,7 +125,7 @@ class _Walker:
         return nxt
 
 
-def _inflate_bounded(fh, n: int, name: str) -> bytes:
+def _inflate_bounded(fh, n: int, name: str) -> bytearray:
     """A compressed element's n bytes inflated, refused as soon as the output passes the limit."""
     limit = max(INFLATE_MARGIN, INFLATE_RATIO * n)
     z = zlib.decompressobj()
@@ -145,7 +145,7 @@ def _inflate_bounded(fh, n: int, name: str) -> bytes:
                            "with save(..., '-v6') if it is one)")
         if z.eof:
             break
-    return bytes(out)
+    return out
 
 
 def check_structure(fh, size: int, name: str, max_values: int) -> None:
@@ -179,6 +179,7 @@ def check_structure(fh, size: int, name: str, max_values: int) -> None:
             if typ == _MI_COMPRESSED:
                 data = _inflate_bounded(fh, n, name)
                 walker.variable(data, 0, len(data))
+                del data  # freed before the next variable and before scipy reads the file
             elif typ == _MI_MATRIX:
                 with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
                     walker.variable(mm, pos, pos + 8 + n)
