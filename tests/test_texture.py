@@ -278,3 +278,22 @@ def test_declared_sizes_are_checked_before_anything_is_allocated(tmp_path):
     errs, grew = _peak(*paths, tmp_path / "wide.csv")
     assert all(errs) and "more than 4,194,304" in errs[-1], errs
     assert grew < 20, (errs, grew)
+
+
+def _reader_that_breaks(path, opts):
+    return {}["a reader's own bug on bytes it did not expect"]
+
+
+def test_every_reader_exception_becomes_its_one_line_error(tmp_path):
+    from hostd.texture import formats
+
+    formats.register(formats.Format("broken", (".brk",), "tests.test_texture:_reader_that_breaks"))
+    try:
+        (tmp_path / "p.brk").write_bytes(b"1 2\n")
+        with pytest.raises(ProfileError) as e:
+            load_profile(tmp_path / "p.brk")
+        msg = str(e.value)
+        assert msg.startswith(f"cannot read {tmp_path / 'p.brk'} as broken: KeyError"), msg
+        assert "\n" not in msg
+    finally:
+        formats._registry.pop(".brk")
