@@ -60,7 +60,12 @@ if TYPE_CHECKING:
     from hostd.texture.load import LoadOptions
 
 MAX_HJIF_BYTES = 64 << 20  # a larger file is refused before it is parsed (~1 M keyframes)
-MAX_SAMPLES = 20_000_000  # samples of one evaluated channel
+# samples of one evaluated channel: the loader's limit for a patch (hostd.codec.transform), 32 MB
+# as float64. A file's declared sizes (positions, sample_count, blocks) are checked against it
+# before anything is allocated, and a channel is evaluated into one buffer in chunks, so a crafted
+# file of a few kB takes at most a few times the samples it yields (tests/test_hjif.py measures it)
+MAX_SAMPLES = 1 << 22
+CHUNK = 1 << 16  # samples evaluated at a time
 MAX_KEYFRAMES = 2_000_000
 MAX_AMPLITUDE = 1e3  # keyframe amplitudes are -1..1; the RM clips the channel's sum to that
 MAX_GAIN = 1e6
@@ -83,13 +88,13 @@ RM_TIMEOUT_S = 120.0
 # fails (std::bad_alloc, SIGXCPU) and hostd says so in one line.
 RM_MEMORY_BYTES = 1 << 30  # address space
 RM_CPU_S = int(RM_TIMEOUT_S)
+RM_FILE_BYTES = 256 << 20  # the largest file a tool may write (its WAV or .hjif)
 MAX_HMPG_BYTES = 4 << 20  # refused before the Decoder runs (its .hjif is ~20x larger)
-# the tool is started through this: its limits set in the child, then exec (no preexec_fn: safe in
-# a process with threads)
-_LIMITED = ("import os, resource, sys; "
-            "resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[1]),) * 2); "
-            "resource.setrlimit(resource.RLIMIT_CPU, (int(sys.argv[2]),) * 2); "
-            "os.execv(sys.argv[3], sys.argv[3:])")
+# The reference tools are third-party native parsers, not robust against hostile input (seeded
+# mutations of a band's numbers crash the Synthesizer): hostd runs one on a file's content only
+# when the user opts in with this setting (1), and then in a sandbox (hostd/texture/hjif_sandbox.py)
+RM_OPT_IN_ENV = "HOSTD_RUN_MPEG_RM"
+MAX_ERROR_CHARS = 300  # a quoted part of a one-line error (a tool's last line, a JSON error)
 _FULL_SCALE = re.compile(r"full_scale_um=([0-9.eE+-]+)")
 _SPEED = re.compile(r"speed_mm_s=([0-9.eE+-]+)")
 
@@ -126,32 +131,81 @@ def rm_tool(name: str) -> Path:
     return d / name
 
 
-def run_rm(name: str, *args: str, cwd: Path | None = None) -> str:
-    """Run one reference tool; its stdout. A failure is one line naming the tool."""
+def rm_opted_in() -> bool:
+    """Whether the user allows hostd to run the reference software on a file's content
+    ($HOSTD_RUN_MPEG_RM=1)."""
+    return os.environ.get(RM_OPT_IN_ENV, "").strip().lower() in ("1", "yes", "true", "on")
+
+
+def rm_refusal(path: Path, what: str) -> ProfileError:
+    """The one-line refusal to run the reference software on `path` without the opt-in."""
+    return ProfileError(f"{path}: {what} only the reference software evaluates, a third-party program "
+                        f"hostd runs on a file's content only when asked: set {RM_OPT_IN_ENV}=1 to run it "
+                        "(sandboxed: no network, a private folder, a read-only copy of the input, "
+                        f"{RM_MEMORY_BYTES >> 20} MiB, {RM_CPU_S} s of CPU)")
+
+
+def _short(text: str, limit: int = MAX_ERROR_CHARS) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 15] + f" ... ({len(text)} chars)"
+
+
+_SIGNALS = {9: "SIGKILL", 11: "SIGSEGV", 6: "SIGABRT", 24: "SIGXCPU", 25: "SIGXFSZ", 7: "SIGBUS", 8: "SIGFPE"}
+
+
+def run_rm(name: str, *args: str, cwd: Path, source: Path | None = None,
+           read_only: Path | None = None) -> str:
+    """Run one reference tool in the folder `cwd` (private: made by the caller, holding only the
+    tool's input, `read_only`) under hjif_sandbox: its stdout. A failure is one line naming the
+    tool and `source`, the user's file the tool works on."""
     import sys
 
     exe = rm_tool(name)
-    cmd = [sys.executable, "-I", "-c", _LIMITED, str(RM_MEMORY_BYTES), str(RM_CPU_S), str(exe), *args]
+    launcher = Path(__file__).with_name("hjif_sandbox.py")
+    cmd = [sys.executable, "-I", str(launcher), str(RM_MEMORY_BYTES), str(RM_CPU_S), str(RM_FILE_BYTES),
+           str(read_only) if read_only is not None else "-", str(exe), *args]
+    env = {"PATH": "/usr/bin:/bin", "LANG": "C.UTF-8", "TMPDIR": str(cwd), "HOME": str(cwd)}
+    who = f"{source}: " if source is not None else ""
     try:
         r = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=RM_TIMEOUT_S,
-                           errors="replace")
+                           errors="replace", env=env, stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired:
-        raise ProfileError(f"the reference {name} did not finish within {RM_TIMEOUT_S:g} s") from None
+        raise ProfileError(f"{who}the reference {name} did not finish within {RM_TIMEOUT_S:g} s") from None
     if r.returncode != 0:
-        last = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["no output"]
-        raise ProfileError(f"the reference {name} failed (exit {r.returncode}): {last[0].strip()}")
+        lines = [x for x in (r.stderr.strip() or r.stdout.strip()).splitlines() if x.strip()]
+        own = [x for x in lines if not x.startswith("sandbox:")]
+        last = (own or lines or ["no output"])[-1]
+        sig = _SIGNALS.get(-r.returncode, f"signal {-r.returncode}") if r.returncode < 0 else None
+        status = f"killed by {sig}" if sig else f"exit {r.returncode}"
+        raise ProfileError(f"{who}the reference {name} failed ({status}): {_short(last)}")
     return r.stdout
 
 
-def read_wav_full_scale(path: Path) -> tuple[int, np.ndarray]:
+def _private_copy(src: Path, folder: Path, name: str, limit: int) -> Path:
+    """A read-only copy of the user's file in the tool's private folder (at most `limit` bytes)."""
+    try:
+        with src.open("rb") as fh:
+            data = fh.read(limit + 1)
+    except OSError as e:
+        raise ProfileError(f"cannot read {src}: {e.strerror or e}") from None
+    if len(data) > limit:
+        raise ProfileError(f"{src}: more than {limit} bytes; refused")
+    dst = folder / name
+    dst.write_bytes(data)
+    dst.chmod(0o444)
+    return dst
+
+
+def read_wav_full_scale(path: Path, shown: Path | None = None) -> tuple[int, np.ndarray]:
     """(rate, samples (frames, channels)) of a PCM WAV as the reference tools write it, in units
-    of full scale (int16 / 32768)."""
+    of full scale (int16 / 32768). Any failure of the reader is one line naming `shown` (or path)."""
     import scipy.io.wavfile
 
     try:
         rate, data = scipy.io.wavfile.read(path)
-    except (OSError, ValueError) as e:
-        raise ProfileError(f"cannot read the WAV {path}: {e}") from None
+    except Exception as e:  # scipy's WAV reader raises more than ValueError on a broken header
+        why = _short(f"{type(e).__name__}: {e}")
+        raise ProfileError(f"cannot read the WAV {shown or path}: {why}") from None
     data = np.asarray(data)
     if data.ndim == 1:
         data = data.reshape(-1, 1)
@@ -336,10 +390,12 @@ def _reject_constant(name: str):
     raise ValueError(f"{name} is not JSON")
 
 
-def load_json(path: Path) -> dict:
-    """The parsed document; a file larger than MAX_HJIF_BYTES is refused before parsing."""
+def load_json(path: Path, shown: Path | None = None) -> dict:
+    """The parsed document; a file larger than MAX_HJIF_BYTES is refused before parsing. Errors
+    name `shown` (the user's file) when given, else `path`."""
+    real, path = path, shown if shown is not None else path
     try:
-        size = path.stat().st_size
+        size = real.stat().st_size
     except FileNotFoundError:
         raise ProfileError(f"no such .hjif file: {path}") from None
     except OSError as e:
@@ -348,7 +404,7 @@ def load_json(path: Path) -> dict:
         raise ProfileError(f"{path}: {size} bytes, more than the {MAX_HJIF_BYTES >> 20} MiB an .hjif may "
                            "have here (hostd.texture.hjif.MAX_HJIF_BYTES); split the file")
     try:
-        with path.open("rb") as fh:
+        with real.open("rb") as fh:
             raw = fh.read(MAX_HJIF_BYTES + 1)
     except OSError as e:
         raise ProfileError(f"cannot read {path}: {e.strerror or e}") from None
@@ -358,7 +414,7 @@ def load_json(path: Path) -> dict:
         doc = json.loads(raw, parse_constant=_reject_constant)
     except (ValueError, RecursionError) as e:
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise ProfileError(f"{path}: not valid JSON ({msg})") from None
+        raise ProfileError(f"{path}: not valid JSON ({_short(msg)})") from None
     if not isinstance(doc, dict):
         raise ProfileError(f"{path}: not an .hjif (the top level must be a JSON object)")
     return doc
@@ -454,25 +510,31 @@ def select(doc: dict, path: Path, member: str | None) -> tuple[int, int, str]:
     return pi, ci, note
 
 
-def _hermite(idx: np.ndarray, amps: np.ndarray, curve: str) -> np.ndarray:
-    """Samples 0..idx[-1] of a curve through (idx, amps), idx non-decreasing from 0, as the
-    RM's linearInterpolation2 / cubicInterpolation2 (cubic: zero slope at every keyframe)."""
+def _hermite(idx: np.ndarray, amps: np.ndarray, curve: str, out: np.ndarray, start: int) -> None:
+    """Add samples 0..idx[-1] of a curve through (idx, amps), idx non-decreasing from 0, to
+    out[start:] (as far as out reaches), as the RM's linearInterpolation2 / cubicInterpolation2
+    (cubic: zero slope at every keyframe); CHUNK samples at a time."""
     last = int(idx[-1])
-    t = np.arange(last + 1, dtype=np.float64)
+    stop = min(out.size, start + last + 1)
+    if stop <= start:
+        return
     if last == 0:
-        return amps[:1].copy()
-    j1 = np.searchsorted(idx, t, side="left")
-    j1 = np.clip(j1, 1, idx.size - 1)
-    j0 = j1 - 1
-    t0, t1 = idx[j0].astype(np.float64), idx[j1].astype(np.float64)
-    f0, f1 = amps[j0], amps[j1]
-    h = np.where(t1 > t0, t1 - t0, 1.0)
-    if curve == "Linear" or idx.size == 2:
-        y = (f0 * (t1 - t) + f1 * (t - t0)) / h
-    else:
-        y = f0 + (f1 - f0) * (3 * h + 2 * (t0 - t)) * (t - t0) ** 2 / h**3
-    y[0] = amps[0]
-    return y
+        out[start] += amps[0]
+        return
+    linear = curve == "Linear" or idx.size == 2
+    for c0 in range(0, stop - start, CHUNK):
+        t = np.arange(c0, min(c0 + CHUNK, stop - start), dtype=np.float64)
+        j1 = np.clip(np.searchsorted(idx, t, side="left"), 1, idx.size - 1)
+        t0, t1 = idx[j1 - 1].astype(np.float64), idx[j1].astype(np.float64)
+        f0, f1 = amps[j1 - 1], amps[j1]
+        h = np.where(t1 > t0, t1 - t0, 1.0)
+        if linear:
+            y = (f0 * (t1 - t) + f1 * (t - t0)) / h
+        else:
+            y = f0 + (f1 - f0) * (3 * h + 2 * (t0 - t)) * (t - t0) ** 2 / h**3
+        if c0 == 0:
+            y[0] = amps[0]
+        out[start + c0 : start + c0 + y.size] += y
 
 
 def _effects(d: _Doc, band: dict, where: str) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -514,46 +576,70 @@ def _effects(d: _Doc, band: dict, where: str) -> list[tuple[int, np.ndarray, np.
     return out
 
 
-def _render_curve(d: _Doc, band: dict, where: str, to_idx, count_hint: int | None) -> np.ndarray:
-    curve = band.get("curve_type", "Cubic")
-    parts = []
+def _curve_span(d: _Doc, band: dict, where: str, to_idx) -> int:
+    """The samples a Curve band reaches (its last effect's end), checked against MAX_SAMPLES
+    before anything is evaluated."""
     end = 0
+    for pos, rel, _ in _effects(d, band, where):
+        e = int(to_idx(pos + rel[0])) + int(to_idx(rel[-1]) - to_idx(rel[0])) + 1
+        if e > MAX_SAMPLES:
+            raise d.err(where, f"spans {e} samples, more than {MAX_SAMPLES} (hostd.texture.hjif.MAX_SAMPLES)")
+        end = max(end, e)
+    return end
+
+
+def _render_curve(d: _Doc, band: dict, where: str, to_idx, out: np.ndarray) -> None:
+    """Add a Curve band's samples to `out` (its size: the channel's)."""
+    curve = band.get("curve_type", "Cubic")
     for pos, rel, amp in _effects(d, band, where):
         start = int(to_idx(pos + rel[0]))
         idx = to_idx(rel) - to_idx(rel[0])
-        if int(idx[-1]) + 1 > MAX_SAMPLES:
-            raise d.err(where, f"spans {int(idx[-1]) + 1} samples, more than {MAX_SAMPLES}")
-        y = _hermite(idx, amp, curve)
-        parts.append((start, y))
-        end = max(end, start + y.size)
-    n = count_hint if count_hint is not None else end
-    if n > MAX_SAMPLES:
-        raise d.err(where, f"spans {n} samples, more than {MAX_SAMPLES}")
-    out = np.zeros(n)
-    for start, y in parts:
-        stop = min(n, start + y.size)
-        if stop > start:
-            out[start:stop] += y[: stop - start]
-    return out
+        _hermite(idx, amp, curve, out, start)
 
 
 def _render_by_rm(doc: dict, perception: dict, channel: dict, bands: list[dict], rate: int,
                   count: int, path: Path) -> np.ndarray:
-    """Bands hostd does not evaluate itself, played by the reference Synthesizer (int16 WAV)."""
-    ch = {**channel, "gain": 1.0, "bands": bands}
+    """Bands hostd does not evaluate itself, played by the reference Synthesizer (int16 WAV), when
+    the user opted in (rm_opted_in), sandboxed."""
+    kinds = sorted({f"{b.get('band_type')}/{b.get('curve_type', '-')}" for b in bands})
+    if not rm_opted_in():
+        raise rm_refusal(path, f"its {', '.join(kinds)} band(s) are what")
+    ch = {**channel, "gain": 1.0, "bands": bands, "sample_count": int(count), "frequency_sampling": int(rate)}
     p = {**perception, "perception_unit_exponent": 0, "channels": [ch], "effect_library": []}
     one = {**doc, "perceptions": [p], "avatars": [], "syncs": []}
-    with tempfile.TemporaryDirectory(prefix="hostd-hjif-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="hostd-rm-") as tmp:
         src, wav = Path(tmp) / "bands.hjif", Path(tmp) / "bands.wav"
         src.write_bytes(dumps(one))
-        run_rm("Synthesizer", "-f", str(src), "-o", str(wav), "-fs", str(rate))
+        src.chmod(0o444)
+        run_rm("Synthesizer", "-f", src.name, "-o", wav.name, "-fs", str(rate), cwd=Path(tmp), source=path,
+               read_only=src)
         if not wav.is_file():
             raise ProfileError(f"{path}: the reference Synthesizer wrote no WAV")
-        _, x = read_wav_full_scale(wav)
+        _, x = read_wav_full_scale(wav, shown=path)
     y = np.zeros(count)
     k = min(count, x.shape[0])
     y[:k] = x[:k, 0]
     return y
+
+
+def _band_ticks(d: _Doc, band: dict, where: str, timescale: int) -> float:
+    """A band's length in ticks as the reference Synthesizer takes it (Band::getBandTimeLength):
+    its last effect's position plus that effect's last keyframe (+ 22 ms for a Transient band)."""
+    effects = d.get(band, "effects", where, "list")
+    if not effects:
+        return 0.0
+    last = effects[-1]
+    lw = f"{where}.effects[{len(effects) - 1}]"
+    if not isinstance(last, dict):
+        raise d.err(lw, "must be an object")
+    pos = d.get(last, "position", lw, "int", 0)
+    kfs = d.get(last, "keyframes", lw, "list", [])
+    rels = [k["relative_position"] for k in kfs if isinstance(k, dict) and "relative_position" in k]
+    rel = d.get({"rp": rels[-1]}, "rp", f"{lw}.keyframes[-1].relative_position", "int") if rels else 0
+    if band.get("band_type") == "WaveletWave" or not kfs:
+        return float(pos)
+    extra = 22.0 * timescale / 1000.0 if band.get("band_type") == "Transient" else 0.0
+    return float(pos + rel) + extra
 
 
 def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
@@ -634,16 +720,16 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
         def to_idx(x):
             return np.asarray(x, dtype=np.int64) // step
 
-        y = np.zeros(0)
+        count = max(_curve_span(d, band, f"{cw}.bands[{bands.index(band)}]", to_idx) for band in native)
+        y = np.zeros(count)
         for band in native:
-            yb = _render_curve(d, band, f"{cw}.bands[{bands.index(band)}]", to_idx, None)
-            if yb.size > y.size:
-                yb, y = y, yb
-            y[: yb.size] += yb
+            _render_curve(d, band, f"{cw}.bands[{bands.index(band)}]", to_idx, y)
             np.clip(y, -1.0, 1.0, out=y)  # as the RM: the channel is clipped after each band
         rate = None
     else:
-        rate = fs_ch if fs_ch is not None else timescale
+        # the channel's own rate; else the timescale's, at least the Synthesizer's default 8 kHz (an
+        # AHAP or IVS input gives the RM's Encoder a timescale of 1000 ticks per second)
+        rate = fs_ch if fs_ch is not None else max(timescale, DEFAULT_RATE_HZ)
         if not 1 <= rate <= 10**6:
             raise d.err(f"{cw}.frequency_sampling", f"{rate} Hz is absurd (1..1000000)")
         if n_ch is not None and not 0 < n_ch <= MAX_SAMPLES:
@@ -652,22 +738,27 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
         def to_idx(x):
             return np.asarray(x, dtype=np.int64) * rate // timescale  # the RM's integer division
 
-        if n_ch is None and not all(is_native(b) for b in bands):
-            raise d.err(f"{cw}.sample_count", "missing: needed to play its "
-                        f"{sorted({b['band_type'] for b in bands if not is_native(b)})} bands")
-        parts = [_render_curve(d, band, f"{cw}.bands[{b}]", to_idx, n_ch) if is_native(band)
-                 else None for b, band in enumerate(bands)]
-        count = n_ch if n_ch is not None else max((x.size for x in parts if x is not None), default=0)
+        if n_ch is not None:
+            count = n_ch
+        else:  # as the Synthesizer: its length in ticks (Helper::getTimeLength), at the rate
+            spans = [_curve_span(d, band, f"{cw}.bands[{b}]", to_idx) for b, band in enumerate(bands)
+                     if is_native(band)]
+            ticks = [_band_ticks(d, band, f"{cw}.bands[{b}]", timescale) for b, band in enumerate(bands)
+                     if not is_native(band)]
+            count = max(spans + [round(rate * t / timescale) for t in ticks], default=0)
+            if count > MAX_SAMPLES:
+                raise d.err(f"{cw}.bands", f"last {count} samples at {rate} Hz, more than {MAX_SAMPLES} "
+                            "(hostd.texture.hjif.MAX_SAMPLES)")
         y = np.zeros(count)
-        for b, (band, x) in enumerate(zip(bands, parts, strict=True)):
-            if x is None and band["band_type"] == "WaveletWave":
+        for b, band in enumerate(bands):
+            if is_native(band):
+                _render_curve(d, band, f"{cw}.bands[{b}]", to_idx, y)
+            elif band["band_type"] == "WaveletWave":
                 from hostd.texture import hjif_wavelet
 
-                x = hjif_wavelet.render_band(band, timescale, int(rate), count, f"{cw}.bands[{b}]", path)
-            elif x is None:
-                x = _render_by_rm(doc, p, c, [band], int(rate), count, path)
-            k = min(count, x.size)
-            y[:k] += x[:k]
+                y += hjif_wavelet.render_band(band, timescale, int(rate), count, f"{cw}.bands[{b}]", path)
+            else:
+                y += _render_by_rm(doc, p, c, [band], int(rate), count, path)
             np.clip(y, -1.0, 1.0, out=y)  # as the RM: the channel is clipped after each band
         if other:
             note = (f"{len(other)} {sorted({b.get('band_type') for b in other})} band(s) played by the "
@@ -682,33 +773,37 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
 
 
 def read_channel(path: Path, member: str | None = None) -> Channel:
-    """Load, select and evaluate one channel of an .hjif (or .hmpg through the reference Decoder)."""
+    """Load, select and evaluate one channel of an .hjif (or .hmpg through the reference Decoder,
+    when the user opted in: rm_opted_in)."""
     path = Path(path)
     if path.suffix.lower() == ".hmpg":
-        with tempfile.TemporaryDirectory(prefix="hostd-hmpg-") as tmp:
-            out = Path(tmp) / "decoded.hjif"
-            if not path.is_file():
-                raise ProfileError(f"no such .hmpg file: {path}")
-            size = path.stat().st_size
-            if size > MAX_HMPG_BYTES:
-                raise ProfileError(f"{path}: {size} bytes, more than the {MAX_HMPG_BYTES >> 20} MiB an .hmpg "
-                                   "may have (hostd.texture.hjif.MAX_HMPG_BYTES): refused before decoding")
-            if rm_dir() is None:
-                raise ProfileError(f"{path}: an .hmpg is read through the reference Decoder, which is not "
-                                   f"installed: {RM_HOW}")
+        if not path.is_file():
+            raise ProfileError(f"no such .hmpg file: {path}")
+        size = path.stat().st_size
+        if size > MAX_HMPG_BYTES:
+            raise ProfileError(f"{path}: {size} bytes, more than the {MAX_HMPG_BYTES >> 20} MiB an .hmpg "
+                               "may have (hostd.texture.hjif.MAX_HMPG_BYTES): refused before decoding")
+        if rm_dir() is None:
+            raise ProfileError(f"{path}: an .hmpg is read through the reference Decoder, which is not "
+                               f"installed: {RM_HOW}")
+        if not rm_opted_in():
+            raise rm_refusal(path, "an .hmpg is a binary stream")
+        with tempfile.TemporaryDirectory(prefix="hostd-rm-") as tmp:
+            copy = _private_copy(path, Path(tmp), "input.hmpg", MAX_HMPG_BYTES)
             try:
-                run_rm("Decoder", "-f", str(path), "-o", str(out))
+                run_rm("Decoder", "-f", copy.name, "-o", "decoded.hjif", cwd=Path(tmp), source=path,
+                       read_only=copy)
             except ProfileError as e:
-                raise ProfileError(f"{path}: {e} (not a valid .hmpg? the Decoder may use "
-                                   f"{RM_MEMORY_BYTES >> 20} MiB and {RM_CPU_S} s of CPU; a valid one needs "
-                                   "far less)") from None
+                raise ProfileError(f"{e} (not a valid .hmpg? the Decoder may use {RM_MEMORY_BYTES >> 20} MiB "
+                                   f"and {RM_CPU_S} s of CPU; a valid one needs far less)") from None
+            out = Path(tmp) / "decoded.hjif"
             if not out.is_file():
                 raise ProfileError(f"{path}: the reference Decoder wrote no .hjif")
-            doc = load_json(out)
-            pi, ci, note = select(doc, path, member)
-            ch = evaluate(doc, out, pi, ci)
-            return dataclasses.replace(ch, note="; ".join(x for x in (note, ch.note, "decoded by the "
-                                                                    "reference Decoder") if x))
+            doc = load_json(out, shown=path)
+        pi, ci, note = select(doc, path, member)
+        ch = evaluate(doc, path, pi, ci)
+        return dataclasses.replace(ch, note="; ".join(x for x in (note, ch.note, "decoded by the "
+                                                                "reference Decoder") if x))
     doc = load_json(path)
     pi, ci, note = select(doc, path, member)
     ch = evaluate(doc, path, pi, ci)
