@@ -262,7 +262,7 @@ def test_wavelet_bands_decode_without_the_reference_software(tmp_path):
     f.write_text(json.dumps(doc(stream="")))
     assert not np.any(hjif.read_channel(f).samples)  # an empty stream is silence
     f.write_text(json.dumps(doc(block_length=100)))  # 800 samples: not a power of two
-    with pytest.raises(ProfileError, match=r"bands\[0\]\.block_length: 800 samples a block"):
+    with pytest.raises(ProfileError, match=r"bands\[0\]\.block_length: 100 ms at 8000 Hz = 800 samples"):
         hjif.read_channel(f)
     f.write_text(json.dumps(doc(block_length=8192, effects=100, stream="")))
     with pytest.raises(ProfileError, match=r"bands\[0\]\.effects: 100 blocks of 65536 samples, more than"):
@@ -352,3 +352,173 @@ def test_an_hmpg_over_the_limit_is_refused_before_decoding(tmp_path, monkeypatch
     with pytest.raises(ProfileError, match=r"big.hmpg: 2000 bytes, more than the 0 MiB an .hmpg may have .*"
                        r"refused before decoding"):
         load_profile(big, LoadOptions())
+
+
+def _bomb(tmp_path: Path, sample_count: int, last: int, spatial: bool = False) -> Path:
+    """A 3-kB .hjif whose declared sizes (eight Curve bands reaching `last`, a sample_count) ask
+    for far more memory than its bytes."""
+    kfs = [{"relative_position": 0, "amplitude_modulation": 0.5},
+           {"relative_position": 1, "amplitude_modulation": 0.1},
+           {"relative_position": last, "amplitude_modulation": 0.2}]
+    band = {"band_type": "Curve", "curve_type": "Cubic", "lower_frequency_limit": 0,
+            "upper_frequency_limit": 100,
+            "effects": [{"effect_type": "Basis", "position": 0, "keyframes": kfs}]}
+    ch = {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+          "bands": [band] * 8}
+    if not spatial:
+        ch.update(frequency_sampling=8000, sample_count=sample_count)
+    p = {"id": 0, "avatar_id": 0, "description": "", "unit_exponent": -6,
+         "perception_modality": "Vibrotactile Texture" if spatial else "Vibrotactile",
+         "reference_devices": [], "effect_library": [], "channels": [ch]}
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 8000, "avatars": [], "perceptions": [p], "syncs": []}
+    f = tmp_path / f"bomb{sample_count}{'s' if spatial else ''}.hjif"
+    f.write_text(json.dumps(doc))
+    return f
+
+
+_PEAK = """
+import resource, sys
+from pathlib import Path
+from hostd.texture import hjif
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+try:
+    n = hjif.read_channel(Path(sys.argv[1])).samples.nbytes
+except Exception as e:
+    n = -1
+    print(type(e).__name__, str(e).replace(chr(10), ' '))
+print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) * 1024, n)
+"""
+
+
+@pytest.mark.parametrize("spatial", [False, True], ids=["time", "space"])
+def test_declared_sizes_take_bounded_memory(tmp_path, spatial):
+    """A crafted file of 3 kB takes at most a few times the samples it yields (peak RSS of a fresh
+    process, over its RSS before reading), and declared sizes past the limit are refused in one
+    line before anything is allocated (at 2de9ff1's limit of 2*10^7 samples the same file took
+    2.8 GB)."""
+    import subprocess
+    import sys
+
+    def peak(f: Path) -> tuple[int, int, str]:
+        r = subprocess.run([sys.executable, "-c", _PEAK, str(f)], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        *msg, last = r.stdout.strip().splitlines()
+        grew, n = (int(x) for x in last.split())
+        return grew, n, " ".join(msg)
+
+    n = hjif.MAX_SAMPLES
+    f = _bomb(tmp_path, n, n - 1, spatial)
+    assert f.stat().st_size < 4000
+    grew, nbytes, msg = peak(f)
+    assert nbytes == 8 * n, msg
+    print(f"{f.stat().st_size} B -> {nbytes >> 20} MiB of samples: peak grew {grew / 2**20:.0f} MiB")
+    assert grew <= 4 * nbytes + (32 << 20)
+    over = _bomb(tmp_path, 20_000_000, 19_999_999, spatial)
+    grew, nbytes, msg = peak(over)
+    assert nbytes == -1 and "ProfileError" in msg and "4194304" in msg and str(over) in msg
+    assert grew < 16 << 20
+
+
+def test_wavelet_bands_missing_fields_are_one_line(tmp_path):
+    """What the reference software skips or cannot decode (no upper_frequency_limit, a block of
+    fewer than 16 samples) is a one-line error naming the field, not a KeyError or IndexError."""
+    band = {"band_type": "WaveletWave", "block_length": 1, "lower_frequency_limit": 0,
+            "upper_frequency_limit": 8000,
+            "effects": [{"effect_type": "Basis", "position": 0, "wavelet_stream": "QUJDRA"}]}
+    ch = {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+          "frequency_sampling": 8000, "sample_count": 800, "bands": [band]}
+    p = {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Other",
+         "reference_devices": [], "effect_library": [], "channels": [ch]}
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 1000, "avatars": [], "perceptions": [p], "syncs": []}
+    f = tmp_path / "w.hjif"
+    f.write_text(json.dumps(doc))
+    with pytest.raises(ProfileError, match=r"w.hjif: .*bands\[0\]\.block_length: 1 ms at 8000 Hz = 8 "):
+        hjif.read_channel(f)
+    band["block_length"] = 16
+    del band["upper_frequency_limit"]
+    f.write_text(json.dumps(doc))
+    with pytest.raises(ProfileError, match=r"w.hjif: .*bands\[0\]\.upper_frequency_limit: missing"):
+        hjif.read_channel(f)
+
+
+def _fake_rm(d: Path) -> Path:
+    """Encoder, Decoder and Synthesizer that report what they may do (the sandbox's view)."""
+    import sys
+
+    probe = f"""#!{sys.executable}
+import json, os, resource, socket, sys
+lim = resource.getrlimit
+out = {{"env": sorted(os.environ), "cwd": os.getcwd(), "as": lim(resource.RLIMIT_AS)[0],
+       "cpu": lim(resource.RLIMIT_CPU)[0], "fsize": lim(resource.RLIMIT_FSIZE)[0],
+       "ifaces": [l.split(":")[0].strip() for l in open("/proc/net/dev").read().splitlines()[2:]]}}
+try:
+    socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    out["socket"] = "allowed"
+except OSError as e:
+    out["socket"] = e.errno
+try:
+    open(sys.argv[2], "ab").write(b"x")
+    out["write_input"] = "allowed"
+except OSError as e:
+    out["write_input"] = e.errno
+print(json.dumps(out))
+if "crash" in sys.argv:
+    os.kill(os.getpid(), 11)
+"""
+    d.mkdir()
+    for t in hjif.RM_TOOLS:
+        (d / t).write_text(probe)
+        (d / t).chmod(0o755)
+    return d
+
+
+def test_the_reference_tools_run_only_when_asked_and_sandboxed(tmp_path, monkeypatch):
+    """No reference tool runs on a file's content without HOSTD_RUN_MPEG_RM=1; with it, the tool
+    sees no network, no socket call, its limits, a private folder, a read-only copy of its input
+    and an environment of four variables; its crash is one line naming the user's file."""
+    import errno
+
+    fake = _fake_rm(tmp_path / "rm")
+    monkeypatch.setenv(hjif.RM_ENV, str(fake))
+    monkeypatch.delenv(hjif.RM_OPT_IN_ENV, raising=False)
+    user = tmp_path / "clip.hmpg"
+    user.write_bytes(b"\x01" * 64)
+    with pytest.raises(ProfileError, match=r"clip.hmpg: an .hmpg is a binary stream only the reference "
+                       r"software evaluates, .* set HOSTD_RUN_MPEG_RM=1 to run it \(sandboxed") as e:
+        load_profile(user, LoadOptions(spacing=6.25))
+    assert "\n" not in str(e.value)
+    # a band only the reference Synthesizer plays: refused in one line, the band's kind named
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 1000, "avatars": [], "syncs": [], "perceptions": [
+               {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Vibrotactile",
+                "reference_devices": [], "effect_library": [], "channels": [
+                    {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+                     "bands": [{"band_type": "Transient", "lower_frequency_limit": 0,
+                                "upper_frequency_limit": 1000, "effects": [
+                                    {"effect_type": "Basis", "position": 0, "keyframes": [
+                                        {"relative_position": 10, "amplitude_modulation": 0.5}]}]}]}]}]}
+    (tmp_path / "t.hjif").write_text(json.dumps(doc))
+    with pytest.raises(ProfileError, match=r"t.hjif: its Transient/- band\(s\) are what only the reference "
+                       r"software evaluates.*HOSTD_RUN_MPEG_RM=1"):
+        hjif.read_channel(tmp_path / "t.hjif")
+
+    monkeypatch.setenv(hjif.RM_OPT_IN_ENV, "1")
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as t:
+        copy = hjif._private_copy(user, Path(t), "input.hmpg", 1 << 20)
+        seen = json.loads(hjif.run_rm("Decoder", "-f", copy.name, cwd=Path(t), read_only=copy))
+        assert copy.read_bytes() == user.read_bytes()
+    assert seen["cwd"] == t and seen["env"] == ["HOME", "LANG", "PATH", "TMPDIR"]
+    limits = (hjif.RM_MEMORY_BYTES, hjif.RM_CPU_S, hjif.RM_FILE_BYTES)
+    assert (seen["as"], seen["cpu"], seen["fsize"]) == limits
+    assert seen["ifaces"] == ["lo"]  # a network namespace of its own
+    assert seen["socket"] == errno.EPERM  # the seccomp filter
+    assert seen["write_input"] in (errno.EROFS, errno.EACCES)  # read-only, even to root
+    # a crash (SIGSEGV) is one line naming the user's file and the signal
+    with tempfile.TemporaryDirectory() as t:
+        copy = hjif._private_copy(user, Path(t), "input.hmpg", 1 << 20)
+        with pytest.raises(ProfileError, match=r"clip.hmpg: the reference Decoder failed .killed by SIGSEGV"):
+            hjif.run_rm("Decoder", "-f", copy.name, "crash", cwd=Path(t), source=user, read_only=copy)
