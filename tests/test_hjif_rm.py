@@ -222,8 +222,9 @@ def test_encoder_hjif_imports_as_the_synthesizer_plays(rm, wood, options):
     np.testing.assert_allclose(prof.heights_um, ch.samples, rtol=0, atol=1e-12)
 
 
-def test_decoder_hjif_and_hmpg_import_as_the_synthesizer_plays(rm, wood):
+def test_decoder_hjif_and_hmpg_import_as_the_synthesizer_plays(rm, wood, monkeypatch):
     d, s = wood
+    monkeypatch.setenv(hjif.RM_OPT_IN_ENV, "1")  # an .hmpg is read by the Decoder: only when asked
     wav = _played_wav(d, s)
     _run(rm, "Encoder", "-f", wav.name, "-o", "enc.hmpg", "-b", cwd=d)
     _run(rm, "Decoder", "-f", "enc.hmpg", "-o", "dec.hjif", cwd=d)
@@ -338,12 +339,18 @@ def test_one_command_gives_a_bd_rate_table_of_hostd_against_the_standard(rm, tmp
     assert any(",mpeg-rm," in r and "synthetic:wood:1" in r for r in rows)
 
 
-def test_a_hostile_hmpg_is_one_line_and_the_decoder_is_bounded(rm, tmp_path, capsys):
+def test_a_hostile_hmpg_is_one_line_and_the_decoder_is_bounded(rm, tmp_path, capsys, monkeypatch):
     """2000 random bytes (seed 1) kept the unbounded Decoder busy for over 60 s on its way to 1 GB;
-    run by hostd (1 GiB of address space, 120 s of CPU) it stops at the cap: a one-line error
-    naming the file, exit 2."""
+    run by hostd (only when asked; 1 GiB of address space, 120 s of CPU) it stops at the cap: a
+    one-line error naming the file, exit 2."""
     bad = tmp_path / "r1.hmpg"
     bad.write_bytes(np.random.default_rng(1).bytes(2000))
+    monkeypatch.delenv(hjif.RM_OPT_IN_ENV, raising=False)
+    assert main(["encode", str(bad), "-o", str(tmp_path / "x.vtx"), "--spacing", "6.25", "--method", "cut",
+                 "--b0", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{bad}: an .hmpg is a binary stream" in err and "HOSTD_RUN_MPEG_RM=1" in err
+    monkeypatch.setenv(hjif.RM_OPT_IN_ENV, "1")
     assert main(["encode", str(bad), "-o", str(tmp_path / "x.vtx"), "--spacing", "6.25", "--method", "cut",
                  "--b0", "0"]) == 2
     err = capsys.readouterr().err

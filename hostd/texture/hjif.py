@@ -71,6 +71,27 @@ MAX_AMPLITUDE = 1e3  # keyframe amplitudes are -1..1; the RM clips the channel's
 MAX_GAIN = 1e6
 DEFAULT_RATE_HZ = 8000  # the reference Synthesizer's default output rate
 MAX_TIMESCALE = 48000  # the Main profile's limit (IOJson.cpp)
+# The reference Synthesizer (2de9ff1, Band::EvaluationBand) maps a Curve keyframe to an output
+# sample as relative_position x rate / timescale with a 32-bit int product divided as unsigned:
+# past 2^32 the product wraps and the rest of the effect plays as zeros or garbage. At its
+# highest rate, 48 kHz, the last position must stay at or below this; its effect positions other
+# than 0 are misplaced too (position x rate x timescale), so a Curve band is one effect at 0.
+# hostd's files keep every keyframe position within it (tests/test_hjif_rm.py plays them at 8 and
+# 48 kHz), or are refused in one line.
+RM_MAX_RATE_HZ = 48000
+RM_MAX_POSITION = (2**32 - 1) // RM_MAX_RATE_HZ  # 89478
+# The Synthesizer never plays a Curve effect's last keyframe (cubicInterpolation2 stops one short)
+# and writes whatever lies past its buffer at that keyframe's sample. hostd's effects therefore end
+# with a keyframe of 0 one step after the signal and a last one, also 0, at the end of the WAV:
+# a common position that is a whole number of samples at each of these rates (the usual ones), so
+# that its sample is the first one past the WAV's end
+RM_RATES_HZ = (8000, 16000, 22050, 24000, 32000, 44100, 48000)
+
+
+def rm_end_position(last: int, timescale: int) -> int:
+    """The first position after `last` that is a whole number of samples at every RM_RATES_HZ."""
+    m = math.lcm(*(timescale // math.gcd(timescale, f) for f in RM_RATES_HZ))
+    return (last // m + 1) * m
 MAX_DESCRIPTION_BYTES = 255  # .hmpg stores a description's length in 8 bits
 VERSION = "2023"
 TEXTURE = "Vibrotactile Texture"
@@ -97,6 +118,8 @@ RM_OPT_IN_ENV = "HOSTD_RUN_MPEG_RM"
 MAX_ERROR_CHARS = 300  # a quoted part of a one-line error (a tool's last line, a JSON error)
 _FULL_SCALE = re.compile(r"full_scale_um=([0-9.eE+-]+)")
 _SPEED = re.compile(r"speed_mm_s=([0-9.eE+-]+)")
+_SPACING = re.compile(r"spacing_um=([0-9.eE+-]+)")
+_SAMPLES = re.compile(r"samples=([0-9]+)")
 
 
 # ============================================================================ the reference software
@@ -233,29 +256,42 @@ class Export:
     perceptions: str = "both"
 
 
-def spatial_unit(spacing_um: float, count: int) -> tuple[int, int, float]:
-    """(unit_exponent, step in units, rounding error in µm): the coarsest power of ten 10^e m
-    (e in -12..-3) that states the spacing as a whole number of units (to 1e-9 relative); when
-    none does, the coarsest with >= 1000 units per sample (positions then round to the unit,
-    an error of at most 0.05 % of the spacing). Positions must fit a 32-bit keyframe position."""
+def spatial_positions(spacing_um: float, count: int,
+                      limit: int = RM_MAX_POSITION) -> tuple[int, np.ndarray, float]:
+    """(unit_exponent e, the keyframe positions of samples 0..count-1 in units of 10^e m, the
+    largest position error in µm), within what the reference player plays (RM_MAX_POSITION).
+
+    The coarsest power of ten (e in -3..-12) that states the spacing as a whole number of units
+    (to 1e-9 relative), when its last position fits; else the finest unit in which the positions
+    fit with at least one unit per sample, each position rounded to the unit (error <= half a
+    unit: hostd's reader takes the spacing from the description, a foreign reader is off by at
+    most that); else a one-line refusal."""
     if not (SPACING_UM_RANGE[0] <= spacing_um <= SPACING_UM_RANGE[1]):
         raise ProfileError(f"spacing {spacing_um:g} µm is outside {SPACING_UM_RANGE[0]:g}.."
                            f"{SPACING_UM_RANGE[1]:g} µm")
-    best = None
+    i = np.arange(count, dtype=np.float64)
     for e in range(-3, -13, -1):
         units = spacing_um * 10.0 ** (-6 - e)
         r = round(units)
         if r >= 1 and abs(units - r) <= 1e-9 * units:
-            best = (e, int(r), 0.0)
+            if r * count <= limit:
+                return e, np.arange(count, dtype=np.int64) * r, 0.0
             break
-        if best is None and units >= 1000:
-            best = (e, int(r), abs(units - r) * 10.0 ** (e + 6))
-    if best is None:
-        raise ProfileError(f"spacing {spacing_um:g} µm cannot be stated in 1 pm units")
-    if best[1] * (count - 1) >= 2**31:
-        raise ProfileError(f"{count} samples at {spacing_um:g} µm do not fit 32-bit keyframe positions "
-                           "in any unit: export a shorter patch (--length-mm)")
-    return best
+    for e in range(-12, -2):
+        units = spacing_um * 10.0 ** (-6 - e)
+        if units >= 1 and round(units * count) <= limit:
+            pos = np.round(i * units).astype(np.int64)
+            err_um = float(np.max(np.abs(pos * 10.0 ** (e + 6) - i * spacing_um)))
+            return e, pos, err_um
+    exact = [round(spacing_um * 10.0 ** (-6 - e)) for e in range(-3, -13, -1)
+             if abs(spacing_um * 10.0 ** (-6 - e) - round(spacing_um * 10.0 ** (-6 - e)))
+             <= 1e-9 * spacing_um * 10.0 ** (-6 - e) and round(spacing_um * 10.0 ** (-6 - e)) >= 1]
+    most_mm = (limit // (exact[0] if exact else 1)) * spacing_um / 1000.0
+    raise ProfileError(f"{count} samples over space are more keyframe positions than the reference "
+                       f"player plays ({limit}: it computes position x rate in 32 bits, up to "
+                       "48 kHz): "
+                       f"export at most {most_mm:.3g} mm (--length-mm) or only the texture as played "
+                       "(--perceptions time)")
 
 
 def _curve_channel(desc: str, positions: np.ndarray, amps: np.ndarray, upper_hz: int,
@@ -283,8 +319,16 @@ def build(ex: Export, date: str | None = None) -> dict:
     if not (1 <= ex.rate_hz <= MAX_TIMESCALE) or int(ex.rate_hz) != ex.rate_hz:
         raise ProfileError(f"--rate-hz must be a whole number of Hz in 1..{MAX_TIMESCALE} (the Main "
                            f"profile's timescale), got {ex.rate_hz}")
-    if p.size >= 2**31:
-        raise ProfileError("the played signal is too long for 32-bit keyframe positions")
+    want_tex, want_time = ex.perceptions in ("both", "texture"), ex.perceptions in ("both", "time")
+    ts = int(ex.rate_hz)
+    m = rm_end_position(0, ts)
+    limit = (RM_MAX_POSITION // m) * m - 1  # the last 0 keyframe; the end is then <= RM_MAX_POSITION
+    if want_time and p.size > limit:
+        raise ProfileError(f"the texture as played is {p.size} samples at {ex.rate_hz} Hz "
+                           f"({p.size / ex.rate_hz:.3g} s), more keyframe positions than the reference "
+                           f"player plays ({limit}: it computes position x rate in 32 bits, up to "
+                           "48 kHz): lower --rate-hz, raise --speed-mm-s or export a shorter patch "
+                           "(--length-mm)")
     peak = max(float(np.max(np.abs(h))), float(np.max(np.abs(p))))
     fs_um = ex.full_scale_um if ex.full_scale_um is not None else (peak if peak > 0 else 1.0)
     if not (math.isfinite(fs_um) and fs_um > 0):
@@ -293,33 +337,50 @@ def build(ex: Export, date: str | None = None) -> dict:
     if clipped:
         raise ProfileError(f"{clipped} samples exceed the full scale {fs_um:g} µm (peak {peak:.4g} µm): "
                            "raise --full-scale-um")
-    e, step, _err = spatial_unit(ex.spacing_um, h.size)
-    spacing_stated_um = step * 10.0 ** (e + 6)
-    # the spatial band's "frequency" limit: samples per metre / 2 would not fit an int; the
-    # limit at the stroke speed (Nyquist of the spatial samples at v) is what a player can use
-    upper_tex = max(1, min(2**31 - 1, round(ex.speed_mm_s * 1e3 / (2 * spacing_stated_um))))
     scale = f"full_scale_um={fs_um!r}"
-    tex = {"id": 0, "avatar_id": 0,
-           "description": (f"hostd texture: height profile over space, {h.size} samples every "
-                           f"{spacing_stated_um:g} um (positions in 1e{e} m); amplitude 1.0 = "
-                           f"{fs_um:.6g} um; {scale}"),
-           "perception_modality": TEXTURE, "unit_exponent": e, "perception_unit_exponent": 0,
-           "reference_devices": [], "effect_library": [],
-           "channels": [_curve_channel("height profile (normalized to full scale)",
-                                       np.arange(h.size, dtype=np.int64) * step, h / fs_um, upper_tex)]}
-    tim = {"id": 1, "avatar_id": 0,
-           "description": (f"hostd texture as played at speed_mm_s={ex.speed_mm_s!r}: one crossing of the "
-                           f"patch, {p.size} samples at {ex.rate_hz} Hz; amplitude 1.0 = {fs_um:.6g} um; "
-                           f"{scale}"),
-           "perception_modality": TIME, "perception_unit_exponent": 0,
-           "reference_devices": [], "effect_library": [],
-           # one keyframe past the end (= the last sample, outside sample_count): the RM's
-           # cubicInterpolation2 stops one sample short and reads the last one past its buffer
-           "channels": [_curve_channel("displacement at the fingertip (normalized to full scale)",
-                                       np.arange(p.size + 1, dtype=np.int64),
-                                       np.append(p, p[-1]) / fs_um, ex.rate_hz // 2,
-                                       {"frequency_sampling": int(ex.rate_hz), "sample_count": int(p.size)})]}
-    for q in (tex, tim):
+    device = {"id": 0, "name": "hostd vibrotactile texture display", "body_part_mask": 0,
+              "maximum_displacement": fs_um * 1e-6}  # metres: the displacement of amplitude 1.0
+    tex = tim = None
+    if want_tex:
+        e, pos, err_um = spatial_positions(ex.spacing_um, h.size, limit)
+        # the spatial band's frequency limit: the samples' Nyquist over space, cycles per metre
+        upper_tex = max(1, min(2**31 - 1, round(1e6 / (2 * ex.spacing_um))))
+        # what the reference player, which takes positions for ticks, makes of it
+        rm_speed_mm_s = 10.0 ** (e + 3) * ex.rate_hz
+        tex = {"id": 0, "avatar_id": 0,
+               "description": (f"hostd texture over space: samples={h.size} spacing_um={ex.spacing_um!r} "
+                               f"(positions in 1e{e} m{f', within {err_um:.2g} um' if err_um else ''}); "
+                               f"{scale}; a player taking positions for time plays it at "
+                               f"{rm_speed_mm_s:.3g} mm/s"),
+               "perception_modality": TEXTURE, "unit_exponent": e, "perception_unit_exponent": 0,
+               "reference_devices": [device], "effect_library": [],
+               "channels": [_curve_channel("height profile (normalized to full scale)", pos, h / fs_um,
+                                           upper_tex, {"reference_device_id": 0,
+                                                       "body_part_target": ["Index"]})]}
+    if want_time:
+        tim = {"id": 1, "avatar_id": 0,
+               "description": (f"hostd texture as played at speed_mm_s={ex.speed_mm_s!r}: one crossing of "
+                               f"the patch, {p.size} samples at {ex.rate_hz} Hz; {scale}"),
+               "perception_modality": TIME, "perception_unit_exponent": 0,
+               "reference_devices": [{**device, "maximum_frequency": ex.rate_hz / 2}], "effect_library": [],
+               "channels": [_curve_channel("displacement at the fingertip (normalized to full scale)",
+                                           np.arange(p.size, dtype=np.int64), p / fs_um, ex.rate_hz // 2,
+                                           {"frequency_sampling": int(ex.rate_hz),
+                                            "sample_count": int(p.size), "reference_device_id": 0,
+                                            "body_part_target": ["Index"]})]}
+    chosen = [q for q in (tex, tim) if q is not None]
+    # each effect ends with 0 one step after its signal and 0 at a common end (RM_RATES_HZ)
+    ends = []
+    for q in chosen:
+        kfs = q["channels"][0]["bands"][0]["effects"][0]["keyframes"]
+        step = kfs[-1]["relative_position"] - kfs[-2]["relative_position"]
+        kfs.append({"relative_position": kfs[-1]["relative_position"] + step, "amplitude_modulation": 0.0})
+        ends.append(kfs[-1]["relative_position"])
+    end = rm_end_position(max(ends), ts)
+    for q in chosen:
+        q["channels"][0]["bands"][0]["effects"][0]["keyframes"].append(
+            {"relative_position": end, "amplitude_modulation": 0.0})
+    for q in chosen:
         if len(q["description"].encode()) > MAX_DESCRIPTION_BYTES:
             raise ProfileError(f"description of perception {q['id']} is longer than "
                                f"{MAX_DESCRIPTION_BYTES} bytes")
@@ -327,7 +388,7 @@ def build(ex: Export, date: str | None = None) -> dict:
             "date": date or _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d"),
             "description": provenance_text(ex.provenance),
             "timescale": int(ex.rate_hz), "avatars": [],
-            "perceptions": {"both": [tex, tim], "texture": [tex], "time": [tim]}[ex.perceptions],
+            "perceptions": chosen,
             "syncs": []}
 
 
@@ -698,7 +759,27 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
     native = [b for b in bands if is_native(b)]
     other = [b for b in bands if not is_native(b) and (spatial or b["band_type"] != "WaveletWave")]
     note = ""
-    if spatial:
+    stated_spacing = _stated(_SPACING, desc, SPACING_UM_RANGE[1])
+    stated_n = _stated(_SAMPLES, desc, MAX_SAMPLES)
+    own = None
+    if (spatial and stated_spacing is not None and stated_n is not None and len(bands) == 1
+            and is_native(bands[0])):
+        # hostd's own layout: one effect, a keyframe per sample, positions within half a unit
+        # of i x the stated spacing (spatial_positions); anything else is read as a foreign file
+        effs = _effects(d, bands[0], f"{cw}.bands[0]")
+        n_own = int(stated_n)
+        # N samples, then a 0 after them and a 0 at the file's common end (build)
+        if len(effs) == 1 and effs[0][0] == 0 and effs[0][1].size in (n_own, n_own + 2) and n_own >= 2:
+            i = np.arange(n_own, dtype=np.float64)
+            unit_um = 10.0 ** (ue + 6)
+            off = np.abs(effs[0][1][:n_own] * unit_um - i * stated_spacing)
+            tail = effs[0][2][n_own:]
+            if np.all(off <= 0.5 * unit_um + 1e-9 * stated_spacing * (i + 1)) and not np.any(tail):
+                own = effs[0][2][:n_own]
+    if own is not None:
+        y = np.clip(own, -1.0, 1.0)
+        step_m, rate = stated_spacing * 1e-6, None
+    elif spatial:
         # a grid on every keyframe position: their greatest common step
         pos_all = []
         for band in native:
@@ -770,6 +851,39 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
     return Channel(samples=y, spatial=spatial, step_m=step_m, rate_hz=None if spatial else float(rate),
                    perception=pi, channel=ci, modality=modality, full_scale_um=full_scale,
                    speed_mm_s=speed, note=note)
+
+
+def rm_playback(doc: dict, rate_hz: int) -> np.ndarray:
+    """(samples, perceptions) of what the reference Synthesizer (2de9ff1) plays of a file hostd
+    wrote (one channel of one Curve effect at 0 per perception) at `rate_hz`, full scale 1: its
+    length is the longest perception's (Helper::getTimeLength: sample_count / frequency_sampling,
+    else the last keyframe's position), each keyframe at sample position x rate // timescale
+    (exact here: hostd keeps position x rate within 32 bits), cubic between keyframes. For
+    tests and docs that compare hostd's intent with the Synthesizer's WAV."""
+    d = _Doc(Path("<doc>"))
+    ts = int(doc["timescale"])
+    lengths, curves = [], []
+    for p in doc["perceptions"]:
+        c = p["channels"][0]
+        (band,) = c["bands"]
+        (eff,) = _effects(d, band, "band")
+        pos, rel, amp = eff
+        if "sample_count" in c and "frequency_sampling" in c:
+            lengths.append(ts * c["sample_count"] / c["frequency_sampling"])
+        else:
+            lengths.append(float(pos + rel[-1]))
+        curves.append((rel * rate_hz // ts, amp, band.get("curve_type", "Cubic"), float(c["gain"])))
+    n = round(rate_hz * max(lengths) / ts)
+    out = np.zeros((n, len(curves)))
+    for j, (idx, amp, curve, gain) in enumerate(curves):
+        col = np.zeros(n)
+        # the last keyframe is not played: its sample must lie past the WAV (build makes it so)
+        assert idx[-1] >= n, (idx[-1], n)
+        _hermite(idx[:-1] - idx[0], amp[:-1], curve, col, int(idx[0]))
+        if idx.size > 2 and idx[1] == idx[0]:
+            col[idx[0]] = 0.0  # the RM's first segment of length 0: 0/0, written as 0
+        out[:, j] = np.clip(col, -1.0, 1.0) * gain
+    return out
 
 
 def read_channel(path: Path, member: str | None = None) -> Channel:

@@ -97,13 +97,10 @@ def cmd_export(args: argparse.Namespace) -> int:
     write_output(args.output, hjif.dumps(doc))
     by_id = {p["id"]: p for p in doc["perceptions"]}
 
-    def keyframes(p: dict | None) -> int | None:
-        return None if p is None else len(p["channels"][0]["bands"][0]["effects"][0]["keyframes"])
-
     tex, tim = by_id.get(0), by_id.get(1)
     m = hjif._FULL_SCALE.search(doc["perceptions"][0]["description"])
     info = {"output": args.output, "perceptions": [p["perception_modality"] for p in doc["perceptions"]],
-            "spatial_samples": keyframes(tex), "unit_exponent": tex and tex["unit_exponent"],
+            "spatial_samples": tex and int(ex.heights_um.size), "unit_exponent": tex and tex["unit_exponent"],
             "played_samples": tim and tim["channels"][0]["sample_count"], "rate_hz": ex.rate_hz,
             "speed_mm_s": ex.speed_mm_s, "full_scale_um": float(m.group(1)) if m else None,
             "spacing_um": float(ex.spacing_um)}
