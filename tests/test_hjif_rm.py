@@ -355,3 +355,54 @@ def test_a_hostile_hmpg_is_one_line_and_the_decoder_is_bounded(rm, tmp_path, cap
                  "--b0", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{bad}: the reference Decoder failed" in err and "bad_alloc" in err, err
+
+
+DEKTAK = ROOT / "config" / "profiles" / "dektak-1.csv"  # 0.156245 µm: positions rounded to 0.1 µm
+EXPORTS = {  # name: hostd export arguments
+    "wood-4mm": ["synthetic:wood:3", "--length-mm", "4"],
+    "wood-48k": ["synthetic:wood:3", "--length-mm", "4", "--rate-hz", "48000"],
+    "dektak": [str(DEKTAK)],
+    "dektak-1mm-48k": [str(DEKTAK), "--length-mm", "1", "--rate-hz", "48000"],
+    "chirp-texture-22k": ["synthetic:sandpaper:2", "--length-mm", "3", "--perceptions", "texture",
+                          "--rate-hz", "22050"],
+    # 1.8 s at 48 kHz: past the 1.86-s overflow of a timescale of 48000 without the common end
+    "time-1.8s-48k": ["synthetic:wood:3", "--length-mm", "9", "--speed-mm-s", "5", "--rate-hz", "48000",
+                      "--perceptions", "time"],
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXPORTS))
+def test_every_export_plays_completely_at_the_rms_rates(rm, tmp_path, name):
+    """Each file hostd writes, played by the Synthesizer at 8, 44.1 and 48 kHz: the whole WAV (every
+    perception, to its last sample) is what hostd.texture.hjif.rm_playback says the RM's own
+    interpolation makes of hostd's keyframes, within 0.51 LSB; at the file's own timescale the
+    keyframes' samples are hostd's samples. Before, the RM's 32-bit position x rate wrapped: 2,104
+    of 20,000 samples played at 48 kHz."""
+    out = tmp_path / f"{name}.hjif"
+    assert main(["export", *EXPORTS[name], "-o", str(out)]) == 0
+    doc = json.loads(out.read_bytes())
+    ts = doc["timescale"]
+    for rate in (8000, 44100, 48000):
+        x = _synth(rm, out, rate)
+        want = _wav_range(hjif.rm_playback(doc, rate))
+        assert x.shape == want.shape, (rate, x.shape, want.shape)
+        err = np.max(np.abs(x - want))
+        print(f"{name} at {rate} Hz: {x.shape[0]} samples x {x.shape[1]}, max error {err / LSB:.3f} LSB")
+        assert err <= (0.5 + FLOAT32_LSB) * LSB
+        if rate == ts or (rate == 48000 and ts == 48000):
+            for j, p in enumerate(doc["perceptions"]):
+                ch = hjif.read_channel(out, str(j))
+                kfs = p["channels"][0]["bands"][0]["effects"][0]["keyframes"][: ch.samples.size]
+                at = np.array([k["relative_position"] for k in kfs]) * rate // ts
+                np.testing.assert_allclose(want[at, j], _wav_range(ch.samples), rtol=0, atol=1e-6)
+
+
+def test_an_export_past_the_rms_arithmetic_is_refused_in_one_line(tmp_path, capsys):
+    """10 mm of wood at 0.5 µm needs 100,000 positions of 0.1 µm: more than the RM plays at 48 kHz."""
+    assert main(["export", "synthetic:wood:3", "-o", str(tmp_path / "w.hjif")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "reference player plays" in err and "--length-mm" in err
+    assert "--perceptions time" in err and not (tmp_path / "w.hjif").exists()
+    assert main(["export", "synthetic:wood:3", "--perceptions", "time", "--speed-mm-s", "1", "--rate-hz",
+                 "48000", "-o", str(tmp_path / "t.hjif")]) == 2
+    assert "lower --rate-hz" in capsys.readouterr().err
