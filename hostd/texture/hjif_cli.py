@@ -66,6 +66,13 @@ def texture_export(spec: str, args: argparse.Namespace):
         prof = read_profile(spec, args)
         heights, spacing, n, length = prof.heights_um, prof.spacing_um, prof.n, prof.length_mm
         n_keep = min(n - 1, transform.n_keep_for(length, args.speed, args.fmax))
+        if n_keep < 1:
+            from hostd.errors import ProfileError
+
+            raise ProfileError(f"{spec}: the patch is {length:.3g} mm long ({n} samples every {spacing:.3g} "
+                               f"µm): no component of it lies at or below --fmax {args.fmax:g} Hz at --speed "
+                               f"{args.speed:g} mm/s, so there is nothing to play; check the profile's x "
+                               "unit (--x-unit, --spacing) or the patch length (--length-mm)")
         coeffs = transform.analyze(heights, n_keep)
         prov.update(codec="none", setting="", Iobj=0.0, v_ref_mm_s=args.speed, fmax_hz=args.fmax,
                     n_keep=n_keep)
