@@ -522,3 +522,47 @@ def test_the_reference_tools_run_only_when_asked_and_sandboxed(tmp_path, monkeyp
         copy = hjif._private_copy(user, Path(t), "input.hmpg", 1 << 20)
         with pytest.raises(ProfileError, match=r"clip.hmpg: the reference Decoder failed .killed by SIGSEGV"):
             hjif.run_rm("Decoder", "-f", copy.name, "crash", cwd=Path(t), source=user, read_only=copy)
+
+
+def test_errors_stay_short_on_a_file_of_50000_perceptions(tmp_path, capsys):
+    """A message lists at most a few choices: 50,000 perceptions made a 2.2-MB 'one line'."""
+    p = {"id": 0, "avatar_id": 0, "description": "x" * 200, "perception_modality": "Vibrotactile",
+         "reference_devices": [], "effect_library": [], "channels": [{"id": 0}, {"id": 1}]}
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 1000, "avatars": [], "perceptions": [p] * 50_000, "syncs": []}
+    f = tmp_path / "many.hjif"
+    f.write_text(json.dumps(doc))
+    assert main(["encode", str(f), "-o", str(tmp_path / "x.vtx"), "--method", "cut", "--b0", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "50000 perceptions" in err and "and 49992 more" in err
+    assert len(err) < 1000
+    with pytest.raises(ProfileError, match=r"perception 7 has 2 channels") as e:
+        hjif.read_channel(f, "7")
+    assert len(str(e.value)) < 1000
+
+
+def test_an_instrument_profile_round_trip_can_be_scored(tmp_path, capsys):
+    """`hostd export dektak-1.csv -o d.hjif; hostd iobj dektak-1.csv d.hjif`: the spacing
+    (0.156245 µm, positions rounded to 0.1 µm) is stated exactly, so the round trip is scored: 0."""
+    dektak = Path(__file__).resolve().parent.parent / "config" / "profiles" / "dektak-1.csv"
+    out = tmp_path / "d.hjif"
+    assert main(["export", str(dektak), "-o", str(out)]) == 0
+    doc = json.loads(out.read_bytes())
+    assert doc["perceptions"][0]["unit_exponent"] == -7  # 0.1 µm: 1.56 units a sample, rounded
+    capsys.readouterr()
+    assert main(["iobj", str(dektak), str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["Iobj"] == pytest.approx(0.0, abs=1e-12)
+    ref = load_profile(dektak, LoadOptions())
+    back = load_profile(out, LoadOptions())
+    assert back.spacing_um == pytest.approx(ref.spacing_um, rel=1e-12) and back.n == ref.n
+    np.testing.assert_allclose(back.heights_um, ref.heights_um, rtol=0, atol=1e-12)
+
+
+def test_an_opdx_in_the_wrong_unit_is_refused_in_one_line(tmp_path, capsys):
+    """A profile whose patch holds no component below fmax (read in metres as µm) says what to
+    check, not "N' must be in 1..N-1, got 0"."""
+    f = tmp_path / "tiny.txt"
+    np.savetxt(f, np.column_stack([np.arange(3001) * 1.6655563e-08, np.sin(np.arange(3001) / 50.0)]))
+    assert main(["export", str(f), "-o", str(tmp_path / "t.hjif"), "--length-mm", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "nothing to play" in err and "--x-unit" in err and "N'" not in err

@@ -103,7 +103,7 @@ SPACING_UM_RANGE = (1e-4, 1e4)  # 0.1 nm .. 1 cm between samples: outside, the u
 NATIVE_CURVES = {"Linear", "Cubic", "Unknown"}  # "Unknown": the RM's default case, cubic
 RM_ENV = "HOSTD_MPEG_RM"  # a directory with the reference software's Encoder, Decoder, Synthesizer
 RM_TOOLS = ("Encoder", "Decoder", "Synthesizer")
-RM_TIMEOUT_S = 120.0
+RM_TIMEOUT_S = 30.0  # a valid 4-MiB .hmpg decodes in a few seconds
 # What a reference tool may use: a legitimate .hmpg of 10 s of noise at 64 kb/s decodes in 6 MB,
 # but 2 kB of random bytes made the Decoder at 2de9ff1 take 1 GB and 22 s. A tool past these
 # fails (std::bad_alloc, SIGXCPU) and hostd says so in one line.
@@ -514,8 +514,17 @@ def _stated(pattern: re.Pattern, text: str, upper: float) -> float | None:
     return v if 0 < v <= upper else None
 
 
+MAX_CHOICES = 8  # choices listed in a message (a file may hold 50,000 perceptions)
+
+
+def _choices(labels: list[str]) -> str:
+    """The first MAX_CHOICES labels, and how many more: a one-line message stays short."""
+    more = len(labels) - MAX_CHOICES
+    return "; ".join(labels[:MAX_CHOICES]) + (f"; ... and {more} more" if more > 0 else "")
+
+
 def _pick(items: list, spec: str | None, what: str, d: _Doc, labels: list[str]) -> int:
-    choices = "; ".join(labels)
+    choices = _choices(labels)
     m = re.fullmatch(r"\s*(?:(id)\s*=\s*)?(-?\d+)\s*", spec or "")
     if not m:
         raise d.err("member", f"{what} {spec!r}: give an index or id=N (choices: {choices})")
@@ -539,7 +548,8 @@ def select(doc: dict, path: Path, member: str | None) -> tuple[int, int, str]:
     for i, p in enumerate(perceptions):
         if not isinstance(p, dict):
             raise d.err(f"perceptions[{i}]", "must be an object")
-    labels = [_label(d, p, i) for i, p in enumerate(perceptions)]
+    labels = [_label(d, p, i) for i, p in enumerate(perceptions[: MAX_CHOICES + 1])]
+    labels += [""] * (len(perceptions) - len(labels))  # counted, not listed
     note = ""
     pspec, _, cspec = (member or "").partition("/")
     if member:
@@ -552,22 +562,24 @@ def select(doc: dict, path: Path, member: str | None) -> tuple[int, int, str]:
                    and p["perception_modality"] in SPATIAL_MODALITIES]
         if len(spatial) != 1:
             raise ProfileError(f"{path}: {len(perceptions)} perceptions, choose one with --member "
-                               f"PERCEPTION[/CHANNEL] (index or id=N): {'; '.join(labels)}")
+                               f"PERCEPTION[/CHANNEL] (index or id=N): {_choices(labels)}")
         pi = spatial[0]
-        note = (f"took perception {labels[pi]}, the texture over space; --member chooses another of: "
-                f"{'; '.join(labels)}")
+        note = (f"took perception {labels[pi] or _label(d, perceptions[pi], pi)}, the texture over space; "
+                f"--member chooses another of: {_choices(labels)}")
     where = f"perceptions[{pi}]"
     chans = d.get(perceptions[pi], "channels", where, "list")
     if not chans:
         raise d.err(f"{where}.channels", "empty: the perception has no channel")
-    clabels = [f"{j} (id={c.get('id') if isinstance(c, dict) else '?'})" for j, c in enumerate(chans)]
+    clabels = [f"{j} (id={str(c.get('id'))[:20] if isinstance(c, dict) else '?'})"
+               for j, c in enumerate(chans[: MAX_CHOICES + 1])]
+    clabels += [""] * (len(chans) - len(clabels))
     if cspec:
         ci = _pick(chans, cspec, "channel", d, clabels)
     elif len(chans) == 1:
         ci = 0
     else:
         raise ProfileError(f"{path}: perception {pi} has {len(chans)} channels, choose one with --member "
-                           f"{pi}/CHANNEL: {'; '.join(clabels)}")
+                           f"{pi}/CHANNEL: {_choices(clabels)}")
     return pi, ci, note
 
 
@@ -935,9 +947,12 @@ def read(path: Path, opts: LoadOptions) -> Columns:
     notes = [ch.note] if ch.note else []
     if ch.full_scale_um is not None:
         y, y_unit = y * ch.full_scale_um, "um"
+    elif opts.full_scale_um is not None:
+        y, y_unit = y * opts.full_scale_um, "um"
+        notes.append(f"amplitude 1.0 read as {opts.full_scale_um:g} µm (--full-scale-um)")
     else:
         notes.append("amplitude 1.0 read as 1 " + (opts.y_unit or "um") + " (the file states no scale; "
-                     "--y-unit sets it)")
+                     "--full-scale-um sets it)")
     if ch.spatial:
         return Columns(y.reshape(-1, 1), x_unit="um", y_unit=y_unit, spacing=ch.step_m * 1e6,
                        note="; ".join(notes))

@@ -84,8 +84,19 @@ def texture_export(spec: str, args: argparse.Namespace):
     # dropped should the description run past 255 bytes
     prov["calibration"] = cal
     played = played_um(coeffs, n, length, speed, args.rate_hz)
+    full_scale = args.full_scale_um
+    if full_scale is None and Path(spec).suffix.lower() in (".hjif", ".hmpg"):
+        # an MPEG file in, an MPEG file out: amplitude 1.0 keeps its meaning (the scale the source
+        # states, else 1 --y-unit), unless the texture as played would exceed it
+        from hostd.texture.load import UNITS_TO_UM
+
+        stated = hjif.read_channel(Path(spec), getattr(args, "member", None)).full_scale_um
+        full_scale = stated if stated is not None else UNITS_TO_UM[args.y_unit]
+        import numpy as np
+
+        full_scale = max(full_scale, float(np.max(np.abs(heights))), float(np.max(np.abs(played))))
     return hjif.Export(heights_um=heights, spacing_um=spacing, played_um=played, speed_mm_s=float(speed),
-                       rate_hz=int(args.rate_hz), provenance=prov, full_scale_um=args.full_scale_um,
+                       rate_hz=int(args.rate_hz), provenance=prov, full_scale_um=full_scale,
                        perceptions=args.perceptions)
 
 
@@ -139,8 +150,6 @@ def add_parser(sub) -> None:
     p.add_argument("--rate-hz", type=_positive, default=8000.0,
                    help="sample rate of the time-domain perception, Hz (default 8000, the reference "
                    "Synthesizer's; at most 48000)")
-    p.add_argument("--full-scale-um", type=_positive, default=None,
-                   help="displacement of amplitude 1.0, µm (default: the peak of the texture)")
     p.add_argument("--perceptions", choices=["both", "texture", "time"], default="both",
                    help="both (default), the texture over space only, or the texture as played only "
                    "(the reference Encoder/Decoder at 2de9ff1 carry only this one through .hmpg)")
