@@ -500,7 +500,7 @@ def test_the_reference_tools_run_only_when_asked_and_sandboxed(tmp_path, monkeyp
                                     {"effect_type": "Basis", "position": 0, "keyframes": [
                                         {"relative_position": 10, "amplitude_modulation": 0.5}]}]}]}]}]}
     (tmp_path / "t.hjif").write_text(json.dumps(doc))
-    with pytest.raises(ProfileError, match=r"t.hjif: its Transient/- band\(s\) are what only the reference "
+    with pytest.raises(ProfileError, match=r"t.hjif: its Transient band\(s\) are what only the reference "
                        r"software evaluates.*HOSTD_RUN_MPEG_RM=1"):
         hjif.read_channel(tmp_path / "t.hjif")
 

@@ -28,6 +28,7 @@ import pytest
 import scipy.io.wavfile
 
 from hostd import api
+from hostd import errors as hostd_errors
 from hostd.cli import main
 from hostd.codec import transform
 from hostd.perception import indices, thresholds
@@ -407,3 +408,75 @@ def test_an_export_past_the_rms_arithmetic_is_refused_in_one_line(tmp_path, caps
     assert main(["export", "synthetic:wood:3", "--perceptions", "time", "--speed-mm-s", "1", "--rate-hz",
                  "48000", "-o", str(tmp_path / "t.hjif")]) == 2
     assert "lower --rate-hz" in capsys.readouterr().err
+
+
+AHAP = {"Version": 1.0, "Pattern": [
+    {"Event": {"Time": 0.0, "EventType": "HapticTransient", "EventParameters": [
+        {"ParameterID": "HapticIntensity", "ParameterValue": 0.8},
+        {"ParameterID": "HapticSharpness", "ParameterValue": 0.4}]}},
+    {"Event": {"Time": 0.1, "EventType": "HapticContinuous", "EventDuration": 0.3, "EventParameters": [
+        {"ParameterID": "HapticIntensity", "ParameterValue": 0.6},
+        {"ParameterID": "HapticSharpness", "ParameterValue": 0.5}]}},
+    {"ParameterCurve": {"ParameterID": "HapticIntensityControl", "Time": 0.1, "ParameterCurveControlPoints": [
+        {"Time": 0.0, "ParameterValue": 0.2}, {"Time": 0.15, "ParameterValue": 1.0},
+        {"Time": 0.3, "ParameterValue": 0.4}]}}]}
+IVS = """<?xml version="1.0" encoding="UTF-8"?>
+<ivs-file xmlns="http://www.immersion.com" last-modified="2026-11-26">
+ <effects>
+  <basis-effect name="buzz" type="periodic" duration="200" magnitude="8000" period="8" waveform="sine"
+   attack-time="20" attack-level="0" fade-time="50" fade-level="0"/>
+  <timeline-effect name="main">
+   <launch-event effect="buzz" time="0"/>
+   <launch-event effect="buzz" time="300"/>
+  </timeline-effect>
+ </effects>
+</ivs-file>
+"""
+
+
+def _ohm(elements: list[str]) -> bytes:
+    """An OHM file (the RM's Tools/src/OHMData.cpp layout): one single-channel element per file."""
+    import struct
+
+    def pad(s: str, n: int) -> bytes:
+        return s.encode().ljust(n, b"\0")
+
+    out = b"OHM " + struct.pack(">hh", 1, len(elements)) + pad("hostd test", 32)
+    for name in elements:
+        out += (pad(name, 64) + pad(name, 32) + struct.pack(">h", 1) + pad("channel", 32)
+                + struct.pack("<f", 1.0) + struct.pack(">I", 0))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["ahap", "ivs", "ohm"])
+def test_what_the_encoder_writes_from_ahap_ivs_and_ohm_imports(rm, wood, tmp_path, monkeypatch, capsys, kind):
+    """The Encoder's .hjif of an AHAP, an IVS and an OHM (a WAV and an AHAP) input: no sample_count,
+    Transient and VectorialWave bands, timescale 1000. Without the opt-in, hostd refuses to run the
+    Synthesizer on them in one line; with it, every perception reads as the Synthesizer plays it
+    (within 0.51 LSB, at its default 8 kHz) and `hostd encode X.hjif --spacing 6.25` codes it."""
+    d, s = wood
+    (tmp_path / "x.ahap").write_text(json.dumps(AHAP))
+    (tmp_path / "x.ivs").write_text(IVS)
+    (tmp_path / "in.wav").write_bytes(_played_wav(d, s).read_bytes())
+    (tmp_path / "x.ohm").write_bytes(_ohm(["in.wav", "x.ahap"]))
+    _run(rm, "Encoder", "-f", f"x.{kind}", "-o", "enc.hjif", cwd=tmp_path)
+    enc = tmp_path / "enc.hjif"
+    doc = json.loads(enc.read_bytes())
+    assert all("sample_count" not in c for p in doc["perceptions"] for c in p["channels"]
+               if not any(b["band_type"] == "WaveletWave" for b in c["bands"]))
+    x = _synth(rm, enc)
+    monkeypatch.delenv(hjif.RM_OPT_IN_ENV, raising=False)
+    last = str(len(doc["perceptions"]) - 1)  # the AHAP's perception of the OHM
+    with pytest.raises(hostd_errors.ProfileError, match=r"enc.hjif: its .*VectorialWave.* band\(s\) are what "
+                       r"only the reference software evaluates.*HOSTD_RUN_MPEG_RM=1"):
+        hjif.read_channel(enc, last)
+    monkeypatch.setenv(hjif.RM_OPT_IN_ENV, "1")
+    for j in range(len(doc["perceptions"])):
+        ch = hjif.read_channel(enc, str(j))
+        k = ch.samples.size
+        assert k > 100 and np.any(ch.samples)
+        err = np.max(np.abs(x[:k, j] - ch.samples))
+        print(f"{kind} perception {j}: {k} samples, hostd vs Synthesizer {err / LSB:.3f} LSB ({ch.note})")
+        assert err <= (0.5 + FLOAT32_LSB) * LSB
+    assert main(["encode", str(enc), "--member", last, "--spacing", "6.25", "--method", "shaped", "--g", "0",
+                 "--length-mm", "1", "-o", str(tmp_path / "a.vtx")]) == 0

@@ -670,13 +670,18 @@ def _render_curve(d: _Doc, band: dict, where: str, to_idx, out: np.ndarray) -> N
         _hermite(idx, amp, curve, out, start)
 
 
+def _kinds(bands: list[dict]) -> str:
+    return ", ".join(sorted({str(b.get("band_type"))[:20] + (f" ({str(b.get('curve_type'))[:20]})"
+                                                          if b.get("band_type") == "Curve" else "")
+                             for b in bands}))
+
+
 def _render_by_rm(doc: dict, perception: dict, channel: dict, bands: list[dict], rate: int,
                   count: int, path: Path) -> np.ndarray:
     """Bands hostd does not evaluate itself, played by the reference Synthesizer (int16 WAV), when
     the user opted in (rm_opted_in), sandboxed."""
-    kinds = sorted({f"{b.get('band_type')}/{b.get('curve_type', '-')}" for b in bands})
     if not rm_opted_in():
-        raise rm_refusal(path, f"its {', '.join(kinds)} band(s) are what")
+        raise rm_refusal(path, f"its {_kinds(bands)} band(s) are what")
     ch = {**channel, "gain": 1.0, "bands": bands, "sample_count": int(count), "frequency_sampling": int(rate)}
     p = {**perception, "perception_unit_exponent": 0, "channels": [ch], "effect_library": []}
     one = {**doc, "perceptions": [p], "avatars": [], "syncs": []}
@@ -842,6 +847,9 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
             if count > MAX_SAMPLES:
                 raise d.err(f"{cw}.bands", f"last {count} samples at {rate} Hz, more than {MAX_SAMPLES} "
                             "(hostd.texture.hjif.MAX_SAMPLES)")
+        by_rm = [b for b in bands if not is_native(b) and b["band_type"] != "WaveletWave"]
+        if by_rm and not rm_opted_in():
+            raise rm_refusal(path, f"its {_kinds(by_rm)} band(s) are what")
         y = np.zeros(count)
         for b, band in enumerate(bands):
             if is_native(band):
