@@ -480,3 +480,37 @@ def test_what_the_encoder_writes_from_ahap_ivs_and_ohm_imports(rm, wood, tmp_pat
         assert err <= (0.5 + FLOAT32_LSB) * LSB
     assert main(["encode", str(enc), "--member", last, "--spacing", "6.25", "--method", "shaped", "--g", "0",
                  "--length-mm", "1", "-o", str(tmp_path / "a.vtx")]) == 0
+
+
+def test_a_round_trip_through_the_rm_keeps_the_amplitude(rm, wood, tmp_path, capsys):
+    """--full-scale-um is the one option for the scale: RM -> hostd -> RM gives the RM's samples
+    back at their amplitude (before: renormalized to the peak, 1.1-3x louder), and hostd's own
+    40-µm-scale rendering, coded by the Encoder from a WAV, imports at its size when the scale is
+    stated (before: 1.0 read as 1 µm, Iobj 2.09)."""
+    d, s = wood
+    wav = _played_wav(d, s)  # 0.9 of full scale
+    (tmp_path / "in.wav").write_bytes(wav.read_bytes())
+    _run(rm, "Encoder", "-f", "in.wav", "-o", "enc.hjif", "--disable-wavelet", cwd=tmp_path)
+    enc = tmp_path / "enc.hjif"
+    before = _synth(rm, enc)[:, 0]
+    out = tmp_path / "back.hjif"
+    assert main(["export", str(enc), "--spacing", "6.25", "--length-mm", "50", "--perceptions", "texture",
+                 "-o", str(out)]) == 0
+    after = _synth(rm, out)[:, 0]
+    print(f"peak through the RM: {np.max(np.abs(before)):.5f}, after hostd: {np.max(np.abs(after)):.5f}")
+    assert np.max(np.abs(after)) == pytest.approx(np.max(np.abs(before)), abs=1.01 * LSB)
+    dev = json.loads(out.read_bytes())["perceptions"][0]["reference_devices"][0]
+    assert dev["maximum_displacement"] == 1e-6
+    # hostd's rendering at a 40-µm full scale, as a 16-bit WAV, coded by the RM, read back with the scale
+    assert main(["export", str(d / "wood.vtx"), "-o", str(tmp_path / "t.hjif"), "--perceptions", "time",
+                 "--full-scale-um", "40"]) == 0
+    played = _synth(rm, tmp_path / "t.hjif")[:, 0]
+    scipy.io.wavfile.write(tmp_path / "t.wav", 8000, np.round(played * 32768).astype(np.int16))
+    _run(rm, "Encoder", "-f", "t.wav", "-o", "t_enc.hjif", "-kb", "64", cwd=tmp_path)
+    orig = load_profile(tmp_path / "t.hjif", LoadOptions(length_mm=None))
+    back = load_profile(tmp_path / "t_enc.hjif", LoadOptions(length_mm=None, spacing=orig.spacing_um,
+                                                             full_scale_um=40.0))
+    n = orig.n
+    rms = float(np.sqrt(np.mean(back.heights_um[:n] ** 2)) / np.sqrt(np.mean(orig.heights_um ** 2)))
+    print(f"hostd's 40-µm rendering through the RM's WAV codec: RMS ratio {rms:.4f}")
+    assert rms == pytest.approx(1.0, abs=0.05)
