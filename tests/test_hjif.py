@@ -466,6 +466,11 @@ except OSError as e:
 print(json.dumps(out))
 if "crash" in sys.argv:
     os.kill(os.getpid(), 11)
+if "sleep" in sys.argv:
+    import time
+    time.sleep(30)
+if "-o" in sys.argv:
+    open(sys.argv[sys.argv.index("-o") + 1], "w").write("{{not json")
 """
     d.mkdir()
     for t in hjif.RM_TOOLS:
@@ -522,6 +527,14 @@ def test_the_reference_tools_run_only_when_asked_and_sandboxed(tmp_path, monkeyp
         copy = hjif._private_copy(user, Path(t), "input.hmpg", 1 << 20)
         with pytest.raises(ProfileError, match=r"clip.hmpg: the reference Decoder failed .killed by SIGSEGV"):
             hjif.run_rm("Decoder", "-f", copy.name, "crash", cwd=Path(t), source=user, read_only=copy)
+        # a tool past its time is stopped; the message names the user's file
+        monkeypatch.setattr(hjif, "RM_TIMEOUT_S", 1.0)
+        with pytest.raises(ProfileError, match=r"clip.hmpg: the reference Decoder did not finish within 1 s"):
+            hjif.run_rm("Decoder", "-f", copy.name, "sleep", cwd=Path(t), source=user, read_only=copy)
+    # what the Decoder wrote is judged under the user's file's name, not the temporary one's
+    with pytest.raises(ProfileError, match=r"clip.hmpg: not valid JSON") as e:
+        hjif.read_channel(user)
+    assert "decoded" not in str(e.value) and "hostd-rm-" not in str(e.value)
 
 
 def test_errors_stay_short_on_a_file_of_50000_perceptions(tmp_path, capsys):
