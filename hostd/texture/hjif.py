@@ -9,12 +9,15 @@ files with it (docs/interchange.md).
 What hostd writes (`export`, `hostd export X -o Y.hjif`): one experience (version 2023, profile
 Main, level 1, no avatars) with two perceptions, each of one channel holding one cubic Curve band
 of one effect whose keyframes are the samples (a keyframe per sample, so the reference
-Synthesizer's cubic interpolation passes through every sample and plays them exactly; the RM
-never plays an effect's last keyframe, so the time-domain effect has one past its sample_count):
+Synthesizer's cubic interpolation passes through every sample and plays them exactly), then a 0
+one step later and a last 0 at a common end (the RM never plays an effect's last keyframe: its
+sample must lie past the WAV; RM_RATES_HZ). Every position stays within RM_MAX_POSITION (the
+RM's 32-bit position x rate at 48 kHz), or the export is refused in one line:
 - perception 0, "Vibrotactile Texture": the height profile over space. Keyframe positions are
   spatial, in units of 10^unit_exponent metres (the perception's `unit_exponent`; hostd picks the
   coarsest power of ten that states the sample spacing as a whole number, e.g. -7 = 0.1 µm for a
-  0.5 µm spacing).
+  0.5 µm spacing, else rounds positions to the finest unit that fits: spatial_positions; the
+  exact spacing is in the description, `spacing_um=`).
 - perception 1, "Vibrotactile": the texture as a hand at one stroke speed feels it (one crossing
   of the patch, hostd's own rendering `hostd render` at that speed), in time: one keyframe per
   sample at `rate_hz`, the experience's timescale being rate_hz ticks per second.
@@ -30,8 +33,9 @@ Decoder): one channel of one perception, chosen with LoadOptions.member "PERCEPT
 (an index, or id=N). Its bands are evaluated as the reference Synthesizer evaluates them:
 Curve bands (linear, cubic) and WaveletWave bands (hostd.texture.hjif_wavelet, a port of the RM's
 decoder) by hostd; in time-domain perceptions, Vectorial and Transient bands (and Akima, Bezier,
-B-spline curves) through the reference Synthesizer when it is installed (a one-line error saying
-how when not); the channel
+B-spline curves) through the reference Synthesizer, only when the user opts in (rm_opted_in:
+$HOSTD_RUN_MPEG_RM=1) and then sandboxed (hjif_sandbox; an .hmpg likewise through the Decoder);
+a one-line error saying how otherwise; the channel
 is clipped to -1..1 and scaled by gain x 10^perception_unit_exponent. Spatial perceptions keep
 their spacing (unit_exponent); a time-domain one needs a spacing (v / fs): the file's own when
 hostd wrote it, else --spacing.
