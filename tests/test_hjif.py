@@ -202,7 +202,8 @@ def test_mutated_files_give_one_line_errors_or_samples(files, tmp_path):
 
     walk(doc, [])
     values = [None, True, -1, 0, 2**40, 1e308, -1e-300, "x", [], {}, [1], {"a": 1}, 3.5, "Vibrotactile",
-              "WaveletWave", 2**31 - 1, "full_scale_um=1-2", "full_scale_um=1e308 speed_mm_s=1e-300"]
+              "WaveletWave", "VectorialWave", "Transient", "Sine", "Square", 2**31 - 1, "full_scale_um=1-2",
+              "full_scale_um=1e308 speed_mm_s=1e-300"]
     rng = random.Random(33)
     p = tmp_path / "m.hjif"
     with warnings.catch_warnings():
@@ -500,13 +501,15 @@ def test_the_reference_tools_run_only_when_asked_and_sandboxed(tmp_path, monkeyp
                {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Vibrotactile",
                 "reference_devices": [], "effect_library": [], "channels": [
                     {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
-                     "bands": [{"band_type": "Transient", "lower_frequency_limit": 0,
+                     "bands": [{"band_type": "Curve", "curve_type": "Akima", "lower_frequency_limit": 0,
                                 "upper_frequency_limit": 1000, "effects": [
                                     {"effect_type": "Basis", "position": 0, "keyframes": [
+                                        {"relative_position": 0, "amplitude_modulation": 0.1},
+                                        {"relative_position": 5, "amplitude_modulation": 0.3},
                                         {"relative_position": 10, "amplitude_modulation": 0.5}]}]}]}]}]}
     (tmp_path / "t.hjif").write_text(json.dumps(doc))
-    with pytest.raises(ProfileError, match=r"t.hjif: its Transient band\(s\) are what only the reference "
-                       r"software evaluates.*HOSTD_RUN_MPEG_RM=1"):
+    with pytest.raises(ProfileError, match=r"t.hjif: its Curve \(Akima\) band\(s\) are what only the "
+                       r"reference software evaluates.*HOSTD_RUN_MPEG_RM=1"):
         hjif.read_channel(tmp_path / "t.hjif")
 
     monkeypatch.setenv(hjif.RM_OPT_IN_ENV, "1")
@@ -579,3 +582,35 @@ def test_an_opdx_in_the_wrong_unit_is_refused_in_one_line(tmp_path, capsys):
     assert main(["export", str(f), "-o", str(tmp_path / "t.hjif"), "--length-mm", "1"]) == 2
     err = capsys.readouterr().err
     assert "nothing to play" in err and "--x-unit" in err and "N'" not in err
+
+
+def test_vectorial_bands_bound_their_work(tmp_path):
+    """Effects that all span the whole signal would cost effects x samples: past
+    hjif_vectorial.MAX_WORK samples, one line, before evaluating."""
+    import time
+
+    from hostd.texture import hjif_vectorial
+
+    eff = {"effect_type": "Basis", "position": 0, "base_signal": "Sine", "keyframes": [
+        {"relative_position": 0, "amplitude_modulation": 0.5, "frequency_modulation": 90},
+        {"relative_position": 50_000, "amplitude_modulation": 0.5, "frequency_modulation": 250}]}
+    band = {"band_type": "VectorialWave", "lower_frequency_limit": 0, "upper_frequency_limit": 1000,
+            "effects": [eff] * 400}
+    ch = {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+          "bands": [band]}
+    p = {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Vibrotactile",
+         "reference_devices": [], "effect_library": [], "channels": [ch]}
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 1000, "avatars": [], "perceptions": [p], "syncs": []}
+    f = tmp_path / "v.hjif"
+    f.write_text(json.dumps(doc))
+    t0 = time.process_time()
+    with pytest.raises(ProfileError, match=r"v.hjif: .*bands\[0\]: its effects span \d+ samples in all, more "
+                       r"than the \d+ hostd evaluates"):
+        hjif.read_channel(f)
+    assert time.process_time() - t0 < 5
+    band["effects"] = [eff]  # one: 50 s at 8 kHz, evaluated
+    f.write_text(json.dumps(doc))
+    y = hjif.read_channel(f).samples
+    assert y.size == 400_000 and np.max(np.abs(y)) == pytest.approx(0.5, abs=1e-3)
+    assert hjif_vectorial.covers(band)

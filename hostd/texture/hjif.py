@@ -851,7 +851,10 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
             if count > MAX_SAMPLES:
                 raise d.err(f"{cw}.bands", f"last {count} samples at {rate} Hz, more than {MAX_SAMPLES} "
                             "(hostd.texture.hjif.MAX_SAMPLES)")
-        by_rm = [b for b in bands if not is_native(b) and b["band_type"] != "WaveletWave"]
+        from hostd.texture import hjif_vectorial
+
+        by_rm = [b for b in bands if not is_native(b) and b["band_type"] != "WaveletWave"
+                 and not hjif_vectorial.covers(b)]
         if by_rm and not rm_opted_in():
             raise rm_refusal(path, f"its {_kinds(by_rm)} band(s) are what")
         y = np.zeros(count)
@@ -862,11 +865,13 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
                 from hostd.texture import hjif_wavelet
 
                 y += hjif_wavelet.render_band(band, timescale, int(rate), count, f"{cw}.bands[{b}]", path)
+            elif hjif_vectorial.covers(band):
+                y += hjif_vectorial.render_band(band, timescale, int(rate), count, f"{cw}.bands[{b}]", path)
             else:
                 y += _render_by_rm(doc, p, c, [band], int(rate), count, path)
             np.clip(y, -1.0, 1.0, out=y)  # as the RM: the channel is clipped after each band
-        if other:
-            note = (f"{len(other)} {sorted({b.get('band_type') for b in other})} band(s) played by the "
+        if by_rm:
+            note = (f"{len(by_rm)} {sorted({b.get('band_type') for b in by_rm})} band(s) played by the "
                     "reference Synthesizer (16-bit)")
         step_m = None
     if y.size < 2:
