@@ -31,9 +31,10 @@ its Synthesizer honours, nor for a codec's provenance.
 What hostd reads (`read`, the `.hjif` entry of hostd.texture.formats; `.hmpg` after the reference
 Decoder): one channel of one perception, chosen with LoadOptions.member "PERCEPTION[/CHANNEL]"
 (an index, or id=N). Its bands are evaluated as the reference Synthesizer evaluates them:
-Curve bands (linear, cubic) and WaveletWave bands (hostd.texture.hjif_wavelet, a port of the RM's
-decoder) by hostd; in time-domain perceptions, Vectorial and Transient bands (and Akima, Bezier,
-B-spline curves) through the reference Synthesizer, only when the user opts in (rm_opted_in:
+Curve bands (linear, cubic), WaveletWave bands (hostd.texture.hjif_wavelet, a port of the RM's
+decoder) and VectorialWave and Transient bands (hostd.texture.hjif_vectorial, a port of its
+evaluation) by hostd; in time-domain perceptions, Akima, Bezier and B-spline curves (and effects
+the ports do not cover) through the reference Synthesizer, only when the user opts in (rm_opted_in:
 $HOSTD_RUN_MPEG_RM=1) and then sandboxed (hjif_sandbox; an .hmpg likewise through the Decoder);
 a one-line error saying how otherwise; the channel
 is clipped to -1..1 and scaled by gain x 10^perception_unit_exponent. Spatial perceptions keep
