@@ -294,9 +294,8 @@ def spatial_positions(spacing_um: float, count: int,
     most_mm = (limit // (exact[0] if exact else 1)) * spacing_um / 1000.0
     raise ProfileError(f"{count} samples over space are more keyframe positions than the reference "
                        f"player plays ({limit}: it computes position x rate in 32 bits, up to "
-                       "48 kHz): "
-                       f"export at most {most_mm:.3g} mm (--length-mm) or only the texture as played "
-                       "(--perceptions time)")
+                       f"48 kHz): export at most {most_mm:.3g} mm (a profile: --length-mm; a stream: encode "
+                       "a patch that long) or only the texture as played (--perceptions time)")
 
 
 def _curve_channel(desc: str, positions: np.ndarray, amps: np.ndarray, upper_hz: int,
