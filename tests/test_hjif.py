@@ -614,3 +614,64 @@ def test_vectorial_bands_bound_their_work(tmp_path):
     y = hjif.read_channel(f).samples
     assert y.size == 400_000 and np.max(np.abs(y)) == pytest.approx(0.5, abs=1e-3)
     assert hjif_vectorial.covers(band)
+
+
+def test_mutated_vectorial_and_transient_bands_give_one_line_errors_or_samples(tmp_path):
+    """hostd's port of the RM's Vectorial and Transient evaluation on seeded mutations of such a
+    band (the shape the reference Encoder writes for AHAP): finite samples or one line."""
+    import random
+    import warnings
+
+    vec = {"band_type": "VectorialWave", "lower_frequency_limit": 0, "upper_frequency_limit": 300,
+           "effects": [{"effect_type": "Basis", "position": 100, "phase": 0.0, "base_signal": "Sine",
+                        "keyframes": [{"relative_position": 0, "amplitude_modulation": 0.07,
+                                       "frequency_modulation": 90},
+                                      {"relative_position": 150, "amplitude_modulation": 0.37},
+                                      {"relative_position": 300, "amplitude_modulation": 0.15,
+                                       "frequency_modulation": 200}]}]}
+    tra = {"band_type": "Transient", "lower_frequency_limit": 0, "upper_frequency_limit": 300,
+           "effects": [{"effect_type": "Basis", "position": 0, "keyframes": [
+               {"relative_position": 0, "amplitude_modulation": 0.13, "frequency_modulation": 120},
+               {"relative_position": 10, "amplitude_modulation": -0.5}]}]}
+    ch = {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+          "bands": [tra, vec]}
+    p = {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Other",
+         "reference_devices": [], "effect_library": [], "channels": [ch]}
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 1000, "avatars": [], "perceptions": [p], "syncs": []}
+    f = tmp_path / "v.hjif"
+    f.write_text(json.dumps(doc))
+    base = hjif.read_channel(f)
+    assert base.samples.size == 3200 and base.note == "" and np.max(np.abs(base.samples)) > 0.1
+    paths: list[list] = []
+
+    def walk(o, path):
+        paths.append(path)
+        items = o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
+        for k, v in items:
+            walk(v, [*path, k])
+
+    walk(doc["perceptions"][0]["channels"][0], ["perceptions", 0, "channels", 0])
+    values = [None, True, -1, 0, 2**31 - 1, -(2**31), 1e308, -1e-300, "x", [], {}, 3.5, 1e6, "Square",
+              "Triangle", "SawToothUp", "SawToothDown", "Reference", 2**40]
+    rng = random.Random(7)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        for _ in range(200):
+            d = copy.deepcopy(doc)
+            for _ in range(rng.randint(1, 3)):
+                path = rng.choice(paths[4:])
+                o = d
+                try:
+                    for k in path[:-1]:
+                        o = o[k]
+                    o[path[-1]] = rng.choice(values)
+                except (KeyError, IndexError, TypeError):
+                    pass
+            f.write_text(json.dumps(d))
+            try:
+                y = hjif.read_channel(f).samples
+            except ProfileError as e:
+                assert "\n" not in str(e)
+            else:
+                assert np.all(np.isfinite(y))

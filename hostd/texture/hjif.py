@@ -876,6 +876,8 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
         step_m = None
     if y.size < 2:
         raise d.err(f"{cw}.bands", "fewer than 2 samples: no profile")
+    if not np.all(np.isfinite(y)):
+        raise d.err(f"{cw}.bands", "evaluate to NaN or Inf (a keyframe's numbers are absurd)")
     y = np.clip(y, -1.0, 1.0) * gain * 10.0**pue
     return Channel(samples=y, spatial=spatial, step_m=step_m, rate_hz=None if spatial else float(rate),
                    perception=pi, channel=ci, modality=modality, full_scale_um=full_scale,

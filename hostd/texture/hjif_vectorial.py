@@ -44,6 +44,8 @@ MS_2_S = 0.001
 TRANSIENT_MS = 22.0
 BASE_SIGNALS = ("Sine", "Square", "Triangle", "SawToothUp", "SawToothDown")
 MAX_KEYFRAMES = 100_000  # of one effect
+MAX_AMPLITUDE = 1e3  # as hostd.texture.hjif's: the format's amplitudes are -1..1
+MAX_PHASE = 1e6
 # samples evaluated for one band, summed over its effects (and a Transient band's keyframes): a
 # file whose effects all span the whole signal would otherwise cost effects x samples
 MAX_WORK = 1 << 27
@@ -74,7 +76,7 @@ def _effects(band: dict) -> list[tuple[int, dict, np.ndarray, list, list]] | Non
             rel.append(k["relative_position"])
             a = k.get("amplitude_modulation")
             ok = isinstance(a, int | float) and not isinstance(a, bool) and math.isfinite(a)
-            amp.append(float(np.float32(a)) if ok else None)
+            amp.append(float(np.float32(a)) if ok and abs(a) <= MAX_AMPLITUDE else float(a) if ok else None)
             freq.append(_int(k.get("frequency_modulation")))
         r = np.array(rel, dtype=np.int64)
         if r.size and np.any(np.diff(r) < 0):
@@ -122,7 +124,8 @@ def _vectorial(e: dict, rel_kf: np.ndarray, amp: list, freq: list, rel: np.ndarr
         with np.errstate(divide="ignore", invalid="ignore"):
             y = (a0 * (t1 - x) + a1 * (x - t0)) / (t1 - t0)
         am[mid] = np.where(x < t0, a0, np.where(x > t1, a1, y))
-    phi0 = float(np.float32(e.get("phase", 0.0))) if isinstance(e.get("phase"), int | float) else 0.0
+    ph = e.get("phase", 0.0)
+    phi0 = float(np.float32(ph)) if isinstance(ph, int | float) and not isinstance(ph, bool) else 0.0
     ifr = [i for i, f in enumerate(freq) if f is not None]
     fq = np.zeros(rel.size)
     phi = np.full(rel.size, phi0)
@@ -173,6 +176,13 @@ def render_band(band: dict, timescale: int, rate: int, count: int, where: str, p
     Synthesizer plays them. Work past MAX_WORK samples is a one-line refusal."""
     kind = band["band_type"]
     effects = _effects(band) or []
+    for k, (_p, e, _r, amp, _f) in enumerate(effects):
+        big = [a for a in amp if a is not None and not abs(a) <= MAX_AMPLITUDE]
+        ph = e.get("phase", 0.0)
+        if big or (isinstance(ph, int | float) and not abs(ph) <= MAX_PHASE):
+            what = (f"an amplitude of {big[0]:g} (at most {MAX_AMPLITUDE:g})" if big
+                    else f"a phase of {ph:g} (at most {MAX_PHASE:g})")
+            raise ProfileError(f"{path}: {where}.effects[{k}]: {what} is absurd")
     limits = (band["lower_frequency_limit"], band["upper_frequency_limit"])
     pos = timescale * (np.arange(count, dtype=np.float64) / float(rate) - 0.0)
     y = np.zeros(count)
