@@ -284,7 +284,7 @@ def spatial_positions(spacing_um: float, count: int,
             break
     for e in range(-12, -2):
         units = spacing_um * 10.0 ** (-6 - e)
-        if units >= 1 and round(units * count) <= limit:
+        if units >= 1 and round(units * count) + 1 <= limit:  # + 1: the 0 after the last may round up
             pos = np.round(i * units).astype(np.int64)
             err_um = float(np.max(np.abs(pos * 10.0 ** (e + 6) - i * spacing_um)))
             return e, pos, err_um
