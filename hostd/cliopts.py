@@ -161,6 +161,9 @@ def loader_parent(length_default: float | None = 10.0) -> argparse.ArgumentParse
                    "there are several (or X,Y: an x and a height vector); .hjif/.hmpg: "
                    "PERCEPTION[/CHANNEL], each an index or id=N (default: the only one, or the texture "
                    "over space)")
+    g.add_argument("--full-scale-um", type=_positive, default=None, metavar="UM",
+                   help=".hjif/.hmpg: the displacement of amplitude 1.0, µm, for files that state none "
+                   "(default 1 --y-unit); hostd export: the full scale it writes (default: the source's)")
     return p
 
 
@@ -238,6 +241,7 @@ def load_opts(args: argparse.Namespace, length_mm: float | None = None):
         decimal_comma=bool(getattr(args, "decimal_comma", False)),
         progress=sys.stderr.isatty(),
         member=getattr(args, "member", None),
+        full_scale_um=getattr(args, "full_scale_um", None),
     )
 
 

@@ -66,6 +66,13 @@ def texture_export(spec: str, args: argparse.Namespace):
         prof = read_profile(spec, args)
         heights, spacing, n, length = prof.heights_um, prof.spacing_um, prof.n, prof.length_mm
         n_keep = min(n - 1, transform.n_keep_for(length, args.speed, args.fmax))
+        if n_keep < 1:
+            from hostd.errors import ProfileError
+
+            raise ProfileError(f"{spec}: the patch is {length:.3g} mm long ({n} samples every {spacing:.3g} "
+                               f"µm): no component of it lies at or below --fmax {args.fmax:g} Hz at --speed "
+                               f"{args.speed:g} mm/s, so there is nothing to play; check the profile's x "
+                               "unit (--x-unit, --spacing) or the patch length (--length-mm)")
         coeffs = transform.analyze(heights, n_keep)
         prov.update(codec="none", setting="", Iobj=0.0, v_ref_mm_s=args.speed, fmax_hz=args.fmax,
                     n_keep=n_keep)
@@ -77,8 +84,19 @@ def texture_export(spec: str, args: argparse.Namespace):
     # dropped should the description run past 255 bytes
     prov["calibration"] = cal
     played = played_um(coeffs, n, length, speed, args.rate_hz)
+    full_scale = args.full_scale_um
+    if full_scale is None and Path(spec).suffix.lower() in (".hjif", ".hmpg"):
+        # an MPEG file in, an MPEG file out: amplitude 1.0 keeps its meaning (the scale the source
+        # states, else 1 --y-unit), unless the texture as played would exceed it
+        from hostd.texture.load import UNITS_TO_UM
+
+        stated = hjif.read_channel(Path(spec), getattr(args, "member", None)).full_scale_um
+        full_scale = stated if stated is not None else UNITS_TO_UM[args.y_unit]
+        import numpy as np
+
+        full_scale = max(full_scale, float(np.max(np.abs(heights))), float(np.max(np.abs(played))))
     return hjif.Export(heights_um=heights, spacing_um=spacing, played_um=played, speed_mm_s=float(speed),
-                       rate_hz=int(args.rate_hz), provenance=prov, full_scale_um=args.full_scale_um,
+                       rate_hz=int(args.rate_hz), provenance=prov, full_scale_um=full_scale,
                        perceptions=args.perceptions)
 
 
@@ -97,13 +115,10 @@ def cmd_export(args: argparse.Namespace) -> int:
     write_output(args.output, hjif.dumps(doc))
     by_id = {p["id"]: p for p in doc["perceptions"]}
 
-    def keyframes(p: dict | None) -> int | None:
-        return None if p is None else len(p["channels"][0]["bands"][0]["effects"][0]["keyframes"])
-
     tex, tim = by_id.get(0), by_id.get(1)
     m = hjif._FULL_SCALE.search(doc["perceptions"][0]["description"])
     info = {"output": args.output, "perceptions": [p["perception_modality"] for p in doc["perceptions"]],
-            "spatial_samples": keyframes(tex), "unit_exponent": tex and tex["unit_exponent"],
+            "spatial_samples": tex and int(ex.heights_um.size), "unit_exponent": tex and tex["unit_exponent"],
             "played_samples": tim and tim["channels"][0]["sample_count"], "rate_hz": ex.rate_hz,
             "speed_mm_s": ex.speed_mm_s, "full_scale_um": float(m.group(1)) if m else None,
             "spacing_um": float(ex.spacing_um)}
@@ -135,8 +150,6 @@ def add_parser(sub) -> None:
     p.add_argument("--rate-hz", type=_positive, default=8000.0,
                    help="sample rate of the time-domain perception, Hz (default 8000, the reference "
                    "Synthesizer's; at most 48000)")
-    p.add_argument("--full-scale-um", type=_positive, default=None,
-                   help="displacement of amplitude 1.0, µm (default: the peak of the texture)")
     p.add_argument("--perceptions", choices=["both", "texture", "time"], default="both",
                    help="both (default), the texture over space only, or the texture as played only "
                    "(the reference Encoder/Decoder at 2de9ff1 carry only this one through .hmpg)")

@@ -202,7 +202,8 @@ def test_mutated_files_give_one_line_errors_or_samples(files, tmp_path):
 
     walk(doc, [])
     values = [None, True, -1, 0, 2**40, 1e308, -1e-300, "x", [], {}, [1], {"a": 1}, 3.5, "Vibrotactile",
-              "WaveletWave", 2**31 - 1, "full_scale_um=1-2", "full_scale_um=1e308 speed_mm_s=1e-300"]
+              "WaveletWave", "VectorialWave", "Transient", "Sine", "Square", 2**31 - 1, "full_scale_um=1-2",
+              "full_scale_um=1e308 speed_mm_s=1e-300"]
     rng = random.Random(33)
     p = tmp_path / "m.hjif"
     with warnings.catch_warnings():
@@ -262,7 +263,7 @@ def test_wavelet_bands_decode_without_the_reference_software(tmp_path):
     f.write_text(json.dumps(doc(stream="")))
     assert not np.any(hjif.read_channel(f).samples)  # an empty stream is silence
     f.write_text(json.dumps(doc(block_length=100)))  # 800 samples: not a power of two
-    with pytest.raises(ProfileError, match=r"bands\[0\]\.block_length: 800 samples a block"):
+    with pytest.raises(ProfileError, match=r"bands\[0\]\.block_length: 100 ms at 8000 Hz = 800 samples"):
         hjif.read_channel(f)
     f.write_text(json.dumps(doc(block_length=8192, effects=100, stream="")))
     with pytest.raises(ProfileError, match=r"bands\[0\]\.effects: 100 blocks of 65536 samples, more than"):
@@ -352,3 +353,325 @@ def test_an_hmpg_over_the_limit_is_refused_before_decoding(tmp_path, monkeypatch
     with pytest.raises(ProfileError, match=r"big.hmpg: 2000 bytes, more than the 0 MiB an .hmpg may have .*"
                        r"refused before decoding"):
         load_profile(big, LoadOptions())
+
+
+def _bomb(tmp_path: Path, sample_count: int, last: int, spatial: bool = False) -> Path:
+    """A 3-kB .hjif whose declared sizes (eight Curve bands reaching `last`, a sample_count) ask
+    for far more memory than its bytes."""
+    kfs = [{"relative_position": 0, "amplitude_modulation": 0.5},
+           {"relative_position": 1, "amplitude_modulation": 0.1},
+           {"relative_position": last, "amplitude_modulation": 0.2}]
+    band = {"band_type": "Curve", "curve_type": "Cubic", "lower_frequency_limit": 0,
+            "upper_frequency_limit": 100,
+            "effects": [{"effect_type": "Basis", "position": 0, "keyframes": kfs}]}
+    ch = {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+          "bands": [band] * 8}
+    if not spatial:
+        ch.update(frequency_sampling=8000, sample_count=sample_count)
+    p = {"id": 0, "avatar_id": 0, "description": "", "unit_exponent": -6,
+         "perception_modality": "Vibrotactile Texture" if spatial else "Vibrotactile",
+         "reference_devices": [], "effect_library": [], "channels": [ch]}
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 8000, "avatars": [], "perceptions": [p], "syncs": []}
+    f = tmp_path / f"bomb{sample_count}{'s' if spatial else ''}.hjif"
+    f.write_text(json.dumps(doc))
+    return f
+
+
+_PEAK = """
+import resource, sys
+from pathlib import Path
+from hostd.texture import hjif
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+try:
+    n = hjif.read_channel(Path(sys.argv[1])).samples.nbytes
+except Exception as e:
+    n = -1
+    print(type(e).__name__, str(e).replace(chr(10), ' '))
+print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base) * 1024, n)
+"""
+
+
+@pytest.mark.parametrize("spatial", [False, True], ids=["time", "space"])
+def test_declared_sizes_take_bounded_memory(tmp_path, spatial):
+    """A crafted file of 3 kB takes at most a few times the samples it yields (peak RSS of a fresh
+    process, over its RSS before reading), and declared sizes past the limit are refused in one
+    line before anything is allocated (at 2de9ff1's limit of 2*10^7 samples the same file took
+    2.8 GB)."""
+    import subprocess
+    import sys
+
+    def peak(f: Path) -> tuple[int, int, str]:
+        r = subprocess.run([sys.executable, "-c", _PEAK, str(f)], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        *msg, last = r.stdout.strip().splitlines()
+        grew, n = (int(x) for x in last.split())
+        return grew, n, " ".join(msg)
+
+    n = hjif.MAX_SAMPLES
+    f = _bomb(tmp_path, n, n - 1, spatial)
+    assert f.stat().st_size < 4000
+    grew, nbytes, msg = peak(f)
+    assert nbytes == 8 * n, msg
+    print(f"{f.stat().st_size} B -> {nbytes >> 20} MiB of samples: peak grew {grew / 2**20:.0f} MiB")
+    assert grew <= 4 * nbytes + (32 << 20)
+    over = _bomb(tmp_path, 20_000_000, 19_999_999, spatial)
+    grew, nbytes, msg = peak(over)
+    assert nbytes == -1 and "ProfileError" in msg and "4194304" in msg and str(over) in msg
+    assert grew < 16 << 20
+
+
+def test_wavelet_bands_missing_fields_are_one_line(tmp_path):
+    """What the reference software skips or cannot decode (no upper_frequency_limit, a block of
+    fewer than 16 samples) is a one-line error naming the field, not a KeyError or IndexError."""
+    band = {"band_type": "WaveletWave", "block_length": 1, "lower_frequency_limit": 0,
+            "upper_frequency_limit": 8000,
+            "effects": [{"effect_type": "Basis", "position": 0, "wavelet_stream": "QUJDRA"}]}
+    ch = {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+          "frequency_sampling": 8000, "sample_count": 800, "bands": [band]}
+    p = {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Other",
+         "reference_devices": [], "effect_library": [], "channels": [ch]}
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 1000, "avatars": [], "perceptions": [p], "syncs": []}
+    f = tmp_path / "w.hjif"
+    f.write_text(json.dumps(doc))
+    with pytest.raises(ProfileError, match=r"w.hjif: .*bands\[0\]\.block_length: 1 ms at 8000 Hz = 8 "):
+        hjif.read_channel(f)
+    band["block_length"] = 16
+    del band["upper_frequency_limit"]
+    f.write_text(json.dumps(doc))
+    with pytest.raises(ProfileError, match=r"w.hjif: .*bands\[0\]\.upper_frequency_limit: missing"):
+        hjif.read_channel(f)
+
+
+def _fake_rm(d: Path) -> Path:
+    """Encoder, Decoder and Synthesizer that report what they may do (the sandbox's view)."""
+    import sys
+
+    probe = f"""#!{sys.executable}
+import json, os, resource, socket, sys
+lim = resource.getrlimit
+out = {{"env": sorted(os.environ), "cwd": os.getcwd(), "as": lim(resource.RLIMIT_AS)[0],
+       "cpu": lim(resource.RLIMIT_CPU)[0], "fsize": lim(resource.RLIMIT_FSIZE)[0],
+       "ifaces": [l.split(":")[0].strip() for l in open("/proc/net/dev").read().splitlines()[2:]]}}
+try:
+    socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    out["socket"] = "allowed"
+except OSError as e:
+    out["socket"] = e.errno
+try:
+    open(sys.argv[2], "ab").write(b"x")
+    out["write_input"] = "allowed"
+except OSError as e:
+    out["write_input"] = e.errno
+print(json.dumps(out))
+if "crash" in sys.argv:
+    os.kill(os.getpid(), 11)
+if "sleep" in sys.argv:
+    import time
+    time.sleep(30)
+if "-o" in sys.argv:
+    open(sys.argv[sys.argv.index("-o") + 1], "w").write("{{not json")
+"""
+    d.mkdir()
+    for t in hjif.RM_TOOLS:
+        (d / t).write_text(probe)
+        (d / t).chmod(0o755)
+    return d
+
+
+def test_the_reference_tools_run_only_when_asked_and_sandboxed(tmp_path, monkeypatch):
+    """No reference tool runs on a file's content without HOSTD_RUN_MPEG_RM=1; with it, the tool
+    sees no network, no socket call, its limits, a private folder, a read-only copy of its input
+    and an environment of four variables; its crash is one line naming the user's file."""
+    import errno
+
+    fake = _fake_rm(tmp_path / "rm")
+    monkeypatch.setenv(hjif.RM_ENV, str(fake))
+    monkeypatch.delenv(hjif.RM_OPT_IN_ENV, raising=False)
+    user = tmp_path / "clip.hmpg"
+    user.write_bytes(b"\x01" * 64)
+    with pytest.raises(ProfileError, match=r"clip.hmpg: an .hmpg is a binary stream only the reference "
+                       r"software evaluates, .* set HOSTD_RUN_MPEG_RM=1 to run it \(sandboxed") as e:
+        load_profile(user, LoadOptions(spacing=6.25))
+    assert "\n" not in str(e.value)
+    # a band only the reference Synthesizer plays: refused in one line, the band's kind named
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 1000, "avatars": [], "syncs": [], "perceptions": [
+               {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Vibrotactile",
+                "reference_devices": [], "effect_library": [], "channels": [
+                    {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+                     "bands": [{"band_type": "Curve", "curve_type": "Akima", "lower_frequency_limit": 0,
+                                "upper_frequency_limit": 1000, "effects": [
+                                    {"effect_type": "Basis", "position": 0, "keyframes": [
+                                        {"relative_position": 0, "amplitude_modulation": 0.1},
+                                        {"relative_position": 5, "amplitude_modulation": 0.3},
+                                        {"relative_position": 10, "amplitude_modulation": 0.5}]}]}]}]}]}
+    (tmp_path / "t.hjif").write_text(json.dumps(doc))
+    with pytest.raises(ProfileError, match=r"t.hjif: its Curve \(Akima\) band\(s\) are what only the "
+                       r"reference software evaluates.*HOSTD_RUN_MPEG_RM=1"):
+        hjif.read_channel(tmp_path / "t.hjif")
+
+    monkeypatch.setenv(hjif.RM_OPT_IN_ENV, "1")
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as t:
+        copy = hjif._private_copy(user, Path(t), "input.hmpg", 1 << 20)
+        seen = json.loads(hjif.run_rm("Decoder", "-f", copy.name, cwd=Path(t), read_only=copy))
+        assert copy.read_bytes() == user.read_bytes()
+    assert seen["cwd"] == t and seen["env"] == ["HOME", "LANG", "PATH", "TMPDIR"]
+    limits = (hjif.RM_MEMORY_BYTES, hjif.RM_CPU_S, hjif.RM_FILE_BYTES)
+    assert (seen["as"], seen["cpu"], seen["fsize"]) == limits
+    assert seen["ifaces"] == ["lo"]  # a network namespace of its own
+    assert seen["socket"] == errno.EPERM  # the seccomp filter
+    assert seen["write_input"] in (errno.EROFS, errno.EACCES)  # read-only, even to root
+    # a crash (SIGSEGV) is one line naming the user's file and the signal
+    with tempfile.TemporaryDirectory() as t:
+        copy = hjif._private_copy(user, Path(t), "input.hmpg", 1 << 20)
+        with pytest.raises(ProfileError, match=r"clip.hmpg: the reference Decoder failed .killed by SIGSEGV"):
+            hjif.run_rm("Decoder", "-f", copy.name, "crash", cwd=Path(t), source=user, read_only=copy)
+        # a tool past its time is stopped; the message names the user's file
+        monkeypatch.setattr(hjif, "RM_TIMEOUT_S", 1.0)
+        with pytest.raises(ProfileError, match=r"clip.hmpg: the reference Decoder did not finish within 1 s"):
+            hjif.run_rm("Decoder", "-f", copy.name, "sleep", cwd=Path(t), source=user, read_only=copy)
+    # what the Decoder wrote is judged under the user's file's name, not the temporary one's
+    with pytest.raises(ProfileError, match=r"clip.hmpg: not valid JSON") as e:
+        hjif.read_channel(user)
+    assert "decoded" not in str(e.value) and "hostd-rm-" not in str(e.value)
+
+
+def test_errors_stay_short_on_a_file_of_50000_perceptions(tmp_path, capsys):
+    """A message lists at most a few choices: 50,000 perceptions made a 2.2-MB 'one line'."""
+    p = {"id": 0, "avatar_id": 0, "description": "x" * 200, "perception_modality": "Vibrotactile",
+         "reference_devices": [], "effect_library": [], "channels": [{"id": 0}, {"id": 1}]}
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 1000, "avatars": [], "perceptions": [p] * 50_000, "syncs": []}
+    f = tmp_path / "many.hjif"
+    f.write_text(json.dumps(doc))
+    assert main(["encode", str(f), "-o", str(tmp_path / "x.vtx"), "--method", "cut", "--b0", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "50000 perceptions" in err and "and 49992 more" in err
+    assert len(err) < 1000
+    with pytest.raises(ProfileError, match=r"perception 7 has 2 channels") as e:
+        hjif.read_channel(f, "7")
+    assert len(str(e.value)) < 1000
+
+
+def test_an_instrument_profile_round_trip_can_be_scored(tmp_path, capsys):
+    """`hostd export dektak-1.csv -o d.hjif; hostd iobj dektak-1.csv d.hjif`: the spacing
+    (0.156245 µm, positions rounded to 0.1 µm) is stated exactly, so the round trip is scored: 0."""
+    dektak = Path(__file__).resolve().parent.parent / "config" / "profiles" / "dektak-1.csv"
+    out = tmp_path / "d.hjif"
+    assert main(["export", str(dektak), "-o", str(out)]) == 0
+    doc = json.loads(out.read_bytes())
+    assert doc["perceptions"][0]["unit_exponent"] == -7  # 0.1 µm: 1.56 units a sample, rounded
+    capsys.readouterr()
+    assert main(["iobj", str(dektak), str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["Iobj"] == pytest.approx(0.0, abs=1e-12)
+    ref = load_profile(dektak, LoadOptions())
+    back = load_profile(out, LoadOptions())
+    assert back.spacing_um == pytest.approx(ref.spacing_um, rel=1e-12) and back.n == ref.n
+    np.testing.assert_allclose(back.heights_um, ref.heights_um, rtol=0, atol=1e-12)
+
+
+def test_an_opdx_in_the_wrong_unit_is_refused_in_one_line(tmp_path, capsys):
+    """A profile whose patch holds no component below fmax (read in metres as µm) says what to
+    check, not "N' must be in 1..N-1, got 0"."""
+    f = tmp_path / "tiny.txt"
+    np.savetxt(f, np.column_stack([np.arange(3001) * 1.6655563e-08, np.sin(np.arange(3001) / 50.0)]))
+    assert main(["export", str(f), "-o", str(tmp_path / "t.hjif"), "--length-mm", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "nothing to play" in err and "--x-unit" in err and "N'" not in err
+
+
+def test_vectorial_bands_bound_their_work(tmp_path):
+    """Effects that all span the whole signal would cost effects x samples: past
+    hjif_vectorial.MAX_WORK samples, one line, before evaluating."""
+    import time
+
+    from hostd.texture import hjif_vectorial
+
+    eff = {"effect_type": "Basis", "position": 0, "base_signal": "Sine", "keyframes": [
+        {"relative_position": 0, "amplitude_modulation": 0.5, "frequency_modulation": 90},
+        {"relative_position": 50_000, "amplitude_modulation": 0.5, "frequency_modulation": 250}]}
+    band = {"band_type": "VectorialWave", "lower_frequency_limit": 0, "upper_frequency_limit": 1000,
+            "effects": [eff] * 400}
+    ch = {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+          "bands": [band]}
+    p = {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Vibrotactile",
+         "reference_devices": [], "effect_library": [], "channels": [ch]}
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 1000, "avatars": [], "perceptions": [p], "syncs": []}
+    f = tmp_path / "v.hjif"
+    f.write_text(json.dumps(doc))
+    t0 = time.process_time()
+    with pytest.raises(ProfileError, match=r"v.hjif: .*bands\[0\]: its effects span \d+ samples in all, more "
+                       r"than the \d+ hostd evaluates"):
+        hjif.read_channel(f)
+    assert time.process_time() - t0 < 5
+    band["effects"] = [eff]  # one: 50 s at 8 kHz, evaluated
+    f.write_text(json.dumps(doc))
+    y = hjif.read_channel(f).samples
+    assert y.size == 400_000 and np.max(np.abs(y)) == pytest.approx(0.5, abs=1e-3)
+    assert hjif_vectorial.covers(band)
+
+
+def test_mutated_vectorial_and_transient_bands_give_one_line_errors_or_samples(tmp_path):
+    """hostd's port of the RM's Vectorial and Transient evaluation on seeded mutations of such a
+    band (the shape the reference Encoder writes for AHAP): finite samples or one line."""
+    import random
+    import warnings
+
+    vec = {"band_type": "VectorialWave", "lower_frequency_limit": 0, "upper_frequency_limit": 300,
+           "effects": [{"effect_type": "Basis", "position": 100, "phase": 0.0, "base_signal": "Sine",
+                        "keyframes": [{"relative_position": 0, "amplitude_modulation": 0.07,
+                                       "frequency_modulation": 90},
+                                      {"relative_position": 150, "amplitude_modulation": 0.37},
+                                      {"relative_position": 300, "amplitude_modulation": 0.15,
+                                       "frequency_modulation": 200}]}]}
+    tra = {"band_type": "Transient", "lower_frequency_limit": 0, "upper_frequency_limit": 300,
+           "effects": [{"effect_type": "Basis", "position": 0, "keyframes": [
+               {"relative_position": 0, "amplitude_modulation": 0.13, "frequency_modulation": 120},
+               {"relative_position": 10, "amplitude_modulation": -0.5}]}]}
+    ch = {"id": 0, "description": "", "gain": 1.0, "mixing_coefficient": 1.0, "body_part_mask": 0,
+          "bands": [tra, vec]}
+    p = {"id": 0, "avatar_id": 0, "description": "", "perception_modality": "Other",
+         "reference_devices": [], "effect_library": [], "channels": [ch]}
+    doc = {"version": "2023", "profile": "Main", "level": 1, "date": "2026-11-26", "description": "",
+           "timescale": 1000, "avatars": [], "perceptions": [p], "syncs": []}
+    f = tmp_path / "v.hjif"
+    f.write_text(json.dumps(doc))
+    base = hjif.read_channel(f)
+    assert base.samples.size == 3200 and base.note == "" and np.max(np.abs(base.samples)) > 0.1
+    paths: list[list] = []
+
+    def walk(o, path):
+        paths.append(path)
+        items = o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
+        for k, v in items:
+            walk(v, [*path, k])
+
+    walk(doc["perceptions"][0]["channels"][0], ["perceptions", 0, "channels", 0])
+    values = [None, True, -1, 0, 2**31 - 1, -(2**31), 1e308, -1e-300, "x", [], {}, 3.5, 1e6, "Square",
+              "Triangle", "SawToothUp", "SawToothDown", "Reference", 2**40]
+    rng = random.Random(7)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        for _ in range(200):
+            d = copy.deepcopy(doc)
+            for _ in range(rng.randint(1, 3)):
+                path = rng.choice(paths[4:])
+                o = d
+                try:
+                    for k in path[:-1]:
+                        o = o[k]
+                    o[path[-1]] = rng.choice(values)
+                except (KeyError, IndexError, TypeError):
+                    pass
+            f.write_text(json.dumps(d))
+            try:
+                y = hjif.read_channel(f).samples
+            except ProfileError as e:
+                assert "\n" not in str(e)
+            else:
+                assert np.all(np.isfinite(y))

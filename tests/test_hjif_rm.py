@@ -222,8 +222,9 @@ def test_encoder_hjif_imports_as_the_synthesizer_plays(rm, wood, options):
     np.testing.assert_allclose(prof.heights_um, ch.samples, rtol=0, atol=1e-12)
 
 
-def test_decoder_hjif_and_hmpg_import_as_the_synthesizer_plays(rm, wood):
+def test_decoder_hjif_and_hmpg_import_as_the_synthesizer_plays(rm, wood, monkeypatch):
     d, s = wood
+    monkeypatch.setenv(hjif.RM_OPT_IN_ENV, "1")  # an .hmpg is read by the Decoder: only when asked
     wav = _played_wav(d, s)
     _run(rm, "Encoder", "-f", wav.name, "-o", "enc.hmpg", "-b", cwd=d)
     _run(rm, "Decoder", "-f", "enc.hmpg", "-o", "dec.hjif", cwd=d)
@@ -338,13 +339,175 @@ def test_one_command_gives_a_bd_rate_table_of_hostd_against_the_standard(rm, tmp
     assert any(",mpeg-rm," in r and "synthetic:wood:1" in r for r in rows)
 
 
-def test_a_hostile_hmpg_is_one_line_and_the_decoder_is_bounded(rm, tmp_path, capsys):
+def test_a_hostile_hmpg_is_one_line_and_the_decoder_is_bounded(rm, tmp_path, capsys, monkeypatch):
     """2000 random bytes (seed 1) kept the unbounded Decoder busy for over 60 s on its way to 1 GB;
-    run by hostd (1 GiB of address space, 120 s of CPU) it stops at the cap: a one-line error
-    naming the file, exit 2."""
+    run by hostd (only when asked; 1 GiB of address space, 120 s of CPU) it stops at the cap: a
+    one-line error naming the file, exit 2."""
     bad = tmp_path / "r1.hmpg"
     bad.write_bytes(np.random.default_rng(1).bytes(2000))
+    monkeypatch.delenv(hjif.RM_OPT_IN_ENV, raising=False)
+    assert main(["encode", str(bad), "-o", str(tmp_path / "x.vtx"), "--spacing", "6.25", "--method", "cut",
+                 "--b0", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{bad}: an .hmpg is a binary stream" in err
+    assert "HOSTD_RUN_MPEG_RM=1" in err
+    monkeypatch.setenv(hjif.RM_OPT_IN_ENV, "1")
     assert main(["encode", str(bad), "-o", str(tmp_path / "x.vtx"), "--spacing", "6.25", "--method", "cut",
                  "--b0", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{bad}: the reference Decoder failed" in err and "bad_alloc" in err, err
+
+
+DEKTAK = ROOT / "config" / "profiles" / "dektak-1.csv"  # 0.156245 µm: positions rounded to 0.1 µm
+EXPORTS = {  # name: hostd export arguments
+    "wood-4mm": ["synthetic:wood:3", "--length-mm", "4"],
+    "wood-48k": ["synthetic:wood:3", "--length-mm", "4", "--rate-hz", "48000"],
+    "dektak": [str(DEKTAK)],
+    "dektak-1mm-48k": [str(DEKTAK), "--length-mm", "1", "--rate-hz", "48000"],
+    "chirp-texture-22k": ["synthetic:sandpaper:2", "--length-mm", "3", "--perceptions", "texture",
+                          "--rate-hz", "22050"],
+    # 1.8 s at 48 kHz: past the 1.86-s overflow of a timescale of 48000 without the common end
+    "time-1.8s-48k": ["synthetic:wood:3", "--length-mm", "9", "--speed-mm-s", "5", "--rate-hz", "48000",
+                      "--perceptions", "time"],
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXPORTS))
+def test_every_export_plays_completely_at_the_rms_rates(rm, tmp_path, name):
+    """Each file hostd writes, played by the Synthesizer at 8, 44.1 and 48 kHz: the whole WAV (every
+    perception, to its last sample) is what hostd.texture.hjif.rm_playback says the RM's own
+    interpolation makes of hostd's keyframes, within 0.51 LSB; at the file's own timescale the
+    keyframes' samples are hostd's samples. Before, the RM's 32-bit position x rate wrapped: 2,104
+    of 20,000 samples played at 48 kHz."""
+    out = tmp_path / f"{name}.hjif"
+    assert main(["export", *EXPORTS[name], "-o", str(out)]) == 0
+    doc = json.loads(out.read_bytes())
+    ts = doc["timescale"]
+    for rate in (8000, 44100, 48000):
+        x = _synth(rm, out, rate)
+        want = _wav_range(hjif.rm_playback(doc, rate))
+        assert x.shape == want.shape, (rate, x.shape, want.shape)
+        err = np.max(np.abs(x - want))
+        print(f"{name} at {rate} Hz: {x.shape[0]} samples x {x.shape[1]}, max error {err / LSB:.3f} LSB")
+        assert err <= (0.5 + FLOAT32_LSB) * LSB
+        if rate == ts or (rate == 48000 and ts == 48000):
+            for j, p in enumerate(doc["perceptions"]):
+                ch = hjif.read_channel(out, str(j))
+                kfs = p["channels"][0]["bands"][0]["effects"][0]["keyframes"][: ch.samples.size]
+                at = np.array([k["relative_position"] for k in kfs]) * rate // ts
+                np.testing.assert_allclose(want[at, j], _wav_range(ch.samples), rtol=0, atol=1e-6)
+
+
+def test_an_export_past_the_rms_arithmetic_is_refused_in_one_line(tmp_path, capsys):
+    """10 mm of wood at 0.5 µm needs 100,000 positions of 0.1 µm: more than the RM plays at 48 kHz."""
+    assert main(["export", "synthetic:wood:3", "-o", str(tmp_path / "w.hjif")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "reference player plays" in err and "--length-mm" in err
+    assert "--perceptions time" in err and not (tmp_path / "w.hjif").exists()
+    assert main(["export", "synthetic:wood:3", "--perceptions", "time", "--speed-mm-s", "1", "--rate-hz",
+                 "48000", "-o", str(tmp_path / "t.hjif")]) == 2
+    assert "lower --rate-hz" in capsys.readouterr().err
+
+
+AHAP = {"Version": 1.0, "Pattern": [
+    {"Event": {"Time": 0.0, "EventType": "HapticTransient", "EventParameters": [
+        {"ParameterID": "HapticIntensity", "ParameterValue": 0.8},
+        {"ParameterID": "HapticSharpness", "ParameterValue": 0.4}]}},
+    {"Event": {"Time": 0.1, "EventType": "HapticContinuous", "EventDuration": 0.3, "EventParameters": [
+        {"ParameterID": "HapticIntensity", "ParameterValue": 0.6},
+        {"ParameterID": "HapticSharpness", "ParameterValue": 0.5}]}},
+    {"ParameterCurve": {"ParameterID": "HapticIntensityControl", "Time": 0.1, "ParameterCurveControlPoints": [
+        {"Time": 0.0, "ParameterValue": 0.2}, {"Time": 0.15, "ParameterValue": 1.0},
+        {"Time": 0.3, "ParameterValue": 0.4}]}}]}
+IVS = """<?xml version="1.0" encoding="UTF-8"?>
+<ivs-file xmlns="http://www.immersion.com" last-modified="2026-11-26">
+ <effects>
+  <basis-effect name="buzz" type="periodic" duration="200" magnitude="8000" period="8" waveform="sine"
+   attack-time="20" attack-level="0" fade-time="50" fade-level="0"/>
+  <timeline-effect name="main">
+   <launch-event effect="buzz" time="0"/>
+   <launch-event effect="buzz" time="300"/>
+  </timeline-effect>
+ </effects>
+</ivs-file>
+"""
+
+
+def _ohm(elements: list[str]) -> bytes:
+    """An OHM file (the RM's Tools/src/OHMData.cpp layout): one single-channel element per file."""
+    import struct
+
+    def pad(s: str, n: int) -> bytes:
+        return s.encode().ljust(n, b"\0")
+
+    out = b"OHM " + struct.pack(">hh", 1, len(elements)) + pad("hostd test", 32)
+    for name in elements:
+        out += (pad(name, 64) + pad(name, 32) + struct.pack(">h", 1) + pad("channel", 32)
+                + struct.pack("<f", 1.0) + struct.pack(">I", 0))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["ahap", "ivs", "ohm"])
+def test_what_the_encoder_writes_from_ahap_ivs_and_ohm_imports(rm, wood, tmp_path, monkeypatch, capsys, kind):
+    """The Encoder's .hjif of an AHAP, an IVS and an OHM (a WAV and an AHAP) input: no sample_count,
+    Transient and VectorialWave bands, timescale 1000. hostd evaluates them itself
+    (hostd.texture.hjif_vectorial: no reference software runs, no opt-in needed): every perception
+    reads as the Synthesizer plays it (within 0.51 LSB, at its default 8 kHz), and `hostd encode
+    X.hjif --spacing 6.25` codes it."""
+    d, s = wood
+    (tmp_path / "x.ahap").write_text(json.dumps(AHAP))
+    (tmp_path / "x.ivs").write_text(IVS)
+    (tmp_path / "in.wav").write_bytes(_played_wav(d, s).read_bytes())
+    (tmp_path / "x.ohm").write_bytes(_ohm(["in.wav", "x.ahap"]))
+    _run(rm, "Encoder", "-f", f"x.{kind}", "-o", "enc.hjif", cwd=tmp_path)
+    enc = tmp_path / "enc.hjif"
+    doc = json.loads(enc.read_bytes())
+    assert all("sample_count" not in c for p in doc["perceptions"] for c in p["channels"]
+               if not any(b["band_type"] == "WaveletWave" for b in c["bands"]))
+    x = _synth(rm, enc)
+    monkeypatch.delenv(hjif.RM_OPT_IN_ENV, raising=False)
+    monkeypatch.setattr(hjif, "run_rm", lambda *a, **k: pytest.fail("ran the reference software"))
+    last = str(len(doc["perceptions"]) - 1)  # the AHAP's perception of the OHM
+    for j in range(len(doc["perceptions"])):
+        ch = hjif.read_channel(enc, str(j))
+        k = ch.samples.size
+        assert k > 100 and np.any(ch.samples) and ch.note == ""
+        err = np.max(np.abs(x[:k, j] - ch.samples))
+        print(f"{kind} perception {j}: {k} samples, hostd vs Synthesizer {err / LSB:.3f} LSB ({ch.note})")
+        assert err <= (0.5 + FLOAT32_LSB) * LSB
+    assert main(["encode", str(enc), "--member", last, "--spacing", "6.25", "--method", "shaped", "--g", "0",
+                 "--length-mm", "1", "-o", str(tmp_path / "a.vtx")]) == 0
+
+
+def test_a_round_trip_through_the_rm_keeps_the_amplitude(rm, wood, tmp_path, capsys):
+    """--full-scale-um is the one option for the scale: RM -> hostd -> RM gives the RM's samples
+    back at their amplitude (before: renormalized to the peak, 1.1-3x louder), and hostd's own
+    40-µm-scale rendering, coded by the Encoder from a WAV, imports at its size when the scale is
+    stated (before: 1.0 read as 1 µm, Iobj 2.09)."""
+    d, s = wood
+    wav = _played_wav(d, s)  # 0.9 of full scale
+    (tmp_path / "in.wav").write_bytes(wav.read_bytes())
+    _run(rm, "Encoder", "-f", "in.wav", "-o", "enc.hjif", "--disable-wavelet", cwd=tmp_path)
+    enc = tmp_path / "enc.hjif"
+    before = _synth(rm, enc)[:, 0]
+    out = tmp_path / "back.hjif"
+    assert main(["export", str(enc), "--spacing", "6.25", "--length-mm", "50", "--perceptions", "texture",
+                 "-o", str(out)]) == 0
+    after = _synth(rm, out)[:, 0]
+    print(f"peak through the RM: {np.max(np.abs(before)):.5f}, after hostd: {np.max(np.abs(after)):.5f}")
+    assert np.max(np.abs(after)) == pytest.approx(np.max(np.abs(before)), abs=1.01 * LSB)
+    dev = json.loads(out.read_bytes())["perceptions"][0]["reference_devices"][0]
+    assert dev["maximum_displacement"] == 1e-6
+    # hostd's rendering at a 40-µm full scale, as a 16-bit WAV, coded by the RM, read back with the scale
+    assert main(["export", str(d / "wood.vtx"), "-o", str(tmp_path / "t.hjif"), "--perceptions", "time",
+                 "--full-scale-um", "40"]) == 0
+    played = _synth(rm, tmp_path / "t.hjif")[:, 0]
+    scipy.io.wavfile.write(tmp_path / "t.wav", 8000, np.round(played * 32768).astype(np.int16))
+    _run(rm, "Encoder", "-f", "t.wav", "-o", "t_enc.hjif", "-kb", "64", cwd=tmp_path)
+    orig = load_profile(tmp_path / "t.hjif", LoadOptions(length_mm=None))
+    back = load_profile(tmp_path / "t_enc.hjif", LoadOptions(length_mm=None, spacing=orig.spacing_um,
+                                                             full_scale_um=40.0))
+    n = orig.n
+    rms = float(np.sqrt(np.mean(back.heights_um[:n] ** 2)) / np.sqrt(np.mean(orig.heights_um ** 2)))
+    print(f"hostd's 40-µm rendering through the RM's WAV codec: RMS ratio {rms:.4f}")
+    assert rms == pytest.approx(1.0, abs=0.05)

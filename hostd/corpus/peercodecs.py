@@ -96,8 +96,10 @@ def read_wav(path: Path) -> np.ndarray:
 
     try:
         _, data = scipy.io.wavfile.read(path)
-    except (OSError, ValueError) as e:
-        raise CodecFailure(f"cannot read the peer's decoded WAV {path}: {e}", "bad_output") from None
+    except Exception as e:  # a broken header raises ZeroDivisionError, struct.error, UnboundLocalError...
+        why = " ".join(f"{type(e).__name__}: {e}".split())[:200]
+        raise CodecFailure(f"cannot read the peer's decoded WAV {path}: {why}", "bad_output") from None
+    data = np.asarray(data)
     if data.ndim > 1:
         data = data[:, 0]
     if data.dtype == np.uint8:

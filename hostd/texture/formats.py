@@ -42,6 +42,7 @@ class LoadOptions:
     decimal_comma: bool = False
     progress: bool = False  # a progress bar on stderr while reading large files
     member: str | None = None  # container formats: which array (a .mat variable, an .hjif channel)
+    full_scale_um: float | None = None  # .hjif/.hmpg that state no scale: amplitude 1.0 in µm
 
 
 @dataclass(frozen=True)

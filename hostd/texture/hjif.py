@@ -9,12 +9,15 @@ files with it (docs/interchange.md).
 What hostd writes (`export`, `hostd export X -o Y.hjif`): one experience (version 2023, profile
 Main, level 1, no avatars) with two perceptions, each of one channel holding one cubic Curve band
 of one effect whose keyframes are the samples (a keyframe per sample, so the reference
-Synthesizer's cubic interpolation passes through every sample and plays them exactly; the RM
-never plays an effect's last keyframe, so the time-domain effect has one past its sample_count):
+Synthesizer's cubic interpolation passes through every sample and plays them exactly), then a 0
+one step later and a last 0 at a common end (the RM never plays an effect's last keyframe: its
+sample must lie past the WAV; RM_RATES_HZ). Every position stays within RM_MAX_POSITION (the
+RM's 32-bit position x rate at 48 kHz), or the export is refused in one line:
 - perception 0, "Vibrotactile Texture": the height profile over space. Keyframe positions are
   spatial, in units of 10^unit_exponent metres (the perception's `unit_exponent`; hostd picks the
   coarsest power of ten that states the sample spacing as a whole number, e.g. -7 = 0.1 µm for a
-  0.5 µm spacing).
+  0.5 µm spacing, else rounds positions to the finest unit that fits: spatial_positions; the
+  exact spacing is in the description, `spacing_um=`).
 - perception 1, "Vibrotactile": the texture as a hand at one stroke speed feels it (one crossing
   of the patch, hostd's own rendering `hostd render` at that speed), in time: one keyframe per
   sample at `rate_hz`, the experience's timescale being rate_hz ticks per second.
@@ -28,10 +31,12 @@ its Synthesizer honours, nor for a codec's provenance.
 What hostd reads (`read`, the `.hjif` entry of hostd.texture.formats; `.hmpg` after the reference
 Decoder): one channel of one perception, chosen with LoadOptions.member "PERCEPTION[/CHANNEL]"
 (an index, or id=N). Its bands are evaluated as the reference Synthesizer evaluates them:
-Curve bands (linear, cubic) and WaveletWave bands (hostd.texture.hjif_wavelet, a port of the RM's
-decoder) by hostd; in time-domain perceptions, Vectorial and Transient bands (and Akima, Bezier,
-B-spline curves) through the reference Synthesizer when it is installed (a one-line error saying
-how when not); the channel
+Curve bands (linear, cubic), WaveletWave bands (hostd.texture.hjif_wavelet, a port of the RM's
+decoder) and VectorialWave and Transient bands (hostd.texture.hjif_vectorial, a port of its
+evaluation) by hostd; in time-domain perceptions, Akima, Bezier and B-spline curves (and effects
+the ports do not cover) through the reference Synthesizer, only when the user opts in (rm_opted_in:
+$HOSTD_RUN_MPEG_RM=1) and then sandboxed (hjif_sandbox; an .hmpg likewise through the Decoder);
+a one-line error saying how otherwise; the channel
 is clipped to -1..1 and scaled by gain x 10^perception_unit_exponent. Spatial perceptions keep
 their spacing (unit_exponent); a time-domain one needs a spacing (v / fs): the file's own when
 hostd wrote it, else --spacing.
@@ -60,12 +65,38 @@ if TYPE_CHECKING:
     from hostd.texture.load import LoadOptions
 
 MAX_HJIF_BYTES = 64 << 20  # a larger file is refused before it is parsed (~1 M keyframes)
-MAX_SAMPLES = 20_000_000  # samples of one evaluated channel
+# samples of one evaluated channel: the loader's limit for a patch (hostd.codec.transform), 32 MB
+# as float64. A file's declared sizes (positions, sample_count, blocks) are checked against it
+# before anything is allocated, and a channel is evaluated into one buffer in chunks, so a crafted
+# file of a few kB takes at most a few times the samples it yields (tests/test_hjif.py measures it)
+MAX_SAMPLES = 1 << 22
+CHUNK = 1 << 16  # samples evaluated at a time
 MAX_KEYFRAMES = 2_000_000
 MAX_AMPLITUDE = 1e3  # keyframe amplitudes are -1..1; the RM clips the channel's sum to that
 MAX_GAIN = 1e6
 DEFAULT_RATE_HZ = 8000  # the reference Synthesizer's default output rate
 MAX_TIMESCALE = 48000  # the Main profile's limit (IOJson.cpp)
+# The reference Synthesizer (2de9ff1, Band::EvaluationBand) maps a Curve keyframe to an output
+# sample as relative_position x rate / timescale with a 32-bit int product divided as unsigned:
+# past 2^32 the product wraps and the rest of the effect plays as zeros or garbage. At its
+# highest rate, 48 kHz, the last position must stay at or below this; its effect positions other
+# than 0 are misplaced too (position x rate x timescale), so a Curve band is one effect at 0.
+# hostd's files keep every keyframe position within it (tests/test_hjif_rm.py plays them at 8 and
+# 48 kHz), or are refused in one line.
+RM_MAX_RATE_HZ = 48000
+RM_MAX_POSITION = (2**32 - 1) // RM_MAX_RATE_HZ  # 89478
+# The Synthesizer never plays a Curve effect's last keyframe (cubicInterpolation2 stops one short)
+# and writes whatever lies past its buffer at that keyframe's sample. hostd's effects therefore end
+# with a keyframe of 0 one step after the signal and a last one, also 0, at the end of the WAV:
+# a common position that is a whole number of samples at each of these rates (the usual ones), so
+# that its sample is the first one past the WAV's end
+RM_RATES_HZ = (8000, 16000, 22050, 24000, 32000, 44100, 48000)
+
+
+def rm_end_position(last: int, timescale: int) -> int:
+    """The first position after `last` that is a whole number of samples at every RM_RATES_HZ."""
+    m = math.lcm(*(timescale // math.gcd(timescale, f) for f in RM_RATES_HZ))
+    return (last // m + 1) * m
 MAX_DESCRIPTION_BYTES = 255  # .hmpg stores a description's length in 8 bits
 VERSION = "2023"
 TEXTURE = "Vibrotactile Texture"
@@ -77,21 +108,23 @@ SPACING_UM_RANGE = (1e-4, 1e4)  # 0.1 nm .. 1 cm between samples: outside, the u
 NATIVE_CURVES = {"Linear", "Cubic", "Unknown"}  # "Unknown": the RM's default case, cubic
 RM_ENV = "HOSTD_MPEG_RM"  # a directory with the reference software's Encoder, Decoder, Synthesizer
 RM_TOOLS = ("Encoder", "Decoder", "Synthesizer")
-RM_TIMEOUT_S = 120.0
+RM_TIMEOUT_S = 30.0  # a valid 4-MiB .hmpg decodes in a few seconds
 # What a reference tool may use: a legitimate .hmpg of 10 s of noise at 64 kb/s decodes in 6 MB,
 # but 2 kB of random bytes made the Decoder at 2de9ff1 take 1 GB and 22 s. A tool past these
 # fails (std::bad_alloc, SIGXCPU) and hostd says so in one line.
 RM_MEMORY_BYTES = 1 << 30  # address space
 RM_CPU_S = int(RM_TIMEOUT_S)
+RM_FILE_BYTES = 256 << 20  # the largest file a tool may write (its WAV or .hjif)
 MAX_HMPG_BYTES = 4 << 20  # refused before the Decoder runs (its .hjif is ~20x larger)
-# the tool is started through this: its limits set in the child, then exec (no preexec_fn: safe in
-# a process with threads)
-_LIMITED = ("import os, resource, sys; "
-            "resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[1]),) * 2); "
-            "resource.setrlimit(resource.RLIMIT_CPU, (int(sys.argv[2]),) * 2); "
-            "os.execv(sys.argv[3], sys.argv[3:])")
+# The reference tools are third-party native parsers, not robust against hostile input (seeded
+# mutations of a band's numbers crash the Synthesizer): hostd runs one on a file's content only
+# when the user opts in with this setting (1), and then in a sandbox (hostd/texture/hjif_sandbox.py)
+RM_OPT_IN_ENV = "HOSTD_RUN_MPEG_RM"
+MAX_ERROR_CHARS = 300  # a quoted part of a one-line error (a tool's last line, a JSON error)
 _FULL_SCALE = re.compile(r"full_scale_um=([0-9.eE+-]+)")
 _SPEED = re.compile(r"speed_mm_s=([0-9.eE+-]+)")
+_SPACING = re.compile(r"spacing_um=([0-9.eE+-]+)")
+_SAMPLES = re.compile(r"samples=([0-9]+)")
 
 
 # ============================================================================ the reference software
@@ -126,32 +159,81 @@ def rm_tool(name: str) -> Path:
     return d / name
 
 
-def run_rm(name: str, *args: str, cwd: Path | None = None) -> str:
-    """Run one reference tool; its stdout. A failure is one line naming the tool."""
+def rm_opted_in() -> bool:
+    """Whether the user allows hostd to run the reference software on a file's content
+    ($HOSTD_RUN_MPEG_RM=1)."""
+    return os.environ.get(RM_OPT_IN_ENV, "").strip().lower() in ("1", "yes", "true", "on")
+
+
+def rm_refusal(path: Path, what: str) -> ProfileError:
+    """The one-line refusal to run the reference software on `path` without the opt-in."""
+    return ProfileError(f"{path}: {what} only the reference software evaluates, a third-party program "
+                        f"hostd runs on a file's content only when asked: set {RM_OPT_IN_ENV}=1 to run it "
+                        "(sandboxed: no network, a private folder, a read-only copy of the input, "
+                        f"{RM_MEMORY_BYTES >> 20} MiB, {RM_CPU_S} s of CPU)")
+
+
+def _short(text: str, limit: int = MAX_ERROR_CHARS) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 15] + f" ... ({len(text)} chars)"
+
+
+_SIGNALS = {9: "SIGKILL", 11: "SIGSEGV", 6: "SIGABRT", 24: "SIGXCPU", 25: "SIGXFSZ", 7: "SIGBUS", 8: "SIGFPE"}
+
+
+def run_rm(name: str, *args: str, cwd: Path, source: Path | None = None,
+           read_only: Path | None = None) -> str:
+    """Run one reference tool in the folder `cwd` (private: made by the caller, holding only the
+    tool's input, `read_only`) under hjif_sandbox: its stdout. A failure is one line naming the
+    tool and `source`, the user's file the tool works on."""
     import sys
 
     exe = rm_tool(name)
-    cmd = [sys.executable, "-I", "-c", _LIMITED, str(RM_MEMORY_BYTES), str(RM_CPU_S), str(exe), *args]
+    launcher = Path(__file__).with_name("hjif_sandbox.py")
+    cmd = [sys.executable, "-I", str(launcher), str(RM_MEMORY_BYTES), str(RM_CPU_S), str(RM_FILE_BYTES),
+           str(read_only) if read_only is not None else "-", str(exe), *args]
+    env = {"PATH": "/usr/bin:/bin", "LANG": "C.UTF-8", "TMPDIR": str(cwd), "HOME": str(cwd)}
+    who = f"{source}: " if source is not None else ""
     try:
         r = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=RM_TIMEOUT_S,
-                           errors="replace")
+                           errors="replace", env=env, stdin=subprocess.DEVNULL)
     except subprocess.TimeoutExpired:
-        raise ProfileError(f"the reference {name} did not finish within {RM_TIMEOUT_S:g} s") from None
+        raise ProfileError(f"{who}the reference {name} did not finish within {RM_TIMEOUT_S:g} s") from None
     if r.returncode != 0:
-        last = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["no output"]
-        raise ProfileError(f"the reference {name} failed (exit {r.returncode}): {last[0].strip()}")
+        lines = [x for x in (r.stderr.strip() or r.stdout.strip()).splitlines() if x.strip()]
+        own = [x for x in lines if not x.startswith("sandbox:")]
+        last = (own or lines or ["no output"])[-1]
+        sig = _SIGNALS.get(-r.returncode, f"signal {-r.returncode}") if r.returncode < 0 else None
+        status = f"killed by {sig}" if sig else f"exit {r.returncode}"
+        raise ProfileError(f"{who}the reference {name} failed ({status}): {_short(last)}")
     return r.stdout
 
 
-def read_wav_full_scale(path: Path) -> tuple[int, np.ndarray]:
+def _private_copy(src: Path, folder: Path, name: str, limit: int) -> Path:
+    """A read-only copy of the user's file in the tool's private folder (at most `limit` bytes)."""
+    try:
+        with src.open("rb") as fh:
+            data = fh.read(limit + 1)
+    except OSError as e:
+        raise ProfileError(f"cannot read {src}: {e.strerror or e}") from None
+    if len(data) > limit:
+        raise ProfileError(f"{src}: more than {limit} bytes; refused")
+    dst = folder / name
+    dst.write_bytes(data)
+    dst.chmod(0o444)
+    return dst
+
+
+def read_wav_full_scale(path: Path, shown: Path | None = None) -> tuple[int, np.ndarray]:
     """(rate, samples (frames, channels)) of a PCM WAV as the reference tools write it, in units
-    of full scale (int16 / 32768)."""
+    of full scale (int16 / 32768). Any failure of the reader is one line naming `shown` (or path)."""
     import scipy.io.wavfile
 
     try:
         rate, data = scipy.io.wavfile.read(path)
-    except (OSError, ValueError) as e:
-        raise ProfileError(f"cannot read the WAV {path}: {e}") from None
+    except Exception as e:  # scipy's WAV reader raises more than ValueError on a broken header
+        why = _short(f"{type(e).__name__}: {e}")
+        raise ProfileError(f"cannot read the WAV {shown or path}: {why}") from None
     data = np.asarray(data)
     if data.ndim == 1:
         data = data.reshape(-1, 1)
@@ -179,29 +261,41 @@ class Export:
     perceptions: str = "both"
 
 
-def spatial_unit(spacing_um: float, count: int) -> tuple[int, int, float]:
-    """(unit_exponent, step in units, rounding error in µm): the coarsest power of ten 10^e m
-    (e in -12..-3) that states the spacing as a whole number of units (to 1e-9 relative); when
-    none does, the coarsest with >= 1000 units per sample (positions then round to the unit,
-    an error of at most 0.05 % of the spacing). Positions must fit a 32-bit keyframe position."""
+def spatial_positions(spacing_um: float, count: int,
+                      limit: int = RM_MAX_POSITION) -> tuple[int, np.ndarray, float]:
+    """(unit_exponent e, the keyframe positions of samples 0..count-1 in units of 10^e m, the
+    largest position error in µm), within what the reference player plays (RM_MAX_POSITION).
+
+    The coarsest power of ten (e in -3..-12) that states the spacing as a whole number of units
+    (to 1e-9 relative), when its last position fits; else the finest unit in which the positions
+    fit with at least one unit per sample, each position rounded to the unit (error <= half a
+    unit: hostd's reader takes the spacing from the description, a foreign reader is off by at
+    most that); else a one-line refusal."""
     if not (SPACING_UM_RANGE[0] <= spacing_um <= SPACING_UM_RANGE[1]):
         raise ProfileError(f"spacing {spacing_um:g} µm is outside {SPACING_UM_RANGE[0]:g}.."
                            f"{SPACING_UM_RANGE[1]:g} µm")
-    best = None
+    i = np.arange(count, dtype=np.float64)
     for e in range(-3, -13, -1):
         units = spacing_um * 10.0 ** (-6 - e)
         r = round(units)
         if r >= 1 and abs(units - r) <= 1e-9 * units:
-            best = (e, int(r), 0.0)
+            if r * count <= limit:
+                return e, np.arange(count, dtype=np.int64) * r, 0.0
             break
-        if best is None and units >= 1000:
-            best = (e, int(r), abs(units - r) * 10.0 ** (e + 6))
-    if best is None:
-        raise ProfileError(f"spacing {spacing_um:g} µm cannot be stated in 1 pm units")
-    if best[1] * (count - 1) >= 2**31:
-        raise ProfileError(f"{count} samples at {spacing_um:g} µm do not fit 32-bit keyframe positions "
-                           "in any unit: export a shorter patch (--length-mm)")
-    return best
+    for e in range(-12, -2):
+        units = spacing_um * 10.0 ** (-6 - e)
+        if units >= 1 and round(units * count) + 1 <= limit:  # + 1: the 0 after the last may round up
+            pos = np.round(i * units).astype(np.int64)
+            err_um = float(np.max(np.abs(pos * 10.0 ** (e + 6) - i * spacing_um)))
+            return e, pos, err_um
+    exact = [round(spacing_um * 10.0 ** (-6 - e)) for e in range(-3, -13, -1)
+             if abs(spacing_um * 10.0 ** (-6 - e) - round(spacing_um * 10.0 ** (-6 - e)))
+             <= 1e-9 * spacing_um * 10.0 ** (-6 - e) and round(spacing_um * 10.0 ** (-6 - e)) >= 1]
+    most_mm = (limit // (exact[0] if exact else 1)) * spacing_um / 1000.0
+    raise ProfileError(f"{count} samples over space are more keyframe positions than the reference "
+                       f"player plays ({limit}: it computes position x rate in 32 bits, up to "
+                       f"48 kHz): export at most {most_mm:.3g} mm (a profile: --length-mm; a stream: encode "
+                       "a patch that long) or only the texture as played (--perceptions time)")
 
 
 def _curve_channel(desc: str, positions: np.ndarray, amps: np.ndarray, upper_hz: int,
@@ -229,8 +323,16 @@ def build(ex: Export, date: str | None = None) -> dict:
     if not (1 <= ex.rate_hz <= MAX_TIMESCALE) or int(ex.rate_hz) != ex.rate_hz:
         raise ProfileError(f"--rate-hz must be a whole number of Hz in 1..{MAX_TIMESCALE} (the Main "
                            f"profile's timescale), got {ex.rate_hz}")
-    if p.size >= 2**31:
-        raise ProfileError("the played signal is too long for 32-bit keyframe positions")
+    want_tex, want_time = ex.perceptions in ("both", "texture"), ex.perceptions in ("both", "time")
+    ts = int(ex.rate_hz)
+    m = rm_end_position(0, ts)
+    limit = (RM_MAX_POSITION // m) * m - 1  # the last 0 keyframe; the end is then <= RM_MAX_POSITION
+    if want_time and p.size > limit:
+        raise ProfileError(f"the texture as played is {p.size} samples at {ex.rate_hz} Hz "
+                           f"({p.size / ex.rate_hz:.3g} s), more keyframe positions than the reference "
+                           f"player plays ({limit}: it computes position x rate in 32 bits, up to "
+                           "48 kHz): lower --rate-hz, raise --speed-mm-s or export a shorter patch "
+                           "(--length-mm)")
     peak = max(float(np.max(np.abs(h))), float(np.max(np.abs(p))))
     fs_um = ex.full_scale_um if ex.full_scale_um is not None else (peak if peak > 0 else 1.0)
     if not (math.isfinite(fs_um) and fs_um > 0):
@@ -239,33 +341,50 @@ def build(ex: Export, date: str | None = None) -> dict:
     if clipped:
         raise ProfileError(f"{clipped} samples exceed the full scale {fs_um:g} µm (peak {peak:.4g} µm): "
                            "raise --full-scale-um")
-    e, step, _err = spatial_unit(ex.spacing_um, h.size)
-    spacing_stated_um = step * 10.0 ** (e + 6)
-    # the spatial band's "frequency" limit: samples per metre / 2 would not fit an int; the
-    # limit at the stroke speed (Nyquist of the spatial samples at v) is what a player can use
-    upper_tex = max(1, min(2**31 - 1, round(ex.speed_mm_s * 1e3 / (2 * spacing_stated_um))))
     scale = f"full_scale_um={fs_um!r}"
-    tex = {"id": 0, "avatar_id": 0,
-           "description": (f"hostd texture: height profile over space, {h.size} samples every "
-                           f"{spacing_stated_um:g} um (positions in 1e{e} m); amplitude 1.0 = "
-                           f"{fs_um:.6g} um; {scale}"),
-           "perception_modality": TEXTURE, "unit_exponent": e, "perception_unit_exponent": 0,
-           "reference_devices": [], "effect_library": [],
-           "channels": [_curve_channel("height profile (normalized to full scale)",
-                                       np.arange(h.size, dtype=np.int64) * step, h / fs_um, upper_tex)]}
-    tim = {"id": 1, "avatar_id": 0,
-           "description": (f"hostd texture as played at speed_mm_s={ex.speed_mm_s!r}: one crossing of the "
-                           f"patch, {p.size} samples at {ex.rate_hz} Hz; amplitude 1.0 = {fs_um:.6g} um; "
-                           f"{scale}"),
-           "perception_modality": TIME, "perception_unit_exponent": 0,
-           "reference_devices": [], "effect_library": [],
-           # one keyframe past the end (= the last sample, outside sample_count): the RM's
-           # cubicInterpolation2 stops one sample short and reads the last one past its buffer
-           "channels": [_curve_channel("displacement at the fingertip (normalized to full scale)",
-                                       np.arange(p.size + 1, dtype=np.int64),
-                                       np.append(p, p[-1]) / fs_um, ex.rate_hz // 2,
-                                       {"frequency_sampling": int(ex.rate_hz), "sample_count": int(p.size)})]}
-    for q in (tex, tim):
+    device = {"id": 0, "name": "hostd vibrotactile texture display", "body_part_mask": 0,
+              "maximum_displacement": fs_um * 1e-6}  # metres: the displacement of amplitude 1.0
+    tex = tim = None
+    if want_tex:
+        e, pos, err_um = spatial_positions(ex.spacing_um, h.size, limit)
+        # the spatial band's frequency limit: the samples' Nyquist over space, cycles per metre
+        upper_tex = max(1, min(2**31 - 1, round(1e6 / (2 * ex.spacing_um))))
+        # what the reference player, which takes positions for ticks, makes of it
+        rm_speed_mm_s = 10.0 ** (e + 3) * ex.rate_hz
+        tex = {"id": 0, "avatar_id": 0,
+               "description": (f"hostd texture over space: samples={h.size} spacing_um={ex.spacing_um!r} "
+                               f"(positions in 1e{e} m{f', within {err_um:.2g} um' if err_um else ''}); "
+                               f"{scale}; a player taking positions for time plays it at "
+                               f"{rm_speed_mm_s:.3g} mm/s"),
+               "perception_modality": TEXTURE, "unit_exponent": e, "perception_unit_exponent": 0,
+               "reference_devices": [device], "effect_library": [],
+               "channels": [_curve_channel("height profile (normalized to full scale)", pos, h / fs_um,
+                                           upper_tex, {"reference_device_id": 0,
+                                                       "body_part_target": ["Index"]})]}
+    if want_time:
+        tim = {"id": 1, "avatar_id": 0,
+               "description": (f"hostd texture as played at speed_mm_s={ex.speed_mm_s!r}: one crossing of "
+                               f"the patch, {p.size} samples at {ex.rate_hz} Hz; {scale}"),
+               "perception_modality": TIME, "perception_unit_exponent": 0,
+               "reference_devices": [{**device, "maximum_frequency": ex.rate_hz / 2}], "effect_library": [],
+               "channels": [_curve_channel("displacement at the fingertip (normalized to full scale)",
+                                           np.arange(p.size, dtype=np.int64), p / fs_um, ex.rate_hz // 2,
+                                           {"frequency_sampling": int(ex.rate_hz),
+                                            "sample_count": int(p.size), "reference_device_id": 0,
+                                            "body_part_target": ["Index"]})]}
+    chosen = [q for q in (tex, tim) if q is not None]
+    # each effect ends with 0 one step after its signal and 0 at a common end (RM_RATES_HZ)
+    ends = []
+    for q in chosen:
+        kfs = q["channels"][0]["bands"][0]["effects"][0]["keyframes"]
+        step = kfs[-1]["relative_position"] - kfs[-2]["relative_position"]
+        kfs.append({"relative_position": kfs[-1]["relative_position"] + step, "amplitude_modulation": 0.0})
+        ends.append(kfs[-1]["relative_position"])
+    end = rm_end_position(max(ends), ts)
+    for q in chosen:
+        q["channels"][0]["bands"][0]["effects"][0]["keyframes"].append(
+            {"relative_position": end, "amplitude_modulation": 0.0})
+    for q in chosen:
         if len(q["description"].encode()) > MAX_DESCRIPTION_BYTES:
             raise ProfileError(f"description of perception {q['id']} is longer than "
                                f"{MAX_DESCRIPTION_BYTES} bytes")
@@ -273,7 +392,7 @@ def build(ex: Export, date: str | None = None) -> dict:
             "date": date or _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d"),
             "description": provenance_text(ex.provenance),
             "timescale": int(ex.rate_hz), "avatars": [],
-            "perceptions": {"both": [tex, tim], "texture": [tex], "time": [tim]}[ex.perceptions],
+            "perceptions": chosen,
             "syncs": []}
 
 
@@ -336,10 +455,12 @@ def _reject_constant(name: str):
     raise ValueError(f"{name} is not JSON")
 
 
-def load_json(path: Path) -> dict:
-    """The parsed document; a file larger than MAX_HJIF_BYTES is refused before parsing."""
+def load_json(path: Path, shown: Path | None = None) -> dict:
+    """The parsed document; a file larger than MAX_HJIF_BYTES is refused before parsing. Errors
+    name `shown` (the user's file) when given, else `path`."""
+    real, path = path, shown if shown is not None else path
     try:
-        size = path.stat().st_size
+        size = real.stat().st_size
     except FileNotFoundError:
         raise ProfileError(f"no such .hjif file: {path}") from None
     except OSError as e:
@@ -348,7 +469,7 @@ def load_json(path: Path) -> dict:
         raise ProfileError(f"{path}: {size} bytes, more than the {MAX_HJIF_BYTES >> 20} MiB an .hjif may "
                            "have here (hostd.texture.hjif.MAX_HJIF_BYTES); split the file")
     try:
-        with path.open("rb") as fh:
+        with real.open("rb") as fh:
             raw = fh.read(MAX_HJIF_BYTES + 1)
     except OSError as e:
         raise ProfileError(f"cannot read {path}: {e.strerror or e}") from None
@@ -358,7 +479,7 @@ def load_json(path: Path) -> dict:
         doc = json.loads(raw, parse_constant=_reject_constant)
     except (ValueError, RecursionError) as e:
         msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise ProfileError(f"{path}: not valid JSON ({msg})") from None
+        raise ProfileError(f"{path}: not valid JSON ({_short(msg)})") from None
     if not isinstance(doc, dict):
         raise ProfileError(f"{path}: not an .hjif (the top level must be a JSON object)")
     return doc
@@ -397,8 +518,17 @@ def _stated(pattern: re.Pattern, text: str, upper: float) -> float | None:
     return v if 0 < v <= upper else None
 
 
+MAX_CHOICES = 8  # choices listed in a message (a file may hold 50,000 perceptions)
+
+
+def _choices(labels: list[str]) -> str:
+    """The first MAX_CHOICES labels, and how many more: a one-line message stays short."""
+    more = len(labels) - MAX_CHOICES
+    return "; ".join(labels[:MAX_CHOICES]) + (f"; ... and {more} more" if more > 0 else "")
+
+
 def _pick(items: list, spec: str | None, what: str, d: _Doc, labels: list[str]) -> int:
-    choices = "; ".join(labels)
+    choices = _choices(labels)
     m = re.fullmatch(r"\s*(?:(id)\s*=\s*)?(-?\d+)\s*", spec or "")
     if not m:
         raise d.err("member", f"{what} {spec!r}: give an index or id=N (choices: {choices})")
@@ -422,7 +552,8 @@ def select(doc: dict, path: Path, member: str | None) -> tuple[int, int, str]:
     for i, p in enumerate(perceptions):
         if not isinstance(p, dict):
             raise d.err(f"perceptions[{i}]", "must be an object")
-    labels = [_label(d, p, i) for i, p in enumerate(perceptions)]
+    labels = [_label(d, p, i) for i, p in enumerate(perceptions[: MAX_CHOICES + 1])]
+    labels += [""] * (len(perceptions) - len(labels))  # counted, not listed
     note = ""
     pspec, _, cspec = (member or "").partition("/")
     if member:
@@ -435,44 +566,52 @@ def select(doc: dict, path: Path, member: str | None) -> tuple[int, int, str]:
                    and p["perception_modality"] in SPATIAL_MODALITIES]
         if len(spatial) != 1:
             raise ProfileError(f"{path}: {len(perceptions)} perceptions, choose one with --member "
-                               f"PERCEPTION[/CHANNEL] (index or id=N): {'; '.join(labels)}")
+                               f"PERCEPTION[/CHANNEL] (index or id=N): {_choices(labels)}")
         pi = spatial[0]
-        note = (f"took perception {labels[pi]}, the texture over space; --member chooses another of: "
-                f"{'; '.join(labels)}")
+        note = (f"took perception {labels[pi] or _label(d, perceptions[pi], pi)}, the texture over space; "
+                f"--member chooses another of: {_choices(labels)}")
     where = f"perceptions[{pi}]"
     chans = d.get(perceptions[pi], "channels", where, "list")
     if not chans:
         raise d.err(f"{where}.channels", "empty: the perception has no channel")
-    clabels = [f"{j} (id={c.get('id') if isinstance(c, dict) else '?'})" for j, c in enumerate(chans)]
+    clabels = [f"{j} (id={str(c.get('id'))[:20] if isinstance(c, dict) else '?'})"
+               for j, c in enumerate(chans[: MAX_CHOICES + 1])]
+    clabels += [""] * (len(chans) - len(clabels))
     if cspec:
         ci = _pick(chans, cspec, "channel", d, clabels)
     elif len(chans) == 1:
         ci = 0
     else:
         raise ProfileError(f"{path}: perception {pi} has {len(chans)} channels, choose one with --member "
-                           f"{pi}/CHANNEL: {'; '.join(clabels)}")
+                           f"{pi}/CHANNEL: {_choices(clabels)}")
     return pi, ci, note
 
 
-def _hermite(idx: np.ndarray, amps: np.ndarray, curve: str) -> np.ndarray:
-    """Samples 0..idx[-1] of a curve through (idx, amps), idx non-decreasing from 0, as the
-    RM's linearInterpolation2 / cubicInterpolation2 (cubic: zero slope at every keyframe)."""
+def _hermite(idx: np.ndarray, amps: np.ndarray, curve: str, out: np.ndarray, start: int) -> None:
+    """Add samples 0..idx[-1] of a curve through (idx, amps), idx non-decreasing from 0, to
+    out[start:] (as far as out reaches), as the RM's linearInterpolation2 / cubicInterpolation2
+    (cubic: zero slope at every keyframe); CHUNK samples at a time."""
     last = int(idx[-1])
-    t = np.arange(last + 1, dtype=np.float64)
+    stop = min(out.size, start + last + 1)
+    if stop <= start:
+        return
     if last == 0:
-        return amps[:1].copy()
-    j1 = np.searchsorted(idx, t, side="left")
-    j1 = np.clip(j1, 1, idx.size - 1)
-    j0 = j1 - 1
-    t0, t1 = idx[j0].astype(np.float64), idx[j1].astype(np.float64)
-    f0, f1 = amps[j0], amps[j1]
-    h = np.where(t1 > t0, t1 - t0, 1.0)
-    if curve == "Linear" or idx.size == 2:
-        y = (f0 * (t1 - t) + f1 * (t - t0)) / h
-    else:
-        y = f0 + (f1 - f0) * (3 * h + 2 * (t0 - t)) * (t - t0) ** 2 / h**3
-    y[0] = amps[0]
-    return y
+        out[start] += amps[0]
+        return
+    linear = curve == "Linear" or idx.size == 2
+    for c0 in range(0, stop - start, CHUNK):
+        t = np.arange(c0, min(c0 + CHUNK, stop - start), dtype=np.float64)
+        j1 = np.clip(np.searchsorted(idx, t, side="left"), 1, idx.size - 1)
+        t0, t1 = idx[j1 - 1].astype(np.float64), idx[j1].astype(np.float64)
+        f0, f1 = amps[j1 - 1], amps[j1]
+        h = np.where(t1 > t0, t1 - t0, 1.0)
+        if linear:
+            y = (f0 * (t1 - t) + f1 * (t - t0)) / h
+        else:
+            y = f0 + (f1 - f0) * (3 * h + 2 * (t0 - t)) * (t - t0) ** 2 / h**3
+        if c0 == 0:
+            y[0] = amps[0]
+        out[start + c0 : start + c0 + y.size] += y
 
 
 def _effects(d: _Doc, band: dict, where: str) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -514,46 +653,75 @@ def _effects(d: _Doc, band: dict, where: str) -> list[tuple[int, np.ndarray, np.
     return out
 
 
-def _render_curve(d: _Doc, band: dict, where: str, to_idx, count_hint: int | None) -> np.ndarray:
-    curve = band.get("curve_type", "Cubic")
-    parts = []
+def _curve_span(d: _Doc, band: dict, where: str, to_idx) -> int:
+    """The samples a Curve band reaches (its last effect's end), checked against MAX_SAMPLES
+    before anything is evaluated."""
     end = 0
+    for pos, rel, _ in _effects(d, band, where):
+        e = int(to_idx(pos + rel[0])) + int(to_idx(rel[-1]) - to_idx(rel[0])) + 1
+        if e > MAX_SAMPLES:
+            raise d.err(where, f"spans {e} samples, more than {MAX_SAMPLES} (hostd.texture.hjif.MAX_SAMPLES)")
+        end = max(end, e)
+    return end
+
+
+def _render_curve(d: _Doc, band: dict, where: str, to_idx, out: np.ndarray) -> None:
+    """Add a Curve band's samples to `out` (its size: the channel's)."""
+    curve = band.get("curve_type", "Cubic")
     for pos, rel, amp in _effects(d, band, where):
         start = int(to_idx(pos + rel[0]))
         idx = to_idx(rel) - to_idx(rel[0])
-        if int(idx[-1]) + 1 > MAX_SAMPLES:
-            raise d.err(where, f"spans {int(idx[-1]) + 1} samples, more than {MAX_SAMPLES}")
-        y = _hermite(idx, amp, curve)
-        parts.append((start, y))
-        end = max(end, start + y.size)
-    n = count_hint if count_hint is not None else end
-    if n > MAX_SAMPLES:
-        raise d.err(where, f"spans {n} samples, more than {MAX_SAMPLES}")
-    out = np.zeros(n)
-    for start, y in parts:
-        stop = min(n, start + y.size)
-        if stop > start:
-            out[start:stop] += y[: stop - start]
-    return out
+        _hermite(idx, amp, curve, out, start)
+
+
+def _kinds(bands: list[dict]) -> str:
+    return ", ".join(sorted({str(b.get("band_type"))[:20] + (f" ({str(b.get('curve_type'))[:20]})"
+                                                          if b.get("band_type") == "Curve" else "")
+                             for b in bands}))
 
 
 def _render_by_rm(doc: dict, perception: dict, channel: dict, bands: list[dict], rate: int,
                   count: int, path: Path) -> np.ndarray:
-    """Bands hostd does not evaluate itself, played by the reference Synthesizer (int16 WAV)."""
-    ch = {**channel, "gain": 1.0, "bands": bands}
+    """Bands hostd does not evaluate itself, played by the reference Synthesizer (int16 WAV), when
+    the user opted in (rm_opted_in), sandboxed."""
+    if not rm_opted_in():
+        raise rm_refusal(path, f"its {_kinds(bands)} band(s) are what")
+    ch = {**channel, "gain": 1.0, "bands": bands, "sample_count": int(count), "frequency_sampling": int(rate)}
     p = {**perception, "perception_unit_exponent": 0, "channels": [ch], "effect_library": []}
     one = {**doc, "perceptions": [p], "avatars": [], "syncs": []}
-    with tempfile.TemporaryDirectory(prefix="hostd-hjif-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="hostd-rm-") as tmp:
         src, wav = Path(tmp) / "bands.hjif", Path(tmp) / "bands.wav"
         src.write_bytes(dumps(one))
-        run_rm("Synthesizer", "-f", str(src), "-o", str(wav), "-fs", str(rate))
+        src.chmod(0o444)
+        run_rm("Synthesizer", "-f", src.name, "-o", wav.name, "-fs", str(rate), cwd=Path(tmp), source=path,
+               read_only=src)
         if not wav.is_file():
             raise ProfileError(f"{path}: the reference Synthesizer wrote no WAV")
-        _, x = read_wav_full_scale(wav)
+        _, x = read_wav_full_scale(wav, shown=path)
     y = np.zeros(count)
     k = min(count, x.shape[0])
     y[:k] = x[:k, 0]
     return y
+
+
+def _band_ticks(d: _Doc, band: dict, where: str, timescale: int) -> float:
+    """A band's length in ticks as the reference Synthesizer takes it (Band::getBandTimeLength):
+    its last effect's position plus that effect's last keyframe (+ 22 ms for a Transient band)."""
+    effects = d.get(band, "effects", where, "list")
+    if not effects:
+        return 0.0
+    last = effects[-1]
+    lw = f"{where}.effects[{len(effects) - 1}]"
+    if not isinstance(last, dict):
+        raise d.err(lw, "must be an object")
+    pos = d.get(last, "position", lw, "int", 0)
+    kfs = d.get(last, "keyframes", lw, "list", [])
+    rels = [k["relative_position"] for k in kfs if isinstance(k, dict) and "relative_position" in k]
+    rel = d.get({"rp": rels[-1]}, "rp", f"{lw}.keyframes[-1].relative_position", "int") if rels else 0
+    if band.get("band_type") == "WaveletWave" or not kfs:
+        return float(pos)
+    extra = 22.0 * timescale / 1000.0 if band.get("band_type") == "Transient" else 0.0
+    return float(pos + rel) + extra
 
 
 def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
@@ -612,7 +780,27 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
     native = [b for b in bands if is_native(b)]
     other = [b for b in bands if not is_native(b) and (spatial or b["band_type"] != "WaveletWave")]
     note = ""
-    if spatial:
+    stated_spacing = _stated(_SPACING, desc, SPACING_UM_RANGE[1])
+    stated_n = _stated(_SAMPLES, desc, MAX_SAMPLES)
+    own = None
+    if (spatial and stated_spacing is not None and stated_n is not None and len(bands) == 1
+            and is_native(bands[0])):
+        # hostd's own layout: one effect, a keyframe per sample, positions within half a unit
+        # of i x the stated spacing (spatial_positions); anything else is read as a foreign file
+        effs = _effects(d, bands[0], f"{cw}.bands[0]")
+        n_own = int(stated_n)
+        # N samples, then a 0 after them and a 0 at the file's common end (build)
+        if len(effs) == 1 and effs[0][0] == 0 and effs[0][1].size in (n_own, n_own + 2) and n_own >= 2:
+            i = np.arange(n_own, dtype=np.float64)
+            unit_um = 10.0 ** (ue + 6)
+            off = np.abs(effs[0][1][:n_own] * unit_um - i * stated_spacing)
+            tail = effs[0][2][n_own:]
+            if np.all(off <= 0.5 * unit_um + 1e-9 * stated_spacing * (i + 1)) and not np.any(tail):
+                own = effs[0][2][:n_own]
+    if own is not None:
+        y = np.clip(own, -1.0, 1.0)
+        step_m, rate = stated_spacing * 1e-6, None
+    elif spatial:
         # a grid on every keyframe position: their greatest common step
         pos_all = []
         for band in native:
@@ -634,16 +822,16 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
         def to_idx(x):
             return np.asarray(x, dtype=np.int64) // step
 
-        y = np.zeros(0)
+        count = max(_curve_span(d, band, f"{cw}.bands[{bands.index(band)}]", to_idx) for band in native)
+        y = np.zeros(count)
         for band in native:
-            yb = _render_curve(d, band, f"{cw}.bands[{bands.index(band)}]", to_idx, None)
-            if yb.size > y.size:
-                yb, y = y, yb
-            y[: yb.size] += yb
+            _render_curve(d, band, f"{cw}.bands[{bands.index(band)}]", to_idx, y)
             np.clip(y, -1.0, 1.0, out=y)  # as the RM: the channel is clipped after each band
         rate = None
     else:
-        rate = fs_ch if fs_ch is not None else timescale
+        # the channel's own rate; else the timescale's, at least the Synthesizer's default 8 kHz (an
+        # AHAP or IVS input gives the RM's Encoder a timescale of 1000 ticks per second)
+        rate = fs_ch if fs_ch is not None else max(timescale, DEFAULT_RATE_HZ)
         if not 1 <= rate <= 10**6:
             raise d.err(f"{cw}.frequency_sampling", f"{rate} Hz is absurd (1..1000000)")
         if n_ch is not None and not 0 < n_ch <= MAX_SAMPLES:
@@ -652,63 +840,115 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
         def to_idx(x):
             return np.asarray(x, dtype=np.int64) * rate // timescale  # the RM's integer division
 
-        if n_ch is None and not all(is_native(b) for b in bands):
-            raise d.err(f"{cw}.sample_count", "missing: needed to play its "
-                        f"{sorted({b['band_type'] for b in bands if not is_native(b)})} bands")
-        parts = [_render_curve(d, band, f"{cw}.bands[{b}]", to_idx, n_ch) if is_native(band)
-                 else None for b, band in enumerate(bands)]
-        count = n_ch if n_ch is not None else max((x.size for x in parts if x is not None), default=0)
+        if n_ch is not None:
+            count = n_ch
+        else:  # as the Synthesizer: its length in ticks (Helper::getTimeLength), at the rate
+            spans = [_curve_span(d, band, f"{cw}.bands[{b}]", to_idx) for b, band in enumerate(bands)
+                     if is_native(band)]
+            ticks = [_band_ticks(d, band, f"{cw}.bands[{b}]", timescale) for b, band in enumerate(bands)
+                     if not is_native(band)]
+            count = max(spans + [round(rate * t / timescale) for t in ticks], default=0)
+            if count > MAX_SAMPLES:
+                raise d.err(f"{cw}.bands", f"last {count} samples at {rate} Hz, more than {MAX_SAMPLES} "
+                            "(hostd.texture.hjif.MAX_SAMPLES)")
+        from hostd.texture import hjif_vectorial
+
+        by_rm = [b for b in bands if not is_native(b) and b["band_type"] != "WaveletWave"
+                 and not hjif_vectorial.covers(b)]
+        if by_rm and not rm_opted_in():
+            raise rm_refusal(path, f"its {_kinds(by_rm)} band(s) are what")
         y = np.zeros(count)
-        for b, (band, x) in enumerate(zip(bands, parts, strict=True)):
-            if x is None and band["band_type"] == "WaveletWave":
+        for b, band in enumerate(bands):
+            if is_native(band):
+                _render_curve(d, band, f"{cw}.bands[{b}]", to_idx, y)
+            elif band["band_type"] == "WaveletWave":
                 from hostd.texture import hjif_wavelet
 
-                x = hjif_wavelet.render_band(band, timescale, int(rate), count, f"{cw}.bands[{b}]", path)
-            elif x is None:
-                x = _render_by_rm(doc, p, c, [band], int(rate), count, path)
-            k = min(count, x.size)
-            y[:k] += x[:k]
+                y += hjif_wavelet.render_band(band, timescale, int(rate), count, f"{cw}.bands[{b}]", path)
+            elif hjif_vectorial.covers(band):
+                y += hjif_vectorial.render_band(band, timescale, int(rate), count, f"{cw}.bands[{b}]", path)
+            else:
+                y += _render_by_rm(doc, p, c, [band], int(rate), count, path)
             np.clip(y, -1.0, 1.0, out=y)  # as the RM: the channel is clipped after each band
-        if other:
-            note = (f"{len(other)} {sorted({b.get('band_type') for b in other})} band(s) played by the "
+        if by_rm:
+            note = (f"{len(by_rm)} {sorted({b.get('band_type') for b in by_rm})} band(s) played by the "
                     "reference Synthesizer (16-bit)")
         step_m = None
     if y.size < 2:
         raise d.err(f"{cw}.bands", "fewer than 2 samples: no profile")
+    if not np.all(np.isfinite(y)):
+        raise d.err(f"{cw}.bands", "evaluate to NaN or Inf (a keyframe's numbers are absurd)")
     y = np.clip(y, -1.0, 1.0) * gain * 10.0**pue
     return Channel(samples=y, spatial=spatial, step_m=step_m, rate_hz=None if spatial else float(rate),
                    perception=pi, channel=ci, modality=modality, full_scale_um=full_scale,
                    speed_mm_s=speed, note=note)
 
 
+def rm_playback(doc: dict, rate_hz: int) -> np.ndarray:
+    """(samples, perceptions) of what the reference Synthesizer (2de9ff1) plays of a file hostd
+    wrote (one channel of one Curve effect at 0 per perception) at `rate_hz`, full scale 1: its
+    length is the longest perception's (Helper::getTimeLength: sample_count / frequency_sampling,
+    else the last keyframe's position), each keyframe at sample position x rate // timescale
+    (exact here: hostd keeps position x rate within 32 bits), cubic between keyframes. For
+    tests and docs that compare hostd's intent with the Synthesizer's WAV."""
+    d = _Doc(Path("<doc>"))
+    ts = int(doc["timescale"])
+    lengths, curves = [], []
+    for p in doc["perceptions"]:
+        c = p["channels"][0]
+        (band,) = c["bands"]
+        (eff,) = _effects(d, band, "band")
+        pos, rel, amp = eff
+        if "sample_count" in c and "frequency_sampling" in c:
+            lengths.append(ts * c["sample_count"] / c["frequency_sampling"])
+        else:
+            lengths.append(float(pos + rel[-1]))
+        curves.append((rel * rate_hz // ts, amp, band.get("curve_type", "Cubic"), float(c["gain"])))
+    n = round(rate_hz * max(lengths) / ts)
+    out = np.zeros((n, len(curves)))
+    for j, (idx, amp, curve, gain) in enumerate(curves):
+        col = np.zeros(n)
+        # the last keyframe is not played: its sample must lie past the WAV (build makes it so)
+        assert idx[-1] >= n, (idx[-1], n)
+        _hermite(idx[:-1] - idx[0], amp[:-1], curve, col, int(idx[0]))
+        if idx.size > 2 and idx[1] == idx[0]:
+            col[idx[0]] = 0.0  # the RM's first segment of length 0: 0/0, written as 0
+        out[:, j] = np.clip(col, -1.0, 1.0) * gain
+    return out
+
+
 def read_channel(path: Path, member: str | None = None) -> Channel:
-    """Load, select and evaluate one channel of an .hjif (or .hmpg through the reference Decoder)."""
+    """Load, select and evaluate one channel of an .hjif (or .hmpg through the reference Decoder,
+    when the user opted in: rm_opted_in)."""
     path = Path(path)
     if path.suffix.lower() == ".hmpg":
-        with tempfile.TemporaryDirectory(prefix="hostd-hmpg-") as tmp:
-            out = Path(tmp) / "decoded.hjif"
-            if not path.is_file():
-                raise ProfileError(f"no such .hmpg file: {path}")
-            size = path.stat().st_size
-            if size > MAX_HMPG_BYTES:
-                raise ProfileError(f"{path}: {size} bytes, more than the {MAX_HMPG_BYTES >> 20} MiB an .hmpg "
-                                   "may have (hostd.texture.hjif.MAX_HMPG_BYTES): refused before decoding")
-            if rm_dir() is None:
-                raise ProfileError(f"{path}: an .hmpg is read through the reference Decoder, which is not "
-                                   f"installed: {RM_HOW}")
+        if not path.is_file():
+            raise ProfileError(f"no such .hmpg file: {path}")
+        size = path.stat().st_size
+        if size > MAX_HMPG_BYTES:
+            raise ProfileError(f"{path}: {size} bytes, more than the {MAX_HMPG_BYTES >> 20} MiB an .hmpg "
+                               "may have (hostd.texture.hjif.MAX_HMPG_BYTES): refused before decoding")
+        if rm_dir() is None:
+            raise ProfileError(f"{path}: an .hmpg is read through the reference Decoder, which is not "
+                               f"installed: {RM_HOW}")
+        if not rm_opted_in():
+            raise rm_refusal(path, "an .hmpg is a binary stream")
+        with tempfile.TemporaryDirectory(prefix="hostd-rm-") as tmp:
+            copy = _private_copy(path, Path(tmp), "input.hmpg", MAX_HMPG_BYTES)
             try:
-                run_rm("Decoder", "-f", str(path), "-o", str(out))
+                run_rm("Decoder", "-f", copy.name, "-o", "decoded.hjif", cwd=Path(tmp), source=path,
+                       read_only=copy)
             except ProfileError as e:
-                raise ProfileError(f"{path}: {e} (not a valid .hmpg? the Decoder may use "
-                                   f"{RM_MEMORY_BYTES >> 20} MiB and {RM_CPU_S} s of CPU; a valid one needs "
-                                   "far less)") from None
+                raise ProfileError(f"{e} (not a valid .hmpg? the Decoder may use {RM_MEMORY_BYTES >> 20} MiB "
+                                   f"and {RM_CPU_S} s of CPU; a valid one needs far less)") from None
+            out = Path(tmp) / "decoded.hjif"
             if not out.is_file():
                 raise ProfileError(f"{path}: the reference Decoder wrote no .hjif")
-            doc = load_json(out)
-            pi, ci, note = select(doc, path, member)
-            ch = evaluate(doc, out, pi, ci)
-            return dataclasses.replace(ch, note="; ".join(x for x in (note, ch.note, "decoded by the "
-                                                                    "reference Decoder") if x))
+            doc = load_json(out, shown=path)
+        pi, ci, note = select(doc, path, member)
+        ch = evaluate(doc, path, pi, ci)
+        return dataclasses.replace(ch, note="; ".join(x for x in (note, ch.note, "decoded by the "
+                                                                "reference Decoder") if x))
     doc = load_json(path)
     pi, ci, note = select(doc, path, member)
     ch = evaluate(doc, path, pi, ci)
@@ -726,9 +966,12 @@ def read(path: Path, opts: LoadOptions) -> Columns:
     notes = [ch.note] if ch.note else []
     if ch.full_scale_um is not None:
         y, y_unit = y * ch.full_scale_um, "um"
+    elif opts.full_scale_um is not None:
+        y, y_unit = y * opts.full_scale_um, "um"
+        notes.append(f"amplitude 1.0 read as {opts.full_scale_um:g} µm (--full-scale-um)")
     else:
         notes.append("amplitude 1.0 read as 1 " + (opts.y_unit or "um") + " (the file states no scale; "
-                     "--y-unit sets it)")
+                     "--full-scale-um sets it)")
     if ch.spatial:
         return Columns(y.reshape(-1, 1), x_unit="um", y_unit=y_unit, spacing=ch.step_m * 1e6,
                        note="; ".join(notes))

@@ -41,6 +41,7 @@ CONTEXTS = 7
 RESET_HALF, RESET_TOTAL = 8, 16
 WAVMAX_LENGTH, FRACTION_BITS_0, FRACTION_BITS_1 = 8, 7, 3
 MAXALLOCBITS_SIZE = 4
+MIN_BLOCK = 16
 MAX_BLOCK = 1 << 16  # samples of one block (a hostile block_length would ask for more)
 MAX_DECODED = 4_000_000  # samples of one band (8 min at 8 kHz): bounds the decoder's work
 
@@ -200,15 +201,18 @@ def inverse_dwt(coeffs: np.ndarray, levels: int) -> np.ndarray:
 def decode_band(band: dict, timescale: int, where: str, path) -> list[tuple[int, np.ndarray]]:
     """[(effect position in ticks, samples at upper_frequency_limit per second)] of a WaveletWave
     band (its effects are consecutive blocks)."""
-    ufl = band.get("upper_frequency_limit")
-    bl_ms = band.get("block_length")
-    if not (isinstance(ufl, int) and 0 < ufl <= 10**6 and isinstance(bl_ms, int) and 0 < bl_ms):
-        raise ProfileError(f"{path}: {where}: a WaveletWave band needs upper_frequency_limit (1..10^6) and "
-                           "block_length > 0")
+    for key in ("upper_frequency_limit", "block_length"):
+        v = band.get(key)
+        if not (isinstance(v, int) and not isinstance(v, bool) and 0 < v <= 10**6):
+            got = "missing" if v is None else f"{str(v)[:40]!r} is not an integer in 1..1000000"
+            raise ProfileError(f"{path}: {where}.{key}: {got} (a WaveletWave band needs it; the reference "
+                               "software skips such a band)")
+    ufl, bl_ms = band["upper_frequency_limit"], band["block_length"]
     bl = int(bl_ms * 0.001 * ufl)
-    if not 8 <= bl <= MAX_BLOCK or bl & (bl - 1):
-        raise ProfileError(f"{path}: {where}.block_length: {bl} samples a block: not a power of two in "
-                           f"8..{MAX_BLOCK}")
+    # SPIHT's first pass reaches coefficient 15 (the children of 4..7): a block has at least 16
+    if not MIN_BLOCK <= bl <= MAX_BLOCK or bl & (bl - 1):
+        raise ProfileError(f"{path}: {where}.block_length: {bl_ms} ms at {ufl} Hz = {bl} samples a block: "
+                           f"not a power of two in {MIN_BLOCK}..{MAX_BLOCK}")
     levels = int(math.log2(bl / 4))
     out = []
     effects = band.get("effects")
@@ -231,10 +235,11 @@ def render_band(band: dict, timescale: int, rate: int, count: int, where: str, p
     """The band's samples at `rate` as the reference Synthesizer takes them: for output sample t,
     position p = timescale t / rate ticks, sample floor((p - effect position) ufl / timescale) of
     every effect at or before p (0 past its block)."""
+    blocks = decode_band(band, timescale, where, path)  # checks the band's fields first
     ufl = band["upper_frequency_limit"]
     y = np.zeros(count)
     pos = timescale * (np.arange(count, dtype=np.float64) / float(rate))
-    for start, samples in decode_band(band, timescale, where, path):
+    for start, samples in blocks:
         idx = np.floor((pos - start) * float(ufl) / float(timescale))
         ok = (pos >= start) & (idx < samples.size)
         y[ok] += samples[idx[ok].astype(np.int64)]
