@@ -50,8 +50,8 @@ def test_hostd_render_writes_a_wav_scaled_to_the_full_scale(tmp_path):
     vtx = tmp_path / "w.vtx"
     vtx.write_bytes(api.encode(api.load_profile("synthetic:wood:1"), method="quant", levels=14)["stream"])
     wav = tmp_path / "w.wav"
-    p = subprocess.run([sys.executable, "-m", "hostd", "render", str(vtx), "--speed", "50",
-                        "--seconds", "0.5", "--rate", "8000", "-o", str(wav), "--json"],
+    p = subprocess.run([sys.executable, "-m", "hostd", "render", str(vtx), "--speed-mm-s", "50",
+                        "--seconds", "0.5", "--rate-hz", "8000", "-o", str(wav), "--json"],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
     info = json.loads(p.stdout)

@@ -48,7 +48,7 @@ def test_every_command_takes_calibration(tmp_path, capsys):
     csv = tmp_path / "curve.csv"
     csv.write_text("frequency_hz,threshold_um\n40,2\n100,0.5\n250,0.2\n400,0.3\n")
     s = tmp_path / "w.vtx"  # encoded for the lab's curve: a stream is scored with its own curve
-    assert main(["encode", "synthetic:wood:2", "-o", str(s), "--method", "cut", "--b0", "0",
+    assert main(["encode", "synthetic:wood:2", "-o", str(s), "--method", "cut", "--b0-db", "0",
                  "--calibration", str(p)]) == 0
     capsys.readouterr()
     assert main(["inspect", str(s), "--json"]) == 0

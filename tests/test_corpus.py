@@ -395,7 +395,7 @@ def test_cli_report_and_export(tmp_path, capsys):
 
     db = tmp_path / "r.sqlite"
     for args in (["run", "synthetic:wood:1", "--codec", f"{FIX}:uniform", "--codec", "hostd-v2", "--methods",
-                  "shaped", "--g=-12,-6,0,6", "--length-mm", "2", "--no-spqi", "--workers", "1", "-o",
+                  "shaped", "--g-db=-12,-6,0,6", "--length-mm", "2", "--no-spqi", "--workers", "1", "-o",
                   str(db), "--no-progress"],
                  ["report", str(db), "-o", str(tmp_path / "rep"), "--anchor", "hostd-v2/shaped",
                   "--interpolation", "akima", "--no-plots"],
@@ -406,7 +406,7 @@ def test_cli_report_and_export(tmp_path, capsys):
     capsys.readouterr()
     # run and report in one command (--report): the same table as `hostd corpus report` prints
     run = ["corpus", "run", "synthetic:wood:1", "--codec", f"{FIX}:uniform", "--codec", "hostd-v2",
-           "--methods", "shaped", "--g=-12,-6,0,6", "--length-mm", "2", "--no-spqi", "--workers", "1",
+           "--methods", "shaped", "--g-db=-12,-6,0,6", "--length-mm", "2", "--no-spqi", "--workers", "1",
            "-o", str(db), "--no-progress"]
     assert main([*run, "--report", str(tmp_path / "one")]) == 0
     out = capsys.readouterr().out

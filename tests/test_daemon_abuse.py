@@ -464,7 +464,7 @@ def test_concurrent_selects_of_large_textures_keep_the_pump_alive(daemon):
     wait_for(lambda: request(sock, {"cmd": "status"})["connected"], START_S, "the simulated display")
     for name, seed in (("big", "wood"), ("big2", "wood:7")):
         p = d / f"{name}.vtx"
-        assert main(["encode", f"synthetic:{seed}", "-o", str(p), "--fmax", "40000", "--method", "quant",
+        assert main(["encode", f"synthetic:{seed}", "-o", str(p), "--fmax-hz", "40000", "--method", "quant",
                      "--levels", "14"]) == 0
         assert vtx.decode(p.read_bytes()).n_keep == 16000
         send_file(sock, str(p), name)

@@ -232,7 +232,7 @@ def test_similarity_plan_scores_fit_and_calibration_end_to_end(tmp_path, capsys)
     capsys.readouterr()
     s = tmp_path / "x.vtx"
     assert main(["encode", "synthetic:wood:1", "--length-mm", "1", "-o", str(s), "--method", "cut",
-                 "--b0", "0", "--calibration", str(cal),
+                 "--b0-db", "0", "--calibration", str(cal),
                  "--json"]) == 0
     enc = json.loads(capsys.readouterr().out)
     assert (enc["a"], enc["b"]) == (fit["a"], fit["b"])

@@ -22,7 +22,8 @@ def _design(tmp_path):
         rows.append(f"wood,quant,{lv},{sc},{out.name},synthetic:wood:1")
     for b0, sc in ((-8, 0.4), (0, 1.1), (8, 2.2)):
         out = tmp_path / f"c{b0}.vtx"
-        assert main(["encode", "synthetic:wood:1", "-o", str(out), "--method", "cut", "--b0", str(b0)]) == 0
+        assert main(["encode", "synthetic:wood:1", "-o", str(out), "--method", "cut",
+                     "--b0-db", str(b0)]) == 0
         rows.append(f"wood,cut,{b0},{sc},{out.name},synthetic:wood:1")
     rows += ["wood,none,,0.1,,synthetic:wood:1", "wood,none,,0.0,,"]  # the uncompressed controls
     f = tmp_path / "scores.csv"

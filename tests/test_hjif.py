@@ -23,7 +23,7 @@ from hostd.texture.load import LoadOptions, load_profile
 def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("hjif")
     stream = d / "wood.vtx"
-    assert main(["encode", "synthetic:wood:3", "--length-mm", "5", "--method", "shaped", "--g", "0",
+    assert main(["encode", "synthetic:wood:3", "--length-mm", "5", "--method", "shaped", "--g-db", "0",
                  "-o", str(stream)]) == 0
     assert main(["export", str(stream), "-o", str(d / "wood.hjif"), "--speed-mm-s", "80"]) == 0
     assert main(["export", "synthetic:wood:3", "--length-mm", "5", "-o", str(d / "prof.hjif")]) == 0
@@ -65,7 +65,7 @@ def test_loader_reads_hjif_as_a_profile(files, capsys):
     # the time-domain perception: its spacing is the stated speed over the rate
     tprof = load_profile(files / "wood.hjif", LoadOptions(length_mm=None, member="1"))
     assert tprof.spacing_um == pytest.approx(80e3 / 8000)
-    assert main(["encode", str(files / "wood.hjif"), "--member", "1", "--method", "shaped", "--g", "0",
+    assert main(["encode", str(files / "wood.hjif"), "--member", "1", "--method", "shaped", "--g-db", "0",
                  "-o", str(files / "t.vtx"), "--length-mm", "5"]) == 0
 
 
@@ -133,7 +133,7 @@ def test_bad_files_name_the_file_and_the_field(files, tmp_path, change, member, 
 def test_bad_json_and_size_limit(files, tmp_path, monkeypatch, capsys):
     bad = tmp_path / "bad.hjif"
     bad.write_text('{"version": "2023", "perceptions": [')
-    assert main(["encode", str(bad), "-o", str(tmp_path / "x.vtx"), "--method", "cut", "--b0", "0"]) == 2
+    assert main(["encode", str(bad), "-o", str(tmp_path / "x.vtx"), "--method", "cut", "--b0-db", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{bad}: not valid JSON" in err
     bad.write_text('{"timescale": NaN}')
@@ -176,7 +176,7 @@ def test_export_refuses_what_it_cannot_write(files, tmp_path, capsys):
 
 def test_the_reader_s_notes_reach_the_user(files, tmp_path, capsys):
     capsys.readouterr()
-    assert main(["encode", str(files / "wood.hjif"), "--method", "shaped", "--g", "0",
+    assert main(["encode", str(files / "wood.hjif"), "--method", "shaped", "--g-db", "0",
                  "-o", str(tmp_path / "x.vtx")]) == 0
     err = capsys.readouterr().err
     assert "wood.hjif: took perception 0 (id=0, 'Vibrotactile Texture'" in err and "--member" in err
@@ -281,7 +281,7 @@ def test_the_corpus_tool_reads_hjif(files, tmp_path, capsys):
     d.mkdir()
     shutil.copy(files / "prof.hjif", d / "prof.hjif")
     shutil.copy(files / "wood.hjif", d / "wood.hjif")
-    common = ["--codec", "hostd-v2", "--methods", "shaped", "--g", "0", "--no-spqi", "--workers", "1",
+    common = ["--codec", "hostd-v2", "--methods", "shaped", "--g-db", "0", "--no-spqi", "--workers", "1",
               "--no-progress", "--length-mm", "5"]
     assert main(["corpus", "run", str(d), *common, "-o", str(tmp_path / "a.sqlite")]) == 0
     assert main(["corpus", "run", "synthetic:wood:3", *common, "-o", str(tmp_path / "b.sqlite")]) == 0
@@ -548,7 +548,7 @@ def test_errors_stay_short_on_a_file_of_50000_perceptions(tmp_path, capsys):
            "timescale": 1000, "avatars": [], "perceptions": [p] * 50_000, "syncs": []}
     f = tmp_path / "many.hjif"
     f.write_text(json.dumps(doc))
-    assert main(["encode", str(f), "-o", str(tmp_path / "x.vtx"), "--method", "cut", "--b0", "0"]) == 2
+    assert main(["encode", str(f), "-o", str(tmp_path / "x.vtx"), "--method", "cut", "--b0-db", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "50000 perceptions" in err and "and 49992 more" in err
     assert len(err) < 1000

@@ -141,7 +141,7 @@ def _synth(rm: Path, src: Path, rate_hz: int = 8000) -> np.ndarray:
 @pytest.fixture(scope="module")
 def wood(tmp_path_factory):
     d = tmp_path_factory.mktemp("rm")
-    assert main(["encode", "synthetic:wood:5", "--length-mm", "5", "--method", "shaped", "--g", "0",
+    assert main(["encode", "synthetic:wood:5", "--length-mm", "5", "--method", "shaped", "--g-db", "0",
                  "-o", str(d / "wood.vtx")]) == 0
     return d, api.decode(d / "wood.vtx")
 
@@ -267,7 +267,7 @@ def test_round_trip_costs_no_more_than_the_reference_codec(rm, wood, capsys):
 
     # scored by `hostd iobj REFERENCE DECODED` (the codec's output as a one-column profile)
     np.savetxt(d / "c.txt", codec_um, fmt="%.17g")
-    geometry = ["--speed", "50", "--fmax", f"{s.fmax_hz:g}", "--json"]
+    geometry = ["--ref-speed-mm-s", "50", "--fmax-hz", f"{s.fmax_hz:g}", "--json"]
     scores = []
     for decoded, extra in (("t_rt.hjif", []), ("c.txt", ["--spacing", f"{orig.spacing_um!r}"])):
         capsys.readouterr()
@@ -347,13 +347,13 @@ def test_a_hostile_hmpg_is_one_line_and_the_decoder_is_bounded(rm, tmp_path, cap
     bad.write_bytes(np.random.default_rng(1).bytes(2000))
     monkeypatch.delenv(hjif.RM_OPT_IN_ENV, raising=False)
     assert main(["encode", str(bad), "-o", str(tmp_path / "x.vtx"), "--spacing", "6.25", "--method", "cut",
-                 "--b0", "0"]) == 2
+                 "--b0-db", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{bad}: an .hmpg is a binary stream" in err
     assert "HOSTD_RUN_MPEG_RM=1" in err
     monkeypatch.setenv(hjif.RM_OPT_IN_ENV, "1")
     assert main(["encode", str(bad), "-o", str(tmp_path / "x.vtx"), "--spacing", "6.25", "--method", "cut",
-                 "--b0", "0"]) == 2
+                 "--b0-db", "0"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{bad}: the reference Decoder failed" in err and "bad_alloc" in err, err
 
@@ -475,7 +475,8 @@ def test_what_the_encoder_writes_from_ahap_ivs_and_ohm_imports(rm, wood, tmp_pat
         err = np.max(np.abs(x[:k, j] - ch.samples))
         print(f"{kind} perception {j}: {k} samples, hostd vs Synthesizer {err / LSB:.3f} LSB ({ch.note})")
         assert err <= (0.5 + FLOAT32_LSB) * LSB
-    assert main(["encode", str(enc), "--member", last, "--spacing", "6.25", "--method", "shaped", "--g", "0",
+    assert main(["encode", str(enc), "--member", last, "--spacing", "6.25", "--method", "shaped",
+                 "--g-db", "0",
                  "--length-mm", "1", "-o", str(tmp_path / "a.vtx")]) == 0
 
 

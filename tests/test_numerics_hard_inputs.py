@@ -166,7 +166,7 @@ def test_cut_of_a_constant_profile_scores_zero_and_rate_control_spends_a_header(
     path.write_text("1.5\n" * n)
     out = tmp_path / "c.vtx"
     args = [str(path), "--spacing", "0.5", "--length-mm", "100", "-o", str(out)]
-    assert cli.main(["encode", *args, "--format", "v1", "--method", "cut", "--b0", "0", "--json"]) == 0
+    assert cli.main(["encode", *args, "--format", "v1", "--method", "cut", "--b0-db", "0", "--json"]) == 0
     # oracle: P = A = 0 and P' = A' = 0 (nothing to keep), and the relative error of two zeros is 0
     assert json.loads(capsys.readouterr().out)["Iobj"] == 0.0
     assert cli.main(["encode", *args, "--target-iobj", "0.05", "--json"]) == 0

@@ -165,7 +165,7 @@ def test_encoder_refuses_what_v2_cannot_store():
     y, geom = _wood()
     with pytest.raises(CodecError, match=r"multiple of 0\.25"):
         stream2.encode_profile(y, geom, CURVE, method="shaped", g_db=0.1)
-    with pytest.raises(CodecError, match="--g"):
+    with pytest.raises(CodecError, match="--g-db"):
         stream2.encode_profile(y, geom, CURVE, method="shaped")
     with pytest.raises(CodecError, match="format v1"):
         stream2.encode_profile(y, geom, CURVE, method="cut", b0_db=0.0, value_bits=0)
@@ -308,7 +308,7 @@ def test_cli_encode_defaults_to_v2_and_writes_v1_on_request(tmp_path, capsys):
     from hostd.cli import main
 
     out2, out1 = tmp_path / "a.vtx", tmp_path / "b.vtx"
-    assert main(["encode", "synthetic:wood:5", "-o", str(out2), "--method", "shaped", "--g", "-6"]) == 0
+    assert main(["encode", "synthetic:wood:5", "-o", str(out2), "--method", "shaped", "--g-db", "-6"]) == 0
     assert main(["encode", "synthetic:wood:5", "-o", str(out1), "--format", "v1", "--method", "quant",
                  "--levels", "14"]) == 0
     assert vtx.decode(out2.read_bytes()).version == 2 and vtx.decode(out1.read_bytes()).version == 1
@@ -320,7 +320,7 @@ def test_cli_encode_defaults_to_v2_and_writes_v1_on_request(tmp_path, capsys):
     info = json.loads(capsys.readouterr().out)
     assert info["guard_source"] == "profile" and 0 < info["wsnr_db"] < 30
     assert main(["encode", "synthetic:wood:5", "-o", str(out1), "--format", "v1", "--method",
-                 "shaped", "--g", "0"]) == 2
+                 "shaped", "--g-db", "0"]) == 2
     assert "format v2" in capsys.readouterr().err
 
 
