@@ -146,7 +146,7 @@ def add_parser(sub) -> None:
     p.add_argument("-o", "--output", required=True, help="output .hjif file")
     p.add_argument("--speed-mm-s", type=_positive, default=None,
                    help="stroke speed of the time-domain perception, mm/s (default: the stream's v_ref, "
-                   "or --speed)")
+                   "or --ref-speed-mm-s)")
     p.add_argument("--rate-hz", type=_positive, default=8000.0,
                    help="sample rate of the time-domain perception, Hz (default 8000, the reference "
                    "Synthesizer's; at most 48000)")
