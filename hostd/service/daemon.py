@@ -50,6 +50,10 @@ log = logging.getLogger("hostd")
 MAX_HEADER = 4096
 RESTARTS_PER_MINUTE = 3  # a worker that dies more often stays dead and the watchdog starves
 QUALITY_RETRY_S = (0.5, 30.0)  # a quality row that cannot be written is retried, back-off doubling
+# streams waiting to be scored: a producer waits for room (an upload's handler, the start-up's look
+# for streams without a row), so what waits is bounded whatever the backlog; the start-up's entries
+# are names (read when scored), an upload's its bytes (in memory already; at most this many kept)
+QUALITY_QUEUE_MAX = 16
 
 
 IN_MODIFY, IN_ATTRIB, IN_CLOSE_WRITE, IN_MOVED_TO, IN_CREATE = 0x2, 0x4, 0x8, 0x80, 0x100
@@ -258,7 +262,7 @@ class Daemon:
         self.pump_writer: PumpWriter | None = None
         self._stop_deadline = math.inf  # the quality worker's last retry at shutdown
         self.signalled = False  # set by the SIGTERM/SIGINT handler, which must take no lock
-        self.quality_q: queue.Queue = queue.Queue()
+        self.quality_q: queue.Queue = queue.Queue(QUALITY_QUEUE_MAX)
         self.stop_event = threading.Event()
         # the threads sleep on descriptors, not on timers: stop_r turns readable (for good) at the
         # stop; wake_r wakes the main loop (a signal through set_wakeup_fd, a worker that ended)
@@ -427,19 +431,15 @@ class Daemon:
         while True:
             try:
                 # idle: asleep until a stream arrives or the stop (a None); a pending row is retried
-                item = self.quality_q.get(timeout=0.05 if self.quality_pending else None)
+                if self.stop_event.is_set():  # (stop() may have found the queue full: no None)
+                    item = self.quality_q.get_nowait()
+                else:
+                    item = self.quality_q.get(timeout=0.05 if self.quality_pending else None)
             except queue.Empty:
                 item = None
             stopping = self.stop_event.is_set()
             if item is not None:
-                name, data, sha, t = item
-                try:
-                    q = self.cfg.quality
-                    row = qualitylog.score_row(data, name, sha, t, q.a, q.b, self.curve, self.calibration)
-                    self.quality_pending.append(row)
-                except Exception as e:  # a scoring failure must not stop the service
-                    self.scoring.discard((name, sha))
-                    log.error("quality scoring of %s failed: %s", name, e)
+                self._score(*item)
                 continue
             if not self.quality_pending:
                 if stopping:
@@ -491,15 +491,40 @@ class Daemon:
         if self.quality_pending:
             self.keep_pending_rows()
 
-    def queue_for_scoring(self, name: str, data: bytes, sha: str, received_at: float) -> bool:
+    def _score(self, name: str, sha: str, received_at: float, data: bytes | None) -> None:
+        """Score one queued stream into quality_pending; data None: read from the library now (a
+        stream found without a row at start-up, queued by its name)."""
+        try:
+            if data is None:
+                data = self.library.read(name)
+                if hashlib.sha256(data).hexdigest() != sha:  # replaced since: its new content is queued
+                    self.scoring.discard((name, sha))
+                    log.info("quality: %s was replaced before it was scored; its new content is scored", name)
+                    return
+            q = self.cfg.quality
+            row = qualitylog.score_row(data, name, sha, received_at, q.a, q.b, self.curve, self.calibration)
+            self.quality_pending.append(row)
+        except Exception as e:  # a scoring failure (or a stream removed meanwhile) must not stop the service
+            self.scoring.discard((name, sha))
+            log.error("quality scoring of %s failed: %s", name, e)
+
+    def queue_for_scoring(self, name: str, data: bytes | None, sha: str, received_at: float) -> bool:
         """Once per (name, content) until its row is written: an upload during the start-up's
-        look for unscored streams is not scored twice."""
+        look for unscored streams is not scored twice. data None: the stored stream, read when
+        scored. Waits for room in the bounded queue (the worker takes an entry per score); False
+        when the daemon stops meanwhile (the stream, stored, is scored at the next start)."""
         with self.lock:
             if (name, sha) in self.scoring:
                 return False
             self.scoring.add((name, sha))
-        self.quality_q.put((name, data, sha, received_at))
-        return True
+        while True:
+            try:  # (a timer only while the queue is full)
+                self.quality_q.put((name, sha, received_at, data), timeout=0.25)
+                return True
+            except queue.Full:
+                if self.stop_event.is_set():
+                    self.scoring.discard((name, sha))
+                    return False
 
     def keep_pending_rows(self) -> None:
         """At exit: rows not written go to the pending-rows file for the next start."""
@@ -549,7 +574,8 @@ class Daemon:
                 if (name, sha) in known:
                     continue
                 self.library.decode(data)  # within today's limits, or it would fail every start
-                if self.queue_for_scoring(name, data, sha, self.library.mtime(name)):
+                del data  # queued by its name (read again when scored): a backlog is not held in memory
+                if self.queue_for_scoring(name, None, sha, self.library.mtime(name)):
                     queued += 1
             except (HostdError, OSError) as e:
                 log.warning("library: %s not scored: %s", name, e)
@@ -912,7 +938,10 @@ class Daemon:
             os.write(self.stop_w, b"s")
         except OSError:
             pass
-        self.quality_q.put(None)
+        try:  # (full: the worker is not asleep on it, and sees the stop after its next entry)
+            self.quality_q.put_nowait(None)
+        except queue.Full:
+            pass
 
     def main_period_s(self, ready: bool) -> float:
         """How long the main loop may sleep when nothing wakes it: 0.5 s until READY=1, then a
