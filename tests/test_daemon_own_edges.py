@@ -5,6 +5,7 @@ that cannot be recorded (disk full) is kept pending like a quality row, across a
 from __future__ import annotations
 
 import hashlib
+import subprocess
 import threading
 import tracemalloc
 from pathlib import Path
@@ -93,3 +94,73 @@ def test_the_start_up_backlog_is_queued_by_name_in_a_bounded_queue_and_every_row
         assert shas == {hashlib.sha256(body).hexdigest()}
     finally:
         _close(d)
+
+
+def _plays(db: Path) -> list[tuple]:
+    con = qualitylog.connect_readonly(db)
+    try:
+        return con.execute("SELECT name, started_at FROM plays ORDER BY id").fetchall()
+    finally:
+        con.close()
+
+
+def _play(d, name: str, started_at: float) -> None:
+    """A play of `name` from started_at to now, ended as a select or stop ends it."""
+    d.play = (name, "ab" * 32, started_at, d.counters())
+    d.end_play()
+
+
+def test_a_play_that_cannot_be_recorded_on_a_full_disk_is_kept_pending_and_written(tmp_path):
+    """The quality log's file system (a 1 MiB tmpfs) full: a play is kept pending, not dropped, and
+    written once 64 kB are free; full again at a stop, it is kept in the pending-rows file (in the
+    library's directory: the database's file system is the full one) and the next start writes it,
+    once (a play already in the log is not added twice)."""
+    from tests.test_quality_full_disk import FREED_B, _fill, _free, _mount_tmpfs
+
+    fs = tmp_path / "qfs"
+    _mount_tmpfs(fs)
+    db = fs / "q.sqlite"
+    try:
+        d = _daemon(tmp_path, "qfs/q.sqlite")
+        worker = threading.Thread(target=d.quality_worker, daemon=True)
+        worker.start()
+        try:
+            files = _fill(fs)
+            _play(d, "wood", 1000.0)
+            assert len(d.plays_pending) == 1 and _plays(db) == []
+            _free(files, FREED_B)
+            wait_for(lambda: _plays(db) == [("wood", 1000.0)], 30, "the pending play written")
+            files += _fill(fs)
+            _play(d, "wood", 2000.0)
+            assert len(d.plays_pending) == 1
+        finally:
+            d._stop_deadline = 0.0  # (no retry at the stop: the disk stays full)
+            _close(d)
+            worker.join(10)
+        kept = [p for p in qualitylog.pending_paths(db, tmp_path / "lib") if p.exists()]
+        assert [(r["name"], r["started_at"]) for r in qualitylog.load_pending(kept[0])] == [("wood", 2000.0)]
+        _free(files, FREED_B)
+        d = _daemon(tmp_path, "qfs/q.sqlite")
+        assert len(d.plays_pending) == 1 and not d.quality_pending
+        worker = threading.Thread(target=d.quality_worker, daemon=True)
+        worker.start()
+        try:
+            wait_for(lambda: not kept[0].exists(), 30, "the pending-rows file written and removed")
+            # kept again (a stop before the file was removed): written once
+            qualitylog.save_pending(kept[0], [{"kind": "play", "name": "wood", "sha256": "ab" * 32,
+                                               "started_at": 2000.0, "ended_at": 2001.0, "device_s": 0.0,
+                                               "played_s": 0.0, "played_fraction": None, "underruns": 0}])
+        finally:
+            _close(d)
+            worker.join(10)
+        d = _daemon(tmp_path, "qfs/q.sqlite")
+        worker = threading.Thread(target=d.quality_worker, daemon=True)
+        worker.start()
+        try:
+            wait_for(lambda: not kept[0].exists(), 30, "the pending-rows file written again")
+        finally:
+            _close(d)
+            worker.join(10)
+        assert _plays(db) == [("wood", 1000.0), ("wood", 2000.0)]
+    finally:
+        subprocess.run(["umount", "-l", str(fs)], capture_output=True)

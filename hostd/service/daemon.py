@@ -239,6 +239,7 @@ class Daemon:
         self.select_lock = threading.Lock()  # one select or stop at a time
         self.selected_sha: str | None = None
         self.quality_pending: deque = deque()  # scored rows not yet written (disk full, I/O error)
+        self.plays_pending: deque = deque()  # plays not yet written (the same), kept as the rows are
         # rows the last run could not write: written first (then the pending-rows file is removed)
         self.pending_paths = qualitylog.pending_paths(self.db_path, cfg.library.dir)
         kept = []
@@ -248,9 +249,10 @@ class Daemon:
             except OSError as e:
                 log.warning("quality log: cannot read the pending-rows file %s (%s); its streams are scored "
                             "again", p, e.strerror or e)
-        self.quality_pending.extend(kept)
+        for r in kept:
+            (self.plays_pending if qualitylog.is_play(r) else self.quality_pending).append(r)
         self.pending_file_rows = len(kept)
-        self.pending_keys = {(r["name"], r["sha256"]) for r in kept}
+        self.pending_keys = {(r["name"], r["sha256"]) for r in self.quality_pending}
         self.scoring: set[tuple[str, str]] = set(self.pending_keys)  # queued or pending, not yet written
         if kept:
             log.info("quality log: %d rows pending from the last run (%s); writing them first", len(kept),
@@ -357,17 +359,29 @@ class Daemon:
             log.warning("device %s reported the impossible while playing %s: %s; logged within what the "
                         "host knows", self.pump_info.get("transport") or self.cfg.device.transport, name,
                         "; ".join(impossible))
-        try:
-            con = qualitylog.connect(self.db_path)
+        if not self.plays_pending:  # (else after those: the quality worker writes it with them)
             try:
-                qualitylog.insert_play(con, row)
-            finally:
-                con.close()
-            log.info("played %s: %.1f s from the buffer, played fraction %s, %d underruns", name,
-                     row["played_s"], "-" if row["played_fraction"] is None else
-                     f"{row['played_fraction']:.2%}", row["underruns"])
-        except sqlite3.Error as e:  # the log must not stop playback
-            log.error("quality log: cannot record the play of %s: %s", name, e)
+                con = qualitylog.connect(self.db_path)
+                try:
+                    qualitylog.insert_play(con, row)
+                finally:
+                    con.close()
+                self._played(row)
+                return
+            except (sqlite3.Error, OSError) as e:  # the log must not stop playback: kept pending
+                log.error("quality log: cannot record the play of %s now (%s); kept pending and written with "
+                          "the pending quality rows", name, e)
+        self.plays_pending.append(row | {"kind": "play"})
+        try:  # the quality worker retries it (woken, if it sleeps: an empty entry)
+            self.quality_q.put_nowait(())
+        except queue.Full:
+            pass
+
+    @staticmethod
+    def _played(row: dict) -> None:
+        log.info("played %s: %.1f s from the buffer, played fraction %s, %d underruns", row["name"],
+                 row["played_s"], "-" if row["played_fraction"] is None else f"{row['played_fraction']:.2%}",
+                 row["underruns"])
 
     def counters(self) -> dict:
         """The pump's counters, from shared memory: one snapshot of one publish (the pump's
@@ -405,6 +419,7 @@ class Daemon:
                    "accepted": self.accepted, "refused": self.refused, "library": len(self.library.names()),
                    "selects_sent": self.selects_sent,
                    "quality_pending": self.quality_q.qsize() + len(self.quality_pending),
+                   "plays_pending": len(self.plays_pending),
                    "device": self.cfg.device.transport})
         st.update(self.pump_info)
         return st
@@ -434,14 +449,14 @@ class Daemon:
                 if self.stop_event.is_set():  # (stop() may have found the queue full: no None)
                     item = self.quality_q.get_nowait()
                 else:
-                    item = self.quality_q.get(timeout=0.05 if self.quality_pending else None)
+                    item = self.quality_q.get(timeout=0.05 if self._pending() else None)
             except queue.Empty:
                 item = None
             stopping = self.stop_event.is_set()
-            if item is not None:
+            if item:  # (an empty entry: a play is pending)
                 self._score(*item)
                 continue
-            if not self.quality_pending:
+            if not self._pending():
                 if stopping:
                     break
                 continue
@@ -452,14 +467,18 @@ class Daemon:
             try:
                 if con is None:
                     con = qualitylog.connect(self.db_path)
-                while self.quality_pending:
-                    batch = list(itertools.islice(self.quality_pending, qualitylog.BATCH_ROWS))
-                    qualitylog.insert_batch(con, batch)
-                    for row in batch:
-                        self.quality_pending.popleft()
-                        self.scoring.discard((row["name"], row["sha256"]))
-                        log.info("quality %s: Ip=%.4f Ia=%.4f Iobj=%.4f", row["name"], row["ip"], row["ia"],
-                                 row["iobj"])
+                for pending in (self.quality_pending, self.plays_pending):
+                    while pending:
+                        batch = list(itertools.islice(pending, qualitylog.BATCH_ROWS))
+                        qualitylog.insert_batch(con, batch)
+                        for row in batch:
+                            pending.popleft()
+                            if qualitylog.is_play(row):
+                                self._played(row)
+                                continue
+                            self.scoring.discard((row["name"], row["sha256"]))
+                            log.info("quality %s: Ip=%.4f Ia=%.4f Iobj=%.4f", row["name"], row["ip"],
+                                     row["ia"], row["iobj"])
                 if self.pending_file_rows:  # every row of the pending-rows files is in the log now
                     for p in self.pending_paths:
                         p.unlink(missing_ok=True)
@@ -476,7 +495,8 @@ class Daemon:
                 if failing_since is None:
                     failing_since = time.monotonic()
                     log.error("quality log: cannot write to %s (%s); %d rows kept pending and retried until "
-                              "written (%s)", self.db_path, e, len(self.quality_pending),
+                              "written (%s)", self.db_path, e,
+                              len(self.quality_pending) + len(self.plays_pending),
                               "free 64 kB or more on its file system" if full else "see the error")
                 if con is not None and not full:  # (full: kept open, with its -shm)
                     con.close()
@@ -488,8 +508,12 @@ class Daemon:
                     break
         if con is not None:
             con.close()
-        if self.quality_pending:
+        if self._pending():
             self.keep_pending_rows()
+
+    def _pending(self) -> bool:
+        """Rows or plays not yet written."""
+        return bool(self.quality_pending or self.plays_pending)
 
     def _score(self, name: str, sha: str, received_at: float, data: bytes | None) -> None:
         """Score one queued stream into quality_pending; data None: read from the library now (a
@@ -528,7 +552,7 @@ class Daemon:
 
     def keep_pending_rows(self) -> None:
         """At exit: rows not written go to the pending-rows file for the next start."""
-        rows = list(self.quality_pending)
+        rows = list(self.quality_pending) + list(self.plays_pending)
         why = []
         for path in self.pending_paths:
             try:
