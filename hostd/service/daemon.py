@@ -160,10 +160,18 @@ class PumpWriter:
 
 def bound_play(c0: dict, c1: dict, host_s: float) -> tuple[dict, list[str]]:
     """What a play delivered, from the device's counters at its start (c0) and end (c1), bounded by
-    what the host knows: its own clock (host_s elapsed), the samples it sent and the device's
-    buffer. Returns the plays row's device_s, played_s, played_fraction and underruns, and the
-    counters that claimed the impossible (empty when none did), each said in a few words."""
+    what the host knows: its own clock, the samples it sent and the device's buffer. Returns the
+    plays row's device_s, played_s, played_fraction and underruns, and the counters that claimed
+    the impossible (empty when none did), each said in a few words.
+
+    Like is compared with like: the device's time between the reports the two snapshots hold
+    against the host's time between their arrivals (device_report_host_s), not the play's host_s;
+    a snapshot is as old as the pump's last publish (0.5 s in device mode, more on a loaded host),
+    so an honest device's clock ran on well past host_s. host_s: without those times."""
     bad: list[str] = []
+    rx0, rx1 = c0.get("device_report_host_s"), c1.get("device_report_host_s")
+    if rx0 is not None and rx1 is not None and rx1 >= rx0:
+        host_s = rx1 - rx0  # (rx0 0.0: no report before the play; the pump bounds its first ones)
     limit_s = max(host_s, 0.0) * (1 + CLOCK_TOLERANCE) + REPORT_SLACK_S
     # device time elapsed between its reports, summed over links (the pump's, never going back;
     # bounded there by the links' time up): a play that began before the device's first report,
