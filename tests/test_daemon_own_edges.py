@@ -19,13 +19,13 @@ CFG = ('[device]\ntransport = "sim"\n[library]\ndir = "lib"\nspool = "spool"\n'
        '[control]\nsocket = "run/hostd.sock"\ngroup = ""\n[quality]\ndb = "{db}"\n')
 
 
-def _daemon(tmp_path: Path, db: str = "q.sqlite"):
+def _daemon(tmp_path: Path, db: str = "q.sqlite", quality: str = ""):
     """A Daemon whose pump is never started: its quality worker and start-up scan run in this
-    process's threads."""
+    process's threads. quality: more [quality] keys."""
     from hostd.service.daemon import Daemon
 
     cfg = tmp_path / "hostd.toml"
-    cfg.write_text(CFG.format(db=db))
+    cfg.write_text(CFG.format(db=db) + quality)
     return Daemon(load(cfg))
 
 

@@ -30,6 +30,7 @@ from hostd.device.health import STATE_NAMES as DEVICE_STATES
 from hostd.device.protocol import BUFFER_CAPACITY, SAMPLE_RATE_HZ
 from hostd.errors import ConfigError, HostdError
 from hostd.fileio import open_dir, read_regular_at, write_at
+from hostd.perception.indices import DEFAULT_AB
 from hostd.service import qualitylog
 from hostd.service.config import Config, check_paths
 from hostd.service.control import REQUEST_DEADLINE_S, ClientConn, ControlServer
@@ -534,7 +535,14 @@ class Daemon:
                     log.info("quality: %s was replaced before it was scored; its new content is scored", name)
                     return
             q = self.cfg.quality
-            row = qualitylog.score_row(data, name, sha, received_at, q.a, q.b, self.curve, self.calibration)
+            # a stream made with another curve than the configured one: its own curve, and the
+            # paper's weights under a calibration (its weights go with its curve), else quality.a, b
+            own_ab = DEFAULT_AB if self.calibration else (q.a, q.b)
+            row = qualitylog.score_row(data, name, sha, received_at, q.a, q.b, self.curve, self.calibration,
+                                       own_ab)
+            note = row.pop("scoring_note", None)
+            if note:
+                log.warning("quality %s: %s", name, note)
             self.quality_pending.append(row)
         except Exception as e:  # a scoring failure (or a stream removed meanwhile) must not stop the service
             self.scoring.discard((name, sha))

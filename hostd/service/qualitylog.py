@@ -200,21 +200,26 @@ def load_pending(p: Path) -> list[dict]:
 
 
 def score_row(data: bytes, name: str, sha: str, received_at: float, a: float, b: float,
-              curve=None, calibration: str | None = None) -> dict:
+              curve=None, calibration: str | None = None, own_ab: tuple[float, float] | None = None) -> dict:
     """Ip, Ia, Iobj of a received stream from its header's reference (the receiver has no
-    original; the peer metrics ST-SIM and SPQI need one, so they are not logged here)."""
+    original; the peer metrics ST-SIM and SPQI need one, so they are not logged here), with the
+    configured curve and (a, b), or, for a stream made with another curve, its own curve and
+    own_ab (hostd.quality.scoring_for; default (a, b)). The row says which: curve_id (the curve
+    that scored it), a, b, and calibration (NAME@ID only when the calibration's curve and weights
+    did). "scoring_note" (not a column): why the configured ones were not applied, or None."""
     from hostd.codec import stream as vtx
-    from hostd.quality import score_stream
+    from hostd.quality import score_stream, scoring_for
 
     s = vtx.decode(data)
-    sc = score_stream(s, curve=curve, a=a, b=b)
+    how = scoring_for(s, curve, a, b, calibration, own_ab if own_ab is not None else (a, b))
+    sc = score_stream(s, curve=how.curve, a=how.a, b=how.b)
     row = {"sha256": sha, "name": name, "received_at": received_at, "scored_at": time.time(),
            "bytes": len(data), "method": s.method, "levels": getattr(s, "levels", None),
            "b0_db": getattr(s, "b0_db", None), "n": s.n, "n_keep": s.n_keep,
            "length_mm": s.length_mm, "speed_mm_s": s.speed_mm_s, "curve_id": s.threshold_id.hex(),
            "ratio_coeffs": s.ratio_coeffs, "ratio_profile": s.ratio_profile,
-           "ip": float(sc.Ip), "ia": float(sc.Ia), "iobj": float(sc.Iobj), "a": a, "b": b,
-           "calibration": calibration}
+           "ip": float(sc.Ip), "ia": float(sc.Ia), "iobj": float(sc.Iobj), "a": how.a, "b": how.b,
+           "calibration": how.calibration, "scoring_note": how.note}
     return row
 
 
