@@ -5,6 +5,7 @@ that cannot be recorded (disk full) is kept pending like a quality row, across a
 from __future__ import annotations
 
 import hashlib
+import sqlite3
 import subprocess
 import threading
 import tracemalloc
@@ -110,7 +111,11 @@ def _play(d, name: str, started_at: float) -> None:
     d.end_play()
 
 
-def test_a_play_that_cannot_be_recorded_on_a_full_disk_is_kept_pending_and_written(tmp_path):
+def _full(path):
+    raise sqlite3.OperationalError("database or disk is full")
+
+
+def test_a_play_that_cannot_be_recorded_on_a_full_disk_is_kept_pending_and_written(tmp_path, monkeypatch):
     """The quality log's file system (a 1 MiB tmpfs) full: a play is kept pending, not dropped, and
     written once 64 kB are free; full again at a stop, it is kept in the pending-rows file (in the
     library's directory: the database's file system is the full one) and the next start writes it,
@@ -122,21 +127,28 @@ def test_a_play_that_cannot_be_recorded_on_a_full_disk_is_kept_pending_and_writt
     db = fs / "q.sqlite"
     try:
         d = _daemon(tmp_path, "qfs/q.sqlite")
+        files = _fill(fs)
+        _play(d, "wood", 1000.0)  # (its own connection: no -wal or -shm can be made)
+        assert len(d.plays_pending) == 1 and _plays(db) == []
+        _free(files, FREED_B)
         worker = threading.Thread(target=d.quality_worker, daemon=True)
-        worker.start()
+        worker.start()  # the pending play is retried with the quality rows
         try:
-            files = _fill(fs)
-            _play(d, "wood", 1000.0)
-            assert len(d.plays_pending) == 1 and _plays(db) == []
-            _free(files, FREED_B)
             wait_for(lambda: _plays(db) == [("wood", 1000.0)], 30, "the pending play written")
-            files += _fill(fs)
-            _play(d, "wood", 2000.0)
-            assert len(d.plays_pending) == 1
         finally:
-            d._stop_deadline = 0.0  # (no retry at the stop: the disk stays full)
             _close(d)
             worker.join(10)
+        # full at a stop: kept in the pending-rows file. (The log's connections fail as on a full
+        # disk: a -wal left from the last writer may hold a row's frames on a real one)
+        d = _daemon(tmp_path, "qfs/q.sqlite")
+        files += _fill(fs)
+        with monkeypatch.context() as m:
+            m.setattr(qualitylog, "connect", _full)
+            _play(d, "wood", 2000.0)
+            assert len(d.plays_pending) == 1
+            d._stop_deadline = 0.0  # (no retry at the stop: the disk stays full)
+            _close(d)
+            d.quality_worker()  # stopped: one try, then the pending-rows file
         kept = [p for p in qualitylog.pending_paths(db, tmp_path / "lib") if p.exists()]
         assert [(r["name"], r["started_at"]) for r in qualitylog.load_pending(kept[0])] == [("wood", 2000.0)]
         _free(files, FREED_B)

@@ -464,7 +464,8 @@ class Daemon:
             stopping = self.stop_event.is_set()
             if item:  # (an empty entry: a play is pending)
                 self._score(*item)
-                continue
+                if len(self.quality_pending) < qualitylog.BATCH_ROWS:
+                    continue  # (a batch's worth is written at once: a backlog does not wait in memory)
             if not self._pending():
                 if stopping:
                     break
