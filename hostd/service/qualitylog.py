@@ -128,9 +128,9 @@ def pending_key(row: dict) -> tuple:
 
 def insert_batch(con: sqlite3.Connection, rows: list[dict]) -> None:
     """Rows (quality rows, and plays: is_play) in one transaction: all of them are written or none.
-    Then a passive checkpoint (it
-    waits for no reader): the next batch starts the -wal from its beginning, cut to
-    JOURNAL_LIMIT_BYTES, so the -wal stays at about one batch rather than growing with every row."""
+    Then a passive checkpoint (it waits for no reader): the next batch starts the -wal from its
+    beginning, cut to JOURNAL_LIMIT_BYTES, so the -wal stays at about one batch rather than growing
+    with every row."""
     con.execute("BEGIN IMMEDIATE")
     try:
         for row in rows:
