@@ -72,7 +72,7 @@ def _honest_under_load(daemon_pid: int, sock: str, log, seconds: float) -> None:
     wait_for(lambda: request(sock, {"cmd": "quality"})["rows"][0]["plays"] == n, 30, "every play logged")
     text = log.read_text()
     assert "reported the impossible" not in text, [ln for ln in text.splitlines() if "impossible" in ln]
-    assert n >= 10, n
+    assert n >= 6, n
 
 
 def test_the_honest_host_port_is_never_accused_under_load_and_a_forged_clock_is_named(tmp_path):
