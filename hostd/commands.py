@@ -149,12 +149,19 @@ def cmd_iobj(args: argparse.Namespace) -> int:
     if ref_spec is not None:
         ref = read_profile(ref_spec, args, length_mm=s.length_mm).heights_um
     a, b = _ab(args)
-    sc = score_stream(s, reference_um=ref, curve=curve, a=a, b=b)
+    how = _iobj_scoring(s, curve, a, b, args)
+    if how.note:
+        warn("iobj", how.note)
+    sc = score_stream(s, reference_um=ref, curve=how.curve, a=how.a, b=how.b)
     out = sc.as_dict()
     out["reference"] = "profile" if ref is not None else "stream_header"
+    out.update(curve_id=s.threshold_id.hex(), calibration=how.calibration,
+               scored_with=(f"calibration {how.calibration}" if how.calibration else
+                            "the stream's own curve" if how.curve is None else f"the curve {how.curve.name}"),
+               scoring_note=how.note)
     from hostd.quality import guard_report
 
-    out.update(guard_report(s, reference_um=ref, curve=curve))
+    out.update(guard_report(s, reference_um=ref, curve=how.curve))
     out["reference_mismatch"] = False
     if ref is not None:
         from hostd.quality import reference_mismatch
@@ -187,6 +194,22 @@ def cmd_iobj(args: argparse.Namespace) -> int:
         print(format_fields(out))
         print(f"Iobj {out['Iobj']:.4g}: nearest grade '{grade(out['Iobj'])}'. {IOBJ_LEGEND}")
     return 0
+
+
+def _iobj_scoring(s, curve, a: float, b: float, args: argparse.Namespace):
+    """hostd.quality.scoring_for for `hostd iobj`: --calibration's label when its curve and weights
+    are the ones asked; a stream made with another curve gets its own, with --a/--b or the
+    --preset's weights (a calibration's go with its curve), or (a, b) without a calibration."""
+    from hostd.perception.indices import PRESETS
+    from hostd.quality import scoring_for
+
+    cal = getattr(args, "calibration", None)
+    if cal is None:
+        return scoring_for(s, curve, a, b, None, (a, b))
+    applies = curve is not None and curve.id_bytes == cal.curve.id_bytes and (a, b) == (cal.a, cal.b)
+    pa, pb = PRESETS[args.preset]
+    own = (args.a if args.a is not None else pa, args.b if args.b is not None else pb)
+    return scoring_for(s, curve, a, b, cal.label if applies else None, own)
 
 
 def format_fields(out: dict) -> str:

@@ -8,6 +8,7 @@ scores exactly what the sender would.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -16,6 +17,34 @@ from hostd.codec.stream import Stream, curve_for
 from hostd.errors import CodecError
 from hostd.perception import indices
 from hostd.perception.thresholds import ThresholdCurve
+
+
+@dataclass(frozen=True)
+class Scoring:
+    """The curve and weights that score a stream (scoring_for)."""
+
+    curve: ThresholdCurve | None  # None: the stream's own (embedded, or shipped by its id)
+    a: float
+    b: float
+    calibration: str | None  # NAME@ID: the calibration's curve and weights score it; None: not
+    note: str | None  # why the asked curve and weights were not applied (None: they were)
+
+
+def scoring_for(stream: Stream, curve: ThresholdCurve | None = None, a: float = indices.DEFAULT_AB[0],
+                b: float = indices.DEFAULT_AB[1], calibration: str | None = None,
+                own_ab: tuple[float, float] = indices.DEFAULT_AB) -> Scoring:
+    """The one rule for which curve and weights score a stream (the daemon's quality row, `hostd
+    iobj`). The asked curve (a calibration's, labelled `calibration`, or a threshold CSV) with the
+    weights (a, b), when the stream was made with that curve (its header names it or embeds it).
+    A stream made with another curve cannot be scored with it (its reference sums are under its
+    own): it is scored with its own curve and `own_ab`, the weights that go with that curve (the
+    asked ones were fitted to indices under the asked curve), and `note` says so."""
+    if curve is None or curve.id_bytes == stream.threshold_id:
+        return Scoring(curve, a, b, calibration if curve is not None else None, None)
+    what = f"calibration {calibration}'s curve" if calibration else f"{curve.name}"
+    note = (f"the stream was made with threshold curve {stream.threshold_id.hex()}, not {what} "
+            f"({curve.curve_id}): scored with its own curve and weights a={own_ab[0]:g}, b={own_ab[1]:g}")
+    return Scoring(None, own_ab[0], own_ab[1], None, note)
 
 
 def stream_thresholds(stream: Stream, curve: ThresholdCurve | None = None) -> np.ndarray:

@@ -34,7 +34,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hostd.device import protocol as pr
-from hostd.device.health import HOST_TIMEOUT_BIT, OVERFLOW_BIT, RUNNING, UNDERRUN_BIT, DeviceHealth
+from hostd.device.health import (
+    CLOCK_TOLERANCE,
+    HOST_TIMEOUT_BIT,
+    OVERFLOW_BIT,
+    REPORT_SLACK_S,
+    RUNNING,
+    UNDERRUN_BIT,
+    DeviceHealth,
+)
 from hostd.device.link import DeviceLink
 from hostd.errors import DeviceBusy
 
@@ -345,12 +353,20 @@ class Pump:
         self.stats.recoveries += 1
         silent_ms = (self._last_played_dev_s - ep.silent_since_s) * 1e3
         pause = ""
+        paused_s = 0.0
         if self.stats.stall_log:
             a, b = self.stats.stall_log[-1]
             if ep.host_start - b < 0.05:
-                pause = f" (the host paused {(b - a) * 1e3:.0f} ms)"
-        self.log(f"playback recovered after {ep.cause}{pause}: {silent_ms:.0f} ms without samples from "
-                 f"the buffer; fill target now {self._fill / pr.SAMPLE_RATE_HZ * 1e3:.1f} ms")
+                paused_s = b - a
+                pause = f" (the host paused {paused_s * 1e3:.0f} ms)"
+        # the device's figure within what the host knows: the silence began at most the host's pause
+        # before it was noticed, and ended by now (its clock 1 % fast, a report late)
+        host_s = self.link.t.now() - ep.host_start + paused_s
+        most_ms = (host_s * (1 + CLOCK_TOLERANCE) + REPORT_SLACK_S) * 1e3
+        silent = f"{silent_ms:.0f} ms" if silent_ms <= most_ms else f"at most {most_ms:.0f} ms"
+        claimed = "" if silent_ms <= most_ms else " (its clock claimed more than the host allows)"
+        self.log(f"playback recovered after {ep.cause}{pause}: {silent} without samples from the buffer"
+                 f"{claimed}; fill target now {self._fill / pr.SAMPLE_RATE_HZ * 1e3:.1f} ms")
 
     def _decay(self) -> None:
         """A raised target comes down after a quiet period by what the device's buffer never

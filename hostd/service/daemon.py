@@ -30,6 +30,7 @@ from hostd.device.health import STATE_NAMES as DEVICE_STATES
 from hostd.device.protocol import BUFFER_CAPACITY, SAMPLE_RATE_HZ
 from hostd.errors import ConfigError, HostdError
 from hostd.fileio import open_dir, read_regular_at, write_at
+from hostd.perception.indices import DEFAULT_AB
 from hostd.service import qualitylog
 from hostd.service.config import Config, check_paths
 from hostd.service.control import REQUEST_DEADLINE_S, ClientConn, ControlServer
@@ -50,6 +51,10 @@ log = logging.getLogger("hostd")
 MAX_HEADER = 4096
 RESTARTS_PER_MINUTE = 3  # a worker that dies more often stays dead and the watchdog starves
 QUALITY_RETRY_S = (0.5, 30.0)  # a quality row that cannot be written is retried, back-off doubling
+# streams waiting to be scored: a producer waits for room (an upload's handler, the start-up's look
+# for streams without a row), so what waits is bounded whatever the backlog; the start-up's entries
+# are names (read when scored), an upload's its bytes (in memory already; at most this many kept)
+QUALITY_QUEUE_MAX = 16
 
 
 IN_MODIFY, IN_ATTRIB, IN_CLOSE_WRITE, IN_MOVED_TO, IN_CREATE = 0x2, 0x4, 0x8, 0x80, 0x100
@@ -156,10 +161,18 @@ class PumpWriter:
 
 def bound_play(c0: dict, c1: dict, host_s: float) -> tuple[dict, list[str]]:
     """What a play delivered, from the device's counters at its start (c0) and end (c1), bounded by
-    what the host knows: its own clock (host_s elapsed), the samples it sent and the device's
-    buffer. Returns the plays row's device_s, played_s, played_fraction and underruns, and the
-    counters that claimed the impossible (empty when none did), each said in a few words."""
+    what the host knows: its own clock, the samples it sent and the device's buffer. Returns the
+    plays row's device_s, played_s, played_fraction and underruns, and the counters that claimed
+    the impossible (empty when none did), each said in a few words.
+
+    Like is compared with like: the device's time between the reports the two snapshots hold
+    against the host's time between their arrivals (device_report_host_s), not the play's host_s;
+    a snapshot is as old as the pump's last publish (0.5 s in device mode, more on a loaded host),
+    so an honest device's clock ran on well past host_s. host_s: without those times."""
     bad: list[str] = []
+    rx0, rx1 = c0.get("device_report_host_s"), c1.get("device_report_host_s")
+    if rx0 is not None and rx1 is not None and rx1 >= rx0:
+        host_s = rx1 - rx0  # (rx0 0.0: no report before the play; the pump bounds its first ones)
     limit_s = max(host_s, 0.0) * (1 + CLOCK_TOLERANCE) + REPORT_SLACK_S
     # device time elapsed between its reports, summed over links (the pump's, never going back;
     # bounded there by the links' time up): a play that began before the device's first report,
@@ -235,6 +248,7 @@ class Daemon:
         self.select_lock = threading.Lock()  # one select or stop at a time
         self.selected_sha: str | None = None
         self.quality_pending: deque = deque()  # scored rows not yet written (disk full, I/O error)
+        self.plays_pending: deque = deque()  # plays not yet written (the same), kept as the rows are
         # rows the last run could not write: written first (then the pending-rows file is removed)
         self.pending_paths = qualitylog.pending_paths(self.db_path, cfg.library.dir)
         kept = []
@@ -244,9 +258,10 @@ class Daemon:
             except OSError as e:
                 log.warning("quality log: cannot read the pending-rows file %s (%s); its streams are scored "
                             "again", p, e.strerror or e)
-        self.quality_pending.extend(kept)
+        for r in kept:
+            (self.plays_pending if qualitylog.is_play(r) else self.quality_pending).append(r)
         self.pending_file_rows = len(kept)
-        self.pending_keys = {(r["name"], r["sha256"]) for r in kept}
+        self.pending_keys = {(r["name"], r["sha256"]) for r in self.quality_pending}
         self.scoring: set[tuple[str, str]] = set(self.pending_keys)  # queued or pending, not yet written
         if kept:
             log.info("quality log: %d rows pending from the last run (%s); writing them first", len(kept),
@@ -258,7 +273,7 @@ class Daemon:
         self.pump_writer: PumpWriter | None = None
         self._stop_deadline = math.inf  # the quality worker's last retry at shutdown
         self.signalled = False  # set by the SIGTERM/SIGINT handler, which must take no lock
-        self.quality_q: queue.Queue = queue.Queue()
+        self.quality_q: queue.Queue = queue.Queue(QUALITY_QUEUE_MAX)
         self.stop_event = threading.Event()
         # the threads sleep on descriptors, not on timers: stop_r turns readable (for good) at the
         # stop; wake_r wakes the main loop (a signal through set_wakeup_fd, a worker that ended)
@@ -353,17 +368,29 @@ class Daemon:
             log.warning("device %s reported the impossible while playing %s: %s; logged within what the "
                         "host knows", self.pump_info.get("transport") or self.cfg.device.transport, name,
                         "; ".join(impossible))
-        try:
-            con = qualitylog.connect(self.db_path)
+        if not self.plays_pending:  # (else after those: the quality worker writes it with them)
             try:
-                qualitylog.insert_play(con, row)
-            finally:
-                con.close()
-            log.info("played %s: %.1f s from the buffer, played fraction %s, %d underruns", name,
-                     row["played_s"], "-" if row["played_fraction"] is None else
-                     f"{row['played_fraction']:.2%}", row["underruns"])
-        except sqlite3.Error as e:  # the log must not stop playback
-            log.error("quality log: cannot record the play of %s: %s", name, e)
+                con = qualitylog.connect(self.db_path)
+                try:
+                    qualitylog.insert_play(con, row)
+                finally:
+                    con.close()
+                self._played(row)
+                return
+            except (sqlite3.Error, OSError) as e:  # the log must not stop playback: kept pending
+                log.error("quality log: cannot record the play of %s now (%s); kept pending and written with "
+                          "the pending quality rows", name, e)
+        self.plays_pending.append(row | {"kind": "play"})
+        try:  # the quality worker retries it (woken, if it sleeps: an empty entry)
+            self.quality_q.put_nowait(())
+        except queue.Full:
+            pass
+
+    @staticmethod
+    def _played(row: dict) -> None:
+        log.info("played %s: %.1f s from the buffer, played fraction %s, %d underruns", row["name"],
+                 row["played_s"], "-" if row["played_fraction"] is None else f"{row['played_fraction']:.2%}",
+                 row["underruns"])
 
     def counters(self) -> dict:
         """The pump's counters, from shared memory: one snapshot of one publish (the pump's
@@ -401,6 +428,7 @@ class Daemon:
                    "accepted": self.accepted, "refused": self.refused, "library": len(self.library.names()),
                    "selects_sent": self.selects_sent,
                    "quality_pending": self.quality_q.qsize() + len(self.quality_pending),
+                   "plays_pending": len(self.plays_pending),
                    "device": self.cfg.device.transport})
         st.update(self.pump_info)
         return st
@@ -427,21 +455,18 @@ class Daemon:
         while True:
             try:
                 # idle: asleep until a stream arrives or the stop (a None); a pending row is retried
-                item = self.quality_q.get(timeout=0.05 if self.quality_pending else None)
+                if self.stop_event.is_set():  # (stop() may have found the queue full: no None)
+                    item = self.quality_q.get_nowait()
+                else:
+                    item = self.quality_q.get(timeout=0.05 if self._pending() else None)
             except queue.Empty:
                 item = None
             stopping = self.stop_event.is_set()
-            if item is not None:
-                name, data, sha, t = item
-                try:
-                    q = self.cfg.quality
-                    row = qualitylog.score_row(data, name, sha, t, q.a, q.b, self.curve, self.calibration)
-                    self.quality_pending.append(row)
-                except Exception as e:  # a scoring failure must not stop the service
-                    self.scoring.discard((name, sha))
-                    log.error("quality scoring of %s failed: %s", name, e)
-                continue
-            if not self.quality_pending:
+            if item:  # (an empty entry: a play is pending)
+                self._score(*item)
+                if len(self.quality_pending) < qualitylog.BATCH_ROWS:
+                    continue  # (a batch's worth is written at once: a backlog does not wait in memory)
+            if not self._pending():
                 if stopping:
                     break
                 continue
@@ -452,14 +477,18 @@ class Daemon:
             try:
                 if con is None:
                     con = qualitylog.connect(self.db_path)
-                while self.quality_pending:
-                    batch = list(itertools.islice(self.quality_pending, qualitylog.BATCH_ROWS))
-                    qualitylog.insert_batch(con, batch)
-                    for row in batch:
-                        self.quality_pending.popleft()
-                        self.scoring.discard((row["name"], row["sha256"]))
-                        log.info("quality %s: Ip=%.4f Ia=%.4f Iobj=%.4f", row["name"], row["ip"], row["ia"],
-                                 row["iobj"])
+                for pending in (self.quality_pending, self.plays_pending):
+                    while pending:
+                        batch = list(itertools.islice(pending, qualitylog.BATCH_ROWS))
+                        qualitylog.insert_batch(con, batch)
+                        for row in batch:
+                            pending.popleft()
+                            if qualitylog.is_play(row):
+                                self._played(row)
+                                continue
+                            self.scoring.discard((row["name"], row["sha256"]))
+                            log.info("quality %s: Ip=%.4f Ia=%.4f Iobj=%.4f", row["name"], row["ip"],
+                                     row["ia"], row["iobj"])
                 if self.pending_file_rows:  # every row of the pending-rows files is in the log now
                     for p in self.pending_paths:
                         p.unlink(missing_ok=True)
@@ -476,7 +505,8 @@ class Daemon:
                 if failing_since is None:
                     failing_since = time.monotonic()
                     log.error("quality log: cannot write to %s (%s); %d rows kept pending and retried until "
-                              "written (%s)", self.db_path, e, len(self.quality_pending),
+                              "written (%s)", self.db_path, e,
+                              len(self.quality_pending) + len(self.plays_pending),
                               "free 64 kB or more on its file system" if full else "see the error")
                 if con is not None and not full:  # (full: kept open, with its -shm)
                     con.close()
@@ -488,22 +518,58 @@ class Daemon:
                     break
         if con is not None:
             con.close()
-        if self.quality_pending:
+        if self._pending():
             self.keep_pending_rows()
 
-    def queue_for_scoring(self, name: str, data: bytes, sha: str, received_at: float) -> bool:
+    def _pending(self) -> bool:
+        """Rows or plays not yet written."""
+        return bool(self.quality_pending or self.plays_pending)
+
+    def _score(self, name: str, sha: str, received_at: float, data: bytes | None) -> None:
+        """Score one queued stream into quality_pending; data None: read from the library now (a
+        stream found without a row at start-up, queued by its name)."""
+        try:
+            if data is None:
+                data = self.library.read(name)
+                if hashlib.sha256(data).hexdigest() != sha:  # replaced since: its new content is queued
+                    self.scoring.discard((name, sha))
+                    log.info("quality: %s was replaced before it was scored; its new content is scored", name)
+                    return
+            q = self.cfg.quality
+            # a stream made with another curve than the configured one: its own curve, and the
+            # paper's weights under a calibration (its weights go with its curve), else quality.a, b
+            own_ab = DEFAULT_AB if self.calibration else (q.a, q.b)
+            row = qualitylog.score_row(data, name, sha, received_at, q.a, q.b, self.curve, self.calibration,
+                                       own_ab)
+            note = row.pop("scoring_note", None)
+            if note:
+                log.warning("quality %s: %s", name, note)
+            self.quality_pending.append(row)
+        except Exception as e:  # a scoring failure (or a stream removed meanwhile) must not stop the service
+            self.scoring.discard((name, sha))
+            log.error("quality scoring of %s failed: %s", name, e)
+
+    def queue_for_scoring(self, name: str, data: bytes | None, sha: str, received_at: float) -> bool:
         """Once per (name, content) until its row is written: an upload during the start-up's
-        look for unscored streams is not scored twice."""
+        look for unscored streams is not scored twice. data None: the stored stream, read when
+        scored. Waits for room in the bounded queue (the worker takes an entry per score); False
+        when the daemon stops meanwhile (the stream, stored, is scored at the next start)."""
         with self.lock:
             if (name, sha) in self.scoring:
                 return False
             self.scoring.add((name, sha))
-        self.quality_q.put((name, data, sha, received_at))
-        return True
+        while True:
+            try:  # (a timer only while the queue is full)
+                self.quality_q.put((name, sha, received_at, data), timeout=0.25)
+                return True
+            except queue.Full:
+                if self.stop_event.is_set():
+                    self.scoring.discard((name, sha))
+                    return False
 
     def keep_pending_rows(self) -> None:
         """At exit: rows not written go to the pending-rows file for the next start."""
-        rows = list(self.quality_pending)
+        rows = list(self.quality_pending) + list(self.plays_pending)
         why = []
         for path in self.pending_paths:
             try:
@@ -549,7 +615,8 @@ class Daemon:
                 if (name, sha) in known:
                     continue
                 self.library.decode(data)  # within today's limits, or it would fail every start
-                if self.queue_for_scoring(name, data, sha, self.library.mtime(name)):
+                del data  # queued by its name (read again when scored): a backlog is not held in memory
+                if self.queue_for_scoring(name, None, sha, self.library.mtime(name)):
                     queued += 1
             except (HostdError, OSError) as e:
                 log.warning("library: %s not scored: %s", name, e)
@@ -912,7 +979,10 @@ class Daemon:
             os.write(self.stop_w, b"s")
         except OSError:
             pass
-        self.quality_q.put(None)
+        try:  # (full: the worker is not asleep on it, and sees the stop after its next entry)
+            self.quality_q.put_nowait(None)
+        except queue.Full:
+            pass
 
     def main_period_s(self, ready: bool) -> float:
         """How long the main loop may sleep when nothing wakes it: 0.5 s until READY=1, then a

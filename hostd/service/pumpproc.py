@@ -30,13 +30,13 @@ STAT_FIELDS = ("cycles", "deadline_misses", "late_batches", "samples", "fill",
                "device_time_s", "render_at", "device_uploads", "wait_ticks", "render_reason",
                "device_host_lost", "device_reuploads", "device_rendered_s", "device_faded_s",
                "device_idle_s", "wakeups", "compiled_cycles", "voluntary_switches", "busy_until_s",
-               "device_elapsed_s", "device_overflows",
+               "device_elapsed_s", "device_overflows", "device_report_host_s",
                "publish_seq")  # odd while publish() writes: readers take a whole snapshot (a seqlock)
 PUBLISH_SEQ = len(STAT_FIELDS) - 1
 STAT_INDEX = {name: i for i, name in enumerate(STAT_FIELDS)}  # no linear search per put
 FLOAT_FIELDS = {"speed_mm_s", "played_fraction", "device_time_s", "longest_stall_ms", "max_late_us",
                 "batch_p50_us", "batch_p99_us", "batch_p999_us", "device_rendered_s", "device_faded_s",
-                "device_idle_s", "busy_until_s", "device_elapsed_s"}
+                "device_idle_s", "busy_until_s", "device_elapsed_s", "device_report_host_s"}
 # why the texture renders where it does (`render_reason`, published as the index)
 RENDER_REASONS = ("the display renders it (protocol v2, its CAPS hold the texture)",
                   "configured: [render] where = \"host\"",
@@ -284,6 +284,9 @@ class PumpProcess:
         self.last_pub = 0.0  # device mode: the last publish
         self.last_pct = 0.0  # host rendering: the last percentiles published
         self.claims = None  # DeviceClaims: the guards over what the display claims
+        # CLOCK_MONOTONIC when the host received the latest report (on any link) that
+        # device_elapsed_s counts up to: the host's time of the same report (0.0: none yet)
+        self.report_host_s = 0.0
 
     # ------------------------------------------------------------------ the daemon's side
     def log(self, msg: str, warn: bool | None = None) -> None:
@@ -508,6 +511,10 @@ class PumpProcess:
 
     def close_link(self) -> None:
         """The link's end, lost or stopping."""
+        try:  # its last counts checked now: the next link's baseline starts from what was vouched for
+            self.publish()
+        except Exception:
+            pass
         if self.phase.connected:  # (lost: WAITING already)
             self.enter(Phase.STOPPING)
         self.pump.renderer = None
@@ -751,6 +758,9 @@ class PumpProcess:
         self.put("device_faded_s", bounds["faded"].shown / rate)
         self.put("device_idle_s", bounds["idle"].shown / rate)
         self.put("device_elapsed_s", bounds["elapsed"].shown)
+        # (a new link's 0.0 before its first report: the old link's latest stands)
+        self.report_host_s = max(self.report_host_s, link.status_host_time)
+        self.put("device_report_host_s", self.report_host_s)
         # the state while something plays: "recovering" while the display is not (yet, or no
         # longer) playing it. (A texture whose upload gave way to a stop is not rendering: the
         # state put when it began stands, as while nothing plays)

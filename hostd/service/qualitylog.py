@@ -9,7 +9,9 @@ A full disk: the write-ahead log is bounded (journal_size_limit, an automatic ch
 WAL_AUTOCHECKPOINT_PAGES, a checkpoint(TRUNCATE) after a full-disk error), rows are written in
 batches of at most BATCH_ROWS per transaction (each commit writes its B-tree pages once, not once
 per row), and rows still pending when the daemon stops are kept in the pending-rows file beside
-the database (PENDING_SUFFIX), which the next start writes first.
+the database (PENDING_SUFFIX), which the next start writes first. Plays (the plays table) that
+cannot be written are kept pending the same way, in the same batches and the same file (a play's
+line carries "kind": "play"); written again, a play already in the log is not added twice.
 """
 
 from __future__ import annotations
@@ -112,14 +114,27 @@ def checkpoint(con: sqlite3.Connection) -> bool:
         return False
 
 
+def is_play(row: dict) -> bool:
+    """A pending play (a plays row), not a stream's quality row."""
+    return row.get("kind") == "play"
+
+
+def pending_key(row: dict) -> tuple:
+    """What one pending row is: a stream (name, content), or a play of it (and when it started)."""
+    if is_play(row):
+        return ("play", row["name"], row["sha256"], row["started_at"])
+    return (row["name"], row["sha256"])
+
+
 def insert_batch(con: sqlite3.Connection, rows: list[dict]) -> None:
-    """Rows in one transaction: all of them are written or none. Then a passive checkpoint (it
-    waits for no reader): the next batch starts the -wal from its beginning, cut to
-    JOURNAL_LIMIT_BYTES, so the -wal stays at about one batch rather than growing with every row."""
+    """Rows (quality rows, and plays: is_play) in one transaction: all of them are written or none.
+    Then a passive checkpoint (it waits for no reader): the next batch starts the -wal from its
+    beginning, cut to JOURNAL_LIMIT_BYTES, so the -wal stays at about one batch rather than growing
+    with every row."""
     con.execute("BEGIN IMMEDIATE")
     try:
         for row in rows:
-            insert(con, row)
+            (insert_play if is_play(row) else insert)(con, row)
         con.execute("COMMIT")
     except BaseException:
         try:
@@ -144,7 +159,7 @@ def save_pending(p: Path, rows: list[dict]) -> Path:
     """Keep rows not yet written (with those already in the file) for the next start: written to a
     temporary file, flushed and renamed over the pending-rows file p, so it is whole or unchanged.
     OSError (the disk is full) propagates."""
-    keep = {(r["name"], r["sha256"]): r for r in load_pending(p) + list(rows)}.values()
+    keep = {pending_key(r): r for r in load_pending(p) + list(rows)}.values()
     tmp = p.with_name(p.name + ".tmp")
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o640)
@@ -173,27 +188,38 @@ def load_pending(p: Path) -> list[dict]:
             row = json.loads(line)
         except ValueError:
             continue
-        if isinstance(row, dict) and isinstance(row.get("name"), str) and isinstance(row.get("sha256"), str):
+        if not (isinstance(row, dict) and isinstance(row.get("name"), str)
+                and isinstance(row.get("sha256"), str)):
+            continue
+        if is_play(row):
+            if all(isinstance(row.get(c), int | float) for c in ("started_at", "ended_at")):
+                rows.append({c: row.get(c) for c in PLAY_COLUMNS} | {"kind": "play"})
+        else:
             rows.append({c: row.get(c) for c in COLUMNS if c != "id"})
     return rows
 
 
 def score_row(data: bytes, name: str, sha: str, received_at: float, a: float, b: float,
-              curve=None, calibration: str | None = None) -> dict:
+              curve=None, calibration: str | None = None, own_ab: tuple[float, float] | None = None) -> dict:
     """Ip, Ia, Iobj of a received stream from its header's reference (the receiver has no
-    original; the peer metrics ST-SIM and SPQI need one, so they are not logged here)."""
+    original; the peer metrics ST-SIM and SPQI need one, so they are not logged here), with the
+    configured curve and (a, b), or, for a stream made with another curve, its own curve and
+    own_ab (hostd.quality.scoring_for; default (a, b)). The row says which: curve_id (the curve
+    that scored it), a, b, and calibration (NAME@ID only when the calibration's curve and weights
+    did). "scoring_note" (not a column): why the configured ones were not applied, or None."""
     from hostd.codec import stream as vtx
-    from hostd.quality import score_stream
+    from hostd.quality import score_stream, scoring_for
 
     s = vtx.decode(data)
-    sc = score_stream(s, curve=curve, a=a, b=b)
+    how = scoring_for(s, curve, a, b, calibration, own_ab if own_ab is not None else (a, b))
+    sc = score_stream(s, curve=how.curve, a=how.a, b=how.b)
     row = {"sha256": sha, "name": name, "received_at": received_at, "scored_at": time.time(),
            "bytes": len(data), "method": s.method, "levels": getattr(s, "levels", None),
            "b0_db": getattr(s, "b0_db", None), "n": s.n, "n_keep": s.n_keep,
            "length_mm": s.length_mm, "speed_mm_s": s.speed_mm_s, "curve_id": s.threshold_id.hex(),
            "ratio_coeffs": s.ratio_coeffs, "ratio_profile": s.ratio_profile,
-           "ip": float(sc.Ip), "ia": float(sc.Ia), "iobj": float(sc.Iobj), "a": a, "b": b,
-           "calibration": calibration}
+           "ip": float(sc.Ip), "ia": float(sc.Ia), "iobj": float(sc.Iobj), "a": how.a, "b": how.b,
+           "calibration": how.calibration, "scoring_note": how.note}
     return row
 
 
@@ -214,9 +240,12 @@ DELIVERED = ("plays", "played_s", "played_fraction", "underruns")
 
 
 def insert_play(con: sqlite3.Connection, play: dict) -> None:
+    """One plays row; none when the log has this play already (the same stream, started at the same
+    instant: a pending play written, then kept again by a stop before its file was removed)."""
     marks = ", ".join("?" * len(PLAY_COLUMNS))
-    con.execute(f"INSERT INTO plays ({', '.join(PLAY_COLUMNS)}) VALUES ({marks})",
-                [play.get(c) for c in PLAY_COLUMNS])
+    con.execute(f"INSERT INTO plays ({', '.join(PLAY_COLUMNS)}) SELECT {marks} WHERE NOT EXISTS "
+                "(SELECT 1 FROM plays WHERE name = ? AND sha256 = ? AND started_at = ?)",
+                [play.get(c) for c in PLAY_COLUMNS] + [play["name"], play["sha256"], play["started_at"]])
 
 
 def query(con: sqlite3.Connection, since: float | None = None) -> list[dict]:
