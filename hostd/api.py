@@ -486,18 +486,13 @@ def render_stroke(stream: Stream | bytes, *, speed_mm_s: float = 50.0, seconds: 
     dict
         ``t_s``, ``x_mm``, ``height_um`` (float64 arrays of round(seconds * rate_hz)).
     """
-    from hostd.render import series
-    from hostd.render.height import BandLimitConfig, band_gains
+    from hostd.render.stroke import at_constant_speed
 
     s = stream if isinstance(stream, Stream) else decode(stream)
     if not (np.isfinite(speed_mm_s) and np.isfinite(seconds) and seconds > 0 and rate_hz > 0):
         raise ValueError("speed_mm_s must be finite, seconds and rate_hz > 0")
     count = round(seconds * rate_hz)
-    k = np.arange(1, s.n_keep + 1, dtype=np.float64)
-    g = band_gains(k, speed_mm_s, s.length_mm, BandLimitConfig(sample_rate_hz=rate_hz))
-    theta0 = float(series.phase_rad(x0_mm, s.n, s.length_mm))
-    dtheta = np.pi * speed_mm_s / (s.length_mm / s.n * s.n * rate_hz)  # phase per sample
-    h = series.evaluate_uniform(s.coefficients * g, theta0, dtheta, count)
+    h = at_constant_speed(s.coefficients, s.n, s.length_mm, speed_mm_s, rate_hz, count, x0_mm=x0_mm)
     t = np.arange(count) / rate_hz
     return {"t_s": t, "x_mm": x0_mm + speed_mm_s * t, "height_um": h}
 

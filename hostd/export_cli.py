@@ -19,17 +19,10 @@ def played_um(coeffs_um: np.ndarray, n: int, length_mm: float, speed_mm_s: float
               rate_hz: float) -> np.ndarray:
     """One crossing of the patch (L / v seconds from x = 0) as hostd renders it (`hostd render`,
     hostd.api.render_stroke): the series with the renderer's band gains at rate_hz."""
-    import numpy as np
+    from hostd.render.stroke import at_constant_speed, crossing_count
 
-    from hostd.render import series
-    from hostd.render.height import BandLimitConfig, band_gains
-
-    count = max(3, round(length_mm / abs(speed_mm_s) * rate_hz))
-    k = np.arange(1, coeffs_um.size + 1, dtype=np.float64)
-    g = band_gains(k, speed_mm_s, length_mm, BandLimitConfig(sample_rate_hz=rate_hz))
-    theta0 = float(series.phase_rad(0.0, n, length_mm))
-    dtheta = np.pi * speed_mm_s / (length_mm * rate_hz)
-    return series.evaluate_uniform(coeffs_um * g, theta0, dtheta, count)
+    return at_constant_speed(coeffs_um, n, length_mm, speed_mm_s, rate_hz,
+                             crossing_count(length_mm, speed_mm_s, rate_hz, minimum=3))
 
 
 def _is_stream(spec: str) -> bool:

@@ -39,8 +39,8 @@ def _close(d) -> None:
 def _big_stream(tmp_path: Path) -> bytes:
     """A 56 kB stream (32-bit values, N' = 16,000): a backlog of them is megabytes."""
     src = tmp_path / "big.vtx"
-    assert main(["encode", "synthetic:sandpaper:1", "-o", str(src), "--method", "cut", "--b0", "-60",
-                 "--fmax", "40000", "--value-bits", "32"]) == 0
+    assert main(["encode", "synthetic:sandpaper:1", "-o", str(src), "--method", "cut", "--b0-db", "-60",
+                 "--fmax-hz", "40000", "--value-bits", "32"]) == 0
     return src.read_bytes()
 
 

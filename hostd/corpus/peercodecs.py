@@ -60,15 +60,16 @@ def crossing(heights_um: np.ndarray, spacing_um: float, speed_mm_s: float, fmax_
     heights evaluated at the phases x = v t, t = 0 .. L / v."""
     from hostd.codec import transform
     from hostd.render import series
+    from hostd.render.stroke import at_constant_speed, crossing_count
 
     y = np.asarray(heights_um, dtype=np.float64)
     n = y.size
     length_mm = n * spacing_um / 1000.0
     n_keep = max(1, min(n - 1, transform.n_keep_for(length_mm, speed_mm_s, fmax_hz)))
     c = transform.analyze(y, n_keep)
-    m = max(2, round(length_mm / speed_mm_s * FS_HZ))
+    m = crossing_count(length_mm, speed_mm_s, FS_HZ)
     theta = series.phase_rad(np.arange(m) * (speed_mm_s / FS_HZ), n, length_mm)
-    return theta, series.evaluate(c, theta), n_keep
+    return theta, at_constant_speed(c, n, length_mm, speed_mm_s, FS_HZ, m, band_limited=False), n_keep
 
 
 def heights_from_signal(theta: np.ndarray, signal_um: np.ndarray, n_keep: int, n: int) -> np.ndarray:

@@ -45,12 +45,10 @@ def played_signal(coeffs_um: np.ndarray, n: int, length_mm: float, speed_mm_s: f
     """Height under a finger moving at constant speed v from x = 0, sampled at fs:
     h(t_m) = sum_k C_k cos(k theta(v t_m)), theta as in hostd.render.series (one chirp-z
     transform, FFT-based: no samples x N' cosine matrix)."""
-    from hostd.render import series
+    from hostd.render.stroke import at_constant_speed
 
-    dx_mm = length_mm / n
-    theta0 = float(series.phase_rad(0.0, n, length_mm))
-    dtheta = np.pi * speed_mm_s / (dx_mm * n * fs_hz)  # phase step per sample at speed v
-    return series.evaluate_uniform(coeffs_um, theta0, dtheta, round(duration_s * fs_hz))
+    return at_constant_speed(coeffs_um, n, length_mm, speed_mm_s, fs_hz, round(duration_s * fs_hz),
+                             band_limited=False)
 
 
 @lru_cache(maxsize=8)
