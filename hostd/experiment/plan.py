@@ -1,0 +1,92 @@
+"""The session plan: what a participant meets, declared as data (a TOML file; the default is the
+shipped config/experiment-plan.toml), in this order:
+
+    instructions -> consent (optional) -> practice trials (not scored) -> main trials in blocks,
+    with breaks -> end page
+
+`SECTIONS` is the one table of what a plan may say: the file is checked against it (unknown
+sections or keys, wrong types: one line naming the file and the key), the runner reads the
+checked plan, and the CLI's --plan help and docs/experiments.md show the same file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hostd.errors import ExperimentError
+
+# section -> key -> (type, default); a section that is None by default is optional (consent)
+SECTIONS: dict[str, dict[str, tuple[type, object]]] = {
+    "instructions": {"title": (str, "Before you start"), "text": (str, ""), "button": (str, "Start")},
+    "consent": {"text": (str, ""), "agree": (str, "I agree"), "decline": (str, "I do not agree")},
+    "practice": {"trials": (int, 0), "feedback": (bool, True)},
+    "main": {"blocks": (int, 1), "text": (str, ""), "button": (str, "Start")},
+    "breaks": {"every_trials": (int, 0), "every_minutes": (float, 0.0), "text": (str, "Take a break."),
+               "button": (str, "Continue")},
+    "end": {"title": (str, "Thank you"), "text": (str, "The session is complete.")},
+}
+OPTIONAL = {"consent"}
+
+
+def default_path() -> Path:
+    from hostd.paths import shipped_dir
+
+    return shipped_dir() / "experiment-plan.toml"
+
+
+def read_plan(path: str | Path | None = None) -> dict:
+    """The checked plan of `path` (None: the shipped default), every key filled in."""
+    from hostd.tomlfile import read
+
+    p = Path(path) if path is not None else default_path()
+    doc = read(p, "session plan", "see hostd experiment threshold --help", exc=ExperimentError)
+    return check_plan(doc, p)
+
+
+def check_plan(doc: dict, where: str | Path = "plan") -> dict:
+    unknown = set(doc) - set(SECTIONS)
+    if unknown:
+        raise ExperimentError(f"{where}: unknown section(s) {', '.join(sorted(unknown))} "
+                              f"(a plan has {', '.join(SECTIONS)})")
+    plan: dict = {}
+    for name, keys in SECTIONS.items():
+        sec = doc.get(name)
+        if sec is None and name in OPTIONAL:
+            plan[name] = None
+            continue
+        sec = {} if sec is None else sec
+        if not isinstance(sec, dict):
+            raise ExperimentError(f"{where}: [{name}] must be a table")
+        bad = set(sec) - set(keys)
+        if bad:
+            raise ExperimentError(f"{where}: [{name}] unknown key(s) {', '.join(sorted(bad))} "
+                                  f"(expected {', '.join(keys)})")
+        out = {}
+        for key, (kind, default) in keys.items():
+            v = sec.get(key, default)
+            if kind is float and isinstance(v, int) and not isinstance(v, bool):
+                v = float(v)
+            if not isinstance(v, kind) or (kind is int and isinstance(v, bool)):
+                raise ExperimentError(f"{where}: [{name}] {key} = {v!r:.40}: a {kind.__name__}")
+            if kind in (int, float) and v < 0:
+                raise ExperimentError(f"{where}: [{name}] {key} = {v}: not negative")
+            out[key] = v.strip() if isinstance(v, str) else v
+        plan[name] = out
+    if plan["main"]["blocks"] < 1:
+        raise ExperimentError(f"{where}: [main] blocks = {plan['main']['blocks']}: at least 1")
+    if plan["consent"] is not None and not plan["consent"]["text"]:
+        raise ExperimentError(f"{where}: [consent] needs its text (or leave the section out)")
+    return plan
+
+
+def break_due(plan: dict, answered: int, total: int, minutes_since_break: float) -> bool:
+    """After `answered` scored trials of `total`: is a break due before the next one?"""
+    if answered <= 0 or answered >= total:
+        return False
+    b = plan["breaks"]
+    blocks = plan["main"]["blocks"]
+    if blocks > 1 and any(answered == round(total * k / blocks) for k in range(1, blocks)):
+        return True
+    if b["every_trials"] and answered % b["every_trials"] == 0:
+        return True
+    return bool(b["every_minutes"]) and minutes_since_break >= b["every_minutes"]
