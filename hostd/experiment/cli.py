@@ -421,8 +421,8 @@ def cmd_calibration(args) -> int:
     sims = [f for f in (args.thresholds, args.fit) if f and _says_simulated(f)]
     if sims:
         prov["simulated"] = f"yes: {', '.join(sims)} came from a simulated observer (--simulate)"
-        print(f"hostd experiment calibration: {', '.join(sims)} came from --simulate: the calibration says so",
-              file=sys.stderr)
+        print(f"hostd experiment calibration: {', '.join(sims)} came from --simulate: the calibration "
+              "says so", file=sys.stderr)
     named = th.ThresholdCurve(curve.freq_hz, curve.threshold_um, name=name)
     cal = calibration.Calibration(named, a, b, name, prov)
     calibration.write(args.output, cal)

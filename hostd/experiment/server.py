@@ -20,7 +20,7 @@ still sending its request), a request must arrive whole within REQUEST_TIMEOUT_S
 taken within REPLY_TIMEOUT_S, each reply closes its connection. One event loop thread serves all
 of them (asyncio; http.server's thread per connection is what 1,000 idle connections exhausted),
 so with 1,000 idle connections open the page is still served. A malformed request gets a 4xx and
-one line on the experimenter's terminal (`report`), at most one a second.
+one line on the experimenter's terminal (`report`; a flood is cut short).
 
 GET  /s/CAP                 the page (HTML, CSS and script inline)
 GET  /api/CAP/state         the session as the page shows it (X-Hostd-Page: whose view)
@@ -44,7 +44,7 @@ import secrets
 import socket
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from pathlib import Path
 
 from hostd.errors import ExperimentError, HostdError
@@ -56,6 +56,7 @@ MAX_HEAD = 8192
 MAX_CONNECTIONS = 64
 REQUEST_TIMEOUT_S = 5.0  # a request (line, headers, body) must arrive whole within this
 REPLY_TIMEOUT_S = 5.0  # and its reply be taken within this
+REPORTS_PER_10S = 20
 UNIQUE_HEADERS = ("host", "content-length", "origin", "content-type", "x-hostd-page")
 PAGE_HTML = Path(__file__).with_name("page.html")
 
@@ -81,7 +82,7 @@ class ExperimentServer:
         self.capability = capability or new_capability()
         self.csrf_key = csrf_key or secrets.token_bytes(32)
         self.report = report or (lambda line: log.warning("%s", line))
-        self._last_report = 0.0
+        self._reports: deque[float] = deque()
         self._suppressed = 0
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -130,13 +131,17 @@ class ExperimentServer:
             self.loop.close()
 
     def _say(self, line: str) -> None:
-        """One line on the experimenter's terminal, at most one a second (the rest counted)."""
+        """One line on the experimenter's terminal; a flood is cut to REPORTS_PER_10S lines in any
+        10 s (the rest counted, and the count said with the next line)."""
         now = time.monotonic()
-        if now - self._last_report < 1.0:
+        while self._reports and now - self._reports[0] > 10.0:
+            self._reports.popleft()
+        if len(self._reports) >= REPORTS_PER_10S:
             self._suppressed += 1
             return
-        more = f" (and {self._suppressed} more)" if self._suppressed else ""
-        self._last_report, self._suppressed = now, 0
+        more = f" ({self._suppressed} more refused meanwhile)" if self._suppressed else ""
+        self._reports.append(now)
+        self._suppressed = 0
         self.report(f"the page: {line}{more}")
 
     # ------------------------------------------------------------------ connections
