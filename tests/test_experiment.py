@@ -311,8 +311,8 @@ def test_the_experimenters_terminal_shows_progress_aborts_and_resumes(tmp_path):
     out = tmp_path / "o"
     plan = tmp_path / "plan.toml"
     plan.write_text("[practice]\ntrials = 0\n")
-    args = [sys.executable, "-m", "hostd", "experiment", "threshold", "--out", str(out), "--participant", "p1",
-            "--frequencies", "40,250", "--trials", "3", "--plan", str(plan)]
+    args = [sys.executable, "-m", "hostd", "experiment", "threshold", "--out", str(out),
+            "--participant", "p1", "--frequencies", "40,250", "--trials", "3", "--plan", str(plan)]
     # (SIGINT as a terminal's foreground job has it: a runner started in the background hands
     # its children SIGINT ignored, and the Ctrl-C below never arrived: a 300 s hang)
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

@@ -106,12 +106,30 @@ def _shot(drv, tmp_path: Path, name: str) -> None:
         shutil.copy(tmp_path / f"{name}.png", Path(SHOTS) / f"experiment-{name}.png")
 
 
+class GatedDisplay(SimDisplay):
+    """The simulated display, whose intervals wait while `gate` is cleared (a trial held in its
+    first interval, for as long as a check of the page needs)."""
+
+    def __init__(self, **kw) -> None:
+        super().__init__(**kw)
+        self.gate = threading.Event()
+        self.gate.set()
+
+    def play(self, s) -> None:
+        assert self.gate.wait(30)
+        super().play(s)
+
+    def play_silence(self, duration_s: float) -> None:
+        assert self.gate.wait(30)
+        super().play_silence(duration_s)
+
+
 def _session(tmp_path, steps=NO_PRACTICE, realtime=False, trials=2, duration_s=0.5, gap_s=0.4):
     st = Store(tmp_path / "s.sqlite")
     st.create("p01", "threshold", {})
     cfg = ThresholdConfig([40.0, 250.0], [3.9, 0.1], [30.0, 20.0], n_afc=2, max_trials=trials, seed=1,
                           duration_s=duration_s, gap_s=gap_s)
-    disp = SimDisplay(realtime=realtime)
+    disp = GatedDisplay(realtime=realtime)
     sess = ThresholdSession(st, "p01", disp, cfg, steps)
     lines: list[str] = []
     srv = ExperimentServer(sess, report=lines.append).start()
@@ -176,17 +194,22 @@ def test_a_whole_plan_keyboard_only_marks_each_interval_for_eyes_and_screen_read
         _key(d, "1")
         _wait(d, lambda d: _title(d) == "Practice complete", "the end of the practice")
         assert st.answers("p01") == []  # not scored
+        disp.gate.clear()  # the first scored trial waits in its first interval
         _key(d, Keys.ENTER)
+        _wait(d, lambda d: d.find_elements("css selector", "#part-1.playing"), "interval 1 marked")
+        ax = _ax(d)  # what a screen reader has while interval 1 plays
+        assert [n["name"] for n in ax if n["role"] == "listitem"] == ["Interval 1, playing now", "Interval 2"]
+        assert any(n["role"] == "StaticText" and n["name"] == "Interval 1 playing" for n in ax)
+        assert all(n.get("disabled") for n in ax
+                   if n["role"] == "button" and n["name"].startswith("Interval"))
+        _shot(d, tmp_path, "playing")
+        disp.gate.set()
         answered = 0
         while answered < 4:
             if answered == 2:
                 _wait(d, lambda d: _title(d) == "Break", "the break")
                 _shot(d, tmp_path, "break")
                 _key(d, Keys.ENTER)
-            _wait(d, lambda d: _title(d) == "Detection" and d.find_elements("css selector", ".part.playing"),
-                  "an interval marked as it plays")
-            if answered == 0:
-                _shot(d, tmp_path, "playing")
             buttons = _wait(d, _choices, "the trial's buttons")
             if answered == 0:
                 _shot(d, tmp_path, "answer")
@@ -197,8 +220,9 @@ def test_a_whole_plan_keyboard_only_marks_each_interval_for_eyes_and_screen_read
                 assert any(n["role"] == "StaticText" and n["name"].startswith("Answer now") for n in ax)
                 assert any(n["role"] == "progressbar" for n in ax)
                 assert [n["name"] for n in ax if n["role"] == "listitem"] == ["Interval 1", "Interval 2"]
-                focused = [n for n in ax if n.get("focused")]
-                assert [(n["role"], n["name"]) for n in focused] == [("button", "Interval 1")]
+                focused = [(n["role"], n["name"]) for n in ax
+                           if n.get("focused") and n["role"] != "RootWebArea"]
+                assert focused == [("button", "Interval 1")]  # the first answer has the focus
                 assert all(n.get("keyshortcuts") for n in ax if n["role"] == "button"
                            and n["name"].startswith("Interval"))
             if answered == 1:  # a reload: the trial in flight plays again, nothing recorded
@@ -221,7 +245,7 @@ def test_a_whole_plan_keyboard_only_marks_each_interval_for_eyes_and_screen_read
 
 def test_declining_consent_ends_the_session_and_records_only_the_decline(tmp_path):
     steps = check_plan({"consent": {"text": "I agree."}, "practice": {"trials": 2}})
-    st, sess, disp, srv, _ = _session(tmp_path, steps)
+    st, _, disp, srv, _ = _session(tmp_path, steps)
     try:
         c = PageClient(srv.url)
         assert c.open()["phase"] == "instructions"
@@ -306,7 +330,7 @@ def test_a_page_of_another_origin_in_the_same_chromium_can_do_nothing(browser, t
 
 
 def test_a_second_tab_takes_the_session_over_and_no_trial_plays_twice(browser, tmp_path):
-    st, sess, disp, srv, _ = _session(tmp_path)
+    st, sess, _, srv, _ = _session(tmp_path)
     d = browser
     try:
         d.get(srv.url)
@@ -408,8 +432,9 @@ PLAN = "[practice]\ntrials = 0\n"
 def _start_cli(out: Path, *extra: str, rlimit_nofile: int | None = None) -> tuple[subprocess.Popen, str]:
     plan = out.parent / "plan.toml"
     plan.write_text(PLAN)
-    args = [sys.executable, "-m", "hostd", "experiment", "threshold", "--out", str(out), "--participant", "p01",
-            "--frequencies", "40,250", "--trials", "3", "--afc", "2", "--plan", str(plan), *extra]
+    args = [sys.executable, "-m", "hostd", "experiment", "threshold", "--out", str(out),
+            "--participant", "p01", "--frequencies", "40,250", "--trials", "3", "--afc", "2",
+            "--plan", str(plan), *extra]
 
     def pre():
         signal.signal(signal.SIGINT, signal.SIG_DFL)
@@ -440,7 +465,8 @@ NOBODY_SCRIPT = r"""
 import json, os, sys, urllib.request, urllib.error
 out, port = sys.argv[1], sys.argv[2]
 res = {}
-for what, fn in [("list", lambda: os.listdir(out)), ("read", lambda: open(out + "/session.sqlite", "rb").read(1))]:
+for what, fn in [("list", lambda: os.listdir(out)),
+                 ("read", lambda: open(out + "/session.sqlite", "rb").read(1))]:
     try:
         fn(); res[what] = "allowed"
     except PermissionError:
@@ -454,8 +480,9 @@ for pid in os.listdir("/proc"):
             pass
 res["cmdlines"] = cmdlines
 codes = []
-for path, body in [("/s/p01", None), ("/api/p01/state", None), ("/api/p01/answer", b'{"index": 0, "value": 1}'),
-                   ("/api/p01/pause", b'{"paused": true}'), ("/api/" + "x" * 32 + "/present", b"{}")]:
+for path, body in [("/s/p01", None), ("/api/p01/state", None),
+                   ("/api/p01/answer", b'{"index": 0, "value": 1}'), ("/api/p01/pause", b'{"paused": true}'),
+                   ("/api/" + "x" * 32 + "/present", b"{}")]:
     req = urllib.request.Request(f"http://127.0.0.1:{port}{path}", data=body,
                                  headers={"Content-Type": "application/json", "Origin": f"http://127.0.0.1:{port}"})
     try:

@@ -15,17 +15,18 @@ from pathlib import Path
 
 from hostd.errors import ExperimentError
 
-# section -> key -> (type, default); a section that is None by default is optional (consent)
-SECTIONS: dict[str, dict[str, tuple[type, object]]] = {
-    "instructions": {"title": (str, "Before you start"), "text": (str, ""), "button": (str, "Start")},
-    "consent": {"text": (str, ""), "agree": (str, "I agree"), "decline": (str, "I do not agree")},
-    "practice": {"trials": (int, 0), "feedback": (bool, True)},
-    "main": {"blocks": (int, 1), "text": (str, ""), "button": (str, "Start")},
-    "breaks": {"every_trials": (int, 0), "every_minutes": (float, 0.0), "text": (str, "Take a break."),
-               "button": (str, "Continue")},
-    "end": {"title": (str, "Thank you"), "text": (str, "The session is complete.")},
+# section -> key -> type: what a plan may say. The values a plan leaves out are the default
+# plan's (the shipped file); consent is the one optional section (absent: no consent step).
+SECTIONS: dict[str, dict[str, type]] = {
+    "instructions": {"title": str, "text": str, "button": str},
+    "consent": {"text": str, "agree": str, "decline": str},
+    "practice": {"trials": int, "feedback": bool},
+    "main": {"blocks": int, "text": str, "button": str},
+    "breaks": {"every_trials": int, "every_minutes": float, "text": str, "button": str},
+    "end": {"title": str, "text": str},
 }
 OPTIONAL = {"consent"}
+CONSENT_BUTTONS = {"agree": "I agree", "decline": "I do not agree"}
 
 
 def default_path() -> Path:
@@ -34,16 +35,21 @@ def default_path() -> Path:
     return shipped_dir() / "experiment-plan.toml"
 
 
-def read_plan(path: str | Path | None = None) -> dict:
-    """The checked plan of `path` (None: the shipped default), every key filled in."""
+def _read(p: Path) -> dict:
     from hostd.tomlfile import read
 
+    return read(p, "session plan", "see hostd experiment threshold --help", exc=ExperimentError)
+
+
+def read_plan(path: str | Path | None = None) -> dict:
+    """The checked plan of `path` (None: the shipped default), every key filled in."""
     p = Path(path) if path is not None else default_path()
-    doc = read(p, "session plan", "see hostd experiment threshold --help", exc=ExperimentError)
-    return check_plan(doc, p)
+    return check_plan(_read(p), p)
 
 
 def check_plan(doc: dict, where: str | Path = "plan") -> dict:
+    """`doc` checked against SECTIONS, what it leaves out taken from the default plan."""
+    base = _read(default_path()) if Path(where) != default_path() else doc
     unknown = set(doc) - set(SECTIONS)
     if unknown:
         raise ExperimentError(f"{where}: unknown section(s) {', '.join(sorted(unknown))} "
@@ -54,16 +60,19 @@ def check_plan(doc: dict, where: str | Path = "plan") -> dict:
         if sec is None and name in OPTIONAL:
             plan[name] = None
             continue
-        sec = {} if sec is None else sec
-        if not isinstance(sec, dict):
+        if sec is not None and not isinstance(sec, dict):
             raise ExperimentError(f"{where}: [{name}] must be a table")
+        sec = sec or {}
         bad = set(sec) - set(keys)
         if bad:
             raise ExperimentError(f"{where}: [{name}] unknown key(s) {', '.join(sorted(bad))} "
                                   f"(expected {', '.join(keys)})")
+        fallback = {**CONSENT_BUTTONS, **(base.get(name) or {})}
         out = {}
-        for key, (kind, default) in keys.items():
-            v = sec.get(key, default)
+        for key, kind in keys.items():
+            if key not in sec and key not in fallback:
+                raise ExperimentError(f"{where}: [{name}] needs {key}")
+            v = sec.get(key, fallback.get(key))
             if kind is float and isinstance(v, int) and not isinstance(v, bool):
                 v = float(v)
             if not isinstance(v, kind) or (kind is int and isinstance(v, bool)):
@@ -74,8 +83,6 @@ def check_plan(doc: dict, where: str | Path = "plan") -> dict:
         plan[name] = out
     if plan["main"]["blocks"] < 1:
         raise ExperimentError(f"{where}: [main] blocks = {plan['main']['blocks']}: at least 1")
-    if plan["consent"] is not None and not plan["consent"]["text"]:
-        raise ExperimentError(f"{where}: [consent] needs its text (or leave the section out)")
     return plan
 
 
