@@ -5,6 +5,8 @@ once), resume with the same plan, a display lost mid-trial, bad designs, and the
 from __future__ import annotations
 
 import json
+import re
+import threading
 
 import numpy as np
 import pytest
@@ -345,3 +347,103 @@ def test_the_experimenters_terminal_shows_progress_aborts_and_resumes(tmp_path):
     rows = st.answers("p1")
     assert len(rows) == 6 and [a["stimulus"] for a in rows[:2]] == first
     assert th.load_csv(out / "thresholds.csv").freq_hz.size == 2
+
+
+# ---------------------------------------------------------------------------- a full disk
+def _run_main_in_thread(argv: list[str], capsys) -> tuple[threading.Thread, dict, str]:
+    """`hostd ARGV` in a thread (the command serving its page); its address from stdout."""
+    import time
+
+    res: dict = {}
+    th_ = threading.Thread(target=lambda: res.setdefault("rc", main(argv)), daemon=True)
+    th_.start()
+    out = ""
+    t_end = time.monotonic() + 60
+    while "http://" not in out and th_.is_alive() and time.monotonic() < t_end:
+        out += capsys.readouterr().out
+        time.sleep(0.02)
+    m = re.search(r"http://127\.0\.0\.1:\d+/s/\S+", out)
+    assert m, out
+    return th_, res, m.group(0)
+
+
+@pytest.mark.parametrize("moment", ["answer", "done", "results"])
+def test_a_full_disk_stops_with_one_line_and_a_plain_message_and_resume_finishes(tmp_path, capsys, monkeypatch,
+                                                                                   moment):
+    """The session's folder on a 1 MiB tmpfs that fills up at one moment: an answer, the done
+    mark, the results. Each ends in one line on the terminal and a plain message on the page (no
+    path, no JSON dump); once space returns, the same command with --resume finishes the results
+    from the stored answers, every answer once."""
+    import subprocess
+
+    from hostd.experiment import cli as ecli
+    from tests.page_client import PageClient
+    from tests.test_quality_full_disk import _fill, _mount_tmpfs
+
+    fs = tmp_path / "fs"
+    _mount_tmpfs(fs)
+    filled: list = []
+
+    def fill() -> None:
+        if not filled:
+            filled.append(_fill(fs))
+
+    try:
+        out = fs / "o"
+        plan = tmp_path / "plan.toml"
+        plan.write_text("[practice]\ntrials = 0\n")
+        argv = ["experiment", "threshold", "--out", str(out), "--participant", "p1", "--frequencies", "40",
+                "--trials", "3", "--afc", "2", "--plan", str(plan)]
+        if moment == "done":
+            real = Store.set_state
+            monkeypatch.setattr(Store, "set_state",
+                                lambda self, tok, state: (fill() if state == "done" else None,
+                                                          real(self, tok, state))[1])
+        if moment == "results":
+            real_log = ecli._write_trial_log
+            monkeypatch.setattr(ecli, "_write_trial_log", lambda *a: (fill(), real_log(*a))[1])
+        th_, res, url = _run_main_in_thread(argv, capsys)
+        c = PageClient(url)
+        c.to_main()
+        replies = []
+        for i in range(3):
+            if moment == "answer" and i == 2:
+                fill()
+            t = c.play()["trial"]
+            replies.append(c.answer(t["index"], 1))
+        th_.join(60)
+        err = capsys.readouterr().err
+        assert not th_.is_alive() and res["rc"] in (1, 2) and "Traceback" not in err
+        said = [line for line in err.splitlines() if "--resume" in line and "space" in line.lower()]
+        assert len(said) == 1, err
+        if moment in ("answer", "done"):
+            code, rep = replies[-1]
+            assert code == 507 and "tell the experimenter" in rep["error"] and "/" not in rep["error"], rep
+        else:
+            assert replies[-1] == (200, {"ok": True})
+        assert not (out / "thresholds.csv").exists()
+        stored = len(Store(out / "session.sqlite").answers("p1"))
+        assert stored == (2 if moment == "answer" else 3)
+        # space returns: the same command, --resume
+        for f in filled[0]:
+            f.unlink()
+        for f in fs.glob("tail*"):
+            f.unlink()
+        filled.append("freed")
+        monkeypatch.undo()
+        if moment == "answer":
+            th_, res, url2 = _run_main_in_thread([*argv, "--resume"], capsys)
+            assert url2 == url
+            c = PageClient(url)
+            c.open()
+            t = c.play()["trial"]
+            assert c.answer(t["index"], 2) == (200, {"ok": True})
+            th_.join(60)
+            assert res["rc"] == 0
+        else:
+            assert main([*argv, "--resume"]) == 0  # nothing left to answer: no page served
+        st = Store(out / "session.sqlite")
+        assert [a["trial"] for a in st.answers("p1")] == [0, 1, 2] and st.state("p1") == "done"
+        assert th.load_csv(out / "thresholds.csv").freq_hz.size == 1
+    finally:
+        subprocess.run(["umount", "-l", str(fs)], capture_output=True)
