@@ -282,6 +282,42 @@ def test_similarity_session_answers_once_and_repeats_a_lost_texture(tmp_path):
     assert [a["answer"] for a in st.answers("k")] == [2]
 
 
+def test_similarity_simulate_takes_only_a_grading_observer(tmp_path, capsys):
+    d = tmp_path / "design.toml"
+    d.write_text(DESIGN)
+    assert main(["experiment", "similarity", str(d), "--out", str(tmp_path / "o"),
+                 "--simulate", "weibull"]) == 2
+    assert "a grading observer is linear" in capsys.readouterr().err
+
+
+def test_the_plan_is_data_checked_with_one_line_and_breaks_come_as_declared(tmp_path):
+    from pathlib import Path
+
+    from hostd.experiment.plan import break_due, default_path, read_plan
+
+    plan = read_plan()  # the shipped default
+    assert plan["consent"] is None and plan["practice"]["trials"] == 3
+    docs = (Path(__file__).parents[1] / "docs" / "experiments.md").read_text()
+    assert default_path().read_text().strip() in docs  # the docs show the very file
+    for text, needle in [("[practice]\ntrials = -1\n", "not negative"), ("[brakes]\n", "unknown section"),
+                         ("[end]\ncolour = 1\n", "unknown key(s) colour"),
+                         ("[breaks]\nevery_trials = 1.5\n", "must be a whole number"),
+                         ("[consent]\nagree = 'yes'\n", "needs text"),
+                         ("[main]\nblocks = 0\n", "at least 1")]:
+        f = tmp_path / "p.toml"
+        f.write_text(text)
+        with pytest.raises(ExperimentError, match=re.escape(needle)):
+            read_plan(f)
+    f.write_text("[consent]\ntext = 'Agree?'\n[breaks]\nevery_trials = 0\nevery_minutes = 5\n"
+                 "[main]\nblocks = 3\n")
+    p = read_plan(f)
+    assert p["consent"] == {"text": "Agree?", "agree": "I agree", "decline": "I do not agree"}
+    assert p["end"] == plan["end"]  # what a plan leaves out is the default plan's
+    assert [n for n in range(1, 30) if break_due(p, n, 30, 0.0)] == [10, 20]  # blocks of 10
+    assert break_due(p, 3, 30, 5.0) and not break_due(p, 3, 30, 4.9)  # every 5 minutes
+    assert not break_due(p, 30, 30, 99.0)  # never after the last trial
+
+
 def test_db_scale():
     assert db(1.0) == 0.0 and abs(db(0.1) + 20.0) < 1e-12
 
@@ -368,8 +404,8 @@ def _run_main_in_thread(argv: list[str], capsys) -> tuple[threading.Thread, dict
 
 
 @pytest.mark.parametrize("moment", ["answer", "done", "results"])
-def test_a_full_disk_stops_with_one_line_and_a_plain_message_and_resume_finishes(tmp_path, capsys, monkeypatch,
-                                                                                   moment):
+def test_a_full_disk_stops_with_one_line_and_a_plain_message_and_resume_finishes(tmp_path, capsys,
+                                                                                   monkeypatch, moment):
     """The session's folder on a 1 MiB tmpfs that fills up at one moment: an answer, the done
     mark, the results. Each ends in one line on the terminal and a plain message on the page (no
     path, no JSON dump); once space returns, the same command with --resume finishes the results

@@ -349,6 +349,9 @@ def cmd_similarity(args) -> int:
     from hostd.experiment.runner import SimilaritySession, similarity_scores
     from hostd.experiment.similarity import make_plan, read_design, scores_csv
 
+    if args.simulate not in (None, "linear"):
+        raise ExperimentError(f"similarity --simulate {args.simulate}: a grading observer is linear (grades "
+                              "from Ip and Ia); weibull and logistic are detection observers (threshold)")
     out = Path(args.out)
     display, _cfg = _display(args)
     steps = read_plan(args.plan)

@@ -26,6 +26,7 @@ SECTIONS: dict[str, dict[str, type]] = {
     "end": {"title": str, "text": str},
 }
 OPTIONAL = {"consent"}
+WORDS = {str: "text", int: "a whole number", float: "a number", bool: "true or false"}
 CONSENT_BUTTONS = {"agree": "I agree", "decline": "I do not agree"}
 
 
@@ -76,7 +77,7 @@ def check_plan(doc: dict, where: str | Path = "plan") -> dict:
             if kind is float and isinstance(v, int) and not isinstance(v, bool):
                 v = float(v)
             if not isinstance(v, kind) or (kind is int and isinstance(v, bool)):
-                raise ExperimentError(f"{where}: [{name}] {key} = {v!r:.40}: a {kind.__name__}")
+                raise ExperimentError(f"{where}: [{name}] {key} = {v!r:.40}: must be {WORDS[kind]}")
             if kind in (int, float) and v < 0:
                 raise ExperimentError(f"{where}: [{name}] {key} = {v}: not negative")
             out[key] = v.strip() if isinstance(v, str) else v
