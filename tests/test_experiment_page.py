@@ -193,6 +193,9 @@ def test_a_whole_plan_keyboard_only_marks_each_interval_for_eyes_and_screen_read
         assert lives[-1].startswith("Answer now")
         _key(d, "1")
         _wait(d, lambda d: _title(d) == "Practice complete", "the end of the practice")
+        target = sess.practice_trial(0)["target"]
+        want = "Right." if target == 1 else f"Not quite: it was interval {target}."
+        _wait(d, lambda d: d.find_element("id", "live").text == want, "the practice's feedback")
         assert st.answers("p01") == []  # not scored
         disp.gate.clear()  # the first scored trial waits in its first interval
         _key(d, Keys.ENTER)

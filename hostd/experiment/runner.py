@@ -89,7 +89,8 @@ class Session:
             v = {"phase": phase, "yours": page is not None and page == self.holder,
                  "held": self.holder is not None, "paused": self.paused, "playing": self.playing,
                  "presented": bool(self.presented and self.presented["page"] == page),
-                 "retry": self.retry, "feedback": self.feedback, "failure": self.failure,
+                 "retry": self.retry, "feedback": self.feedback, "practiced": self.practice_n,
+                 "failure": self.failure,
                  "done": phase in ("end", "declined", "stopped"), **self.progress()}
             if phase in TRIAL_PHASES:
                 t = self._trial()
@@ -156,6 +157,7 @@ class Session:
         with self.lock:
             self._check(page)
             ph = self.phase
+            self.feedback = None
             if ph == "consent" and action == "decline":
                 self._store(DISK_FULL_OTHER, self.store.set_state, self.token, "declined")
                 self._store(DISK_FULL_OTHER, self.store.event, self.token, "declined", "")
