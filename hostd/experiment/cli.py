@@ -179,12 +179,12 @@ def _drive(sess, args, out: Path) -> str:
         return "done"
     if args.simulate:
         sess.store.event(sess.token, "simulated", args.simulate)
+        sess.steps = {**sess.steps, "practice": {**sess.steps["practice"], "trials": 0}}  # (for people)
         run_simulated(sess, _observer(sess, args.simulate))
     else:
         _serve(sess, args, out)
     if sess.failure is not None:
-        print(f"hostd experiment: stopped: {sess.failure_detail}. Free space, then run the same command with "
-              f"--resume: every answer recorded is kept", file=sys.stderr)
+        print(f"hostd experiment: stopped: {sess.failure_detail}", file=sys.stderr)
         return "failed"
     if sess.phase == "declined":
         print("hostd experiment: the participant declined: the session ended, only the decline is recorded",

@@ -44,6 +44,8 @@ DISK_FULL_ANSWER = ("Your last answer could not be saved: the experimenter's com
                     "Please tell the experimenter. Every earlier answer is kept.")
 DISK_FULL_DONE = ("Your answers are saved, but the session could not be closed: the experimenter's computer "
                   "could not store it. Please tell the experimenter.")
+REFUSED = "The session had to stop: the display refused a stimulus. Please tell the experimenter."
+FREE_SPACE = ". Free space, then run the same command with --resume: every answer recorded is kept"
 DISK_FULL_OTHER = ("The session had to stop: the experimenter's computer could not store it. "
                    "Please tell the experimenter. Every answer you gave is kept.")
 
@@ -229,7 +231,7 @@ class Session:
         try:
             return fn(*args)
         except StorageError as e:
-            self.failure, self.failure_detail = page_message, str(e)
+            self.failure, self.failure_detail = page_message, f"{e}{FREE_SPACE}"
             raise Refused(507, page_message) from None
 
     def _finish(self) -> None:
@@ -270,7 +272,7 @@ class Session:
     def _play(self, t: dict, page: str) -> None:
         try:
             self.play(t)
-        except (DeviceError, ExperimentError) as e:
+        except DeviceError as e:
             with self.lock:
                 self.playing = None
                 self.display_lost += 1
@@ -279,7 +281,14 @@ class Session:
                 try:
                     self.store.event(self.token, "display_lost", f"trial {t['index']}: {e}")
                 except StorageError as se:
-                    self.failure, self.failure_detail = DISK_FULL_OTHER, str(se)
+                    self.failure, self.failure_detail = DISK_FULL_OTHER, f"{se}{FREE_SPACE}"
+            return
+        except ExperimentError as e:  # a stimulus refused (beyond the reach): not a retry
+            with self.lock:
+                self.playing = None
+                self.failure = REFUSED
+                self.failure_detail = (f"the display refused trial {t['index']}'s stimulus ({e}); nothing "
+                                       "was recorded for it: fix the display's limits, then --resume")
             return
         with self.lock:
             self.playing = None
