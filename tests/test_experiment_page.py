@@ -246,6 +246,45 @@ def test_a_whole_plan_keyboard_only_marks_each_interval_for_eyes_and_screen_read
         srv.close()
 
 
+def test_a_similarity_session_in_chromium_names_its_parts_and_keeps_a_pause_over_a_reload(browser, tmp_path):
+    from hostd.experiment.runner import SimilaritySession
+    from hostd.experiment.similarity import make_plan, read_design
+
+    dsg = tmp_path / "design.toml"
+    dsg.write_text('seconds = 1\nrepetitions = 1\nlength_mm = 1\n[textures]\nwood = "synthetic:wood:1"\n'
+                   '[[methods]]\nmethod = "quant"\nsettings = [4]\n')
+    plan = make_plan(read_design(dsg), tmp_path / "o")
+    st = Store(tmp_path / "s.sqlite")
+    st.create("p02", "similarity", plan)
+    sess = SimilaritySession(st, "p02", SimDisplay(), plan, NO_PRACTICE)
+    srv = ExperimentServer(sess).start()
+    d = browser
+    try:
+        d.get(srv.url)
+        _wait(d, lambda d: d.find_elements("id", "step-continue"), "the instructions")
+        d.find_element("id", "step-continue").click()
+        buttons = _wait(d, _choices, "the first trial")
+        assert [b.text.split("\n")[0] for b in buttons] == ["same", "possibly the same", "possibly different",
+                                                           "different"]
+        parts = [e.text for e in d.find_elements("css selector", "#parts .part")]
+        assert parts == ["Reference", "Comparison"]
+        d.find_element("id", "pause").click()
+        _wait(d, lambda d: _title(d) == "Paused", "the pause")
+        assert sess.paused and [e["kind"] for e in st.events("p02")][-1] == "paused"
+        d.refresh()  # paused across a reload too
+        _wait(d, lambda d: _title(d) == "Paused", "the pause after the reload")
+        _key(d, "p")
+        _wait(d, _choices, "the trial played again after the pause")
+        for n in (1, 2):
+            _wait(d, _choices, "a trial played")
+            _key(d, "3")
+            _wait(d, lambda d, n=n: len(st.answers("p02")) == n, "the grade recorded")
+        _wait(d, lambda d: _title(d) == "Thank you", "the end page")
+        assert [a["answer"] for a in st.answers("p02")] == [3, 3] and st.state("p02") == "done"
+    finally:
+        srv.close()
+
+
 def test_declining_consent_ends_the_session_and_records_only_the_decline(tmp_path):
     steps = check_plan({"consent": {"text": "I agree."}, "practice": {"trials": 2}})
     st, _, disp, srv, _ = _session(tmp_path, steps)

@@ -195,7 +195,8 @@ class ExperimentServer:
         lines = head.decode("latin-1").split("\r\n")
         parts = lines[0].split(" ")
         if len(parts) != 3 or not parts[2].startswith("HTTP/1."):
-            raise BadRequest(400, f"not an HTTP/1.x request line: {lines[0][:60]!r}")
+            raise BadRequest(400, f"not an HTTP/1.x request line ({len(lines[0])} bytes)")  # (never echoed:
+            # a request line may carry the address's secret)
         headers: dict[str, str] = {}
         for line in lines[1:]:
             if not line:
@@ -203,7 +204,7 @@ class ExperimentServer:
             name, sep, value = line.partition(":")
             name = name.strip().lower()
             if not sep or not name:
-                raise BadRequest(400, f"malformed header line {line[:60]!r}")
+                raise BadRequest(400, f"malformed header line {name[:30]!r}")
             if name in headers and name in UNIQUE_HEADERS:
                 raise BadRequest(400, f"header {name} given twice")
             headers[name] = value.strip()
