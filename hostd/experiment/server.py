@@ -57,6 +57,7 @@ MAX_CONNECTIONS = 64
 REQUEST_TIMEOUT_S = 5.0  # a request (line, headers, body) must arrive whole within this
 REPLY_TIMEOUT_S = 5.0  # and its reply be taken within this
 REPORTS_PER_10S = 20
+BACKLOG = 4096  # (net.core.somaxconn caps it) a burst waits in the kernel's queue, not in SYN retries
 UNIQUE_HEADERS = ("host", "content-length", "origin", "content-type", "x-hostd-page")
 PAGE_HTML = Path(__file__).with_name("page.html")
 
@@ -92,7 +93,7 @@ class ExperimentServer:
             self.sock.close()
             raise ExperimentError(f"cannot serve the page on 127.0.0.1:{port}: {e.strerror or e} (another "
                                   "program holds the port? stop it, or give --port)") from None
-        self.sock.listen(512)
+        self.sock.listen(BACKLOG)
         self.port = self.sock.getsockname()[1]
         self.host = f"127.0.0.1:{self.port}"
         self.origin = f"http://{self.host}"
@@ -119,7 +120,7 @@ class ExperimentServer:
     def _run(self) -> None:
         asyncio.set_event_loop(self.loop)
         server = self.loop.run_until_complete(
-            asyncio.start_server(self._connection, sock=self.sock, limit=MAX_HEAD))
+            asyncio.start_server(self._connection, sock=self.sock, limit=MAX_HEAD, backlog=BACKLOG))
         self.ready.set()
         try:
             self.loop.run_forever()
