@@ -107,6 +107,15 @@ def test_one_session_per_token_and_one_answer_per_trial(tmp_path):
         st.create("a b", "threshold", {})
     assert st.record("abc", 0, 1, {}, None) and not st.record("abc", 0, 2, {}, None)
     assert [a["answer"] for a in st.answers("abc")] == [1]
+    import os
+
+    assert os.stat(tmp_path / "s.sqlite").st_mode & 0o777 == 0o600
+    shared = tmp_path / "shared"  # a folder others can enter, not made by hostd: refused, left as it is
+    shared.mkdir()
+    shared.chmod(0o755)
+    with pytest.raises(ExperimentError, match="open to other accounts"):
+        Store(shared / "s.sqlite")
+    assert shared.stat().st_mode & 0o777 == 0o755 and not (shared / "s.sqlite").exists()
 
 
 def _cfg():

@@ -31,12 +31,21 @@ class StorageError(ExperimentError):
 
 
 def private_dir(path: Path) -> None:
-    """`path` (and missing parents) created 0700; an existing one made 0700 (the experimenter's)."""
+    """`path` created 0700 (missing parents too); an existing one other accounts can enter is
+    refused (hostd does not change the mode of a folder it did not make)."""
     try:
-        path.mkdir(mode=0o700, parents=True, exist_ok=True)
-        path.chmod(0o700)
+        path.mkdir(mode=0o700, parents=True)
+        path.chmod(0o700)  # (mkdir's mode passes through the umask)
+        return
+    except FileExistsError:
+        pass
     except OSError as e:
         raise ExperimentError(f"cannot make the private folder {path}: {e.strerror or e}") from None
+    st = path.stat()
+    if st.st_mode & 0o077:
+        raise ExperimentError(f"{path} is open to other accounts (mode {st.st_mode & 0o777:04o}): the "
+                              f"answers must not be; give a new folder (hostd makes it 0700) or chmod 700 "
+                              f"{path}")
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS sessions (
