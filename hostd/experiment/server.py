@@ -235,7 +235,8 @@ class ExperimentServer:
 
     def _handle(self, method: str, target: str, headers: dict, body: bytes) -> tuple[int, str, bytes]:
         if headers.get("host") != self.host:
-            raise BadRequest(403, f"Host {headers.get('host', '')[:60]!r} is not {self.host}")
+            raise BadRequest(403, f"Host {headers.get('host', '')[:60]!r} is not {self.host}: open the "
+                             "address as hostd printed it")
         parts = target.split("?", 1)[0].split("/")
         if len(parts) < 3 or parts[0] != "" or parts[1] not in ("s", "api") or \
                 not hmac.compare_digest(parts[2].encode(), self.capability.encode()):
