@@ -571,6 +571,10 @@ def test_another_account_finds_no_secret_and_can_do_nothing(tmp_path):
     assert cap not in err
 
 
+def _threads(pid: int) -> int:
+    return int(re.search(r"Threads:\s+(\d+)", Path(f"/proc/{pid}/status").read_text()).group(1))
+
+
 def test_a_thousand_idle_connections_and_a_slow_client_at_a_1024_fd_limit(tmp_path):
     """The command under a desktop's default fd limit (1,024): 1,000 idle connections open, the
     participant's page still plays and answers; a client sending a byte at a time is dropped
@@ -584,13 +588,13 @@ def test_a_thousand_idle_connections_and_a_slow_client_at_a_1024_fd_limit(tmp_pa
     idle: list[socket.socket] = []
     try:
         port = int(url.split(":")[2].split("/")[0])
+        threads0 = _threads(proc.pid)
         for _ in range(1000):
             s = socket.socket()
             s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\0" * 8)
             s.connect(("127.0.0.1", port))
             idle.append(s)
-        threads = int(re.search(r"Threads:\s+(\d+)", Path(f"/proc/{proc.pid}/status").read_text()).group(1))
-        assert threads <= 6, threads
+        assert _threads(proc.pid) <= threads0 + 1  # no thread per connection (numpy's pool aside)
         c = PageClient(url)  # the participant's page, behind 1,000 idle connections
         c.to_main()
         s = c.play()
