@@ -285,6 +285,36 @@ def test_a_similarity_session_in_chromium_names_its_parts_and_keeps_a_pause_over
         srv.close()
 
 
+def test_a_store_that_cannot_take_the_answer_is_a_plain_message_the_page_keeps(browser, tmp_path,
+                                                                              monkeypatch):
+    """(The real full disk is tests/test_experiment.py's; here, what the participant sees.)"""
+    from hostd.experiment.session import StorageError
+
+    st, _, _, srv, _ = _session(tmp_path)
+
+    def full(*a):
+        raise StorageError("cannot record the answer in /x/session.sqlite: database or disk is full")
+
+    d = browser
+    try:
+        d.get(srv.url)
+        _wait(d, lambda d: d.find_elements("id", "step-continue"), "the instructions")
+        d.find_element("id", "step-continue").click()
+        _wait(d, _choices, "the first trial")
+        monkeypatch.setattr(st, "record", full)
+        _key(d, "1")
+        _wait(d, lambda d: _title(d) == "The session has stopped", "the stop")
+        text = d.find_element("id", "text").text
+        assert text.startswith("Your last answer could not be saved") and "tell the experimenter" in text
+        assert "/" not in text and "{" not in text and not d.find_elements("css selector", "#choices button")
+        srv.close()  # the command ends: the page keeps the message
+        time.sleep(2.5)  # (the page asks every 2 s meanwhile)
+        assert _title(d) == "The session has stopped" and d.find_element("id", "text").text == text
+        assert "Waiting" not in d.find_element("id", "message").text
+    finally:
+        srv.close()
+
+
 def test_declining_consent_ends_the_session_and_records_only_the_decline(tmp_path):
     steps = check_plan({"consent": {"text": "I agree."}, "practice": {"trials": 2}})
     st, _, disp, srv, _ = _session(tmp_path, steps)
