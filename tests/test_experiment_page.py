@@ -490,6 +490,12 @@ def test_forged_early_paused_and_malformed_requests_are_refused_with_one_line_ea
         assert len(new) == 3 and all("\n" not in x and "Traceback" not in x for x in new), new
         assert "Content-Length 'abc'" in new[0] and "not JSON" in new[1]
         assert st.answers("p01") == [] and len(st.answers("p01")) == 0
+        # a failure inside (here: the state cannot be read) is a 500 and one line, and the server goes on
+        view = sess.view
+        sess.view = lambda page: 1 / 0
+        assert c.request("GET", f"{api}/state", headers={"X-Hostd-Page": c.csrf})[0] == 500
+        assert "ZeroDivisionError" in lines[-1] and len(lines) == n + 4
+        sess.view = view
         # and the page's own request still works
         s = c.play()
         assert c.answer(s["trial"]["index"], s["trial"]["n_afc"]) == (200, {"ok": True})

@@ -45,6 +45,7 @@ import socket
 import threading
 import time
 from collections import OrderedDict, deque
+from http import HTTPStatus
 from pathlib import Path
 
 from hostd.errors import ExperimentError, HostdError
@@ -168,7 +169,10 @@ class ExperimentServer:
                 return
             except (asyncio.IncompleteReadError, ConnectionError):
                 return
-            head = (f"HTTP/1.1 {status} {_REASONS.get(status, 'Error')}\r\n"
+            except Exception as e:  # a bug, or a store that fails a read: one line, and the page goes on
+                self._say(f"could not answer a request: {type(e).__name__}: {str(e)[:120]}")
+                status, ctype, data = 500, "text/plain; charset=utf-8", b"hostd could not answer: see hostd\n"
+            head = (f"HTTP/1.1 {status} {HTTPStatus(status).phrase}\r\n"
                     f"Content-Type: {ctype}\r\nContent-Length: {len(data)}\r\nConnection: close\r\n"
                     "Cache-Control: no-store\r\nX-Content-Type-Options: nosniff\r\n"
                     "Referrer-Policy: no-referrer\r\nX-Frame-Options: DENY\r\n"
@@ -294,8 +298,3 @@ class ExperimentServer:
     @staticmethod
     def _json(obj: dict, status: int = 200) -> tuple[int, str, bytes]:
         return status, "application/json", json.dumps(obj).encode()
-
-
-_REASONS = {200: "OK", 400: "Bad Request", 403: "Forbidden", 404: "Not Found", 405: "Method Not Allowed",
-            409: "Conflict", 411: "Length Required", 413: "Content Too Large", 415: "Unsupported Media Type",
-            431: "Request Header Fields Too Large", 507: "Insufficient Storage"}
