@@ -46,7 +46,7 @@ def add_parser(sub, parents=()) -> None:
                    "session's own, so an open page goes on)")
     g.add_argument("--plan", default=None, metavar="TOML",
                    help="the session plan: instructions, consent, practice, breaks, blocks, end page "
-                   "(default: the shipped config/experiment-plan.toml; docs/experiments.md)")
+                   "(default: the plan shipped with hostd, experiment-plan.toml among its data files)")
     g.add_argument("--display", default="sim", metavar="sim|daemon",
                    help="sim: the simulated display (default); daemon: the running hostd's display (for "
                    "thresholds its config needs [experiment] stimuli = true)")
