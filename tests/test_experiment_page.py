@@ -24,6 +24,7 @@ import pytest
 
 pytest.importorskip("questplus")
 
+from hostd.errors import ExperimentError
 from hostd.experiment.display import SimDisplay
 from hostd.experiment.plan import check_plan
 from hostd.experiment.runner import ThresholdSession
@@ -317,7 +318,7 @@ def test_a_store_that_cannot_take_the_answer_is_a_plain_message_the_page_keeps(b
 
 def test_declining_consent_ends_the_session_and_records_only_the_decline(tmp_path):
     steps = check_plan({"consent": {"text": "I agree."}, "practice": {"trials": 2}})
-    st, _, disp, srv, _ = _session(tmp_path, steps)
+    st, sess, disp, srv, _ = _session(tmp_path, steps)
     try:
         c = PageClient(srv.url)
         assert c.open()["phase"] == "instructions"
@@ -328,6 +329,8 @@ def test_declining_consent_ends_the_session_and_records_only_the_decline(tmp_pat
         assert c.state()["done"] and st.state("p01") == "declined"
         assert [e["kind"] for e in st.events("p01")] == ["started", "declined"] and st.answers("p01") == []
         assert disp.plays == 0
+        with pytest.raises(ExperimentError, match="declined"):
+            ThresholdSession(st, "p01", SimDisplay(), sess.cfg, steps).resume()
     finally:
         srv.close()
 

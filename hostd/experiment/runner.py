@@ -194,6 +194,9 @@ class Session:
     def resume(self) -> None:
         """Replay the recorded answers against the plan; a session already complete is marked
         done (a done mark the disk could not take)."""
+        if self.store.state(self.token) == "declined":
+            raise ExperimentError(f"session {self.token}: the participant declined; there is nothing to "
+                                  "resume (a new session needs a new --participant)")
         for a in self.store.answers(self.token):
             t = self.current()
             if t is None or t["index"] != a["trial"] or not self.same_trial(t, a["stimulus"]):
