@@ -22,8 +22,8 @@ hostd iobj IN.vtx --json                                        # receiver side:
 hostd iobj REFERENCE_PROFILE IN.vtx --json                      # sender side: against the original
 hostd iobj REFERENCE_PROFILE DECODED_PROFILE --json             # another codec's output (e.g. an .hjif)
 hostd fit SCORES.csv [--json] [--nonnegative] [--exclude-saturated] [--bootstrap N]   # (a, b), SE, intervals
-hostd experiment threshold --out thr --token p01                # detection thresholds b(f) on your display
-hostd experiment similarity DESIGN.toml --out sim --token p01   # the paper's test: scores for hostd fit
+hostd experiment threshold --out thr --participant p01          # detection thresholds b(f) on your display
+hostd experiment similarity DESIGN.toml --out sim --participant p01   # the paper's test: scores for hostd fit
 hostd experiment calibration -o lab.toml --thresholds thr/thresholds.csv --fit fit.json   # your (a, b), b(f)
 hostd experiment bench [--runs 200] [--json]                    # the procedures on simulated observers
 hostd report rate-quality PROFILE -o DIR [--json]               # CSV, Markdown, PNG: Iobj, Ip, Ia, SPQI, CPU
