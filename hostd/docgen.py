@@ -289,13 +289,13 @@ def _md_escape(text: str) -> str:
 
 
 def cli_markdown(ap: argparse.ArgumentParser) -> str:
-    """The command-line reference of the docs site (docs/reference/cli.md), from the same parser
+    """The command-line reference of the docs site (its reference/cli.md), from the same parser
     as the man page: every command, its usage, arguments and options with their help and
     defaults. Hidden options (old spellings kept for a release) are left out."""
     out = ["# Command-line reference", "",
            "Every `hostd` command with its arguments and options, generated from the parser that "
-           "parses them (the same source as `hostd manpage`): `hostd manpage --markdown > "
-           "docs/reference/cli.md`. Each command also prints this with `--help`.", ""]
+           "parses them (the same source as `hostd manpage`; `hostd manpage --markdown` prints this page). "
+           "Each command also prints its part with `--help`.", ""]
     for path, p in walk(ap):
         if not path:
             continue

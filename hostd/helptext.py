@@ -22,13 +22,14 @@ hostd iobj IN.vtx --json                                        # receiver side:
 hostd iobj REFERENCE_PROFILE IN.vtx --json                      # sender side: against the original
 hostd iobj REFERENCE_PROFILE DECODED_PROFILE --json             # another codec's output (e.g. an .hjif)
 hostd fit SCORES.csv [--json] [--nonnegative] [--exclude-saturated] [--bootstrap N]   # (a, b), SE, intervals
-hostd experiment threshold -o thr --token p01                   # detection thresholds b(f) on your display
-hostd experiment similarity DESIGN.toml -o sim --token p01      # the paper's test: scores for hostd fit
+hostd experiment threshold -o thr --participant p01             # detection thresholds b(f) on your display
+hostd experiment similarity DESIGN.toml -o sim --participant p01   # the paper's test: scores for hostd fit
 hostd experiment calibration -o lab.toml --thresholds thr/thresholds.csv --fit fit.json   # your (a, b), b(f)
 hostd experiment bench [--runs 200] [--json]                    # the procedures on simulated observers
 hostd report rate-quality PROFILE -o DIR [--json]               # CSV, Markdown, PNG: Iobj, Ip, Ia, SPQI, CPU
 hostd render IN.vtx --speed-mm-s 50 --seconds 5 -o OUT.wav      # what a hand at 50 mm/s feels, as a WAV file
 hostd export IN.vtx|PROFILE -o OUT.hjif [--speed-mm-s 80]       # MPEG-I Haptics .hjif (the standard)
+HOSTD_RUN_MPEG_RM=1 hostd encode IN.hmpg --spacing 6.25 ...      # .hmpg: the sandboxed MPEG-I reference
 hostd bench accuracy [--json] [--plot F.png]                    # every render knob: error vs CPU
 hostd bench pipeline | latency | codec | scoring | sim | load | offline | all   # real-time cost, latency...
 hostd bench soak [--seconds 600] [--load]                       # the daemon for minutes: played fraction

@@ -167,7 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("manpage", help="print the man page hostd(8) (roff), generated from this parser",
                        description="install-service installs it as /usr/local/share/man/man8/hostd.8")
     p.add_argument("--markdown", action="store_true",
-                   help="the same reference as Markdown (the docs site's docs/reference/cli.md)")
+                   help="the same reference as Markdown (the docs site's command-line page)")
     p.set_defaults(func=commands.cmd_manpage, root_parser=ap)
 
     # ---- rooms: each registers its subcommands with its own add_parser(sub); a new room adds

@@ -49,7 +49,8 @@ def test_wheel_carries_the_data_the_code_needs(wheel):
     for f in ("hostd/data/hostd.toml", "hostd/data/thresholds/default.csv",
               "hostd/data/actuators/paper-parametric.toml", "hostd/data/scenes/ideal.toml",
               "hostd/device/protocol.toml", "hostd/systemd/hostd.service", "hostd/systemd/70-hostd.rules",
-              "hostd/systemd/hostd-sysusers.conf", "hostd/systemd/hostd-tmpfiles.conf"):
+              "hostd/systemd/hostd-sysusers.conf", "hostd/systemd/hostd-tmpfiles.conf",
+              "hostd/experiment/page.html", "hostd/data/experiment-plan.toml"):
         assert f in names, f
     assert not [n for n in names if n.startswith("firmware/")]
     meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("/METADATA"))).decode()

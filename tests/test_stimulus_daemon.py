@@ -161,7 +161,7 @@ def test_a_threshold_session_through_the_daemon_plays_every_stimulus_whole(rig, 
     t0_tick = dac_log(rig.log).size
     r = subprocess.run([sys.executable, "-m", "hostd", "experiment", "threshold", "--display", "daemon",
                         "--socket", rig.sock, "--config", str(rig.cfg_path), "-o", str(out),
-                        "--token", "s1", "--frequencies", "40,250", "--trials", "2", "--afc", "2",
+                        "--participant", "s1", "--frequencies", "40,250", "--trials", "2", "--afc", "2",
                         "--simulate", "weibull"], capture_output=True, text=True, timeout=180)
     assert r.returncode == 0, (r.stderr[-2000:], rig.journal())
     from hostd.experiment.session import Store
@@ -420,6 +420,7 @@ def test_stimuli_are_off_unless_the_config_says_so(tmp_path):
 def test_a_display_lost_mid_stimulus_repeats_the_trial_and_nothing_is_recorded_twice(rig, tmp_path):
     """The port dies while a trial's interval plays: the session records a display_lost event and
     no answer; once another display is plugged in the same trial is presented again."""
+    from hostd.experiment.plan import check_plan
     from hostd.experiment.runner import ThresholdSession
     from hostd.experiment.session import Store
     from hostd.experiment.threshold import ThresholdConfig
@@ -429,7 +430,9 @@ def test_a_display_lost_mid_stimulus_repeats_the_trial_and_nothing_is_recorded_t
                           duration_s=1.0, gap_s=0.1)
     st = Store(tmp_path / "s.sqlite")
     st.create("lost", "threshold", {"config": {}})
-    sess = ThresholdSession(st, "lost", display, cfg)
+    sess = ThresholdSession(st, "lost", display, cfg, check_plan({"practice": {"trials": 0}}))
+    sess.open("pg")
+    sess.step("pg", "continue")
     first = sess.current()
 
     def unplug() -> None:  # once a stimulus streams (amplitude 0 or not)
@@ -439,21 +442,24 @@ def test_a_display_lost_mid_stimulus_repeats_the_trial_and_nothing_is_recorded_t
 
     killer = threading.Thread(target=unplug)
     killer.start()
-    state = sess.state()
+    sess.present("pg")
+    sess.player.join()
     killer.join()
-    assert state.get("retry") and "not answering" in state["message"], state
+    assert sess.retry and "not answering" in sess.retry, sess.retry
     assert st.answers("lost") == [] and [e["kind"] for e in st.events("lost")][-1] == "display_lost"
     with pytest.raises(DeviceGone):  # unplugged: no display (the trial would be repeated again)
         display.play(Sinusoid(250.0, 0.1, 0.2))
     rig.hp = rig.plug(rig.d / "dac2.bin")
     wait_for(lambda: rig.status()["connected"], 30, "the display plugged in again")
-    while not (s := sess.state())["done"]:
-        if s.get("retry"):  # (a stimulus cut by a host stall on a loaded machine)
+    while not sess.finished():
+        sess.present("pg")
+        sess.player.join()
+        if sess.retry:  # (a stimulus cut by a host stall on a loaded machine)
             continue
         t = sess.current()
         if t["index"] == 0:
             assert t == first  # the same trial, presented again
-        sess.answer(t["index"], t["target"])
+        sess.answer("pg", t["index"], t["target"])
     rows = st.answers("lost")
     assert [a["trial"] for a in rows] == [0, 1] and rows[0]["stimulus"] == first
     with pytest.raises(ExperimentError, match="reaches"):  # beyond the reach: refused, not retried

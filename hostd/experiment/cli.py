@@ -32,12 +32,22 @@ def add_parser(sub, parents=()) -> None:
     session = argparse.ArgumentParser(add_help=False)
     g = session.add_argument_group("session")
     g.add_argument("-o", "--output", dest="out", required=True, metavar="DIR",
-                   help="where the session store and results go")
+                   help="where the session store and results go (made 0700; its files 0600)")
     renamed(g, "--output", "--out")
-    g.add_argument("--token", required=True, help="this session's token (one session per token)")
-    g.add_argument("--resume", action="store_true", help="resume the session of --token where it stopped")
-    g.add_argument("--port", type=int, default=0,
-                   help="loopback port of the participant's page (0: any free)")
+    g.add_argument("--participant", default=None, metavar="ID",
+                   help="the participant's id: names the session in the store (one session per id); not in "
+                   "the page's address. Default: session-N")
+    g.add_argument("--token", dest="participant_token", default=None, metavar="ID",
+                   help="deprecated: the same as --participant (a label that grants nothing; the page's "
+                   "address carries a secret hostd makes)")
+    g.add_argument("--resume", action="store_true",
+                   help="resume the session of --participant (default: the store's one unfinished session)")
+    g.add_argument("--port", type=int, default=None,
+                   help="loopback port of the participant's page (default: any free one; --resume: the "
+                   "session's own, so an open page goes on)")
+    g.add_argument("--plan", default=None, metavar="TOML",
+                   help="the session plan: instructions, consent, practice, breaks, blocks, end page "
+                   "(default: the plan shipped with hostd, experiment-plan.toml among its data files)")
     g.add_argument("--display", default="sim", metavar="sim|daemon",
                    help="sim: the simulated display (default); daemon: the running hostd's display (for "
                    "thresholds its config needs [experiment] stimuli = true)")
@@ -121,73 +131,153 @@ def _display(args):
     raise ExperimentError(f"--display {args.display}: sim or daemon")
 
 
-def _drive(sess, args, out: Path) -> bool:
-    """Serve the page (or answer by simulation) until done or aborted; True when done."""
+def _open_session(args, out: Path, kind: str, make_plan):
+    """The store (the folder made 0700, files 0600), the session's label and its plan: a new
+    session (make_plan() -> plan) or, with --resume, the stored one."""
+    import os
+
+    from hostd.experiment.session import Store
+
+    os.umask(0o077)  # every file this command writes (results, streams, SQLite's -wal/-shm): 0600
+    if args.participant_token:
+        print("hostd experiment: --token is deprecated: it is now only the session's label, the same as "
+              "--participant (the page's address carries a secret hostd makes)", file=sys.stderr)
+    label = args.participant or args.participant_token
+    store = Store(out / "session.sqlite")
+    if args.resume:
+        if label is None:
+            open_ = [t for t, k, st in store.sessions() if k == kind and st not in ("done", "declined")]
+            if len(open_) != 1:
+                raise ExperimentError(f"{len(open_)} unfinished {kind} sessions in {out / 'session.sqlite'} "
+                                      f"({', '.join(open_) or 'none'}): name one with --participant")
+            label = open_[0]
+        return store, label, store.load(label, kind)
+    if label is None:
+        label = f"session-{len(store.sessions()) + 1}"
+    plan = make_plan()
+    store.create(label, kind, plan)
+    return store, label, plan
+
+
+def _simulated(store, label: str) -> str | None:
+    """The simulated observer's kind if any answer of the session was simulated."""
+    kinds = [e["detail"] for e in store.events(label) if e["kind"] == "simulated"]
+    return ", ".join(dict.fromkeys(kinds)) if kinds else None
+
+
+def _sim_mark(simulated: str | None) -> str:
+    """The first line of every file a simulated session writes."""
+    if not simulated:
+        return ""
+    return f"# SIMULATED: answered by a simulated {simulated} observer (--simulate), not a participant\n"
+
+
+def _drive(sess, args, out: Path) -> str:
+    """Serve the page (or answer by simulation) until the session ends: done, declined, aborted
+    (Ctrl-C) or failed (the store could not take a write: one line here, a plain message on the page)."""
+    from hostd.experiment.runner import run_simulated
+
+    if sess.phase == "end":  # every answer was in (a resumed session whose done mark failed)
+        return "done"
     if args.simulate:
-        import numpy as np
+        sess.store.event(sess.token, "simulated", args.simulate)
+        sess.steps = {**sess.steps, "practice": {**sess.steps["practice"], "trials": 0}}  # (for people)
+        run_simulated(sess, _observer(sess, args.simulate))
+    else:
+        _serve(sess, args, out)
+    if sess.failure is not None:
+        print(f"hostd experiment: stopped: {sess.failure_detail}", file=sys.stderr)
+        return "failed"
+    if sess.phase == "declined":
+        print("hostd experiment: the participant declined: the session ended, only the decline is recorded",
+              file=sys.stderr)
+        return "declined"
+    return "done" if sess.phase == "end" else "aborted"
 
-        from hostd.experiment.observers import LogisticObserver, WeibullObserver
-        from hostd.experiment.threshold import db
 
-        rng = np.random.default_rng(12345)
-        while not (st := sess.state())["done"]:
-            if st.get("retry"):
-                continue
-            t = sess.current()
-            if sess.kind == "threshold":
-                centre = db(float(np.interp(t["frequency_hz"], sess.cfg.frequencies_hz, sess.cfg.prior_um)))
-                kind = WeibullObserver if args.simulate == "weibull" else LogisticObserver
-                obs = kind(centre, n_afc=t["n_afc"])
-                ok = rng.random() < obs.p_correct(t["level_db"])
-                sess.answer(t["index"], t["target"] if ok else t["target"] % t["n_afc"] + 1)
-            else:
-                v = 0.0 if t["method"] == "none" else 0.6 * t["Ip"] + 0.4 * t["Ia"]
-                sess.answer(t["index"], int(np.clip(np.rint(v + rng.normal(0, 0.5)), 0, 3)))
-        return True
-    from hostd.experiment.server import ExperimentServer
+def _observer(sess, kind: str):
+    import numpy as np
 
-    srv = ExperimentServer(sess, args.port).start()
-    print(f"hostd experiment: the participant's page: {srv.url}", file=sys.stderr)
-    print("hostd experiment: progress below; Ctrl-C aborts (resume later with --resume)", file=sys.stderr)
+    from hostd.experiment.observers import LogisticObserver, WeibullObserver
+    from hostd.experiment.threshold import db
+
+    rng = np.random.default_rng(12345)
+
+    def choose(t: dict) -> int:
+        if sess.kind == "threshold":
+            centre = db(float(np.interp(t["frequency_hz"], sess.cfg.frequencies_hz, sess.cfg.prior_um)))
+            obs = (WeibullObserver if kind == "weibull" else LogisticObserver)(centre, n_afc=t["n_afc"])
+            ok = rng.random() < obs.p_correct(t["level_db"])
+            return t["target"] if ok else t["target"] % t["n_afc"] + 1
+        v = 0.0 if t["method"] == "none" else 0.6 * t["Ip"] + 0.4 * t["Ia"]
+        return int(np.clip(np.rint(v + rng.normal(0, 0.5)), 0, 3))
+
+    return choose
+
+
+def _serve(sess, args, out: Path) -> None:
+    from hostd.experiment.server import ExperimentServer, new_capability
+
+    store = sess.store
+    access = store.access(sess.token)
+    if access is None:
+        import secrets
+
+        access = {"capability": new_capability(), "csrf_key": secrets.token_bytes(32), "port": 0}
+    port = args.port if args.port is not None else access["port"]
+    srv = ExperimentServer(sess, port, access["capability"], access["csrf_key"],
+                           report=lambda line: print(f"hostd experiment: {line}", file=sys.stderr))
+    store.set_access(sess.token, access["capability"], access["csrf_key"], srv.port)
+    srv.start()
+    print(srv.url, flush=True)  # the participant's address: here only (stdout), never in a log
+    print(f"hostd experiment: session {sess.token}: open the address above (stdout) in the participant's "
+          f"browser on this computer; progress below; Ctrl-C aborts (resume later with --resume)",
+          file=sys.stderr)
     last = None
     try:
         while True:
             p = sess.progress()
-            state = sess.store.state(sess.token)
-            line = f"{p['answered']}/{p['total']} answered{' (paused)' if sess.paused else ''}" \
+            line = f"{p['answered']}/{p['total']} answered, {sess.phase}" \
+                   f"{' (paused)' if sess.paused else ''}" \
                    f"{f', display lost {sess.display_lost}x' if sess.display_lost else ''}"
             if line != last:
                 print(f"hostd experiment: {line}", file=sys.stderr)
                 last = line
-            if state in ("done", "aborted"):
-                return state == "done"
-            time.sleep(0.5)
+            if sess.finished() or store.state(sess.token) == "aborted":
+                time.sleep(1.0)  # the page fetches its last state
+                return
+            time.sleep(0.2)
     except KeyboardInterrupt:
         sess.abort()
         print(f"hostd experiment: aborted at {sess.answered()} answers; every answer is kept in "
-              f"{out / 'session.sqlite'}: resume with --resume --token {sess.token}", file=sys.stderr)
-        return False
+              f"{out / 'session.sqlite'}: resume with --resume --participant {sess.token}", file=sys.stderr)
     finally:
         srv.close()
+
+
+def _finish_logs(write) -> None:
+    """The logs beside the results after a session that stopped: best effort (the disk may be full)."""
+    try:
+        write()
+    except OSError:
+        pass
 
 
 def cmd_threshold(args) -> int:
     from hostd.extras import need
 
     need("questplus", "experiment", "hostd experiment threshold")
+    from hostd.experiment.plan import read_plan
     from hostd.experiment.runner import ThresholdSession
-    from hostd.experiment.session import Store
     from hostd.experiment.threshold import ThresholdConfig, thresholds_csv
     from hostd.perception import calibration
     from hostd.perception import thresholds as th
 
     out = Path(args.out)
-    store = Store(out / "session.sqlite")
     display, _cfg = _display(args)
-    if args.resume:
-        plan = store.load(args.token, "threshold")
-        cfg = ThresholdConfig(**plan["config"])
-    else:
+    steps = read_plan(args.plan)
+
+    def make_plan() -> dict:
         prior = calibration.resolve_curve(args.prior)
         freqs = args.frequencies or [float(f) for f in th.default_curve().freq_hz]
         reach = [display.reach.reach_um(f) for f in freqs]  # (the daemon's: its config's bound)
@@ -200,31 +290,50 @@ def cmd_threshold(args) -> int:
                               procedure=args.procedure)
         from dataclasses import asdict
 
-        store.create(args.token, "threshold", {"config": asdict(cfg), "prior": str(args.prior or "shipped")})
-    sess = ThresholdSession(store, args.token, display, cfg)
+        return {"config": asdict(cfg), "prior": str(args.prior or "shipped"), "steps": steps}
+
+    store, label, plan = _open_session(args, out, "threshold", make_plan)
+    cfg = ThresholdConfig(**plan["config"])
+    sess = ThresholdSession(store, label, display, cfg, plan.get("steps", steps))
     if args.resume:
         sess.resume()
-    done = _drive(sess, args, out)
-    _write_trial_log(sess, out / "trials.csv")
-    if not done:
-        return 1
+    status = _drive(sess, args, out)
+    sim = _simulated(store, label)
+    if status != "done":
+        _finish_logs(lambda: _write_trial_log(sess, out / "trials.csv", sim))
+        return 0 if status == "declined" else 1
+    _results(out / "trials.csv", lambda: _write_trial_log(sess, out / "trials.csv", sim), store)
     res = sess.run.results()
-    prov = (f"session {args.token}, {cfg.n_afc}AFC, {cfg.procedure}, {sess.answered()} trials, "
+    prov = (f"session {label}, {cfg.n_afc}AFC, {cfg.procedure}, {sess.answered()} trials, "
             f"seed {cfg.seed}, "
             f"questplus {_version('questplus')}, {time.strftime('%Y-%m-%d %H:%M:%S %z')}")
-    _write(out / "thresholds.csv", thresholds_csv(res, prov))
+    if sim:
+        prov = _sim_mark(sim)[2:] + prov
+    _results(out / "thresholds.csv", lambda: _write(out / "thresholds.csv", thresholds_csv(res, prov)), store)
     for r in res:
         flag = "" if r.status == "ok" else \
             f"  ABOVE THE DISPLAY'S REACH ({r.reach_um:.3g} µm): not in the curve"
         print(f"{r.frequency_hz:>7g} Hz  {r.threshold_um:.4g} µm  [{r.ci_low_um:.4g}, {r.ci_high_um:.4g}]  "
               f"{r.trials} trials{flag}")
-    print(f"wrote {out / 'thresholds.csv'} and {out / 'trials.csv'}", file=sys.stderr)
+    print(f"wrote {out / 'thresholds.csv'} and {out / 'trials.csv'}{' (SIMULATED)' if sim else ''}",
+          file=sys.stderr)
     return 0
 
 
-def _write_trial_log(sess, path: Path) -> None:
+def _results(path: Path, write, store) -> None:
+    """Write one result file; a disk that cannot take it is one line (the answers are in the store)."""
+    try:
+        write()
+    except OSError as e:
+        raise ExperimentError(f"cannot write {path}: {e.strerror or e}. Every answer is kept in "
+                              f"{store.path}: free space, then run the same command with --resume") from None
+
+
+def _write_trial_log(sess, path: Path, simulated: str | None = None) -> None:
     rows = sess.store.answers(sess.token)
     with open(path, "w", newline="", encoding="utf-8") as fh:
+        if simulated:
+            fh.write(_sim_mark(simulated))
         w = csv.writer(fh, lineterminator="\n")
         w.writerow(["trial", "frequency_hz", "amplitude_um", "level_db", "target", "answer", "correct",
                     "presented_at", "answered_at"])
@@ -238,36 +347,59 @@ def _write_trial_log(sess, path: Path) -> None:
 
 
 def cmd_similarity(args) -> int:
+    from hostd.experiment.plan import read_plan
     from hostd.experiment.runner import SimilaritySession, similarity_scores
-    from hostd.experiment.session import Store
     from hostd.experiment.similarity import make_plan, read_design, scores_csv
 
+    if args.simulate not in (None, "linear"):
+        raise ExperimentError(f"similarity --simulate {args.simulate}: a grading observer is linear (grades "
+                              "from Ip and Ia); weibull and logistic are detection observers (threshold)")
     out = Path(args.out)
-    store = Store(out / "session.sqlite")
     display, _cfg = _display(args)
-    if args.resume:
-        plan = store.load(args.token, "similarity")
-    else:
-        design = read_design(args.design)
-        plan = make_plan(design, out, args.thresholds)
-        store.create(args.token, "similarity", plan)
-    sess = SimilaritySession(store, args.token, display, plan)
+    steps = read_plan(args.plan)
+    store, label, plan = _open_session(args, out, "similarity", lambda: {
+        **make_plan(read_design(args.design), out, args.thresholds), "steps": steps})
+    sess = SimilaritySession(store, label, display, plan, plan.get("steps", steps))
     if args.resume:
         sess.resume()
-    done = _drive(sess, args, out)
+    status = _drive(sess, args, out)
+    sim = _simulated(store, label)
+    mark = _sim_mark(sim)
+
+    def answers_csv() -> None:
+        with open(out / "answers.csv", "w", newline="", encoding="utf-8") as fh:
+            fh.write(mark)
+            w = csv.writer(fh, lineterminator="\n")
+            w.writerow(["trial", "texture", "method", "level", "rep", "grade", "answered_at"])
+            for a in store.answers(label):
+                s = a["stimulus"]
+                w.writerow([a["trial"], s["texture"], s["method"], s["level"], s["rep"], a["answer"],
+                            a["answered_at"]])
+
+    if status != "done":
+        _finish_logs(answers_csv)
+        return 0 if status == "declined" else 1
+    _results(out / "answers.csv", answers_csv, store)
     rows = similarity_scores(sess)
-    with open(out / "answers.csv", "w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh, lineterminator="\n")
-        w.writerow(["trial", "texture", "method", "level", "rep", "grade", "answered_at"])
-        for a in store.answers(args.token):
-            s = a["stimulus"]
-            w.writerow([a["trial"], s["texture"], s["method"], s["level"], s["rep"], a["answer"],
-                        a["answered_at"]])
-    if not done:
-        return 1
-    _write(out / "scores.csv", scores_csv(rows))
-    print(f"wrote {out / 'scores.csv'} (hostd fit reads it) and {out / 'answers.csv'}", file=sys.stderr)
+    _results(out / "scores.csv", lambda: _write(out / "scores.csv", mark + scores_csv(rows)), store)
+    print(f"wrote {out / 'scores.csv'} (hostd fit reads it) and {out / 'answers.csv'}"
+          f"{' (SIMULATED)' if sim else ''}", file=sys.stderr)
     return 0
+
+
+def _says_simulated(path: str) -> bool:
+    """A file --simulate wrote (its comment lines say SIMULATED; a fit's JSON, its source's)."""
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return False
+    if any(line.startswith("# SIMULATED") for line in text.splitlines()):
+        return True
+    try:
+        src = json.loads(text).get("scores") or json.loads(text).get("path")
+    except (ValueError, AttributeError):
+        return False
+    return isinstance(src, str) and src != path and Path(src).is_file() and _says_simulated(src)
 
 
 def cmd_calibration(args) -> int:
@@ -291,6 +423,11 @@ def cmd_calibration(args) -> int:
             "created": time.strftime("%Y-%m-%d %H:%M:%S %z")}
     if args.note:
         prov["note"] = args.note
+    sims = [f for f in (args.thresholds, args.fit) if f and _says_simulated(f)]
+    if sims:
+        prov["simulated"] = f"yes: {', '.join(sims)} came from a simulated observer (--simulate)"
+        print(f"hostd experiment calibration: {', '.join(sims)} came from --simulate: the calibration "
+              "says so", file=sys.stderr)
     named = th.ThresholdCurve(curve.freq_hz, curve.threshold_um, name=name)
     cal = calibration.Calibration(named, a, b, name, prov)
     calibration.write(args.output, cal)
@@ -394,8 +531,11 @@ def cmd_bench(args) -> int:
 
 def _write(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _version(mod: str) -> str:

@@ -1,201 +1,300 @@
 """The participant's page: one session, served on loopback only (127.0.0.1), no external asset.
 
-GET  /s/TOKEN             the page (HTML, CSS and script inline)
-GET  /api/TOKEN/trial     the trial to answer, played on the display first (a reload presents
-                          the trial in flight again: nothing was recorded for it)
-POST /api/TOKEN/answer    {"index": i, "value": v}: committed before the reply
-POST /api/TOKEN/pause     {"paused": true|false}
-Any other token is 404: one session per token, one token per server.
+Only the participant's browser can act on the session:
+- The page's address carries a capability, CAP (`secrets.token_urlsafe(24)`: 192 bits), made by
+  hostd when the session starts and printed once on stdout; it is never in argv, the
+  environment or a log (the session store keeps it, 0600, so a restarted session serves the same
+  address). The server compares it in constant time (hmac.compare_digest); any other is 404.
+- Every request must name the server as its Host (127.0.0.1:PORT: a DNS-rebinding page names
+  another); a GET only reads: the page, or the state.
+- Every state-changing request is a POST whose Content-Type is application/json, whose Origin
+  is http://127.0.0.1:PORT, and which carries the page's CSRF value (X-Hostd-Page): a fresh
+  one in each page served, signed with the session's key (HMAC-SHA256). A page on another
+  origin can send none of these without the browser's preflight, which this server refuses.
+- The last page to `open` holds the session: a second tab takes it over and the first says so;
+  only the holder can play a trial or answer, and an answer counts only for the trial played
+  whole on that page (hostd.experiment.runner).
+
+Connections are bounded: at most MAX_CONNECTIONS at once (a new one closes the oldest that is
+still sending its request), a request must arrive whole within REQUEST_TIMEOUT_S and its reply be
+taken within REPLY_TIMEOUT_S, each reply closes its connection. One event loop thread serves all
+of them (asyncio; http.server's thread per connection is what 1,000 idle connections exhausted),
+so with 1,000 idle connections open the page is still served. A malformed request gets a 4xx and
+one line on the experimenter's terminal (`report`; a flood is cut short).
+
+GET  /s/CAP                 the page (HTML, CSS and script inline)
+GET  /api/CAP/state         the session as the page shows it (X-Hostd-Page: whose view)
+POST /api/CAP/open          {}: this page takes the session over
+POST /api/CAP/present       {}: play the trial of the moment (the page then polls the state)
+POST /api/CAP/answer        {"index": i, "value": v}: committed before the reply
+POST /api/CAP/pause         {"paused": true|false}
+POST /api/CAP/step          {"action": "continue"|"agree"|"decline"}
+Why not a web framework: three routes on loopback; the stdlib's asyncio streams give the bounded
+single-threaded server, and the parsing below takes only what these routes need.
 """
 
 from __future__ import annotations
 
+import asyncio
+import hashlib
+import hmac
 import json
 import logging
+import secrets
+import socket
 import threading
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+import time
+from collections import OrderedDict, deque
+from http import HTTPStatus
+from pathlib import Path
 
-from hostd.errors import HostdError
+from hostd.errors import ExperimentError, HostdError
+from hostd.experiment.runner import Refused
 
 log = logging.getLogger("hostd.experiment")
 MAX_BODY = 4096
+MAX_HEAD = 8192
+MAX_CONNECTIONS = 64
+REQUEST_TIMEOUT_S = 5.0  # a request (line, headers, body) must arrive whole within this
+REPLY_TIMEOUT_S = 5.0  # and its reply be taken within this
+REPORTS_PER_10S = 20
+BACKLOG = 4096  # (net.core.somaxconn caps it) a burst waits in the kernel's queue, not in SYN retries
+UNIQUE_HEADERS = ("host", "content-length", "origin", "content-type", "x-hostd-page")
+PAGE_HTML = Path(__file__).with_name("page.html")
 
-PAGE = """<!doctype html>
-<html lang="en"><head><meta charset="utf-8">
-<meta name="viewport" content="width=device-width, initial-scale=1">
-<title>hostd experiment</title>
-<style>
- body { font-family: sans-serif; margin: 0; padding: 2rem; background: #f4f4f4; color: #111; }
- h1 { font-size: 2rem; margin: 0 0 1rem 0; }
- #prompt { font-size: 2rem; margin: 1.5rem 0; min-height: 2.5rem; }
- #choices button { font-size: 2rem; padding: 1.5rem 2.5rem; margin: 0.5rem; min-width: 12rem;
-                   border-radius: 0.6rem; border: 3px solid #224; background: #fff; cursor: pointer; }
- #choices button:disabled { opacity: 0.4; cursor: default; }
- #bar { height: 1.6rem; background: #ddd; border-radius: 0.8rem; overflow: hidden; max-width: 50rem; }
- #fill { height: 100%; width: 0; background: #2a6; }
- #progress { font-size: 1.4rem; margin: 0.5rem 0 1.5rem 0; }
- #pause, #retry { font-size: 1.4rem; padding: 0.8rem 1.6rem; margin-top: 2rem; }
- #message { font-size: 1.6rem; color: #a40; min-height: 2rem; }
- .key { font-size: 1rem; color: #555; display: block; }
-</style></head>
-<body>
-<h1 id="title">Please wait</h1>
-<div id="bar"><div id="fill"></div></div>
-<div id="progress"></div>
-<div id="prompt"></div>
-<div id="choices"></div>
-<div id="message"></div>
-<button id="retry" hidden>Try again</button>
-<button id="pause">Pause (P)</button>
-<script>
-"use strict";
-const api = location.pathname.replace(/^\\/s\\//, "/api/");
-let current = null, paused = false, busy = false;
-const $ = (id) => document.getElementById(id);
-function show(s) {
-  $("fill").style.width = (s.total ? 100 * s.answered / s.total : 0) + "%";
-  $("progress").textContent = "Trial " + Math.min(s.answered + 1, s.total) + " of about " + s.total;
-  $("choices").innerHTML = ""; $("message").textContent = ""; $("retry").hidden = true;
-  current = null;
-  if (s.done) {
-    $("title").textContent = s.aborted ? "The session was stopped" : "Thank you: the session is complete";
-    $("prompt").textContent = ""; $("pause").hidden = true; return;
-  }
-  if (s.retry) { $("title").textContent = "Please wait"; $("message").textContent = s.message;
-                 $("retry").hidden = false; return; }
-  if (s.paused) { $("title").textContent = "Paused"; $("prompt").textContent = "Press Resume (P) to go on.";
-                  $("pause").textContent = "Resume (P)"; return; }
-  $("pause").textContent = "Pause (P)";
-  current = s.trial;
-  $("title").textContent = s.kind === "threshold" ? "Detection" : "Similarity";
-  $("prompt").textContent = current.prompt;
-  for (const c of current.choices) {
-    const b = document.createElement("button");
-    b.dataset.value = c.value; b.id = "choice-" + c.value;
-    b.innerHTML = c.label + '<span class="key">key ' + c.key + "</span>";
-    b.onclick = () => answer(c.value);
-    $("choices").appendChild(b);
-  }
-}
-async function call(path, body) {
-  const r = await fetch(api + path, body === undefined ? {} :
-    {method: "POST", headers: {"Content-Type": "application/json"}, body: JSON.stringify(body)});
-  if (!r.ok) throw new Error(await r.text());
-  return r.json();
-}
-async function load() {
-  busy = true;
-  current = null;  // the display plays the trial while this request is out: say so, take no answer
-  $("prompt").textContent = "Feel the display now: the trial is playing";
-  for (const b of document.querySelectorAll("#choices button")) b.disabled = true;
-  try { show(await call("/trial")); }
-  catch (e) { $("message").textContent = "No answer from hostd (" + e.message + "): retrying";
-              setTimeout(load, 2000); }
-  finally { busy = false; }
-}
-async function answer(v) {
-  if (busy || current === null) return;
-  busy = true;
-  for (const b of document.querySelectorAll("#choices button")) b.disabled = true;
-  try { await call("/answer", {index: current.index, value: v}); }
-  catch (e) { $("message").textContent = "Not recorded (" + e.message + "): answer again"; busy = false;
-              for (const b of document.querySelectorAll("#choices button")) b.disabled = false; return; }
-  busy = false; load();
-}
-async function togglePause() {
-  if (busy) return;
-  paused = !($("pause").textContent.startsWith("Resume"));
-  await call("/pause", {paused: paused}); load();
-}
-$("pause").onclick = togglePause;
-$("retry").onclick = load;
-document.addEventListener("keydown", (e) => {
-  if (e.key === "p" || e.key === "P") { togglePause(); return; }
-  if (current === null) return;
-  for (const c of current.choices) if (c.key === e.key) answer(c.value);
-});
-load();
-</script></body></html>
-"""
+
+def new_capability() -> str:
+    return secrets.token_urlsafe(24)
+
+
+class BadRequest(Exception):
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
 
 
 class ExperimentServer:
-    """Serves one session on 127.0.0.1:port (0: a free port) in a background thread."""
+    """Serves one session on 127.0.0.1:port (0: a free port) from one event-loop thread.
+    `capability` and `csrf_key` default to fresh secrets (the CLI passes the session's, so that a
+    restarted session keeps its address); `report(line)` gets the lines for the terminal."""
 
-    def __init__(self, session, port: int = 0) -> None:
+    def __init__(self, session, port: int = 0, capability: str | None = None, csrf_key: bytes | None = None,
+                 report=None) -> None:
         self.session = session
-        token = session.token
-        outer = self
+        self.capability = capability or new_capability()
+        self.csrf_key = csrf_key or secrets.token_bytes(32)
+        self.report = report or (lambda line: log.warning("%s", line))
+        self._reports: deque[float] = deque()
+        self._suppressed = 0
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            self.sock.bind(("127.0.0.1", port))
+        except OSError as e:
+            self.sock.close()
+            raise ExperimentError(f"cannot serve the page on 127.0.0.1:{port}: {e.strerror or e} (another "
+                                  "program holds the port? stop it, or give --port)") from None
+        self.sock.listen(BACKLOG)
+        self.port = self.sock.getsockname()[1]
+        self.host = f"127.0.0.1:{self.port}"
+        self.origin = f"http://{self.host}"
+        self.url = f"{self.origin}/s/{self.capability}"
+        self.page_html = PAGE_HTML.read_text(encoding="utf-8")
+        self.conns: OrderedDict[asyncio.StreamWriter, bool] = OrderedDict()  # writer -> still reading
+        self.dropped = 0  # connections closed for being slow or for the bound
+        self.loop = asyncio.new_event_loop()
+        self.ready = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="experiment-page", daemon=True)
 
-        class Handler(BaseHTTPRequestHandler):
-            server_version = "hostd-experiment"
-
-            def log_message(self, fmt, *args):  # the experimenter's terminal shows progress instead
-                log.debug("page: " + fmt, *args)
-
-            def _send(self, code: int, body: bytes, ctype: str) -> None:
-                self.send_response(code)
-                self.send_header("Content-Type", ctype)
-                self.send_header("Content-Length", str(len(body)))
-                self.send_header("Cache-Control", "no-store")
-                self.send_header("Content-Security-Policy",
-                                 "default-src 'self' 'unsafe-inline'; connect-src 'self'")
-                self.end_headers()
-                self.wfile.write(body)
-
-            def _json(self, obj: dict, code: int = 200) -> None:
-                self._send(code, json.dumps(obj).encode(), "application/json")
-
-            def _route(self) -> str | None:
-                parts = self.path.split("?", 1)[0].strip("/").split("/")
-                if len(parts) >= 2 and parts[1] == token and parts[0] in ("s", "api"):
-                    return "page" if parts[0] == "s" and len(parts) == 2 else (
-                        parts[2] if parts[0] == "api" and len(parts) == 3 else None)
-                return None
-
-            def do_GET(self):
-                r = self._route()
-                if r == "page":
-                    self._send(200, PAGE.encode(), "text/html; charset=utf-8")
-                elif r == "trial":
-                    try:
-                        self._json(outer.session.state())
-                    except HostdError as e:
-                        self._json({"error": str(e)}, 500)
-                else:
-                    self._send(404, b"no such session on this server", "text/plain")
-
-            def do_POST(self):
-                r = self._route()
-                n = int(self.headers.get("Content-Length") or 0)
-                if r not in ("answer", "pause") or not 0 <= n <= MAX_BODY:
-                    self._send(404, b"no such session on this server", "text/plain")
-                    return
-                try:
-                    body = json.loads(self.rfile.read(n) or b"{}")
-                    if r == "answer":
-                        idx, val = body["index"], body["value"]
-                        if not all(isinstance(v, int) and not isinstance(v, bool) for v in (idx, val)):
-                            raise ValueError("index and value must be integers")
-                        self._json(outer.session.answer(idx, val))
-                    else:
-                        outer.session.pause(bool(body.get("paused")))
-                        self._json({"ok": True})
-                except (ValueError, KeyError, TypeError) as e:
-                    self._json({"error": f"bad request: {e}"}, 400)
-                except HostdError as e:
-                    self._json({"error": str(e)}, 400)
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", port), Handler)
-        self.httpd.daemon_threads = True
-        self.port = self.httpd.server_address[1]
-        self.url = f"http://127.0.0.1:{self.port}/s/{token}"
-        self.thread = threading.Thread(target=self.httpd.serve_forever, name="experiment-page", daemon=True)
-
+    # ------------------------------------------------------------------ life
     def start(self) -> ExperimentServer:
         self.thread.start()
+        self.ready.wait(10)
         return self
 
     def close(self) -> None:
-        self.httpd.shutdown()
-        self.httpd.server_close()
+        if self.thread.is_alive():
+            self.loop.call_soon_threadsafe(self.loop.stop)
+            self.thread.join(10)
+        self.sock.close()
+
+    def _run(self) -> None:
+        asyncio.set_event_loop(self.loop)
+        server = self.loop.run_until_complete(
+            asyncio.start_server(self._connection, sock=self.sock, limit=MAX_HEAD, backlog=BACKLOG))
+        self.ready.set()
+        try:
+            self.loop.run_forever()
+        finally:
+            server.close()
+            for w in list(self.conns):
+                w.transport.abort()
+            self.loop.run_until_complete(asyncio.sleep(0))
+            self.loop.close()
+
+    def _say(self, line: str) -> None:
+        """One line on the experimenter's terminal; a flood is cut to REPORTS_PER_10S lines in any
+        10 s (the rest counted, and the count said with the next line)."""
+        now = time.monotonic()
+        while self._reports and now - self._reports[0] > 10.0:
+            self._reports.popleft()
+        if len(self._reports) >= REPORTS_PER_10S:
+            self._suppressed += 1
+            return
+        more = f" ({self._suppressed} more refused meanwhile)" if self._suppressed else ""
+        self._reports.append(now)
+        self._suppressed = 0
+        self.report(f"the page: {line}{more}")
+
+    # ------------------------------------------------------------------ connections
+    async def _connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.conns[writer] = True
+        while len(self.conns) > MAX_CONNECTIONS:  # the oldest still sending its request goes
+            oldest = next((w for w, reading in self.conns.items() if reading and w is not writer), None)
+            if oldest is None:
+                break
+            self.conns.pop(oldest)
+            oldest.transport.abort()
+            self.dropped += 1
+        try:
+            try:
+                method, path, headers, body = await asyncio.wait_for(self._read(reader), REQUEST_TIMEOUT_S)
+                self.conns[writer] = False
+                status, ctype, data = self._handle(method, path, headers, body)
+            except BadRequest as e:
+                self._say(f"refused a request: {e} ({e.status})")
+                status, ctype, data = e.status, "text/plain; charset=utf-8", f"{e}\n".encode()
+            except TimeoutError:
+                self.dropped += 1
+                return
+            except (asyncio.IncompleteReadError, ConnectionError):
+                return
+            except Exception as e:  # a bug, or a store that fails a read: one line, and the page goes on
+                self._say(f"could not answer a request: {type(e).__name__}: {str(e)[:120]}")
+                status, ctype, data = 500, "text/plain; charset=utf-8", b"hostd could not answer: see hostd\n"
+            head = (f"HTTP/1.1 {status} {HTTPStatus(status).phrase}\r\n"
+                    f"Content-Type: {ctype}\r\nContent-Length: {len(data)}\r\nConnection: close\r\n"
+                    "Cache-Control: no-store\r\nX-Content-Type-Options: nosniff\r\n"
+                    "Referrer-Policy: no-referrer\r\nX-Frame-Options: DENY\r\n"
+                    "Content-Security-Policy: default-src 'none'; script-src 'unsafe-inline'; "
+                    "style-src 'unsafe-inline'; img-src 'self'; connect-src 'self'; "
+                    "frame-ancestors 'none'\r\n\r\n")
+            writer.write(head.encode("latin-1") + data)
+            try:
+                await asyncio.wait_for(writer.drain(), REPLY_TIMEOUT_S)
+            except (TimeoutError, ConnectionError):
+                self.dropped += 1
+        finally:
+            self.conns.pop(writer, None)
+            writer.transport.abort() if writer.transport.get_write_buffer_size() else writer.close()
+
+    async def _read(self, reader: asyncio.StreamReader) -> tuple[str, str, dict, bytes]:
+        try:
+            head = await reader.readuntil(b"\r\n\r\n")
+        except asyncio.LimitOverrunError:
+            raise BadRequest(431, f"request head over {MAX_HEAD} bytes") from None
+        except asyncio.IncompleteReadError as e:
+            if e.partial:
+                raise BadRequest(400, "request cut short") from None
+            raise
+        lines = head.decode("latin-1").split("\r\n")
+        parts = lines[0].split(" ")
+        if len(parts) != 3 or not parts[2].startswith("HTTP/1."):
+            raise BadRequest(400, f"not an HTTP/1.x request line ({len(lines[0])} bytes)")  # (never echoed:
+            # a request line may carry the address's secret)
+        headers: dict[str, str] = {}
+        for line in lines[1:]:
+            if not line:
+                continue
+            name, sep, value = line.partition(":")
+            name = name.strip().lower()
+            if not sep or not name:
+                raise BadRequest(400, f"malformed header line {name[:30]!r}")
+            if name in headers and name in UNIQUE_HEADERS:
+                raise BadRequest(400, f"header {name} given twice")
+            headers[name] = value.strip()
+        if "transfer-encoding" in headers:
+            raise BadRequest(411, "chunked bodies are not taken: give Content-Length")
+        cl = headers.get("content-length", "0")
+        if not cl.isascii() or not cl.isdigit():
+            raise BadRequest(400, f"Content-Length {cl[:30]!r} is not a number of bytes")
+        n = int(cl)
+        if n > MAX_BODY:
+            raise BadRequest(413, f"body of {n} bytes: at most {MAX_BODY}")
+        body = await reader.readexactly(n) if n else b""
+        return parts[0], parts[1], headers, body
+
+    # ------------------------------------------------------------------ requests
+    def _csrf(self) -> str:
+        nonce = secrets.token_urlsafe(16)
+        return nonce + "." + hmac.new(self.csrf_key, nonce.encode(), hashlib.sha256).hexdigest()
+
+    def _page_id(self, value: str | None) -> str | None:
+        """The page's id (its CSRF nonce) if `value` is a CSRF value this session signed."""
+        if not value or value.count(".") != 1:
+            return None
+        nonce, mac = value.split(".")
+        good = hmac.new(self.csrf_key, nonce.encode(), hashlib.sha256).hexdigest()
+        return nonce if hmac.compare_digest(mac.encode(), good.encode()) else None
+
+    def _handle(self, method: str, target: str, headers: dict, body: bytes) -> tuple[int, str, bytes]:
+        if headers.get("host") != self.host:
+            raise BadRequest(403, f"Host {headers.get('host', '')[:60]!r} is not {self.host}: open the "
+                             "address as hostd printed it")
+        parts = target.split("?", 1)[0].split("/")
+        if len(parts) < 3 or parts[0] != "" or parts[1] not in ("s", "api") or \
+                not hmac.compare_digest(parts[2].encode(), self.capability.encode()):
+            return 404, "text/plain; charset=utf-8", b"no such session on this server\n"
+        route = "page" if parts[1] == "s" and len(parts) == 3 else \
+            parts[3] if parts[1] == "api" and len(parts) == 4 else None
+        if method == "GET":
+            if route == "page":
+                html = self.page_html.replace("__CSRF__", self._csrf())
+                return 200, "text/html; charset=utf-8", html.encode()
+            if route == "state":
+                return self._json(self.session.view(self._page_id(headers.get("x-hostd-page"))))
+            return 404, "text/plain; charset=utf-8", b"no such page\n"
+        if method != "POST":
+            raise BadRequest(405, f"method {method[:10]!r}: GET reads, POST acts")
+        if route not in ("open", "present", "answer", "pause", "step"):
+            return 404, "text/plain; charset=utf-8", b"no such action\n"
+        if headers.get("origin") != self.origin:
+            raise BadRequest(403, f"Origin {headers.get('origin', 'absent')[:60]!r} is not the page's")
+        if headers.get("content-type", "").split(";")[0].strip().lower() != "application/json":
+            raise BadRequest(415, "Content-Type must be application/json")
+        page = self._page_id(headers.get("x-hostd-page"))
+        if page is None:
+            raise BadRequest(403, "no valid CSRF value (X-Hostd-Page) from this session's page")
+        try:
+            req = json.loads(body or b"{}")
+        except (ValueError, RecursionError) as e:
+            raise BadRequest(400, f"the body is not JSON ({str(e)[:60]})") from None
+        if not isinstance(req, dict):
+            raise BadRequest(400, "the body must be a JSON object")
+        s = self.session
+        try:
+            if route == "open":
+                return self._json(s.open(page))
+            if route == "present":
+                return self._json(s.present(page))
+            if route == "answer":
+                idx, val = req.get("index"), req.get("value")
+                if not all(isinstance(v, int) and not isinstance(v, bool) for v in (idx, val)):
+                    raise BadRequest(400, "answer: index and value must be integers")
+                return self._json(s.answer(page, idx, val))
+            if route == "pause":
+                if not isinstance(req.get("paused"), bool):
+                    raise BadRequest(400, "pause: paused must be true or false")
+                s.pause(page, req["paused"])
+                return self._json({"ok": True})
+            if not isinstance(req.get("action"), str):
+                raise BadRequest(400, "step: action must be a string")
+            return self._json(s.step(page, req["action"]))
+        except Refused as e:
+            return self._json({"error": str(e)}, e.status)
+        except HostdError as e:
+            return self._json({"error": str(e)}, 400)
+
+    @staticmethod
+    def _json(obj: dict, status: int = 200) -> tuple[int, str, bytes]:
+        return status, "application/json", json.dumps(obj).encode()
