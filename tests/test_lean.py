@@ -26,7 +26,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _env(**extra) -> dict:
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("OPENBLAS", "OMP", "MKL"))}
+    # the thread counts go (each test sets its own); the machine's BLAS kernel choice stays
+    # (OPENBLAS_CORETYPE, OPENBLAS_L2_SIZE: set on some CPUs, and a child given another kernel
+    # computes other last bits than its parent)
+    env = {k: v for k, v in os.environ.items()
+           if not (k.startswith(("OPENBLAS", "OMP", "MKL")) and k.endswith("_THREADS"))}
     env.update(PYTHONPATH=str(ROOT), **extra)
     return env
 
