@@ -45,7 +45,8 @@ def add_parser(sub, parents) -> None:
                    "reference software: the standard's codec), vc-pwq (a research codec, CC BY-NC), or "
                    "module:attr / file.py:attr (repeatable)")
     r.add_argument("--sweep", metavar="FILE.toml",
-                   help="settings per codec: [codec.\"NAME\"] settings = [{...}, ...]")
+                   help="settings for the codecs given with --codec: [codec.\"NAME\"] settings = [{...}, "
+                   "...], NAME as given to --codec or the codec's name (a sweep never loads a codec)")
     r.add_argument("--methods", type=lambda v: [t.strip() for t in v.split(",") if t.strip()],
                    help="hostd codecs: methods to sweep (shaped,quant,cut; default all of the format)")
     r.add_argument("--g", type=_floats, help="shaped step g in dB, comma list (default -18..18 by 6; "
@@ -127,10 +128,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not (args.timeout > 0):
         raise HostdError("--timeout must be > 0 seconds")
     settings = _sweep_file(args.sweep) if args.sweep else {}
-    codec_specs = args.codec or (list(settings) or ["hostd-v2"])
-    missing = set(settings) - set(codec_specs)
-    if missing:
-        raise HostdError(f"--sweep names codec(s) not given with --codec: {', '.join(sorted(missing))}")
+    codec_specs = args.codec or ["hostd-v2"]  # a sweep file names settings, never a codec to load
     textures = run.textures_from(args.inputs, load_opts(args))
     plan = run.make_plan(codec_specs, speeds_mm_s=args.speed, fmaxs_hz=args.fmax, methods=args.methods,
                          g_db=args.g, levels=args.levels, b0_db=args.b0, target_iobj=args.target_iobj,

@@ -106,9 +106,25 @@ def make_plan(codec_specs: Sequence[str], *, speeds_mm_s: Sequence[float] = (50.
               settings: Mapping[str, Sequence[Mapping]] | None = None) -> Plan:
     """The sweep. hostd's codecs take the method grids (`methods`, `g_db`, `levels`, `b0_db`;
     None = the defaults of hostd.corpus.hostdcodec) and `target_iobj` adds rate-control points;
-    an external codec runs its own `settings` unless `settings[spec]` gives others."""
+    an external codec runs its own `settings` unless `settings[spec]` (or `settings[its name]`) gives
+    others. `settings` never adds a codec: a key that is neither a spec nor a codec's name is an error."""
     from hostd.corpus import hostdcodec
 
+    settings = dict(settings or {})
+    foreign = set(settings) - set(codec_specs)
+    if foreign:
+        # checked before any codec is resolved: a settings file (a colleague's sweep) is data;
+        # only the codecs the command line or the caller names are imported
+        names = {}
+        for spec in codec_specs:
+            names[codecs.resolve(spec).name] = spec
+        unknown = sorted(foreign - set(names))
+        if unknown:
+            raise HostdError(f"the sweep names codec(s) not given with --codec: {', '.join(unknown)} "
+                             "(a sweep gives settings for the codecs named on the command line; add "
+                             "--codec NAME)")
+        for name in foreign:
+            settings.setdefault(names[name], settings.pop(name))
     points: list[tuple[str, str]] = []
     for spec in codec_specs:
         codec = codecs.resolve(spec)
@@ -126,7 +142,7 @@ def make_plan(codec_specs: Sequence[str], *, speeds_mm_s: Sequence[float] = (50.
                 pts += [{"method": m, hostdcodec.KNOB[m]: v} for v in values]
             pts += [{"target_iobj": float(t)} for t in target_iobj]
         else:
-            pts = [dict(s) for s in (settings or {}).get(spec, codec.settings)]
+            pts = [dict(s) for s in settings.get(spec, codec.settings)]
         if not pts:
             raise HostdError(f"codec {spec}: the sweep gives it no setting")
         points += [(spec, codecs.setting_json(s)) for s in pts]
@@ -291,24 +307,22 @@ class _Dask:
         from hostd.extras import need
 
         need("distributed", "corpus", "--dask")
-        from distributed import Client, LocalCluster
+        from distributed import Client
         from distributed.client import FutureCancelledError
         from distributed.scheduler import KilledWorker
         self.cluster = None
         if address == "local":
+            from hostd.corpus.dasknode import local_cluster
+
             _one_thread_per_worker()
-            # no dashboard here, so no use for the workers' statistical profiler (it samples
-            # every thread every 10 ms: CPU taken from the jobs)
-            os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")
-            self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                        dashboard_address=None)
-            self.client = Client(self.cluster)
+            self.cluster, self.client = local_cluster(workers)
         else:
             try:
                 self.client = Client(address, timeout="20s")
-            except OSError as exc:
+            except (OSError, ValueError, TypeError) as exc:
                 raise HostdError(f"cannot reach the Dask scheduler at {address}: {exc} (start it with "
-                                 "`dask scheduler`, workers with `dask worker ADDRESS`)") from None
+                                 "`dask scheduler`, workers with `dask worker ADDRESS`; a tls:// cluster "
+                                 "needs its credentials in Dask's configuration: docs/corpus.md)") from None
         self.lost = (KilledWorker, FutureCancelledError)
         from distributed import as_completed
 
