@@ -74,17 +74,23 @@ for port in map(int, sys.argv[1:]):
 from distributed import Client
 from distributed.security import Security
 mine = Security.temporary()  # a certificate of the attacker's own: not the cluster's
-for port in map(int, sys.argv[1:]):
+import signal
+def alarm(*_):
+    raise TimeoutError
+signal.signal(signal.SIGALRM, alarm)
+for port in sorted(set(map(int, sys.argv[1:])) - set(res["http"])):
     for addr, sec in ((f"tcp://127.0.0.1:{port}", None), (f"tls://127.0.0.1:{port}", mine)):
+        signal.alarm(6)  # (on an unprotected cluster a Client on a worker's port may wait)
         try:
             c = Client(addr, timeout="3s", security=sec)
         except Exception:
+            signal.alarm(0)
             continue
         try:
             res["client"].append([addr, c.run(os.getuid)])
-        except Exception as e:
+        except BaseException as e:
             res["client"].append([addr, repr(e)[:80]])
-        c.close()
+        signal.alarm(0)
 print(json.dumps(res))
 """
 
@@ -168,4 +174,118 @@ def test_a_sweep_file_names_settings_never_a_codec_to_load(tmp_path, capsys):
     st = sqlite3.connect(db)
     assert sorted(r[0] for r in st.execute("SELECT setting FROM results")) == ['{"step_um":0.5}',
                                                                               '{"step_um":1.0}']
+    st.close()
+
+
+# ----------------------------------------------------------------------------- the store is data
+
+
+def _corpus(*args, timeout=60):
+    return subprocess.run([sys.executable, "-m", "hostd", "corpus", *args], capture_output=True, text=True,
+                          env=_env(), cwd=ROOT, timeout=timeout)
+
+
+RUN = ["run", "synthetic:wood:1", "--codec", f"{FIX}:uniform", "--length-mm", "2", "--no-spqi",
+       "--workers", "1", "--no-progress"]
+
+
+def _one_line_refusal(r, says: str) -> None:
+    assert r.returncode == 2 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_a_store_with_a_view_or_a_trigger_is_refused_at_once(tmp_path):
+    """An endless recursive view named `results` (report and run spun at 100 % CPU for ever), and
+    a trigger that deletes every row written (run said "rows written" and kept none)."""
+    view = tmp_path / "view.sqlite"
+    c = sqlite3.connect(view)
+    from hostd.corpus.jobs import COLUMNS_V1
+
+    cols = ", ".join(f'x AS "{c}"' for c in COLUMNS_V1)  # the columns of a store: it looks like one
+    c.execute(f"CREATE VIEW results AS WITH RECURSIVE n(x) AS (SELECT 1 UNION ALL SELECT x + 1 FROM n) "
+              f"SELECT {cols} FROM n")
+    c.close()
+    for args in (["report", str(view), "-o", str(tmp_path / "rep")], [*RUN, "-o", str(view)],
+                 ["export", str(view), "-o", str(tmp_path / "x.csv")]):
+        _one_line_refusal(_corpus(*args, timeout=30), "view results")
+    trig = tmp_path / "trig.sqlite"
+    assert _corpus(*RUN, "-o", str(trig)).returncode == 0
+    c = sqlite3.connect(trig)
+    c.execute("CREATE TRIGGER eat AFTER INSERT ON results BEGIN DELETE FROM results WHERE key = new.key; END")
+    c.execute("DELETE FROM results")
+    c.commit()
+    c.close()
+    r = _corpus(*RUN, "-o", str(trig))
+    _one_line_refusal(r, "trigger eat")
+    assert "rows written" not in r.stdout
+
+
+def test_reading_never_creates_a_file_and_other_databases_are_refused(tmp_path):
+    from hostd.service import qualitylog
+
+    missing = tmp_path / "nope.sqlite"
+    for args in (["report", str(missing), "-o", str(tmp_path / "rep")],
+                 ["export", str(missing), "-o", str(tmp_path / "x.csv")]):
+        _one_line_refusal(_corpus(*args), "no corpus store")
+        assert not missing.exists()
+    log = tmp_path / "quality.sqlite"
+    qualitylog.connect(log).close()
+    before = log.read_bytes()
+    for args in (["report", str(log), "-o", str(tmp_path / "rep")], [*RUN, "-o", str(log)]):
+        _one_line_refusal(_corpus(*args), "not a corpus store")
+    assert log.read_bytes() == before and not (tmp_path / "rep").exists()
+    junk = tmp_path / "junk.sqlite"
+    junk.write_bytes(os.urandom(4096))
+    _one_line_refusal(_corpus("report", str(junk), "-o", str(tmp_path / "rep")), "cannot open")
+
+
+def test_a_store_records_its_version_and_one_of_a_newer_hostd_is_refused(tmp_path):
+    from hostd.corpus import store
+
+    db = tmp_path / "r.sqlite"
+    assert _corpus(*RUN, "-o", str(db)).returncode == 0
+    c = sqlite3.connect(db)
+    assert c.execute("PRAGMA application_id").fetchone()[0] == store.APPLICATION_ID
+    assert c.execute("PRAGMA user_version").fetchone()[0] == store.VERSION >= 2
+    c.execute(f"PRAGMA user_version={store.VERSION + 1}")
+    c.close()
+    _one_line_refusal(_corpus("report", str(db), "-o", str(tmp_path / "rep")), "written by a newer hostd")
+
+
+def test_a_store_of_the_previous_hostd_is_migrated_in_place_and_its_rows_still_count(tmp_path):
+    """tests/data/corpus_v1/store-v1.sqlite was written by the hostd before stores had versions
+    (`hostd corpus run tests/data/corpus_v1/bumps.txt --codec tests.corpus_codec_fixture:uniform
+    --no-spqi --workers 1`): opened, it gains the new columns and keeps its rows, re-keyed, so the
+    same command finds all 5 of them there."""
+    data = ROOT / "tests" / "data" / "corpus_v1"
+    db = tmp_path / "old.sqlite"
+    shutil.copy(data / "store-v1.sqlite", db)
+    r = _corpus("run", str(data / "bumps.txt"), "--codec", f"{FIX}:uniform", "--no-spqi", "--workers", "1",
+                "--no-progress", "-o", str(db), "--json")
+    assert r.returncode == 0, r.stderr
+    summ = json.loads(r.stdout)
+    assert summ["skipped"] == 5 and summ["written"] == 0
+    c = sqlite3.connect(db)
+    assert [tuple(x) for x in c.execute("SELECT run, COUNT(*) FROM results GROUP BY run")] == [(0, 5)]
+    assert {json.loads(s)["spqi"] for (s,) in c.execute("SELECT scoring FROM results")} == {False}
+    c.close()
+
+
+def test_the_stores_write_ahead_log_stays_bounded(tmp_path):
+    """60 transactions of 100 rows: the -wal stays near one transaction's size (it grew to the
+    whole run's, ~3 MB, up to SQLite's default checkpoint at 4 MB)."""
+    from hostd.corpus import jobs
+    from hostd.corpus.store import Store
+    from hostd.service.qualitylog import JOURNAL_LIMIT_BYTES
+
+    db = tmp_path / "r.sqlite"
+    st = Store(db)
+    wal = Path(str(db) + "-wal")
+    sizes = []
+    for t in range(60):
+        rows = [{**dict.fromkeys(jobs.COLUMNS), "key": f"{t}-{i}", "texture": "t" * 200, "loader": "x" * 200,
+                 "bytes": i} for i in range(100)]
+        assert st.write(rows) == 100
+        sizes.append(wal.stat().st_size)
+    one = sizes[0]  # one transaction's pages
+    assert max(sizes) <= JOURNAL_LIMIT_BYTES + 2 * one, sizes
     st.close()

@@ -206,7 +206,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
         from hostd.corpus.jobs import COLUMNS
 
-        st = store.Store(args.store)
+        st = store.Store(args.store, create=False)
         try:
             tmp = out.with_name(out.name + ".part")
             with open(tmp, "w", newline="", encoding="utf-8") as fh:

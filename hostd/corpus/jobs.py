@@ -33,8 +33,10 @@ SCHEMA: tuple[tuple[str, str], ...] = (
     ("length_mm", "float"), ("n_keep", "int"), ("bytes", "int"), ("bits_per_mm", "float"),
     ("bits_per_s", "float"), ("Ip", "float"), ("Ia", "float"), ("Iobj", "float"), ("iobj_db", "float"),
     ("spqi", "float"), ("encode_cpu_s", "float"), ("decode_cpu_s", "float"), ("error", "str"),
-    ("error_reason", "str"),
+    ("error_reason", "str"), ("scoring", "str"), ("run", "int"),
 )
+# the columns of stores written before `scoring` and `run` (hostd.corpus.store migrates them)
+COLUMNS_V1 = tuple(c for c, _ in SCHEMA[:-2])
 COLUMNS = tuple(c for c, _ in SCHEMA)
 TIMING_COLUMNS = ("encode_cpu_s", "decode_cpu_s")
 
@@ -68,13 +70,44 @@ class JobSpec:
 
 @dataclass(frozen=True)
 class Scoring:
+    """How rows are scored; everything but the time limit is part of each row's key.
+    `calibration`: a display's calibration label (NAME@ID, hostd.perception.calibration) whose
+    threshold curve `thresholds` (frequencies, thresholds in µm) replaces the default curve."""
+
     spqi: bool = True
     timeout_s: float = 60.0
     a: float = 0.581
     b: float = 0.464
+    calibration: str | None = None
+    thresholds: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+
+    @classmethod
+    def calibrated(cls, cal, **kw) -> Scoring:
+        """Scored with a Calibration: its (a, b) and its threshold curve."""
+        return cls(a=float(cal.a), b=float(cal.b), calibration=cal.label,
+                   thresholds=(tuple(map(float, cal.curve.freq_hz)),
+                               tuple(map(float, cal.curve.threshold_um))), **kw)
 
     def as_json(self) -> str:
-        return json.dumps({"spqi": self.spqi, "a": self.a, "b": self.b}, sort_keys=True)
+        d = {"spqi": self.spqi, "a": self.a, "b": self.b}
+        if self.calibration is not None:  # (absent: the keys of rows scored before calibrations)
+            d["calibration"] = self.calibration
+        return json.dumps(d, sort_keys=True)
+
+    def curve(self):
+        """The detection-threshold curve b(f) of this scoring."""
+        from hostd.perception import thresholds as th
+
+        if self.thresholds is None:
+            return th.default_curve()
+        return _curve_of(self.thresholds, self.calibration or "calibration")
+
+
+@lru_cache(maxsize=8)
+def _curve_of(table: tuple[tuple[float, ...], tuple[float, ...]], name: str):
+    from hostd.perception.thresholds import ThresholdCurve
+
+    return ThresholdCurve(np.array(table[0]), np.array(table[1]), name=name)
 
 
 @dataclass(frozen=True)
@@ -116,7 +149,14 @@ def job_key(tex: TextureSpec, codec_name: str, codec_version: str, setting_json:
             speed_mm_s: float, fmax_hz: float, scoring: Scoring) -> str:
     blob = json.dumps([KEY_VERSION, tex.input_sha256, tex.loader, codec_name, codec_version,
                        setting_json, repr(float(speed_mm_s)), repr(float(fmax_hz)), scoring.as_json()])
-    return hashlib.sha256(blob.encode()).hexdigest()
+    return named_key(hashlib.sha256(blob.encode()).hexdigest(), tex.name)
+
+
+def named_key(content_key: str, texture_name: str) -> str:
+    """A row's key: its content's hash and the texture's name, so two textures of identical
+    bytes under two names each get their rows (stores of content-only keys are re-keyed by
+    this same function when they are opened: hostd.corpus.store)."""
+    return hashlib.sha256(f"{content_key}|{texture_name}".encode()).hexdigest()
 
 
 class KeyMaker:
@@ -130,9 +170,9 @@ class KeyMaker:
         self._enc = encode_basestring_ascii  # what json.dumps uses for a str (ensure_ascii)
         self._tail = ", " + self._enc(scoring.as_json()) + "]"
 
-    def texture(self, tex: TextureSpec) -> str:
+    def texture(self, tex: TextureSpec) -> tuple[str, str]:
         e = self._enc
-        return f"[{e(KEY_VERSION)}, {e(tex.input_sha256)}, {e(tex.loader)}, "
+        return f"[{e(KEY_VERSION)}, {e(tex.input_sha256)}, {e(tex.loader)}, ", tex.name
 
     def point(self, codec_name: str, codec_version: str, setting_json: str, speed_mm_s: float,
               fmax_hz: float) -> str:
@@ -141,8 +181,9 @@ class KeyMaker:
                 f"{e(repr(float(fmax_hz)))}") + self._tail
 
     @staticmethod
-    def key(texture_part: str, point_part: str) -> str:
-        return hashlib.sha256((texture_part + point_part).encode()).hexdigest()
+    def key(texture_part: tuple[str, str], point_part: str) -> str:
+        content = hashlib.sha256((texture_part[0] + point_part).encode()).hexdigest()
+        return named_key(content, texture_part[1])
 
 
 # ----------------------------------------------------------------------------- time limit
@@ -241,15 +282,14 @@ def load_texture(tex: TextureSpec):
 
 
 @lru_cache(maxsize=16)
-def _reference(tex: TextureSpec, speed_mm_s: float, fmax_hz: float):
-    """(geometry, N', b_k, C_k) of a texture at one geometry."""
+def _reference(tex: TextureSpec, speed_mm_s: float, fmax_hz: float, scoring: Scoring | None = None):
+    """(geometry, N', b_k, C_k) of a texture at one geometry (b_k: the scoring's curve)."""
     from hostd.codec import transform
-    from hostd.perception import thresholds as th
 
     prof = load_texture(tex)
     geom = transform.Geometry(prof.n, prof.length_mm, speed_mm_s, fmax_hz)
     nk = geom.n_keep
-    b_k = th.default_curve()(geom.frequencies_hz(nk))
+    b_k = (scoring or Scoring()).curve()(geom.frequencies_hz(nk))
     return geom, nk, b_k, transform.analyze(prof.heights_um, nk)
 
 
@@ -264,6 +304,12 @@ def empty_row(tex: TextureSpec, job: JobSpec) -> dict:
     return row
 
 
+def empty_task_rows(task: Task, error: str, reason: str) -> list[dict]:
+    """A row per job of a task that gave no rows of its own (its worker was lost or killed)."""
+    return [{**empty_row(task.texture, j), "scoring": task.scoring.as_json(), "error": error,
+             "error_reason": reason} for j in task.jobs]
+
+
 def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
     """One row: encode, decode, score; any failure is the row's error, never an exception."""
     from hostd.codec import transform
@@ -271,6 +317,7 @@ def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
     from hostd.perception import indices, peer
 
     row = empty_row(tex, job)
+    row["scoring"] = scoring.as_json()
     try:
         codec = codecs.resolve(job.codec)
         row.update(codec=codec.name, codec_version=codec.version)
@@ -279,7 +326,7 @@ def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
         prof = load_texture(tex)
         row.update(n=prof.n, spacing_um=prof.spacing_um, length_mm=prof.length_mm)
         try:
-            _geom, nk, b_k, c_ref = _reference(tex, float(job.speed_mm_s), float(job.fmax_hz))
+            _geom, nk, b_k, c_ref = _reference(tex, float(job.speed_mm_s), float(job.fmax_hz), scoring)
         except HostdError as exc:
             raise InputError(str(exc), "geometry") from None
         row["n_keep"] = nk
@@ -340,7 +387,7 @@ def run_task_measured(task: Task) -> list[dict]:
     try:
         load_texture(task.texture)
         for v, f in dict.fromkeys((float(j.speed_mm_s), float(j.fmax_hz)) for j in task.jobs):
-            _reference(task.texture, v, f)
+            _reference(task.texture, v, f, task.scoring)
     except Exception:  # run_job makes the error row
         pass
     loaded = load_texture.cache_info().misses + _reference.cache_info().misses > misses

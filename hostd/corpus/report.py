@@ -252,7 +252,7 @@ def report(store_path: str | Path, out_dir: str | Path, *, anchor: str | None = 
     """Write bdrate.csv, bdrate_summary.csv, report.md (and PNGs) under out_dir; return the summary."""
     from hostd.corpus.store import Store
 
-    st = Store(store_path)
+    st = Store(store_path, create=False)
     try:
         rows = st.rows()
     finally:

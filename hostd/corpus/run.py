@@ -419,6 +419,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
     scoring = scoring or Scoring()
     t0 = time.monotonic()
     st = Store(store_path)
+    st.begin_run()
     summ = Summary(str(store_path), total=len(textures) * plan.per_texture)
     from hostd.tty import progress_bar
 
@@ -500,17 +501,15 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
                     redo = [task]
                 for t in redo:
                     if tries[id(t)] > MAX_TASK_RETRIES:
-                        rows = [{**jobs.empty_row(t.texture, j), "error": f"the worker running this job "
-                                 f"was lost {tries[id(t)]} times ({type(exc).__name__})",
-                                 "error_reason": "worker_lost"} for j in t.jobs]
-                        record(rows)
+                        record(jobs.empty_task_rows(t, f"the worker running this job was lost "
+                                                    f"{tries[id(t)]} times ({type(exc).__name__})",
+                                                    "worker_lost"))
                     else:
                         pending[ex.submit(t, task_fn)] = t
                 continue
             except Exception as exc:  # the task itself failed in the worker (not a codec: those are rows)
                 text = f"the task failed in its worker: {type(exc).__name__}: {exc}"[:500]
-                rows = [{**jobs.empty_row(task.texture, j), "error": text, "error_reason": "worker_error"}
-                        for j in task.jobs]
+                rows = jobs.empty_task_rows(task, text, "worker_error")
             record(rows)
             done_tasks += 1
             fill()
