@@ -20,10 +20,12 @@ class UniformZlib:
     name = "uniform-zlib"
     version = "1"
     settings = tuple({"step_um": s} for s in (2.0, 1.0, 0.5, 0.25, 0.125))
+    pad = 0.0  # a test's "new version" that wastes this fraction of the bytes (zero bytes appended)
 
     def encode(self, heights_um, spacing_um, *, step_um, **_):
         q = np.rint(np.asarray(heights_um) / step_um).astype("<i4")
-        return struct.pack("<d", step_um) + zlib.compress(q.tobytes(), 9)
+        data = struct.pack("<d", step_um) + zlib.compress(q.tobytes(), 9)
+        return data + bytes(round(self.pad * len(data)))
 
     def decode(self, data, n, spacing_um, **_):
         (step,) = struct.unpack_from("<d", data)

@@ -114,7 +114,7 @@ def bare_ms_per_job(textures, plan, scoring) -> tuple[float, float]:
         t = hashed(tex)
         t0 = time.process_time()
         prof = jobs.load_texture(t)  # loaded once per texture, as a task does
-        refs = {(v, f): jobs._reference(t, v, f) for v, f in plan.geometries}
+        refs = {(v, f): jobs._reference(t, v, f, scoring) for v, f in plan.geometries}
         t1 = time.process_time()
         load += t1 - t0
         for (v, f), (_, nk, b_k, c_ref) in refs.items():

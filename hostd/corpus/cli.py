@@ -69,6 +69,11 @@ def add_parser(sub, parents) -> None:
     r.add_argument("--timeout", type=float, default=60.0, metavar="S",
                    help="per-job limit: a codec still running after S seconds is an error row (60)")
     r.add_argument("--no-spqi", action="store_true", help="skip SPQI (faster; the SPQI column stays empty)")
+    from hostd.cliopts import CalibrationAction
+
+    r.add_argument("--calibration", action=CalibrationAction, default=None, metavar="FILE",
+                   help="score with a display's calibration (hostd experiment calibration): its (a, b) and "
+                   "threshold curve; part of every row's key and its `scoring` column")
     r.add_argument("--retry-errors", action="store_true", help="run again the jobs whose row is an error")
     r.add_argument("--parquet", metavar="FILE.parquet", help="also export the whole store as Parquet")
     r.add_argument("--no-progress", action="store_true", help="no progress bar (default: on a terminal)")
@@ -86,8 +91,26 @@ def add_parser(sub, parents) -> None:
                      help="BD-rate interpolation (default pchip, as the video standards' spreadsheets)")
     rep.add_argument("--no-plots", action="store_true", help="no PNGs")
     rep.add_argument("--max-plots", type=int, default=20, metavar="N", help="at most N PNGs (default 20)")
+    rep.add_argument("--latest", action="store_true",
+                     help="when a curve has rows of several codec versions, loader options or scorings, "
+                     "compare the latest run's (default: refuse, saying what differs)")
     rep.add_argument("--json", action="store_true", help="print the summary as JSON")
     rep.set_defaults(func=cmd_report)
+
+    cmp = csub.add_parser("compare", help="BD-rate of each curve of one store or run against the same "
+                          "curve of another")
+    cmp.add_argument("base", metavar="BASE", help="a store, or STORE@RUN: the rows that run wrote")
+    cmp.add_argument("test", metavar="TEST", help="a store, or STORE@RUN")
+    cmp.add_argument("-o", "--out", default="corpus-compare",
+                     help="output directory (default corpus-compare)")
+    cmp.add_argument("--interpolation", choices=["pchip", "akima"], default="pchip")
+    cmp.add_argument("--latest", action="store_true", help="as for report")
+    cmp.add_argument("--json", action="store_true", help="print the summary as JSON")
+    cmp.set_defaults(func=cmd_compare)
+
+    rs = csub.add_parser("runs", help="the runs of a store: number, start, hostd version, rows")
+    rs.add_argument("store")
+    rs.set_defaults(func=cmd_runs)
 
     ex = csub.add_parser("export", help="the store as Parquet or CSV")
     ex.add_argument("store")
@@ -133,7 +156,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     plan = run.make_plan(codec_specs, speeds_mm_s=args.speed, fmaxs_hz=args.fmax, methods=args.methods,
                          g_db=args.g, levels=args.levels, b0_db=args.b0, target_iobj=args.target_iobj,
                          settings=settings)
-    scoring = Scoring(spqi=not args.no_spqi, timeout_s=args.timeout)
+    if args.calibration is not None:
+        scoring = Scoring.calibrated(args.calibration, spqi=not args.no_spqi, timeout_s=args.timeout)
+    else:
+        scoring = Scoring(spqi=not args.no_spqi, timeout_s=args.timeout)
     summ = run.run(textures, plan, args.out, scoring=scoring, dask=args.dask, workers=args.workers,
                    batch=args.batch, progress=False if (args.no_progress or args.json) else None,
                    retry_errors=args.retry_errors)
@@ -154,7 +180,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 0
     from hostd.corpus import report
 
-    res = report.report(args.out, args.report, plots=False)
+    res = report.report(args.out, args.report, plots=False, latest=True)
     if args.json:
         print(json.dumps({"run": summ.as_dict(), "report": res}, indent=1, default=str))
     else:
@@ -163,8 +189,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def _print_report(res: dict, prog: str) -> None:
-    for w in res["warnings"]:
-        print(f"{prog}: warning: {w}", file=sys.stderr)
+    if res["warnings"]:
+        print(f"{prog}: note: {len(res['warnings'])} BD-rate values have a note (small quality overlap, or "
+              f"why there is no value): the `note` column of {res['files'][0]}", file=sys.stderr)
+    for line in res.get("left_out", ()):
+        print(f"left out: {line}")
     for s in res["summary"]:
         print(f"{s['transform']:<32} {s['curve']:<24} vs {s['anchor']}: mean {s['mean_pct']:+.1f} %, "
               f"median {s['median_pct']:+.1f} %, worst {s['worst_pct']:+.1f} %, "
@@ -172,17 +201,18 @@ def _print_report(res: dict, prog: str) -> None:
               + (f", no value {s['no_value']}" if s["no_value"] else ""))
     for name, text in res.get("about", {}).items():
         print(f"{name}: {text}")
-    if res["failed_by_reason"]:
+    if res.get("failed_by_reason"):
         print("failed rows: " + ", ".join(f"{k} {v}" for k, v in res["failed_by_reason"].items()))
-    pngs = len(res["files"]) - 3
-    print("wrote " + ", ".join(res["files"][:3]) + (f" and {pngs} PNGs" if pngs else ""))
+    pngs = len([f for f in res["files"] if f.endswith(".png")])
+    tables = [f for f in res["files"] if not f.endswith(".png")]
+    print("wrote " + ", ".join(tables) + (f" and {pngs} PNGs" if pngs else ""))
 
 
 def cmd_report(args: argparse.Namespace) -> int:
     from hostd.corpus import report
 
     res = report.report(args.store, args.out, anchor=args.anchor, method=args.interpolation,
-                        plots=not args.no_plots, max_plots=args.max_plots)
+                        plots=not args.no_plots, max_plots=args.max_plots, latest=args.latest)
     if args.json:
         for w in res["warnings"]:
             print(f"hostd corpus report: warning: {w}", file=sys.stderr)
@@ -219,4 +249,33 @@ def cmd_export(args: argparse.Namespace) -> int:
     else:
         raise HostdError(f"{out}: give a .parquet or .csv file name")
     print(f"wrote {out}")
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from hostd.corpus import report
+
+    res = report.compare(args.base, args.test, args.out, method=args.interpolation, latest=args.latest)
+    if args.json:
+        print(json.dumps(res, indent=1, default=str))
+        return 0
+    _print_report(res, "hostd corpus compare")
+    return 0
+
+
+def cmd_runs(args: argparse.Namespace) -> int:
+    import time
+
+    from hostd.corpus import store
+
+    st = store.Store(args.store, create=False)
+    try:
+        counts = dict(st.db.execute("SELECT run, COUNT(*) FROM results GROUP BY run").fetchall())
+        for r in st.runs():
+            when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(r["started_at"])) if r["started_at"] \
+                else "-"
+            n = counts.get(r["run"], 0)
+            print(f"{r['run']:>4}  {when:<23}  hostd {r['hostd_version']:<12}  {n} rows")
+    finally:
+        st.close()
     return 0

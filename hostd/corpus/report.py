@@ -146,6 +146,70 @@ def about(labels: Iterable[str]) -> dict[str, str]:
     return {n: ABOUT[n] for n in sorted(names) if n in ABOUT}
 
 
+# ----------------------------------------------------------------------------- which rows
+
+
+IDENTITY = ("codec_version", "loader", "scoring")  # with the curve and geometry: one curve's rows
+_OPTION = {"codec_version": "codec versions", "loader": "loader options (units, patch, ...)",
+           "scoring": "scorings (SPQI, a, b, --calibration)"}
+
+
+def _run(r: dict) -> int:
+    return int(r["run"]) if r.get("run") is not None else -1
+
+
+def current(rows: Sequence[dict]) -> tuple[list[dict], int]:
+    """The rows of each named texture's current file: those with the bytes (input_sha256) of its
+    latest run; rows of a file that has since changed (a broken file fixed) are left out.
+    Returns (rows, how many were left out)."""
+    latest: dict[str, tuple[int, str]] = {}
+    for r in rows:
+        t = r["texture"]
+        if t not in latest or _run(r) > latest[t][0]:
+            latest[t] = (_run(r), r["input_sha256"])
+    keep = [r for r in rows if r["input_sha256"] == latest[r["texture"]][1]]
+    return keep, len(rows) - len(keep)
+
+
+def one_set_per_curve(rows: Sequence[dict], latest: bool = False,
+                      what: str = "the store") -> tuple[list[dict], str]:
+    """A curve's identity is one codec version, one set of loader options and one scoring, at
+    one geometry, per texture. When a store holds several such sets for a curve, BD-rates over
+    their union mislead: refuse, naming what differs and the options that pick one; with
+    `latest`, keep the set of the latest run of each. Returns (rows, a note on what was left out)."""
+    sets: dict[tuple, dict[tuple, int]] = defaultdict(dict)
+    for r in rows:
+        if r.get("curve") is None or r.get("codec_version") is None:
+            continue
+        k = (r["texture"], r["speed_mm_s"], r["fmax_hz"], r["curve"])
+        ident = tuple(r.get(c) for c in IDENTITY)
+        sets[k][ident] = max(sets[k].get(ident, -1), _run(r))
+    several = {k: v for k, v in sets.items() if len(v) > 1}
+    if not several:
+        return list(rows), ""
+    differ: dict[str, set[str]] = defaultdict(set)
+    for (_, _, _, curve), v in several.items():
+        idents = list(v)
+        for i, c in enumerate(IDENTITY):
+            if len({x[i] for x in idents}) > 1:
+                differ[curve].add(c)
+    what_differs = "; ".join(f"{curve}: {', '.join(_OPTION[c] for c in IDENTITY if c in cs)}"
+                             for curve, cs in sorted(differ.items()))
+    if not latest:
+        raise HostdError(f"{what} holds several sets of rows for a curve ({what_differs}): give --latest to "
+                         "compare the latest run of each, or compare two runs with `hostd corpus compare "
+                         "STORE@RUN STORE@RUN` (`hostd corpus runs STORE` lists them)")
+    keep_ident = {k: max(v, key=v.get) for k, v in several.items()}
+    out = []
+    for r in rows:
+        k = (r["texture"], r["speed_mm_s"], r["fmax_hz"], r["curve"])
+        if k in keep_ident and r.get("codec_version") is not None \
+                and tuple(r.get(c) for c in IDENTITY) != keep_ident[k]:
+            continue
+        out.append(r)
+    return out, (f"{len(rows) - len(out)} rows of earlier sets left out (--latest; {what_differs})")
+
+
 def default_anchor(rows: Sequence[dict]) -> str:
     labels = sorted({r["curve"] for r in rows if r.get("curve") and r.get("error") is None})
     if not labels:
@@ -172,10 +236,12 @@ def _fmt(x: float) -> str:
 
 
 def markdown(summary: Sequence[dict], table: Sequence[BDRow], method: str, fails: dict[str, int],
-             total_rows: int, notes: dict[str, str] | None = None) -> str:
+             total_rows: int, notes: dict[str, str] | None = None, left_out: Sequence[str] = ()) -> str:
     lines = [f"# Corpus BD-rate report ({total_rows} rows)", ""]
     lines.append(f"Interpolation: {method}. Rate: bytes. Negative = fewer bytes than the anchor for the "
                  "same quality. Each curve reduced to its Pareto front first.")
+    if left_out:
+        lines += ["", "Left out: " + "; ".join(left_out) + "."]
     if notes:
         lines += ["", "Codecs:", ""] + [f"- `{n}`: {text}" for n, text in notes.items()]
     if fails:
@@ -247,18 +313,39 @@ def plot(rows: Sequence[dict], out_dir: Path, anchor: str, max_plots: int = 20) 
     return paths
 
 
-def report(store_path: str | Path, out_dir: str | Path, *, anchor: str | None = None,
-           method: str = "pchip", plots: bool = True, max_plots: int = 20) -> dict:
-    """Write bdrate.csv, bdrate_summary.csv, report.md (and PNGs) under out_dir; return the summary."""
+def load(spec: str | Path, latest: bool = False) -> tuple[list[dict], list[str]]:
+    """The rows a report compares from `spec` = STORE or STORE@RUN (the rows run RUN wrote): each
+    texture's current file, one set per curve (one_set_per_curve); and notes on what was left out."""
     from hostd.corpus.store import Store
 
-    st = Store(store_path, create=False)
+    path, run = str(spec), None
+    head, sep, tail = path.rpartition("@")
+    if sep and tail.isdigit() and not Path(path).exists():
+        path, run = head, int(tail)
+    st = Store(path, create=False)
     try:
-        rows = st.rows()
+        rows = st.rows("WHERE run = ?", (run,)) if run is not None else st.rows()
+        runs = [r["run"] for r in st.runs()]
     finally:
         st.close()
     if not rows:
-        raise HostdError(f"{store_path} holds no rows: run `hostd corpus run` first")
+        if run is not None:
+            raise HostdError(f"{path} holds no rows of run {run} (its runs: {', '.join(map(str, runs))})")
+        raise HostdError(f"{path} holds no rows: run `hostd corpus run` first")
+    notes = []
+    rows, stale = current(rows)
+    if stale:
+        notes.append(f"{stale} rows of files changed since left out (each texture's current file is shown)")
+    rows, note = one_set_per_curve(rows, latest, str(spec))
+    if note:
+        notes.append(note)
+    return rows, notes
+
+
+def report(store_path: str | Path, out_dir: str | Path, *, anchor: str | None = None,
+           method: str = "pchip", plots: bool = True, max_plots: int = 20, latest: bool = False) -> dict:
+    """Write bdrate.csv, bdrate_summary.csv, report.md (and PNGs) under out_dir; return the summary."""
+    rows, left_out = load(store_path, latest)
     from hostd.extras import need
 
     need("bjontegaard", "corpus", "BD-rate (hostd corpus report)")
@@ -276,13 +363,45 @@ def report(store_path: str | Path, out_dir: str | Path, *, anchor: str | None = 
                                     for r in table])
     _write_csv(out / "bdrate_summary.csv", [{**s, "interpolation": method} for s in summ])
     notes = about(r["curve"] for r in rows if r.get("curve"))
-    md = markdown(summ, table, method, fails, len(rows), notes)
+    md = markdown(summ, table, method, fails, len(rows), notes, left_out)
     tmp = out / "report.md.part"
     tmp.write_text(md, encoding="utf-8")
     tmp.replace(out / "report.md")
     pngs = plot(rows, out, anchor, max_plots) if plots else []
     return {"anchor": anchor, "interpolation": method, "rows": len(rows), "failed_by_reason": fails,
-            "summary": summ, "about": notes,
+            "summary": summ, "about": notes, "left_out": left_out,
             "warnings": [f"{r.texture} {r.curve} ({r.metric}): {r.note}" for r in table if r.note],
             "files": [str(out / n) for n in ("bdrate.csv", "bdrate_summary.csv", "report.md")]
             + [str(p) for p in pngs]}
+
+
+def compare(base: str | Path, test: str | Path, out_dir: str | Path, *, method: str = "pchip",
+            latest: bool = False) -> dict:
+    """BD-rate of each curve of `test` against the same curve of `base` (two stores, or two runs
+    of one store: STORE@RUN), per texture and geometry both hold; compare.csv and
+    compare_summary.csv under out_dir; returns the summary."""
+    from hostd.extras import need
+
+    need("bjontegaard", "corpus", "BD-rate (hostd corpus compare)")
+    a_rows, a_notes = load(base, latest)
+    b_rows, b_notes = load(test, latest)
+    table = []
+    for metric in METRICS:
+        ca, cb = curves(a_rows, metric), curves(b_rows, metric)
+        for key in sorted(set(ca) & set(cb)):
+            for label in sorted(set(ca[key]) & set(cb[key])):
+                val, note = bd_rate(ca[key][label], cb[key][label], method)
+                table.append(BDRow(metric, *key, f"{label} in {base}", label, val, note))
+    if not table:
+        raise HostdError(f"{base} and {test} have no curve on a texture and geometry in common: nothing to "
+                         "compare")
+    summ = summarise(table)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_csv(out / "compare.csv", [{**r.__dict__, "transform": METRICS[r.metric], "interpolation": method}
+                                     for r in table])
+    _write_csv(out / "compare_summary.csv", [{**s, "interpolation": method} for s in summ])
+    return {"base": str(base), "test": str(test), "interpolation": method, "summary": summ,
+            "left_out": [f"{base}: {n}" for n in a_notes] + [f"{test}: {n}" for n in b_notes],
+            "warnings": [f"{r.texture} {r.curve} ({r.metric}): {r.note}" for r in table if r.note],
+            "files": [str(out / "compare.csv"), str(out / "compare_summary.csv")]}
