@@ -129,3 +129,10 @@ def test_calibration_is_taken_by_corpus_run_and_changes_the_rows(tmp_path, capsy
     capsys.readouterr()
     assert main(["corpus", "report", str(db), "-o", str(tmp_path / "rep"), "--no-plots"]) == 2
     assert "scorings" in _err_line(capsys)
+    pytest.importorskip("pyarrow")
+    from hostd import api
+
+    t = api.run_corpus("synthetic:wood:1", db, codecs=["hostd-v2"], methods=["shaped"],
+                       g_db=[-12, -6, 0, 6, 12], length_mm=2.0, workers=1, spqi=False, calibration=f,
+                       as_pandas=False)
+    assert json.loads(t.schema.metadata[b"summary"])["skipped"] == 5  # the same keys as the command's
