@@ -129,7 +129,10 @@ def make_plan(codec_specs: Sequence[str], *, speeds_mm_s: Sequence[float] = (50.
     for spec in codec_specs:
         codec = codecs.resolve(spec)
         if isinstance(codec, hostdcodec.HostdStream):
-            grid = {"shaped": g_db, "quant": levels, "cut": b0_db}
+            # the same numbers give the same keys, as ints or floats (the API takes either)
+            grid = {"shaped": None if g_db is None else [float(v) for v in g_db],
+                    "quant": None if levels is None else [int(v) for v in levels],
+                    "cut": None if b0_db is None else [float(v) for v in b0_db]}
             ms = [m for m in hostdcodec.METHODS[codec.fmt] if methods is None or m in methods]
             if methods is not None:
                 bad = set(methods) - {"shaped", "quant", "cut"}
