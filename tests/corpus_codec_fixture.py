@@ -36,7 +36,8 @@ uniform = UniformZlib  # "tests.corpus_codec_fixture:uniform": a class, called w
 
 
 class Misbehaving(UniformZlib):
-    """setting fault = none | raise | hang | short | nan | str."""
+    """setting fault = none | raise | hang | short | nan | str | deaf (hangs where no time limit
+    inside the process reaches it: SIGALRM blocked, waiting in C)."""
 
     name = "misbehaving"
     settings = tuple({"step_um": 1.0, "fault": f} for f in ("none", "raise", "hang", "short", "nan", "str"))
@@ -47,6 +48,11 @@ class Misbehaving(UniformZlib):
         if fault == "hang":
             while True:
                 time.sleep(0.01)
+        if fault == "deaf":
+            import signal
+
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGALRM})
+            time.sleep(3600)
         if fault == "str":
             return "not bytes"
         return super().encode(heights_um, spacing_um, **kw)

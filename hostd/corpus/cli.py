@@ -170,14 +170,17 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(line, file=sys.stderr if summ.interrupted else sys.stdout)
     if summ.interrupted:
         return 130
-    if summ.written and not summ.ok and not summ.skipped:
-        print("hostd corpus run: error: every job failed (see the reasons above and the rows' `error`)",
-              file=sys.stderr)
-        return 1
-    if args.report is None:
+    failed = summ.hard_failures()
+    status = 0
+    if failed:
+        every = "every job" if not summ.ok and not summ.skipped else f"{failed} of {summ.written} jobs"
+        print(f"hostd corpus run: error: {every} failed (see the reasons above and the rows' `error`; "
+              "rerun with --retry-errors after a fix)", file=sys.stderr)
+        status = 1
+    if args.report is None or (failed and not summ.ok and not summ.skipped):
         if args.json:
             print(json.dumps(summ.as_dict(), indent=1))
-        return 0
+        return status
     from hostd.corpus import report
 
     res = report.report(args.out, args.report, plots=False, latest=True)
@@ -185,7 +188,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(json.dumps({"run": summ.as_dict(), "report": res}, indent=1, default=str))
     else:
         _print_report(res, "hostd corpus run")
-    return 0
+    return status
 
 
 def _print_report(res: dict, prog: str) -> None:

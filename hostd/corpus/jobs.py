@@ -115,6 +115,7 @@ class Task:
     texture: TextureSpec
     jobs: tuple[JobSpec, ...]
     scoring: Scoring
+    seq: int = 0  # the driver's number for it: a worker says which job of which task it runs
 
 
 # ----------------------------------------------------------------------------- keys
@@ -366,14 +367,56 @@ def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
     return row
 
 
+# A pool worker's slot in an array the driver reads (hostd.corpus.run._Local): pid, task seq,
+# job index, CLOCK_MONOTONIC start of the job (0: idle). The driver kills a worker whose job has
+# run past the time limit, whatever the job is doing (a C call, a blocked signal).
+SLOT_FIELDS = 4
+_slot: tuple | None = None
+
+
+def _mark(task_seq: int, job: int, start: float) -> None:
+    if _slot is not None:
+        arr, i = _slot
+        base = SLOT_FIELDS * i
+        arr[base + 3] = 0.0  # (the driver reads t, seq, job, t again: a torn read is skipped)
+        arr[base + 1] = float(task_seq)
+        arr[base + 2] = float(job)
+        arr[base + 3] = start
+
+
 def run_task(task: Task) -> list[dict]:
     """Every job of a task, in order (what a worker process runs); the first row carries the
     task's wall time in "_task_s" (the driver sizes later tasks by it; the store ignores it)."""
     t0 = time.perf_counter()
-    rows = [run_job(task.texture, j, task.scoring) for j in task.jobs]
+    rows = []
+    try:
+        for i, j in enumerate(task.jobs):
+            _mark(task.seq, i, time.monotonic())
+            rows.append(run_job(task.texture, j, task.scoring))
+    finally:
+        _mark(task.seq, 0, 0.0)
     if rows:
         rows[0]["_task_s"] = time.perf_counter() - t0
     return rows
+
+
+def pool_worker_init(slots, counter) -> None:
+    """A local pool worker's initializer: Ctrl-C is the driver's; die with the fork server (which
+    dies with the driver: hostd.corpus.lifeline); take the next slot of `slots`."""
+    import os
+
+    from hostd.corpus.lifeline import die_with_parent
+
+    global _slot
+    ignore_sigint()
+    die_with_parent()
+    with counter.get_lock():
+        i = counter.value
+        counter.value += 1
+    n = len(slots) // SLOT_FIELDS
+    if i < n:
+        slots[SLOT_FIELDS * i] = float(os.getpid())
+        _slot = (slots, i)
 
 
 def run_task_measured(task: Task) -> list[dict]:

@@ -10,6 +10,8 @@ keeps every row already written.
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import time
 from collections import Counter
@@ -246,8 +248,54 @@ class _Serial:
         pass
 
 
+def _no_main_context():
+    """The fork server context, whose worker processes do not import the driver's __main__: a
+    plain script that calls the API without `if __name__ == "__main__":` would otherwise run
+    again in every worker (multiprocessing re-imports the main module in each child). The jobs
+    need nothing from __main__: codecs are named and resolved in the workers."""
+    from multiprocessing.context import ForkServerContext
+
+    class Context(ForkServerContext):
+        Process = _NoMainProcess
+
+    return Context()
+
+
+try:
+    from multiprocessing.context import ForkServerProcess as _ForkServerProcess
+except ImportError:  # (Windows)
+    _ForkServerProcess = object  # type: ignore[assignment,misc]
+
+
+class _NoMainProcess(_ForkServerProcess):  # type: ignore[misc,valid-type]
+    """A fork server process started with __main__'s file and spec hidden for the moment it is
+    started (multiprocessing.spawn.get_preparation_data reads them then)."""
+
+    def start(self) -> None:
+        import sys
+
+        main = sys.modules.get("__main__")
+        names = ("__file__", "__spec__")
+        saved = {k: main.__dict__[k] for k in names if main is not None and k in main.__dict__}
+        try:
+            if main is not None:
+                main.__dict__.pop("__file__", None)
+                main.__dict__["__spec__"] = None
+            super().start()
+        finally:
+            if main is not None:
+                main.__dict__.pop("__spec__", None)
+                main.__dict__.update(saved)
+
+
+KILL_GRACE_S = 1.0  # the driver kills a worker this long (+ 10 %) after a job's limit; the worker's
+#                     own SIGALRM comes first for a codec stuck in Python
+
+
 class _Local:
-    """A process pool over `workers` processes (default: every core)."""
+    """A process pool over `workers` processes (default: every core). Workers die with the
+    driver (hostd.corpus.lifeline); a worker whose job runs past `job_limit_s` is killed (the
+    pool is then replaced, and the job gets a `timeout` row: `killed`)."""
 
     name = "local"
 
@@ -256,19 +304,26 @@ class _Local:
 
         self.workers = workers
         self.lost = (BrokenProcessPool,)
+        self.job_limit_s = math.inf
+        self.killed: dict[int, int] = {}  # task seq -> index of the job that ran past its limit
         self._start()
 
     def _start(self) -> None:
-        import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
 
+        from hostd.corpus import lifeline
+
         _one_thread_per_worker()
-        ctx = mp.get_context("forkserver")
+        os.environ[lifeline.ENV] = str(os.getpid())  # the fork server dies with this process
+        ctx = _no_main_context()
         # imported once in the fork server, inherited by every worker (and every replacement)
-        ctx.set_forkserver_preload(["hostd.corpus.jobs", "hostd.corpus.hostdcodec", "hostd.codec.stream",
-                                    "hostd.codec.ratecontrol", "hostd.perception.peer", "hostd.render.series",
-                                    "hostd.texture.load", "scipy.signal", "scipy.fft"])
-        self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=jobs.ignore_sigint)
+        ctx.set_forkserver_preload(["hostd.corpus.lifeline", "hostd.corpus.jobs", "hostd.corpus.hostdcodec",
+                                    "hostd.codec.stream", "hostd.codec.ratecontrol", "hostd.perception.peer",
+                                    "hostd.render.series", "hostd.texture.load", "scipy.signal", "scipy.fft"])
+        self.marks = ctx.Array("d", jobs.SLOT_FIELDS * self.workers, lock=False)
+        counter = ctx.Value("i", 0)
+        self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=jobs.pool_worker_init,
+                                        initargs=(self.marks, counter))
 
     def submit(self, task: Task, fn=jobs.run_task):
         return self.pool.submit(fn, task)
@@ -286,8 +341,29 @@ class _Local:
     def next_done(self, pending):
         from concurrent.futures import FIRST_COMPLETED, wait
 
-        done, _ = wait(pending, return_when=FIRST_COMPLETED)
-        return next(iter(done))
+        poll = None if not math.isfinite(self.job_limit_s) else min(0.25, self.job_limit_s / 4)
+        while True:
+            done, _ = wait(pending, timeout=poll, return_when=FIRST_COMPLETED)
+            if done:
+                return next(iter(done))
+            self._watch()
+
+    def _watch(self) -> None:
+        """Kill every worker whose job has run past job_limit_s (+ grace)."""
+        import signal
+
+        limit = self.job_limit_s * 1.1 + KILL_GRACE_S
+        now = time.monotonic()
+        a, f = self.marks, jobs.SLOT_FIELDS
+        for i in range(self.workers):
+            t = a[f * i + 3]
+            pid, seq, job = int(a[f * i]), int(a[f * i + 1]), int(a[f * i + 2])
+            if t > 0 and now - t > limit and a[f * i + 3] == t and pid > 0 and seq not in self.killed:
+                self.killed[seq] = job
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
 
     def restart(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
@@ -394,6 +470,11 @@ class Summary:
                 "retried_tasks": self.retried_tasks, "interrupted": self.interrupted,
                 "seconds": round(self.seconds, 3)}
 
+    def hard_failures(self) -> int:
+        """Failed jobs, not counting those of a codec that cannot run here (`unavailable`: the
+        rows say what to install; a sweep that names an absent peer is not a failed run)."""
+        return sum(v for k, v in self.failed.items() if k != "unavailable")
+
     def lines(self) -> list[str]:
         out = [f"{self.written} rows written to {self.store} ({self.ok} ok, {sum(self.failed.values())} "
                f"failed), {self.skipped} already there, of {self.total} jobs, in {self.seconds:.1f} s "
@@ -452,8 +533,35 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
         return max(1, min(batch, int(TASK_TARGET_S * pace[1] / pace[0])))
 
     pending: dict = {}
-    tries: Counter = Counter()
+    tries: Counter = Counter()  # task seq -> times its worker was lost
     exhausted = False
+    seqs = iter(range(1, 1 << 62))
+
+    def submit(t: Task) -> None:
+        t = Task(t.texture, t.jobs, t.scoring, next(seqs)) if t.seq == 0 else t
+        pending[ex.submit(t, task_fn)] = t
+
+    def timed_out(t: Task, j: int) -> None:
+        """The job the driver killed its worker for: a timeout row; the task's other jobs again."""
+        limit = f"{scoring.timeout_s:g} s" if math.isfinite(scoring.timeout_s) else "its limit"
+        record(stamped(jobs.empty_task_rows(Task(t.texture, (t.jobs[j],), t.scoring),
+                                            f"the codec did not finish within the per-job limit of {limit} "
+                                            "(--timeout); its worker process was killed and replaced",
+                                            "timeout")))
+        rest = t.jobs[:j] + t.jobs[j + 1:]
+        if rest:
+            submit(Task(t.texture, rest, t.scoring))
+
+    def stamped(rows: list[dict]) -> list[dict]:
+        """Rows the driver makes (no worker ran the job): the codec's name, version and curve."""
+        for r in rows:
+            try:
+                c = codecs.resolve(r["codec"])
+                setting = json.loads(r["setting"])
+                r.update(codec=c.name, codec_version=c.version, curve=codecs.curve_of(c, setting))
+            except Exception:  # the row says what failed; the names stay as given
+                continue
+        return rows
 
     def fill() -> None:
         nonlocal exhausted
@@ -465,7 +573,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             if t is None:
                 exhausted = True
                 return
-            pending[ex.submit(t, task_fn)] = t
+            submit(t)
 
     def record(rows: list[dict]) -> None:
         if rows and rows[0].get("_task_s") is not None:
@@ -484,6 +592,9 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
 
     try:
         ex = using if using is not None else executor(dask, workers, pool)
+        if hasattr(ex, "job_limit_s"):
+            ex.job_limit_s = scoring.timeout_s
+            ex.killed.clear()
         # task sizes shrink towards the end in proportion to the workers there are
         tasks = iter_tasks(textures, plan, scoring, batch, lambda keys: st.known(keys, ok_only=retry_errors),
                            skipped, ex.slots() if hasattr(ex, "slots") else n_workers, cap)
@@ -494,8 +605,10 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             try:
                 rows = fut.result()
             except ex.lost as exc:
-                tries[id(task)] += 1
-                summ.retried_tasks += 1
+                killed = getattr(ex, "killed", {})
+                if task.seq not in killed:  # (a worker killed for a job past its limit: not lost)
+                    tries[task.seq] += 1
+                    summ.retried_tasks += 1
                 if ex.name == "local":  # the pool is broken: every pending future with it
                     redo = [task, *pending.values()]
                     pending.clear()
@@ -503,12 +616,14 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
                 else:
                     redo = [task]
                 for t in redo:
-                    if tries[id(t)] > MAX_TASK_RETRIES:
-                        record(jobs.empty_task_rows(t, f"the worker running this job was lost "
-                                                    f"{tries[id(t)]} times ({type(exc).__name__})",
-                                                    "worker_lost"))
+                    if t.seq in killed:
+                        timed_out(t, killed.pop(t.seq))
+                    elif tries[t.seq] > MAX_TASK_RETRIES:
+                        record(stamped(jobs.empty_task_rows(t, f"the worker running this job was lost "
+                                                            f"{tries[t.seq]} times ({type(exc).__name__})",
+                                                            "worker_lost")))
                     else:
-                        pending[ex.submit(t, task_fn)] = t
+                        submit(t)
                 continue
             except Exception as exc:  # the task itself failed in the worker (not a codec: those are rows)
                 text = f"the task failed in its worker: {type(exc).__name__}: {exc}"[:500]

@@ -35,6 +35,10 @@ TABLES = {TABLE, "runs"}
 _V1_SCORING = '{{"a": 0.581, "b": 0.464, "spqi": {}}}'
 
 
+# rows whose job runs again on the next run (and is then overwritten): its worker was lost
+RETRIED = "('worker_lost')"
+
+
 class StoreError(HostdError):
     """The results file cannot be opened or written."""
 
@@ -189,9 +193,10 @@ class Store:
         return [{"run": r, "started_at": t, "hostd_version": v} for r, t, v in cur]
 
     def known(self, keys: Sequence[str], *, ok_only: bool = False) -> set[str]:
-        """Which of `keys` are stored (ok_only: only rows without an error)."""
+        """Which of `keys` are stored (ok_only: only rows without an error); a row of a job whose
+        worker was lost (RETRIED) is not: the job runs again on the next run."""
         out: set[str] = set()
-        extra = " AND error IS NULL" if ok_only else ""
+        extra = " AND error IS NULL" if ok_only else f" AND coalesce(error_reason, '') NOT IN {RETRIED}"
         for i in range(0, len(keys), 500):
             part = list(keys[i : i + 500])
             q = f"SELECT key FROM {TABLE} WHERE key IN ({','.join('?' * len(part))}){extra}"
@@ -200,10 +205,13 @@ class Store:
 
     def write(self, rows: Iterable[dict], *, replace: bool = False) -> int:
         """Insert rows in one transaction; a key already stored is kept (replace: overwritten).
-        Returns how many rows were new. Rows carry this store's run number (begin_run)."""
-        verb = "INSERT OR REPLACE" if replace else "INSERT OR IGNORE"
-        q = f"{verb} INTO {TABLE} ({', '.join(f'{chr(34)}{c}{chr(34)}' for c in COLUMNS)}) " \
-            f"VALUES ({', '.join('?' * len(COLUMNS))})"
+        Returns how many rows were new (or replaced a RETRIED row). Rows carry this store's run
+        number (begin_run)."""
+        names = ", ".join(f'"{c}"' for c in COLUMNS)
+        update = ", ".join(f'"{c}" = excluded."{c}"' for c in COLUMNS[1:])
+        when = "" if replace else f" WHERE {TABLE}.error_reason IN {RETRIED}"
+        q = f"INSERT INTO {TABLE} ({names}) VALUES ({', '.join('?' * len(COLUMNS))}) " \
+            f"ON CONFLICT(key) DO UPDATE SET {update}{when}"
         run = self.run_id
         try:
             with self.db:
