@@ -109,11 +109,12 @@ def test_the_api_works_in_a_plain_script(tmp_path):
     script = tmp_path / "plain.py"
     script.write_text(
         "from hostd import api\n"
-        f"df = api.run_corpus('synthetic:wood:1-2', {str(tmp_path / 'r.sqlite')!r}, codecs=['{FIX}:uniform'],\n"
+        f"df = api.run_corpus('synthetic:wood:1-2', {str(tmp_path / 'r.sqlite')!r},\n"
+        f"                    codecs=['{FIX}:uniform'],\n"
         "                    length_mm=2.0, spqi=False, workers=2, progress=False)\n"
         "print('summary', df.attrs['summary']['ok'], df.attrs['summary']['failed'])\n")
-    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=_env(), cwd=tmp_path,
-                       timeout=120)
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=_env(),
+                       cwd=tmp_path, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip().splitlines() == ["summary 10 0"], r.stdout
     assert "Traceback" not in r.stderr
