@@ -484,6 +484,9 @@ def test_dask_worker_sigkilled_mid_run_every_row_exactly_once(tmp_path, cluster)
     rows = _rows(tmp_path / "r.sqlite")
     assert summ.written == len(rows) == len({r["key"] for r in rows}) == 24
     assert all(r["error"] is None for r in rows)
+    # and the summary says what was lost and redone (retried_tasks stayed 0: Dask redid them)
+    assert summ.workers_lost == 1 and summ.redone_by_dask >= 1
+    assert any("1 Dask worker(s) died" in line for line in summ.lines())
 
 
 _BLOCK = """

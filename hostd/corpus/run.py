@@ -406,6 +406,21 @@ class _Dask:
         from distributed import as_completed
 
         self._ac = as_completed()
+        # what Dask lost and ran again on its own (a task whose worker died is rescheduled by the
+        # scheduler: the driver sees no error unless it dies on 3 workers): from its events
+        self._keys: set[str] = set()
+        self.workers_lost: list[str] = []
+        self.tasks_redone = 0
+        self.client.subscribe_topic("all", self._on_event)
+
+    def _on_event(self, event) -> None:
+        msg = event[1] if isinstance(event, tuple) and len(event) == 2 else None
+        if not isinstance(msg, dict) or msg.get("action") != "remove-worker" or msg.get("expected"):
+            return
+        ours = [k for k in msg.get("processing-tasks", ()) if str(k) in self._keys]
+        if ours:
+            self.workers_lost.append(str(msg.get("worker", "")))
+            self.tasks_redone += len(ours)
 
     def slots(self) -> int:
         """Worker threads of the cluster now (at least 1)."""
@@ -416,6 +431,7 @@ class _Dask:
 
     def submit(self, task: Task, fn=jobs.run_task):
         f = self.client.submit(fn, task, pure=False)
+        self._keys.add(str(f.key))
         self._ac.add(f)
         return f
 
@@ -459,6 +475,8 @@ class Summary:
     ok: int = 0
     failed: Counter = field(default_factory=Counter)
     retried_tasks: int = 0
+    workers_lost: int = 0  # Dask: workers that died running this run's tasks
+    redone_by_dask: int = 0  # Dask: tasks those workers were running, run again by the scheduler
     interrupted: bool = False
     seconds: float = 0.0
     executor: str = ""
@@ -467,7 +485,8 @@ class Summary:
         return {"store": self.store, "executor": self.executor, "total": self.total,
                 "skipped": self.skipped, "written": self.written, "ok": self.ok,
                 "failed": sum(self.failed.values()), "failed_by_reason": dict(self.failed),
-                "retried_tasks": self.retried_tasks, "interrupted": self.interrupted,
+                "retried_tasks": self.retried_tasks, "workers_lost": self.workers_lost,
+                "redone_by_dask": self.redone_by_dask, "interrupted": self.interrupted,
                 "seconds": round(self.seconds, 3)}
 
     def hard_failures(self) -> int:
@@ -482,6 +501,13 @@ class Summary:
         if self.failed:
             out.append("failed: " + ", ".join(f"{k} {v}" for k, v in self.failed.most_common())
                        + "  (the rows' `error` column says why; rerun with --retry-errors after a fix)")
+        if self.retried_tasks:
+            out.append(f"lost: {self.retried_tasks} tasks came back from a lost worker and ran again "
+                       "(their rows are written once)")
+        if self.workers_lost:
+            out.append(f"lost: {self.workers_lost} Dask worker(s) died running this run's tasks; the "
+                       f"scheduler ran their {self.redone_by_dask} task(s) again elsewhere (rows written "
+                       "once)")
         if self.interrupted:
             out.append("interrupted: the rows above are kept; run the same command again to go on")
         return out
@@ -637,6 +663,8 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             ex.close(cancel=True)
         ex = None
     finally:
+        if ex is not None and hasattr(ex, "workers_lost"):
+            summ.workers_lost, summ.redone_by_dask = len(ex.workers_lost), ex.tasks_redone
         if ex is not None and using is None:
             ex.close()
         if bar is not None:
