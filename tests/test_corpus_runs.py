@@ -52,7 +52,7 @@ def test_a_job_that_no_signal_reaches_ends_as_a_timeout_row_and_the_run_goes_on(
     run (in the same task, and in the task the other worker lost with the pool) gets its row."""
     db = tmp_path / "r.sqlite"
     sweep = tmp_path / "s.toml"
-    sweep.write_text('[codec."misbehaving"]\nsettings = [' + ", ".join(
+    sweep.write_text(f'[codec."{FIX}:Misbehaving"]\nsettings = [' + ", ".join(
         f'{{step_um = {s}, fault = "{f}"}}' for s, f in ((1.0, "none"), (0.5, "deaf"), (0.25, "none"),
                                                           (2.0, "none"))) + "]\n")
     t0 = time.monotonic()
@@ -131,7 +131,8 @@ def test_rows_of_lost_workers_run_again_on_the_next_run(tmp_path):
     sc = jobs.Scoring(spqi=False)
 
     def lose(task):
-        return jobs.empty_task_rows(task, "lost", "worker_lost")
+        return [{**jobs.empty_row(task.texture, j), "error": "lost", "error_reason": "worker_lost"}
+                for j in task.jobs]
 
     first = crun.run(tex, plan, db, workers=1, scoring=sc, task_fn=lose)
     assert first.failed == {"worker_lost": 5}
