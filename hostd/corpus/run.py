@@ -446,6 +446,10 @@ class _Dask:
 
     def close(self, cancel: bool = False) -> None:
         try:
+            try:  # (else the scheduler sends this client the event of its own leaving, to a closed comm)
+                self.client.unsubscribe_topic("all")
+            except Exception:  # the scheduler has gone: nothing to unsubscribe from
+                pass
             self.client.close()
         finally:
             if self.cluster is not None:
