@@ -90,7 +90,12 @@ def add_parser(sub, parents) -> None:
     rep.add_argument("--interpolation", choices=["pchip", "akima"], default="pchip",
                      help="BD-rate interpolation (default pchip, as the video standards' spreadsheets)")
     rep.add_argument("--no-plots", action="store_true", help="no PNGs")
-    rep.add_argument("--max-plots", type=int, default=20, metavar="N", help="at most N PNGs (default 20)")
+    rep.add_argument("--max-plots", type=int, default=20, metavar="N",
+                     help="at most N PNGs (default 20; 0 = one per texture and geometry); the summary says "
+                     "how many it left out")
+    rep.add_argument("--min-overlap", type=float, default=0.5, metavar="F",
+                     help="summaries leave out a BD-rate over less than F of the anchor's quality range "
+                     "(default 0.5; 0 keeps all), saying which")
     rep.add_argument("--latest", action="store_true",
                      help="when a curve has rows of several codec versions, loader options or scorings, "
                      "compare the latest run's (default: refuse, saying what differs)")
@@ -105,6 +110,7 @@ def add_parser(sub, parents) -> None:
                      help="output directory (default corpus-compare)")
     cmp.add_argument("--interpolation", choices=["pchip", "akima"], default="pchip")
     cmp.add_argument("--latest", action="store_true", help="as for report")
+    cmp.add_argument("--min-overlap", type=float, default=0.5, metavar="F", help="as for report")
     cmp.add_argument("--json", action="store_true", help="print the summary as JSON")
     cmp.set_defaults(func=cmd_compare)
 
@@ -197,25 +203,36 @@ def _print_report(res: dict, prog: str) -> None:
               f"why there is no value): the `note` column of {res['files'][0]}", file=sys.stderr)
     for line in res.get("left_out", ()):
         print(f"left out: {line}")
+    if res["summary"]:
+        print(f"summaries over textures whose BD-rate covers >= {100 * res['min_overlap']:.0f} % of the "
+              "anchor's quality range (--min-overlap); mean [95 % bootstrap interval over textures]")
     for s in res["summary"]:
-        print(f"{s['transform']:<32} {s['curve']:<24} vs {s['anchor']}: mean {s['mean_pct']:+.1f} %, "
+        ci = f" [{s['ci95_lo_pct']:+.1f}, {s['ci95_hi_pct']:+.1f}]" if s["textures"] >= 2 else ""
+        ratios = {k: s.get(f"{k}_time_ratio") for k in ("encode", "decode")}
+        times = "".join(f", {k} time x{v:.2g}" for k, v in ratios.items() if v is not None and v == v)
+        print(f"{s['transform']:<32} {s['curve']:<24} vs {s['anchor']}: mean {s['mean_pct']:+.1f} %{ci}, "
               f"median {s['median_pct']:+.1f} %, worst {s['worst_pct']:+.1f} %, "
               f"wins {s['wins']}/{s['textures']}"
-              + (f", no value {s['no_value']}" if s["no_value"] else ""))
+              + (f", excluded {s['excluded']} ({', '.join(s['excluded_textures'][:3])}"
+                 + (", ..." if len(s["excluded_textures"]) > 3 else "") + ")" if s["excluded"] else "")
+              + (f", no value {s['no_value']}" if s["no_value"] else "") + times)
     for name, text in res.get("about", {}).items():
         print(f"{name}: {text}")
     if res.get("failed_by_reason"):
         print("failed rows: " + ", ".join(f"{k} {v}" for k, v in res["failed_by_reason"].items()))
     pngs = len([f for f in res["files"] if f.endswith(".png")])
     tables = [f for f in res["files"] if not f.endswith(".png")]
-    print("wrote " + ", ".join(tables) + (f" and {pngs} PNGs" if pngs else ""))
+    of = res.get("plots", {}).get("of", 0)
+    more = f" (of {of} textures x geometries: --max-plots N, 0 = all)" if of > pngs else ""
+    print("wrote " + ", ".join(tables) + (f" and {pngs} PNGs{more}" if pngs else ""))
 
 
 def cmd_report(args: argparse.Namespace) -> int:
     from hostd.corpus import report
 
     res = report.report(args.store, args.out, anchor=args.anchor, method=args.interpolation,
-                        plots=not args.no_plots, max_plots=args.max_plots, latest=args.latest)
+                        plots=not args.no_plots, max_plots=args.max_plots, latest=args.latest,
+                        min_overlap=args.min_overlap)
     if args.json:
         for w in res["warnings"]:
             print(f"hostd corpus report: warning: {w}", file=sys.stderr)
@@ -258,7 +275,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_compare(args: argparse.Namespace) -> int:
     from hostd.corpus import report
 
-    res = report.compare(args.base, args.test, args.out, method=args.interpolation, latest=args.latest)
+    res = report.compare(args.base, args.test, args.out, method=args.interpolation, latest=args.latest,
+                         min_overlap=args.min_overlap)
     if args.json:
         print(json.dumps(res, indent=1, default=str))
         return 0
