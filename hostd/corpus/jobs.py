@@ -384,17 +384,82 @@ def _mark(task_seq: int, job: int, start: float) -> None:
         arr[base + 3] = start
 
 
+KILL_GRACE_S = 1.0  # a worker is killed this long (+ 10 %) after a job's limit; SIGALRM (or, on a
+#                     Dask thread, the asynchronous exception) comes first for a codec stuck in Python
+TIMEOUT_TOPIC = "hostd-corpus-timeout"  # Dask: the event a worker logs before it kills itself
+_watched: dict[int, tuple[int, int, float, float]] = {}  # thread -> (task seq, job, start, limit)
+_watch_lock = threading.Lock()
+_watchdog: list = []
+
+
+def kill_after_s(timeout_s: float) -> float:
+    return timeout_s * 1.1 + KILL_GRACE_S if math.isfinite(timeout_s) and timeout_s > 0 else math.inf
+
+
+def _dask_worker():
+    """The Dask worker running this thread's task, or None (a pool worker, the driver)."""
+    import sys
+
+    if _slot is not None or "distributed" not in sys.modules \
+            or threading.current_thread() is threading.main_thread():
+        return None
+    try:
+        from distributed import get_worker
+
+        return get_worker()
+    except Exception:  # not in a worker
+        return None
+
+
+def _watch_dask(worker) -> None:
+    """A Dask worker's watchdog thread: a job past its limit (a codec stuck where the asynchronous
+    exception cannot reach it: a C call, a sleep, a waited-for child) makes the worker log the
+    job (TIMEOUT_TOPIC: the driver writes its timeout row and cancels the task) and SIGKILL
+    itself; its nanny starts a new worker."""
+    import os
+
+    while True:
+        time.sleep(0.25)
+        now = time.monotonic()
+        with _watch_lock:
+            late = [(seq, job) for seq, job, start, limit in _watched.values() if now - start > limit]
+        if late:
+            for seq, job in late:
+                try:
+                    worker.log_event(TIMEOUT_TOPIC, {"seq": seq, "job": job})
+                except Exception:  # the scheduler is gone: the task is lost anyway
+                    pass
+            time.sleep(0.5)  # the event's batched send goes out
+            os.kill(os.getpid(), signal.SIGKILL)
+
+
 def run_task(task: Task) -> list[dict]:
     """Every job of a task, in order (what a worker process runs); the first row carries the
     task's wall time in "_task_s" (the driver sizes later tasks by it; the store ignores it)."""
     t0 = time.perf_counter()
     rows = []
+    worker = _dask_worker()
+    limit = kill_after_s(task.scoring.timeout_s)
+    me = threading.get_ident()
+    if worker is not None and math.isfinite(limit):
+        with _watch_lock:
+            if not _watchdog:
+                th = threading.Thread(target=_watch_dask, args=(worker,), name="hostd-watchdog", daemon=True)
+                th.start()
+                _watchdog.append(th)
     try:
         for i, j in enumerate(task.jobs):
-            _mark(task.seq, i, time.monotonic())
+            start = time.monotonic()
+            _mark(task.seq, i, start)
+            if worker is not None:
+                with _watch_lock:
+                    _watched[me] = (task.seq, i, start, limit)
             rows.append(run_job(task.texture, j, task.scoring))
     finally:
         _mark(task.seq, 0, 0.0)
+        if worker is not None:
+            with _watch_lock:
+                _watched.pop(me, None)
     if rows:
         rows[0]["_task_s"] = time.perf_counter() - t0
     return rows

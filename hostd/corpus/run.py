@@ -288,10 +288,6 @@ class _NoMainProcess(_ForkServerProcess):  # type: ignore[misc,valid-type]
                 main.__dict__.update(saved)
 
 
-KILL_GRACE_S = 1.0  # the driver kills a worker this long (+ 10 %) after a job's limit; the worker's
-#                     own SIGALRM comes first for a codec stuck in Python
-
-
 class _Local:
     """A process pool over `workers` processes (default: every core). Workers die with the
     driver (hostd.corpus.lifeline); a worker whose job runs past `job_limit_s` is killed (the
@@ -352,7 +348,7 @@ class _Local:
         """Kill every worker whose job has run past job_limit_s (+ grace)."""
         import signal
 
-        limit = self.job_limit_s * 1.1 + KILL_GRACE_S
+        limit = jobs.kill_after_s(self.job_limit_s)
         now = time.monotonic()
         a, f = self.marks, jobs.SLOT_FIELDS
         for i in range(self.workers):
@@ -412,6 +408,23 @@ class _Dask:
         self.workers_lost: list[str] = []
         self.tasks_redone = 0
         self.client.subscribe_topic("all", self._on_event)
+        # a job past its limit: its worker logs it and kills itself (hostd.corpus.jobs._watch_dask);
+        # the task is cancelled here and comes back as lost, with the job to write as `timeout`
+        self.killed: dict[int, int] = {}
+        self._by_seq: dict[int, Any] = {}
+        self.client.subscribe_topic(jobs.TIMEOUT_TOPIC, self._on_timeout)
+
+    async def _on_timeout(self, event) -> None:
+        msg = event[1] if isinstance(event, tuple) and len(event) == 2 else None
+        try:
+            seq, job = int(msg["seq"]), int(msg["job"])
+        except (TypeError, KeyError, ValueError):
+            return
+        fut = self._by_seq.get(seq)
+        if fut is None or seq in self.killed:
+            return
+        self.killed[seq] = job
+        await self.client.cancel([fut], asynchronous=True)
 
     def _on_event(self, event) -> None:
         msg = event[1] if isinstance(event, tuple) and len(event) == 2 else None
@@ -432,6 +445,7 @@ class _Dask:
     def submit(self, task: Task, fn=jobs.run_task):
         f = self.client.submit(fn, task, pure=False)
         self._keys.add(str(f.key))
+        self._by_seq[task.seq] = f
         self._ac.add(f)
         return f
 
@@ -439,6 +453,7 @@ class _Dask:
         while True:
             f = next(self._ac)
             if f in pending:
+                self._by_seq.pop(pending[f].seq, None)
                 return f
 
     def restart(self) -> None:
@@ -448,6 +463,7 @@ class _Dask:
         try:
             try:  # (else the scheduler sends this client the event of its own leaving, to a closed comm)
                 self.client.unsubscribe_topic("all")
+                self.client.unsubscribe_topic(jobs.TIMEOUT_TOPIC)
             except Exception:  # the scheduler has gone: nothing to unsubscribe from
                 pass
             self.client.close()
