@@ -147,31 +147,44 @@ class Store:
 
     def _migrate(self, version: int) -> None:
         """In one transaction: a new store's tables, or a version-1 store's two new columns, its
-        rows re-keyed with their texture's name (jobs.named_key), their scoring and run 0."""
-        with self.db:
-            if version == 0:
-                cols = ", ".join(f'"{c}" {_SQL_TYPE[t]}' + (" PRIMARY KEY" if c == "key" else "")
-                                 for c, t in SCHEMA)
-                self.db.execute(f"CREATE TABLE {TABLE} ({cols}) WITHOUT ROWID")
-            else:
-                for c, t in SCHEMA[len(COLUMNS_V1):]:
-                    self.db.execute(f'ALTER TABLE {TABLE} ADD COLUMN "{c}" {_SQL_TYPE[t]}')
-                q = f"SELECT COUNT(spqi) > 0 FROM {TABLE} WHERE error IS NULL"
-                spqi = self.db.execute(q).fetchone()[0]
-                self.db.create_function("hostd_named_key", 2, named_key, deterministic=True)
-                self.db.execute(
-                    f"UPDATE {TABLE} SET key = hostd_named_key(key, texture), run = 0, scoring = CASE "
-                    f"WHEN error IS NULL THEN (CASE WHEN spqi IS NULL THEN ? ELSE ? END) ELSE ? END",
-                    (_V1_SCORING.format("false"), _V1_SCORING.format("true"),
-                     _V1_SCORING.format("true" if spqi else "false")))
-            self.db.execute("CREATE INDEX IF NOT EXISTS results_run ON results(run)")
-            self.db.execute("CREATE TABLE IF NOT EXISTS runs (run INTEGER PRIMARY KEY, started_at REAL, "
-                            "hostd_version TEXT)")
-            if version == 1:
-                self.db.execute("INSERT OR IGNORE INTO runs VALUES (0, NULL, ?)",
-                                ("before the corpus store kept runs",))
-            self.db.execute(f"PRAGMA application_id={APPLICATION_ID}")
-            self.db.execute(f"PRAGMA user_version={VERSION}")
+        rows re-keyed with their texture's name (jobs.named_key), their scoring and run 0. (A
+        second process opening the same old store at once waits, then finds it migrated.)"""
+        self.db.execute("BEGIN IMMEDIATE")  # (sqlite3 would run the DDL outside a transaction)
+        try:
+            if int(self.db.execute("PRAGMA user_version").fetchone()[0]) >= VERSION \
+                    and int(self.db.execute("PRAGMA application_id").fetchone()[0]) == APPLICATION_ID:
+                self.db.rollback()
+                return
+            self._migrate_in(version)
+            self.db.commit()
+        except BaseException:
+            self.db.rollback()
+            raise
+
+    def _migrate_in(self, version: int) -> None:
+        if version == 0:
+            cols = ", ".join(f'"{c}" {_SQL_TYPE[t]}' + (" PRIMARY KEY" if c == "key" else "")
+                             for c, t in SCHEMA)
+            self.db.execute(f"CREATE TABLE {TABLE} ({cols}) WITHOUT ROWID")
+        else:
+            for c, t in SCHEMA[len(COLUMNS_V1):]:
+                self.db.execute(f'ALTER TABLE {TABLE} ADD COLUMN "{c}" {_SQL_TYPE[t]}')
+            q = f"SELECT COUNT(spqi) > 0 FROM {TABLE} WHERE error IS NULL"
+            spqi = self.db.execute(q).fetchone()[0]
+            self.db.create_function("hostd_named_key", 2, named_key, deterministic=True)
+            self.db.execute(
+                f"UPDATE {TABLE} SET key = hostd_named_key(key, texture), run = 0, scoring = CASE "
+                f"WHEN error IS NULL THEN (CASE WHEN spqi IS NULL THEN ? ELSE ? END) ELSE ? END",
+                (_V1_SCORING.format("false"), _V1_SCORING.format("true"),
+                 _V1_SCORING.format("true" if spqi else "false")))
+        self.db.execute("CREATE INDEX IF NOT EXISTS results_run ON results(run)")
+        self.db.execute("CREATE TABLE IF NOT EXISTS runs (run INTEGER PRIMARY KEY, started_at REAL, "
+                        "hostd_version TEXT)")
+        if version == 1:
+            self.db.execute("INSERT OR IGNORE INTO runs VALUES (0, NULL, ?)",
+                            ("before the corpus store kept runs",))
+        self.db.execute(f"PRAGMA application_id={APPLICATION_ID}")
+        self.db.execute(f"PRAGMA user_version={VERSION}")
 
     # ------------------------------------------------------------------------- use
 
