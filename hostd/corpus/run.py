@@ -397,7 +397,8 @@ class _Dask:
             except (OSError, ValueError, TypeError) as exc:
                 raise HostdError(f"cannot reach the Dask scheduler at {address}: {exc} (start it with "
                                  "`dask scheduler`, workers with `dask worker ADDRESS`; a tls:// cluster "
-                                 "needs its credentials in Dask's configuration: docs/corpus.md)") from None
+                                 "needs a client certificate in Dask's configuration, "
+                                 "distributed.comm.tls.client)") from None
         self.lost = (KilledWorker, FutureCancelledError)
         from distributed import as_completed
 
