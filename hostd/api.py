@@ -197,6 +197,7 @@ def encode(profile: Profile | np.ndarray, *, method: str | None = None, format: 
         ``waveform_verified`` (True: SPQI >= spqi_min measured on this stream; False: SPQI
         could not be computed, see notes), ``size_set_by`` ("Iobj" or "waveform": which
         criterion kept a smaller stream out; ``size_note`` says so when it was the waveform),
+        ``binding`` (that criterion in words: "SPQI >= 0.9" or "Iobj <= 0.05"),
         ``encodes`` and ``search_cpu_s``.
     """
     y, length = _heights(profile, length_mm)
@@ -256,6 +257,8 @@ def encode_heights(y_um: np.ndarray, length_mm: float, *, method: str | None, fm
         data = res.best.data
         out.update(target_iobj=target_iobj, spqi_min=res.spqi_min,
                    waveform_verified=res.waveform_verified, size_set_by=res.size_set_by,
+                   binding=(f"SPQI >= {res.spqi_min:g}" if res.size_set_by == "waveform"
+                            else f"Iobj <= {target_iobj:g}"),  # what set the size, as the CLI leads with it
                    chosen=res.best.describe(), encodes=res.encodes, search_cpu_s=res.seconds)
     elif method is None:
         raise CodecError("give --method shaped|quant|cut (or --target-iobj X)")

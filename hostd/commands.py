@@ -50,13 +50,20 @@ def cmd_encode(args: argparse.Namespace) -> int:
     _write_bytes_atomic(args.output, data)
     for note in res["notes"]:
         warn("encode", note)
-    if res.get("size_note"):
-        print(f"hostd encode: note: {res['size_note']}", file=sys.stderr)
+    if "binding" in res and not args.json:  # rate control: what set the size leads, then the slack
+        other = (f"Iobj {res['Iobj']:.4f}, under --target-iobj {res['target_iobj']:g}; a lower --spqi-min "
+                 "gives a smaller stream" if res["size_set_by"] == "waveform" else
+                 "no SPQI asked: --no-guard" if res["spqi_min"] is None else
+                 f"SPQI {res['spqi']:.3f} >= --spqi-min {res['spqi_min']:g}" if res["spqi"] is not None
+                 else f"SPQI >= --spqi-min {res['spqi_min']:g} by the proxy guard")
+        print(f"{args.output}: {res['bytes']} bytes, the smallest stream with {res['binding']}: the "
+              f"constraint that set its size ({other})", file=sys.stderr)
     if res["chosen"] is not None:
         print(f"chose {res['chosen']} after {res['encodes']} encodes in "
               f"{res['search_cpu_s'] * 1e3:.0f} ms CPU", file=sys.stderr)
-    if args.json:
-        _dump({"output": args.output, **res})
+    if args.json:  # rate control: the binding constraint first (binding, size_set_by)
+        lead = {"binding": res["binding"], "size_set_by": res["size_set_by"]} if "binding" in res else {}
+        _dump({**lead, "output": args.output, **res})
         return 0
     sp = "" if res["spqi"] is None else f", SPQI {res['spqi']:.3f}"
     print(

@@ -245,3 +245,32 @@ def read_stream(path: str | Path):
     except OSError as exc:
         raise StreamError(f"cannot read {path}: {exc.strerror or exc}") from None
     return decode(data)
+
+
+_KINDS = ((stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a directory"))
+
+
+def file_kind(mode: int) -> str:
+    """What a non-regular st_mode is, in words (for a message)."""
+    return next((word for test, word in _KINDS if test(mode)), "not a regular file")
+
+
+def open_regular(path: str | os.PathLike):
+    """A regular file opened for reading in binary (a buffered file object).
+
+    A FIFO, device, socket or directory is refused without waiting on it (the name is opened
+    with O_NONBLOCK and its type checked on the open descriptor, so a name swapped after a
+    check is caught too): NotRegular, one line. A missing file is FileNotFoundError, other
+    failures OSError, as open() would raise them."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC)
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise NotRegular(f"{path} is {file_kind(st.st_mode)}: only regular files are read "
+                             "(copy the data into a file first)")
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise

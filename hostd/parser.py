@@ -53,7 +53,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--target-iobj", type=_finite, default=None,
                    help="rate control: the smallest stream whose Iobj <= X and SPQI >= --spqi-min, "
                    "both measured on the stream returned (only --method's knob when given, else "
-                   "every method)")
+                   "every method); the output leads with the one that set the size, often SPQI "
+                   "(then Iobj is well under X; JSON: binding, size_set_by)")
     p.add_argument("--spqi-min", type=_finite, default=0.9,
                    help="rate control's waveform criterion: SPQI of the played signal >= this "
                    "(default 0.9; as hostd iobj REF STREAM reports it)")

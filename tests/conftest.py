@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PROFILES = ROOT.parent / "shared" / "data" / "profiles"
+PROFILES = ROOT / "config" / "profiles"  # the four real profiles ship in the repository (MIT)
 VECTORS = Path(__file__).resolve().parent / "vectors"
 
 # (file, loader options) for the four real instrument files; units per their README.
@@ -19,7 +19,7 @@ REAL = {
 def real_profile_path(name: str) -> Path:
     p = PROFILES / name
     if not p.exists():
-        pytest.skip(f"shared real profiles not present at {PROFILES}")
+        pytest.skip(f"real profile {name} not present in {PROFILES}")
     return p
 
 

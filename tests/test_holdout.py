@@ -116,8 +116,9 @@ def test_hostd_encode_json_reports_what_hostd_iobj_measures(tmp_path, capsys):
     cap = capsys.readouterr()
     enc = json.loads(cap.out)
     assert enc["waveform_verified"] is True and enc["size_set_by"] in ("Iobj", "waveform")
-    if enc["size_set_by"] == "waveform":
-        assert cap.err.count("not Iobj, set the size") == 1 and "the waveform criterion" in cap.err
+    assert list(enc)[:2] == ["binding", "size_set_by"]  # the binding constraint leads, no note
+    assert enc["binding"] == ("SPQI >= 0.9" if enc["size_set_by"] == "waveform" else "Iobj <= 0.05")
+    assert "set the size" not in cap.err
     ref = api.encode(y, length_mm=10.0, target_iobj=0.05)
     # (size_note: the same note, naming the CLI's options there and the API's arguments here)
     assert {k: v for k, v in enc.items() if k not in ("output", "search_cpu_s", "notes", "size_note")} == \

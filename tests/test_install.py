@@ -366,3 +366,92 @@ def test_man_page_and_completions_come_from_the_parser(tmp_path, capsys):
     assert {"usr/local/share/man/man8/hostd.8", "usr/local/share/bash-completion/completions/hostd",
             "usr/local/share/zsh/site-functions/_hostd",
             "usr/local/share/fish/vendor_completions.d/hostd.fish"} <= dests
+
+
+# ----------------------------------------------------------------- outside this repository
+
+MACHINE_PATHS = r"\.\./shared|/work/|/home/|/root/|/Users/|pip install 'hostd\["
+
+
+def _doc_files():
+    yield ROOT / "README.md"
+    yield from sorted((ROOT / "docs").rglob("*.md"))
+    yield from sorted(p for p in (ROOT / "docs" / "examples").rglob("*") if p.is_file())
+
+
+def test_docs_and_examples_need_nothing_outside_the_repository():
+    """No `../shared`, no absolute path of a development machine, no install from the index
+    (hostd is not there) in the README, docs/ and docs/examples; the example manifest's files
+    are in the repository."""
+    import re
+
+    found = []
+    for p in _doc_files():
+        text = p.read_text(encoding="utf-8", errors="replace")
+        for n, line in enumerate(text.splitlines(), 1):
+            if re.search(MACHINE_PATHS, line):
+                found.append(f"{p.relative_to(ROOT)}:{n}: {line.strip()[:120]}")
+    assert not found, "\n".join(found)
+    from hostd.texture import manifest
+
+    entries = manifest.read(ROOT / "docs" / "examples" / "corpus.csv")
+    files = [Path(e.source) for e in entries if not e.source.startswith("synthetic:")]
+    assert len(files) == 4 and all(f.is_file() and ROOT in f.resolve().parents for f in files), files
+    licence = ROOT / "config" / "profiles" / "LICENSE-SurfaceTopography.md"
+    assert {f.parent.resolve() for f in files} == {licence.parent.resolve()} and "MIT" in licence.read_text()
+
+
+def test_an_extra_installs_from_the_wheel_and_the_corpus_example_runs_outside_the_tree(venv, wheel, tmp_path):
+    """README's install: the wheel with an extra (resolved offline against the project's
+    environment, which the venv sees through a .pth line), then the corpus example's manifest,
+    run from a fresh directory outside the tree; its profiles ship in the repository."""
+    import json
+
+    r = subprocess.run([sys.executable, "-m", "pip", "--python", str(venv / "bin" / "python"), "install",
+                        "--no-index", f"{wheel}[corpus]"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    example = ROOT / "docs" / "examples" / "corpus.csv"
+    r = _run(venv, tmp_path, "corpus", "run", str(example), "-o", "c.sqlite",
+             "--methods", "quant", "--levels", "16", "--no-spqi", "--workers", "1", "--json")
+    assert r.stdout, r.stderr
+    out = json.loads(r.stdout)
+    assert out["written"] == 10 and "unreadable_profile" not in out.get("failed_by_reason", {}), out
+    assert out["ok"] >= 9, out
+
+
+def test_run_test_says_what_it_will_install_before_it_starts(tmp_path):
+    """`./run test` as root on a machine that lacks everything: before anything starts it lists the
+    Debian packages and the VM image it would install, and HOSTD_HIL=0 drops the VM rig's part
+    (its packages and its image); HOSTD_APT=0 installs nothing, so announces nothing."""
+    import re
+
+    run = (ROOT / "run").read_text()
+    test_case = run[run.index("\n  test)\n"):run.index("\n  wheel)\n")]
+    assert test_case.index("announce_test_plan") < test_case.index("ensure_venv")
+    assert '[ "${HOSTD_HIL:-}" = 0 ] || ensure_hil_tools' in test_case
+    functions = r"^(can_apt|have_arm_tools|announce_test_plan)\(\) .*?^}\n"
+    variables = r"^(ARM_PKGS|HIL_PKGS|BROWSER_PKGS|RM_SRC)=.*?\n"
+    parts = [m.group(0) for m in re.finditer(f"{functions}|{variables}", run, re.M | re.S)]
+    stubs = tmp_path / "bin"
+    stubs.mkdir()
+    for name, body in (("id", "echo 0"), ("uname", "echo x86_64"), ("apt-get", "exit 0")):
+        (stubs / name).write_text(f"#!/bin/sh\n{body}\n")
+        (stubs / name).chmod(0o755)
+    for tool in ("ls", "grep", "cat", "sleep"):
+        (stubs / tool).symlink_to(shutil.which(tool))
+    script = "set -euo pipefail\n" + "".join(parts) + "announce_test_plan\n"
+
+    def said(**env):
+        r = subprocess.run([shutil.which("bash"), "-c", script], cwd=tmp_path, capture_output=True, text=True,
+                           stdin=subprocess.DEVNULL, timeout=30,
+                           env={"PATH": str(stubs), "HOSTD_HIL_CACHE": str(tmp_path / "cache"),
+                                "HOSTD_MPEG_RM_SRC": str(tmp_path / "no-rm"), **env})
+        assert r.returncode == 0, r.stderr
+        return r.stderr
+
+    out = said()
+    assert "will install" in out and "clang" in out and "qemu-system-x86 mmdebstrap" in out, out
+    assert "chromium chromium-driver" in out and "~1.1 GB" in out and "HOSTD_HIL=0" in out, out
+    out = said(HOSTD_HIL="0")
+    assert "clang" in out and "qemu-system-x86" not in out and "GB" not in out, out
+    assert said(HOSTD_APT="0") == ""

@@ -137,12 +137,15 @@ def input_sha256(source: str) -> str:
 
         h.update(f"{source}|hostd {hostd.__version__}".encode())
         return h.hexdigest()
+    from hostd.fileio import NotRegular, open_regular
+
     try:
-        with open(source, "rb") as fh:
+        with open_regular(source) as fh:  # a FIFO or device is not waited on: its load fails
             for block in iter(lambda: fh.read(1 << 20), b""):
                 h.update(block)
-    except OSError as exc:
-        return "unreadable:" + hashlib.sha256(f"{source}|{exc.strerror}".encode()).hexdigest()
+    except (OSError, NotRegular) as exc:
+        why = getattr(exc, "strerror", None) or exc
+        return "unreadable:" + hashlib.sha256(f"{source}|{why}".encode()).hexdigest()
     return h.hexdigest()
 
 

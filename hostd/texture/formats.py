@@ -78,6 +78,8 @@ _BUILTIN: tuple[Format, ...] = (
            "ISO/IEC 23090-31 (.hmpg through the reference Decoder): one channel (--member P[/C])"),
     Format("matlab", (".mat",), "hostd.texture.matfile:read_mat",
            "MATLAB v4-v7 (v7.3 is HDF5: save with -v7); --var NAME picks an array, --var X,Y two vectors"),
+    Format("WAV", (".wav",), "hostd.texture.wav:read_wav",
+           "a recording: one channel's samples (--columns CHANNEL) as heights, --spacing between them"),
 )
 TEXT = _BUILTIN[1]  # any suffix not registered is read as text
 
@@ -120,10 +122,132 @@ def _resolve(fmt: Format) -> Callable[..., Columns]:
                            "reinstall hostd (or the extra this format needs)") from None
 
 
+# What a file's first bytes say it is (checked before any reader parses it): signature, the
+# kind it names (a registered format's name, or None: a kind hostd does not read), in words.
+MAGIC: tuple[tuple[bytes, str | None, str], ...] = (
+    (b"\x93NUMPY", "numpy", "a NumPy .npy array"),
+    (b"MATLAB 7.3 MAT-file", "matlab", "a MATLAB v7.3 (HDF5) file"),
+    (b"MATLAB ", "matlab", "a MATLAB .mat file"),
+    (b"\x89HDF\r\n\x1a\n", None, "an HDF5 file"),
+    (b"PK\x03\x04", None, "a ZIP archive (.npz, .xlsx, .docx, ...)"),
+    (b"\x1f\x8b", None, "gzip-compressed data (gunzip it first)"),
+    (b"BZh", None, "bzip2-compressed data (bunzip2 it first)"),
+    (b"\xfd7zXZ\x00", None, "xz-compressed data (unxz it first)"),
+    (b"(\xb5/\xfd", None, "zstd-compressed data (unzstd it first)"),
+    (b"\xd0\xcf\x11\xe0", None, "an OLE document (an old .xls/.doc: export it as CSV)"),
+    (b"%PDF", None, "a PDF document"),
+    (b"\x89PNG", None, "a PNG image"),
+    (b"\xff\xd8\xff", None, "a JPEG image"),
+    (b"II*\x00", None, "a TIFF image"),
+    (b"MM\x00*", None, "a TIFF image"),
+    (b"fLaC", None, "FLAC audio (convert it: ffmpeg -i IN -c:a pcm_f32le OUT.wav)"),
+    (b"OggS", None, "Ogg audio (convert it: ffmpeg -i IN -c:a pcm_f32le OUT.wav)"),
+    (b"ID3", None, "MP3 audio (convert it: ffmpeg -i IN -c:a pcm_f32le OUT.wav)"),
+    (b"\x7fELF", None, "a program (ELF)"),
+    (b"\xff\xfe", None, "UTF-16 text (save it as UTF-8: iconv -f UTF-16 -t UTF-8 IN > OUT)"),
+    (b"\xfe\xff", None, "UTF-16 text (save it as UTF-8: iconv -f UTF-16 -t UTF-8 IN > OUT)"),
+)
+SNIFF_BYTES = 1 << 12
+_WAV_RIFF = (b"RIFF", b"RIFX", b"RF64")
+
+
+def sniff(head: bytes) -> tuple[str | None, str]:
+    """(kind, in words) of a file from its first bytes: kind is a registered format's name, "text"
+    for bytes that can be text, or None for a kind hostd does not read ("binary data" when no
+    signature is known but the bytes hold NULs or other control characters)."""
+    if head[:4] in _WAV_RIFF and head[8:12] == b"WAVE":
+        return "WAV", "a WAV recording"
+    for sig, kind, words in MAGIC:
+        if head.startswith(sig):
+            return kind, words
+    ctrl = sum(head.count(bytes([c])) for c in range(32) if c not in (9, 10, 12, 13, 26))
+    if b"\x00" in head or ctrl > len(head) // 100:
+        return None, "binary data"
+    return "text", "text"
+
+
+# The kinds a format's reader accepts (formats not listed here check their own bytes). A
+# MATLAB v4 file has no signature: its reader checks its header.
+ACCEPTS: dict[str, tuple[str | None, ...]] = {
+    "numpy": ("numpy",), "text": ("text",), "WAV": ("WAV",), "matlab": ("matlab", None),
+}
+
+EXPECTED = {
+    "numpy": "a NumPy .npy file (numpy.save's format, which begins with \\x93NUMPY)",
+    "text": "text (one or two numeric columns)",
+    "WAV": "a WAV recording (RIFF/WAVE)",
+    "matlab": "a MATLAB .mat file",
+}
+FIX = {
+    "numpy": "save the array with numpy.save(path, a), or give it as CSV",
+    "WAV": "convert it: ffmpeg -i IN -c:a pcm_f32le OUT.wav",
+    "matlab": "save the array in MATLAB with save('profile.mat', 'NAME', '-v7'), or as CSV (writematrix)",
+}
+
+
+def _head(p: Path) -> bytes:
+    from hostd.errors import ProfileNotFound
+    from hostd.fileio import NotRegular, open_regular
+
+    try:
+        with open_regular(p) as fh:
+            return fh.read(SNIFF_BYTES)
+    except FileNotFoundError:
+        raise ProfileNotFound(f"no such profile file: {p}") from None
+    except NotRegular as exc:
+        raise ProfileError(str(exc)) from None
+    except IsADirectoryError:
+        raise ProfileError(f"{p} is a directory: give a profile file") from None
+    except OSError as exc:
+        raise ProfileError(f"cannot read {p}: {exc.strerror or exc}") from None
+
+
+def check_kind(p: Path, fmt: Format, head: bytes) -> None:
+    """Refuse a file whose bytes are not of the kind its name promises (one line saying what
+    it is and what to do)."""
+    accepts = ACCEPTS.get(fmt.name)
+    if accepts is None:
+        return
+    kind, words = sniff(head)
+    unsigned = kind is None and words == "binary data"  # a MATLAB v4 file has no signature
+    if (kind is not None and kind in accepts) or (unsigned and None in accepts):
+        return
+    if not head:
+        raise ProfileError(f"{p} is empty: give a profile file")
+    expected = EXPECTED.get(fmt.name) or f"a {fmt.name} file ({fmt.summary.split(':')[0]})"
+    other = next((f for f in formats() if f.name == kind), None)
+    if other is not None and other is not fmt:
+        raise ProfileError(f"{p} holds {words}, not {expected}: name it *{other.suffixes[0]} to read "
+                           f"it as {other.name}")
+    known = ", ".join(sorted({s for f in formats() for s in f.suffixes}))
+    raise ProfileError(f"{p} holds {words}, not {expected}: "
+                       f"{FIX.get(fmt.name) or f'give a profile file (hostd reads {known})'}")
+
+
 def read(path: str | Path, opts: LoadOptions) -> Columns:
-    """The file's numbers through its format's reader, checked for shape."""
-    fmt = format_for(path)
-    cols = _resolve(fmt)(Path(path), opts)
+    """The file's numbers through its format's reader, checked for shape.
+
+    The file must be a regular file (a FIFO or device is refused, never waited on) whose first
+    bytes agree with its suffix (`sniff`: a WAV named .csv, random bytes named .npy are refused
+    saying what they are). Any exception of a reader becomes a one-line ProfileError naming the
+    file."""
+    from hostd.errors import HostdError
+
+    p = Path(path)
+    fmt = format_for(p)
+    check_kind(p, fmt, _head(p))
+    reader = _resolve(fmt)
+    try:
+        cols = reader(p, opts)
+    except HostdError:
+        raise
+    except MemoryError:
+        raise ProfileError(f"{p}: too large to read into memory: take a smaller file or patch") from None
+    except RecursionError:
+        raise ProfileError(f"cannot read {p} as {fmt.name}: it nests too deeply") from None
+    except Exception as exc:  # a reader's own failure on bytes it did not expect: one line
+        raise ProfileError(f"cannot read {p} as {fmt.name}: {type(exc).__name__}: "
+                           f"{str(exc).splitlines()[0] if str(exc) else 'damaged file'}") from None
     if not isinstance(cols, Columns):
         cols = Columns(np.asarray(cols, dtype=np.float64))
     arr = cols.data

@@ -237,13 +237,17 @@ def _estimate_rows(sample: bytes, data_bytes: int) -> int:
 
 def _read_columns_slow(data: bytes, path: Path, columns: tuple[int, ...] | None,
                        decimal_comma: bool) -> np.ndarray:
-    """Line by line: non-numeric lines skipped, the most common row width kept."""
+    """Line by line: non-numeric lines skipped, the most common row width kept (the numbers
+    gathered in flat float64 buffers, 8 bytes each, not Python lists)."""
+    from array import array
+
     text = data.decode("utf-8", errors="replace")
+    del data
     if decimal_comma:
         text = text.replace(",", ".")
-    rows: list[list[float]] = []
-    widths: dict[int, int] = {}
-    for raw in text.splitlines():
+    found = {1: array("d"), 2: array("d")}
+    rows = 0
+    for raw in io.StringIO(text):
         line = raw.split("#", 1)[0].strip()
         if not line:
             continue
@@ -252,21 +256,21 @@ def _read_columns_slow(data: bytes, path: Path, columns: tuple[int, ...] | None,
             if len(toks) <= max(columns):
                 continue
             toks = [toks[c] for c in columns]
+        if len(toks) not in (1, 2):
+            continue
         try:
             vals = [float(t) for t in toks]
         except ValueError:
             continue  # header, metadata or comment line (e.g. a Dektak export's preamble)
-        if len(vals) in (1, 2):
-            rows.append(vals)
-            widths[len(vals)] = widths.get(len(vals), 0) + 1
-        if len(rows) > MAX_ROWS:
+        found[len(vals)].extend(vals)
+        rows += 1
+        if rows > MAX_ROWS:
             raise ProfileError(f"{path}: more than {MAX_ROWS:,} rows: take a patch with --length-mm")
     if not rows:
         raise ProfileError(f"{path}: no numeric rows of one or two columns found "
                            "(choose columns with --columns X,Y; decimal commas need --decimal-comma)")
-    width = max(widths, key=lambda w: widths[w])
-    arr = np.array([r for r in rows if len(r) == width], dtype=np.float64)
-    return arr.reshape(-1, width)
+    width = max((1, 2), key=lambda w: (len(found[w]) // w, -w))
+    return np.frombuffer(found[width], dtype=np.float64).reshape(-1, width).copy()
 
 
 def nonfinite_lines(path: Path, decimal_comma: bool = False, limit: int = 3) -> list[int]:
@@ -282,8 +286,54 @@ def nonfinite_lines(path: Path, decimal_comma: bool = False, limit: int = 3) -> 
     return out
 
 
+MAX_VALUES = 2 * MAX_ROWS  # numbers a binary profile file (.npy, .mat, .wav) may declare
+
+
+def _npy_header(p: Path):
+    """(shape, dtype, data offset) of a .npy file, checked against the file's size and MAX_VALUES
+    before anything is allocated; every failure a ProfileError naming what was expected."""
+    from numpy.lib import format as npyfmt
+
+    from hostd.fileio import NotRegular, open_regular
+
+    expect = "a .npy file written by numpy.save (a numeric array of heights)"
+    try:
+        fh = open_regular(p)
+    except FileNotFoundError:
+        raise ProfileNotFound(f"no such profile file: {p}") from None
+    except (NotRegular, OSError) as exc:
+        raise ProfileError(f"cannot read {p}: {getattr(exc, 'strerror', None) or exc}") from None
+    with fh:
+        size = fh.seek(0, 2)
+        fh.seek(0)
+        try:
+            version = npyfmt.read_magic(fh)
+            read_header = {(1, 0): npyfmt.read_array_header_1_0,
+                           (2, 0): npyfmt.read_array_header_2_0,  # 3.0: 2.0's layout, UTF-8
+                           (3, 0): npyfmt.read_array_header_2_0}.get(version)
+            if read_header is None:
+                raise ValueError(f"format version {version}")
+            shape, _fortran, dtype = read_header(fh, max_header_size=10_000)
+        except Exception as exc:  # ValueError, EOFError, SyntaxError of a damaged header
+            raise ProfileError(f"{p} is not {expect}: its header cannot be read ({exc}); save the "
+                               "array with numpy.save(path, a)") from None
+        offset = fh.tell()
+    if dtype.hasobject or dtype.kind not in "biufc" or dtype.fields is not None:
+        raise ProfileError(f"{p} holds an array of {dtype} (Python objects or records), which hostd "
+                           "never loads: save a numeric array (numpy.save(path, a.astype(float)))")
+    count = math.prod(shape)
+    if count > MAX_VALUES:
+        raise ProfileError(f"{p} declares {count:,} numbers, more than the {MAX_VALUES:,} a profile "
+                           "may have: save a shorter patch")
+    if count * dtype.itemsize > size - offset:
+        raise ProfileError(f"{p} declares shape {shape} of {dtype} ({count * dtype.itemsize:,} bytes) "
+                           f"but holds {size - offset:,} bytes of data: the file is truncated")
+    return shape, dtype, offset
+
+
 def read_npy(p: Path, opts: LoadOptions) -> np.ndarray:
     """The .npy reader of the format registry (hostd.texture.formats)."""
+    _npy_header(p)
     try:
         arr = np.load(p, allow_pickle=False, mmap_mode="r")
     except FileNotFoundError:
@@ -315,6 +365,12 @@ def read_text(p: Path, opts: LoadOptions) -> np.ndarray:
     """The text reader of the format registry: any suffix no other format claims."""
     if not p.exists():
         raise ProfileNotFound(f"no such profile file: {p}")
+    from hostd.texture import manifest
+
+    if manifest.looks_like_manifest(p):
+        fields = ", ".join(f for f in manifest.header_fields(p) if f)
+        raise ProfileError(f"{p} is a texture manifest (columns {fields}), not a profile: give it to "
+                           "`hostd corpus run`, or give the profile files it lists")
     stop_x = None
     if opts.length_mm is not None and math.isfinite(opts.length_mm):
         # a patch of a two-column file: read no further than it needs (plus a margin)
@@ -372,7 +428,7 @@ def load_profile(path: str | Path, opts: LoadOptions | None = None) -> Profile:
         x_um, y_um = _sorted_unique(x_um, y_um, str(path))
         dx_um = spacing * fx if spacing else (x_um[-1] - x_um[0]) / (x_um.size - 1)
         _check_spacing(dx_um)
-        y_um = _resample(x_um, y_um, dx_um)
+        y_um, opts = _resample(x_um, y_um, dx_um, opts, str(path))
     prof = cut_patch(y_um, dx_um, opts, str(path))
     return replace(prof, note=cols.note) if cols.note else prof
 
@@ -392,12 +448,29 @@ def _sorted_unique(x: np.ndarray, y: np.ndarray, name: str) -> tuple[np.ndarray,
     return x, y
 
 
-def _resample(x_um: np.ndarray, y_um: np.ndarray, dx_um: float) -> np.ndarray:
-    """Linear interpolation onto x0 + i dx; a no-op for data already uniform at dx."""
-    span = x_um[-1] - x_um[0]
-    count = math.floor(span / dx_um * (1 + 1e-9)) + 1
-    grid = x_um[0] + dx_um * np.arange(count)
-    return np.interp(grid, x_um, y_um)
+def _resample(x_um: np.ndarray, y_um: np.ndarray, dx_um: float, opts: LoadOptions,
+              name: str) -> tuple[np.ndarray, LoadOptions]:
+    """Linear interpolation onto x0 + i dx (a no-op for data already uniform at dx), of the patch's
+    samples only: an x range wide for its spacing never allocates a grid of its own size. Returns
+    the samples from the patch's start and the options that cut the patch from them."""
+    ratio = (x_um[-1] - x_um[0]) / dx_um
+    if not math.isfinite(ratio) or ratio > 1e15:
+        raise ProfileError(f"{name}: x spans {x_um[-1] - x_um[0]:.6g} µm at a spacing of {dx_um:.6g} µm: "
+                           "check --x-unit and --spacing")
+    count = math.floor(ratio * (1 + 1e-9)) + 1
+    start = round(opts.offset_mm * 1000.0 / dx_um)
+    if start < 0 or start >= count - 1:
+        raise ProfileError(f"{name}: offset {opts.offset_mm} mm is outside the profile")
+    n = count - start
+    if opts.length_mm is not None and math.isfinite(opts.length_mm) and opts.length_mm > 0:
+        n = min(n, round(opts.length_mm * 1000.0 / dx_um))
+    from hostd.codec.transform import MAX_SAMPLES
+
+    if n > MAX_SAMPLES:
+        raise ProfileError(f"{name}: the patch would hold {n:,} samples, more than {MAX_SAMPLES:,}: "
+                           "take a shorter patch with --length-mm, or resample with a coarser --spacing")
+    grid = x_um[0] + dx_um * np.arange(start, start + max(n, 2), dtype=np.float64)
+    return np.interp(grid, x_um, y_um), replace(opts, offset_mm=0.0)
 
 
 def cut_patch(y_um: np.ndarray, dx_um: float, opts: LoadOptions, name: str = "") -> Profile:

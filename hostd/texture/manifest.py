@@ -24,13 +24,17 @@ back to a default unit).
 from __future__ import annotations
 
 import csv
+import io
 import math
+import os
+import stat
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from hostd.errors import ProfileError
+from hostd.errors import HostdError, ProfileError
 from hostd.texture.load import UNITS_TO_UM, LoadOptions, parse_columns
 
+MAX_BYTES = 16 << 20  # a manifest is a list of files: 16 MiB is some 100,000 rows
 KEYS = ("file", "name", "units", "x_unit", "y_unit", "spacing", "columns", "offset_mm", "length_mm",
         "detrend", "decimal_comma", "member")
 
@@ -44,21 +48,58 @@ class Entry:
     options: LoadOptions
 
 
+def header_fields(path: str | Path) -> list[str]:
+    """The first non-comment line of a CSV split at commas, stripped and lower-cased ([] for a
+    file that cannot be read as text)."""
+    return [f.strip().lower() for f in _first_line(Path(path)).split(",")]
+
+
+def looks_like_manifest(path: str | Path) -> bool:
+    """A .toml file, or a CSV whose header row names manifest keys only (with or without the
+    `file` column: read() refuses one without it, saying so, rather than reading it as a profile)."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix == ".toml":
+        return True
+    if suffix != ".csv":
+        return False
+    fields = [f for f in header_fields(p) if f]
+    return bool(fields) and ("file" in fields or set(fields) <= set(KEYS))
+
+
 def is_manifest(path: str | Path) -> bool:
     p = Path(path)
     if not p.is_file():
         return False
-    suffix = p.suffix.lower()
-    return suffix == ".toml" or (suffix == ".csv" and _first_line(p).lower().startswith("file"))
+    return looks_like_manifest(p)
+
+
+def _text(p: Path) -> str:
+    """The manifest's text: a regular file (a FIFO is refused, not waited on) of at most MAX_BYTES."""
+    from hostd.fileio import NotRegular, open_regular
+
+    try:
+        with open_regular(p) as fh:
+            data = fh.read(MAX_BYTES + 1)
+    except NotRegular as exc:
+        raise ProfileError(str(exc)) from None
+    if len(data) > MAX_BYTES:
+        raise ProfileError(f"{p}: a manifest of more than {MAX_BYTES >> 20} MiB: split it")
+    return data.decode("utf-8")
 
 
 def _first_line(p: Path) -> str:
+    from hostd.fileio import open_regular
+
     try:
-        with open(p, encoding="utf-8", errors="replace") as fh:
-            for line in fh:
+        with open_regular(p) as fh:
+            for raw in fh:
+                line = raw.decode("utf-8", errors="replace")
                 if line.strip() and not line.lstrip().startswith("#"):
                     return line.strip()
-    except OSError:
+                if len(raw) > 1 << 16:
+                    break
+    except (OSError, HostdError):
         return ""
     return ""
 
@@ -70,7 +111,7 @@ def read(path: str | Path, defaults: LoadOptions | None = None) -> list[Entry]:
         if p.suffix.lower() == ".toml":
             import tomllib
 
-            doc = tomllib.loads(p.read_text(encoding="utf-8"))
+            doc = tomllib.loads(_text(p))
             base = dict(doc.get("defaults", {}))
             items = [({**base, **t}, f"[[texture]] #{i + 1}") for i, t in enumerate(doc.get("texture", []))]
             unknown = set(doc) - {"defaults", "texture"}
@@ -78,11 +119,20 @@ def read(path: str | Path, defaults: LoadOptions | None = None) -> list[Entry]:
                 raise ProfileError(f"{p}: unknown table(s) {', '.join(sorted(unknown))}: use "
                                    "[defaults] and [[texture]]")
         else:
-            with open(p, encoding="utf-8", newline="") as fh:
-                lines = [ln for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
+            lines = [ln for ln in io.StringIO(_text(p), newline="")
+                     if ln.strip() and not ln.lstrip().startswith("#")]
+            header = [f.strip().lower() for f in next(csv.reader(lines[:1]), [])]
+            if "file" not in header:
+                raise ProfileError(f"{p}: a manifest needs a `file` column naming each profile (its "
+                                   f"header is {', '.join(h for h in header if h) or 'empty'}; known "
+                                   f"columns: {', '.join(KEYS)})")
             rows = list(csv.DictReader(lines))
             items = [({k.strip(): (v or "").strip() for k, v in r.items()
                        if k is not None and (v or "").strip()}, f"row {i + 2}") for i, r in enumerate(rows)]
+    except HostdError:
+        raise
+    except FileNotFoundError:
+        raise ProfileError(f"no such manifest: {p}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ProfileError(f"cannot read the manifest {p}: {exc}") from None
     except Exception as exc:  # tomllib.TOMLDecodeError, csv.Error
@@ -108,6 +158,15 @@ def _entry(item: dict, where: str, manifest: Path, base: LoadOptions) -> Entry:
     if not src.startswith("synthetic:"):
         fp = Path(src)
         src = str(fp if fp.is_absolute() else (manifest.parent / fp).resolve())
+        try:
+            mode = os.stat(src).st_mode
+        except OSError:
+            mode = None  # a missing file is the loader's to report, with the texture's row
+        if mode is not None and not stat.S_ISREG(mode):
+            from hostd.fileio import file_kind
+
+            raise ProfileError(f"{manifest} {where}: {item['file']} is {file_kind(mode)}: only regular "
+                               "files are read")
     opts = base
     try:
         if "units" in item:

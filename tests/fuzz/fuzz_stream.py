@@ -1,7 +1,6 @@
 """Coverage-guided fuzzing of the .vtx decoders (v1 and v2) with atheris.
 
-    pip install atheris
-    python tests/fuzz/fuzz_stream.py -atheris_runs=0 -max_total_time=60 tests/fuzz/corpus
+    tests/fuzz/run_atheris.sh fuzz_stream 60     # makes FUZZ_OUT, seeds it with tests/vectors/*.vtx
 
 Every input must either decode to a valid stream or raise StreamError; anything else (another
 exception, a hang, unbounded memory) is a finding. The seed corpus is the golden vectors, and

@@ -7,6 +7,7 @@ here=$(cd "$(dirname "$0")" && pwd)
 secs=${1:-20}
 runs=${2:--1}
 out=${FUZZ_OUT:-$(mktemp -d)}
+mkdir -p "$out"  # a FUZZ_OUT that does not exist yet is made
 py=${PYTHON:-python3}
 inc=$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
 libdir=$("$py" -c 'import sysconfig; print(sysconfig.get_config_var("LIBDIR"))')

@@ -9,6 +9,7 @@
 set -eu
 here=$(cd "$(dirname "$0")" && pwd)
 out=${FUZZ_OUT:-$(mktemp -d)}
+mkdir -p "$out"  # a FUZZ_OUT that does not exist yet is made
 py=${PYTHON:-python3}
 inc=$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
 so="$out/_fastlink$("$py" -c 'import sysconfig; print(sysconfig.get_config_var("EXT_SUFFIX"))')"
