@@ -405,14 +405,14 @@ class _Dask:
         self._ac = as_completed()
         # what Dask lost and ran again on its own (a task whose worker died is rescheduled by the
         # scheduler: the driver sees no error unless it dies on 3 workers): from its events
-        self._keys: set[str] = set()
+        self._keys: dict[str, int] = {}  # task key -> seq
         self.workers_lost: list[str] = []
         self.tasks_redone = 0
-        self.client.subscribe_topic("all", self._on_event)
         # a job past its limit: its worker logs it and kills itself (hostd.corpus.jobs._watch_dask);
         # the task is cancelled here and comes back as lost, with the job to write as `timeout`
         self.killed: dict[int, int] = {}
         self._by_seq: dict[int, Any] = {}
+        self.client.subscribe_topic("all", self._on_event)
         self.client.subscribe_topic(jobs.TIMEOUT_TOPIC, self._on_timeout)
 
     async def _on_timeout(self, event) -> None:
@@ -431,7 +431,9 @@ class _Dask:
         msg = event[1] if isinstance(event, tuple) and len(event) == 2 else None
         if not isinstance(msg, dict) or msg.get("action") != "remove-worker" or msg.get("expected"):
             return
-        ours = [k for k in msg.get("processing-tasks", ()) if str(k) in self._keys]
+        # (a worker that killed itself for a job past its limit logged that first: not "lost")
+        ours = [k for k in msg.get("processing-tasks", ())
+                if str(k) in self._keys and self._keys[str(k)] not in self.killed]
         if ours:
             self.workers_lost.append(str(msg.get("worker", "")))
             self.tasks_redone += len(ours)
@@ -445,7 +447,7 @@ class _Dask:
 
     def submit(self, task: Task, fn=jobs.run_task):
         f = self.client.submit(fn, task, pure=False)
-        self._keys.add(str(f.key))
+        self._keys[str(f.key)] = task.seq
         self._by_seq[task.seq] = f
         self._ac.add(f)
         return f
