@@ -110,3 +110,37 @@ def test_log_axis_labels_do_not_overprint_when_bytes_span_less_than_a_decade(spa
     plt.close(fig)
     assert len(boxes) >= 2, [t.get_text() for t in labels]
     assert all(a.x1 <= b.x0 for a, b in itertools.pairwise(boxes)), [t.get_text() for t in labels]
+
+
+def test_a_manifests_group_column_gives_per_group_summaries(tmp_path, capsys):
+    from hostd.cli import main as cli
+
+    man = tmp_path / "m.csv"
+    man.write_text("file,name,group,length_mm\n"
+                   "synthetic:wood:1,w1,wood,2\nsynthetic:wood:2,w2,wood,2\n"
+                   "synthetic:sandpaper:1,s1,sandpaper,2\nsynthetic:sandpaper:2,s2,,2\n")
+    db = tmp_path / "r.sqlite"
+    assert cli(["corpus", "run", str(man), "--codec", "hostd-v2", "--methods", "shaped,quant",
+                "--g=-12,-6,0,6,12", "--levels", "8,16,32,64", "--no-spqi", "--workers", "1", "--no-progress",
+                "-o", str(db)]) == 0
+    import sqlite3
+
+    c = sqlite3.connect(db)
+    assert dict(c.execute("SELECT texture, texture_group FROM results GROUP BY texture")) == {
+        "w1": "wood", "w2": "wood", "s1": "sandpaper", "s2": None}
+    c.close()
+    capsys.readouterr()
+    assert cli(["corpus", "report", str(db), "-o", str(tmp_path / "rep"), "--no-plots", "--json",
+                "--min-overlap", "0"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    g = {(x["group"], x["metric"], x["curve"]): x for x in res["groups"]}
+    assert g[("wood", "iobj_db", "hostd-v2/quant")]["textures"] == 2
+    assert g[("sandpaper", "iobj_db", "hostd-v2/quant")]["textures"] == 1  # s2 has no group
+    st = Store(db, create=False)
+    table = report.bd_table(st.rows(), A, "iobj_db")
+    st.close()
+    rows = {r.texture: r for r in table if r.curve == "hostd-v2/quant"}
+    assert g[("wood", "iobj_db", "hostd-v2/quant")]["mean_pct"] == pytest.approx(
+        (rows["w1"].bd_rate_pct + rows["w2"].bd_rate_pct) / 2)
+    assert (tmp_path / "rep" / "bdrate_groups.csv").exists()
+    assert "## Per group" in (tmp_path / "rep" / "report.md").read_text()

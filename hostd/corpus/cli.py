@@ -216,6 +216,10 @@ def _print_report(res: dict, prog: str) -> None:
               + (f", excluded {s['excluded']} ({', '.join(s['excluded_textures'][:3])}"
                  + (", ..." if len(s["excluded_textures"]) > 3 else "") + ")" if s["excluded"] else "")
               + (f", no value {s['no_value']}" if s["no_value"] else "") + times)
+    for s in res.get("groups", ()):
+        print(f"  group {s['group']:<20} {s['metric']:<8} {s['curve']:<24} mean {s['mean_pct']:+.1f} %, "
+              f"median {s['median_pct']:+.1f} %, wins {s['wins']}/{s['textures']}"
+              + (f", excluded {s['excluded']}" if s["excluded"] else ""))
     for name, text in res.get("about", {}).items():
         print(f"{name}: {text}")
     if res.get("failed_by_reason"):

@@ -33,10 +33,11 @@ SCHEMA: tuple[tuple[str, str], ...] = (
     ("length_mm", "float"), ("n_keep", "int"), ("bytes", "int"), ("bits_per_mm", "float"),
     ("bits_per_s", "float"), ("Ip", "float"), ("Ia", "float"), ("Iobj", "float"), ("iobj_db", "float"),
     ("spqi", "float"), ("encode_cpu_s", "float"), ("decode_cpu_s", "float"), ("error", "str"),
-    ("error_reason", "str"), ("scoring", "str"), ("run", "int"),
+    ("error_reason", "str"), ("scoring", "str"), ("run", "int"), ("texture_group", "str"),
 )
-# the columns of stores written before `scoring` and `run` (hostd.corpus.store migrates them)
-COLUMNS_V1 = tuple(c for c, _ in SCHEMA[:-2])
+# the columns of stores written before `scoring`, `run` and `texture_group` (hostd.corpus.store
+# migrates them)
+COLUMNS_V1 = tuple(c for c, _ in SCHEMA[:-3])
 COLUMNS = tuple(c for c, _ in SCHEMA)
 TIMING_COLUMNS = ("encode_cpu_s", "decode_cpu_s")
 
@@ -57,6 +58,7 @@ class TextureSpec:
     source: str
     loader: str  # canonical JSON of the LoadOptions
     input_sha256: str
+    group: str = ""  # the manifest's label for summaries (not part of the key)
 
 
 @dataclass(frozen=True)
@@ -304,7 +306,7 @@ def empty_row(tex: TextureSpec, job: JobSpec) -> dict:
     row = dict.fromkeys(COLUMNS)
     row.update(key=job.key, texture=tex.name, source=tex.source, input_sha256=tex.input_sha256,
                loader=tex.loader, codec=job.codec, setting=job.setting,
-               speed_mm_s=float(job.speed_mm_s), fmax_hz=float(job.fmax_hz))
+               speed_mm_s=float(job.speed_mm_s), fmax_hz=float(job.fmax_hz), texture_group=tex.group or None)
     return row
 
 

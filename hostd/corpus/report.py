@@ -186,6 +186,32 @@ def summarise(table: Sequence[BDRow], min_overlap: float = MIN_OVERLAP) -> list[
     return out
 
 
+def group_summaries(rows: Sequence[dict], table: Sequence[BDRow],
+                    min_overlap: float = MIN_OVERLAP) -> list[dict]:
+    """summarise() within each group of textures (the manifests' `group` column, the rows'
+    `texture_group`), each entry with its "group"; [] when no texture has a group."""
+    group = {r["texture"]: r["texture_group"] for r in rows if r.get("texture_group")}
+    out = []
+    for g in sorted(set(group.values())):
+        for x in summarise([b for b in table if group.get(b.texture) == g], min_overlap):
+            out.append({"group": g, **x})
+    return out
+
+
+def group_markdown(by_group: Sequence[dict]) -> str:
+    if not by_group:
+        return ""
+    lines = ["", "## Per group (the manifests' `group` column)", "",
+             "| group | quality axis | curve | textures | mean [95 % CI] | median | worst | wins "
+             "| excluded |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+    for s in by_group:
+        lines.append(f"| {s['group']} | {s['transform']} | `{s['curve']}` | {s['textures']} | "
+                     f"{_fmt(s['mean_pct'])} {_ci(s)} | {_fmt(s['median_pct'])} | {_fmt(s['worst_pct'])} | "
+                     f"{s['wins']} | {s['excluded']} |")
+    return "\n".join(lines) + "\n"
+
+
 def time_ratios(rows: Sequence[dict], anchor: str) -> dict[str, dict[str, float]]:
     """Per curve: the median over textures and geometries of (the curve's median encode CPU time
     per job / the anchor's there), and the same for decoding (NaN when not measured)."""
@@ -537,12 +563,15 @@ def report(store_path: str | Path, out_dir: str | Path, *, anchor: str | None = 
     times = time_ratios(rows, anchor)
     for x in summ:
         x.update(times.get(x["curve"], {"encode_time_ratio": math.nan, "decode_time_ratio": math.nan}))
+    by_group = group_summaries(rows, table, min_overlap)
     fails = failures(rows)
     _write_csv(out / "bdrate.csv", [{**r.__dict__, "transform": METRICS[r.metric], "interpolation": method}
                                     for r in table])
     _write_csv(out / "bdrate_summary.csv", [{**s, "interpolation": method} for s in summ])
+    if by_group:
+        _write_csv(out / "bdrate_groups.csv", [{**s, "interpolation": method} for s in by_group])
     notes = about(r["curve"] for r in rows if r.get("curve"))
-    md = markdown(summ, table, method, fails, len(rows), notes, left_out)
+    md = markdown(summ, table, method, fails, len(rows), notes, left_out) + group_markdown(by_group)
     tmp = out / "report.md.part"
     tmp.write_text(md, encoding="utf-8")
     tmp.replace(out / "report.md")
@@ -554,11 +583,12 @@ def report(store_path: str | Path, out_dir: str | Path, *, anchor: str | None = 
     tmp.write_text(page, encoding="utf-8")
     tmp.replace(out / "report.html")
     return {"anchor": anchor, "interpolation": method, "rows": len(rows), "failed_by_reason": fails,
-            "summary": summ, "about": notes, "left_out": left_out, "min_overlap": min_overlap,
+            "summary": summ, "groups": by_group, "about": notes, "left_out": left_out,
+            "min_overlap": min_overlap,
             "plots": {"written": len(pngs), "of": n_plots if plots else 0},
             "warnings": [f"{r.texture} {r.curve} ({r.metric}): {r.note}" for r in table if r.note],
             "files": [str(out / n) for n in ("bdrate.csv", "bdrate_summary.csv", "report.md", "report.html")]
-            + [str(p) for p in pngs]}
+            + ([str(out / "bdrate_groups.csv")] if by_group else []) + [str(p) for p in pngs]}
 
 
 def compare(base: str | Path, test: str | Path, out_dir: str | Path, *, method: str = "pchip",

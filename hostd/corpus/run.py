@@ -41,6 +41,7 @@ def textures_from(inputs: Sequence[str], opts) -> list[TextureSpec]:
     from hostd.texture import formats, manifest, synth
 
     entries: list[tuple[str, str, Any]] = []
+    groups: dict[str, str] = {}
     for raw in inputs:
         s = str(raw)
         if synth.is_spec(s):
@@ -70,6 +71,7 @@ def textures_from(inputs: Sequence[str], opts) -> list[TextureSpec]:
         elif manifest.is_manifest(p):
             for e in manifest.read(p, opts):
                 entries.append((e.name, e.source, e.options))
+                groups[e.name] = e.group
         elif p.exists():
             entries.append((p.stem, str(p.resolve()), opts))
         else:
@@ -79,11 +81,11 @@ def textures_from(inputs: Sequence[str], opts) -> list[TextureSpec]:
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise HostdError(f"texture name(s) given twice: {', '.join(dup[:5])}; use a manifest with `name`")
-    return [TextureSpec(n, src, jobs.loader_json(o), "") for n, src, o in entries]
+    return [TextureSpec(n, src, jobs.loader_json(o), "", groups.get(n, "")) for n, src, o in entries]
 
 
 def hashed(tex: TextureSpec) -> TextureSpec:
-    return TextureSpec(tex.name, tex.source, tex.loader, jobs.input_sha256(tex.source))
+    return TextureSpec(tex.name, tex.source, tex.loader, jobs.input_sha256(tex.source), tex.group)
 
 
 # ----------------------------------------------------------------------------- the sweep

@@ -29,7 +29,8 @@ from hostd.service.qualitylog import JOURNAL_LIMIT_BYTES, WAL_AUTOCHECKPOINT_PAG
 _SQL_TYPE = {"str": "TEXT", "float": "REAL", "int": "INTEGER"}
 TABLE = "results"
 APPLICATION_ID = 0x48434F52  # "HCOR": this file is a hostd corpus store
-VERSION = 2  # 1: results only (content keys); 2: + scoring, run, the runs table, named keys
+VERSION = 3  # 1: results only (content keys); 2: + scoring, run, the runs table, named keys;
+#             3: + texture_group
 TABLES = {TABLE, "runs"}
 # what a row scored before stores recorded it was scored with: the defaults of that time
 _V1_SCORING = '{{"a": 0.581, "b": 0.464, "spqi": {}}}'
@@ -146,8 +147,8 @@ class Store:
         return [r[1] for r in self.db.execute(f"PRAGMA table_info({TABLE})")]
 
     def _migrate(self, version: int) -> None:
-        """In one transaction: a new store's tables, or a version-1 store's two new columns, its
-        rows re-keyed with their texture's name (jobs.named_key), their scoring and run 0. (A
+        """In one transaction: a new store's tables, or an older store's new columns (a version-1
+        store's rows re-keyed with their texture's name (jobs.named_key), their scoring and run 0). (A
         second process opening the same old store at once waits, then finds it migrated.)"""
         self.db.execute("BEGIN IMMEDIATE")  # (sqlite3 would run the DDL outside a transaction)
         try:
@@ -167,8 +168,11 @@ class Store:
                              for c, t in SCHEMA)
             self.db.execute(f"CREATE TABLE {TABLE} ({cols}) WITHOUT ROWID")
         else:
-            for c, t in SCHEMA[len(COLUMNS_V1):]:
-                self.db.execute(f'ALTER TABLE {TABLE} ADD COLUMN "{c}" {_SQL_TYPE[t]}')
+            have = set(self._columns())
+            for c, t in SCHEMA:
+                if c not in have:  # (new columns are appended: the table's order is SCHEMA's)
+                    self.db.execute(f'ALTER TABLE {TABLE} ADD COLUMN "{c}" {_SQL_TYPE[t]}')
+        if version == 1:
             q = f"SELECT COUNT(spqi) > 0 FROM {TABLE} WHERE error IS NULL"
             spqi = self.db.execute(q).fetchone()[0]
             self.db.create_function("hostd_named_key", 2, named_key, deterministic=True)
@@ -226,10 +230,17 @@ class Store:
         q = f"INSERT INTO {TABLE} ({names}) VALUES ({', '.join('?' * len(COLUMNS))}) " \
             f"ON CONFLICT(key) DO UPDATE SET {update}{when}"
         run = self.run_id
+        at = COLUMNS.index("run")
+
+        def values(r: dict) -> list:
+            v = list(map(r.get, COLUMNS))
+            v[at] = run
+            return v
+
         try:
             with self.db:
                 before = self.db.total_changes
-                self.db.executemany(q, [(*map(r.get, COLUMNS[:-1]), run) for r in rows])
+                self.db.executemany(q, [values(r) for r in rows])
                 return self.db.total_changes - before
         except sqlite3.Error as exc:
             raise StoreError(f"cannot write to {self.path}: {exc}") from None
