@@ -531,7 +531,8 @@ def run_corpus(inputs: str | Path | Iterable[str | Path], store: str | Path, *,
                spacing: float | None = None, length_mm: float | None = 10.0, offset_mm: float = 0.0,
                detrend: str = "none", workers: int | None = None, dask: str | None = None,
                batch: int | None = None, timeout_s: float = 60.0, spqi: bool = True,
-               retry_errors: bool = False, progress: bool | None = None, as_pandas: bool | None = None):
+               retry_errors: bool = False, progress: bool | None = None, as_pandas: bool | None = None,
+               calibration: str | Path | None = None):
     """Evaluate codecs over a corpus: the same run as ``hostd corpus run`` (docs/corpus.md).
 
     Every (texture, codec, setting, speed, fmax) is one row of `store` (SQLite), keyed by a
@@ -558,6 +559,9 @@ def run_corpus(inputs: str | Path | Iterable[str | Path], store: str | Path, *,
         Loader options for profiles that a manifest does not describe.
     as_pandas : bool, optional
         Return a pandas DataFrame (default: when pandas is installed); else a pyarrow Table.
+    calibration : path, optional
+        A display's calibration file (`hostd experiment calibration`): rows scored with its
+        (a, b) and threshold curve (part of each row's key and its ``scoring`` column).
 
     Returns
     -------
@@ -585,7 +589,13 @@ def run_corpus(inputs: str | Path | Iterable[str | Path], store: str | Path, *,
                           b0_db=None if b0_db is None else list(b0_db), target_iobj=list(target_iobj),
                           settings={k: list(v) for k, v in (settings or {}).items()})
     cstore._pyarrow()  # before the run: the result is a pyarrow table
-    summ = crun.run(textures, plan, store, scoring=Scoring(spqi=spqi, timeout_s=timeout_s), dask=dask,
+    if calibration is not None:
+        from hostd.perception.calibration import load as load_calibration
+
+        scoring = Scoring.calibrated(load_calibration(calibration), spqi=spqi, timeout_s=timeout_s)
+    else:
+        scoring = Scoring(spqi=spqi, timeout_s=timeout_s)
+    summ = crun.run(textures, plan, store, scoring=scoring, dask=dask,
                     workers=workers, batch=batch, progress=progress, retry_errors=retry_errors)
     table = cstore.to_arrow(store)
     table = table.replace_schema_metadata({b"summary": json.dumps(summ.as_dict()).encode()})

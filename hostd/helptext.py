@@ -38,6 +38,8 @@ hostd corpus run DIR|MANIFEST... --codec hostd-v2 --codec my.py:Codec -o R.sqlit
 hostd corpus report R.sqlite -o DIR                             # BD-rate tables, rate-quality PNGs
 hostd corpus run synthetic:wood:1-5 --codec v2 --codec mpeg-rm --report DIR  # BD-rate vs the standard
 hostd corpus export R.sqlite -o R.parquet                       # the store as Parquet (or .csv)
+hostd corpus compare R.sqlite@1 R.sqlite@2 -o DIR               # BD-rate of run 2's curves against run 1's
+hostd corpus runs R.sqlite                                      # a store's runs: number, start, hostd, rows
 hostd bench corpus [--json]                                     # the corpus runner: efficiency, overhead
 hostd bench soak --render device --runs 3 --seconds 40 --check  # device mode's footprint: PSS, threads, CPU
 hostd bench cli | scoring | cycle --compiled-only [--check [ci]]  # guarded figures: exit 1 past a bound

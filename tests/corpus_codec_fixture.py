@@ -20,10 +20,12 @@ class UniformZlib:
     name = "uniform-zlib"
     version = "1"
     settings = tuple({"step_um": s} for s in (2.0, 1.0, 0.5, 0.25, 0.125))
+    pad = 0.0  # a test's "new version" that wastes this fraction of the bytes (zero bytes appended)
 
     def encode(self, heights_um, spacing_um, *, step_um, **_):
         q = np.rint(np.asarray(heights_um) / step_um).astype("<i4")
-        return struct.pack("<d", step_um) + zlib.compress(q.tobytes(), 9)
+        data = struct.pack("<d", step_um) + zlib.compress(q.tobytes(), 9)
+        return data + bytes(round(self.pad * len(data)))
 
     def decode(self, data, n, spacing_um, **_):
         (step,) = struct.unpack_from("<d", data)
@@ -34,7 +36,8 @@ uniform = UniformZlib  # "tests.corpus_codec_fixture:uniform": a class, called w
 
 
 class Misbehaving(UniformZlib):
-    """setting fault = none | raise | hang | short | nan | str."""
+    """setting fault = none | raise | hang | short | nan | str | deaf (hangs where no time limit
+    inside the process reaches it: SIGALRM blocked, waiting in C)."""
 
     name = "misbehaving"
     settings = tuple({"step_um": 1.0, "fault": f} for f in ("none", "raise", "hang", "short", "nan", "str"))
@@ -45,6 +48,11 @@ class Misbehaving(UniformZlib):
         if fault == "hang":
             while True:
                 time.sleep(0.01)
+        if fault == "deaf":
+            import signal
+
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGALRM})
+            time.sleep(3600)
         if fault == "str":
             return "not bytes"
         return super().encode(heights_um, spacing_um, **kw)

@@ -458,6 +458,24 @@ def test_dask_worker_processes_give_the_local_pools_rows(tmp_path, cluster):
     assert reasons == ["nonfinite"] * 2 + ["timeout"] * 2
 
 
+def test_dask_a_job_no_exception_reaches_ends_as_a_timeout_row(tmp_path, cluster):
+    """A codec that blocks SIGALRM and waits in C (the asynchronous exception never lands, as
+    with a ctypes spin, time.sleep or a waited-for child): its worker logs the job and kills
+    itself, the driver writes the `timeout` row and runs the task's other jobs again."""
+    tex = crun.textures_from(["synthetic:wood:1"], SHORT)
+    bad = f"{FIX}:Misbehaving"
+    plan = crun.make_plan([bad], settings={bad: [{"step_um": s, "fault": f} for s, f in
+                                                ((1.0, "none"), (0.5, "deaf"), (0.25, "none"))]})
+    t0 = time.monotonic()
+    summ = crun.run(tex, plan, tmp_path / "r.sqlite", dask=cluster.scheduler_address, workers=2,
+                    scoring=jobs.Scoring(spqi=False, timeout_s=1.0), batch=3)
+    assert time.monotonic() - t0 < 60
+    rows = _rows(tmp_path / "r.sqlite")
+    assert summ.written == len(rows) == 3 and summ.ok == 2 and summ.failed == {"timeout": 1}
+    (bad_row,) = [r for r in rows if r["error"] is not None]
+    assert '"deaf"' in bad_row["setting"] and "killed" in bad_row["error"]
+
+
 def test_dask_worker_sigkilled_mid_run_every_row_exactly_once(tmp_path, cluster):
     from distributed import Client
 
@@ -484,6 +502,9 @@ def test_dask_worker_sigkilled_mid_run_every_row_exactly_once(tmp_path, cluster)
     rows = _rows(tmp_path / "r.sqlite")
     assert summ.written == len(rows) == len({r["key"] for r in rows}) == 24
     assert all(r["error"] is None for r in rows)
+    # and the summary says what was lost and redone (retried_tasks stayed 0: Dask redid them)
+    assert summ.workers_lost == 1 and summ.redone_by_dask >= 1
+    assert any("1 Dask worker(s) died" in line for line in summ.lines())
 
 
 _BLOCK = """

@@ -114,7 +114,7 @@ def bare_ms_per_job(textures, plan, scoring) -> tuple[float, float]:
         t = hashed(tex)
         t0 = time.process_time()
         prof = jobs.load_texture(t)  # loaded once per texture, as a task does
-        refs = {(v, f): jobs._reference(t, v, f) for v, f in plan.geometries}
+        refs = {(v, f): jobs._reference(t, v, f, scoring) for v, f in plan.geometries}
         t1 = time.process_time()
         load += t1 - t0
         for (v, f), (_, nk, b_k, c_ref) in refs.items():
@@ -132,7 +132,7 @@ def bare_ms_per_job(textures, plan, scoring) -> tuple[float, float]:
 
 def pool_run(textures, plan, scoring, store, *, workers: int, dask: str | None = None,
              batch: int | None = None, rss_at: int | None = None, warm: bool = False,
-             workers_cpu_s=None) -> dict:
+             workers_cpu_s=None, using=None) -> dict:
     """One run: wall s, jobs/s, driver + worker CPU ms per job, driver RSS at `rss_at` and at
     the end. warm: on a local pool started (and timed: start_s) before the run's clock starts.
     Worker CPU: from /proc for a warm pool, else `workers_cpu_s()` (the workers' total CPU s
@@ -172,7 +172,8 @@ def pool_run(textures, plan, scoring, store, *, workers: int, dask: str | None =
         c0 = time.process_time()
         w0 = time.perf_counter()
         summ = run.run(textures, plan, store, scoring=scoring, workers=workers, dask=dask, batch=batch,
-                       progress=False, on_rows=on_rows, task_fn=jobs.run_task_measured, pool=True, using=ex)
+                       progress=False, on_rows=on_rows, task_fn=jobs.run_task_measured, pool=True,
+                       using=ex if ex is not None else using)
         wall = time.perf_counter() - w0
         driver = time.process_time() - c0
         busy = _busy_s() - b0
@@ -304,37 +305,31 @@ def run(*, jobs_scale: int = 10_000, heights: int = 2000, spqi: bool = False, da
 
 
 def _dask(tex, plan, scoring, d, w: int, batch: int | None) -> dict:
-    """The same jobs on a LocalCluster of w worker processes (1 thread each, as `--dask local`
-    starts it), started and warmed up (imports, a run on 2 textures) before the measured run;
-    its scheduler runs in this process, so its CPU time is counted as the driver's; the
-    workers' CPU is their processes' whole CPU time (every thread: the task's, the event
+    """The same jobs on the cluster `--dask local` starts (w worker processes of 1 thread, over
+    TLS: hostd.corpus.dasknode), started and warmed up (imports, a run on 2 textures) before the
+    measured run; its scheduler runs in this process, so its CPU time is counted as the driver's;
+    the workers' CPU is their processes' whole CPU time (every thread: the task's, the event
     loop's, heartbeats), before and after the run; their nannies' is not counted."""
     try:
-        from distributed import Client, LocalCluster
+        import distributed  # noqa: F401
     except ImportError:
         from hostd.extras import pip_install
 
         return {"dask_note": f"distributed not installed: {pip_install('corpus')}"}
     from hostd.corpus import run as crun
 
-    os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")  # as --dask local
-    crun._one_thread_per_worker()
-    cluster = LocalCluster(n_workers=w, threads_per_worker=1, processes=True, dashboard_address=None)
-    client = None
+    ex = crun.executor("local", w)
     try:
-        client = Client(cluster)
-        pool_run(tex[:2], plan, scoring, d / "dask-warm.sqlite", workers=w, dask=cluster.scheduler_address,
-                 batch=batch)
+        pool_run(tex[:2], plan, scoring, d / "dask-warm.sqlite", workers=w, dask="local", batch=batch,
+                 using=ex)
 
         def workers_cpu_s() -> float:
-            return float(sum(client.run(time.process_time).values()))
+            return float(sum(ex.client.run(time.process_time).values()))
 
-        dk = pool_run(tex, plan, scoring, d / "dask.sqlite", workers=w, dask=cluster.scheduler_address,
-                      batch=batch, workers_cpu_s=workers_cpu_s)
+        dk = pool_run(tex, plan, scoring, d / "dask.sqlite", workers=w, dask="local", batch=batch,
+                      workers_cpu_s=workers_cpu_s, using=ex)
     finally:
-        if client is not None:
-            client.close()
-        cluster.close()
+        ex.close()
     return {"dask_batch": batch or crun.DASK_BATCH, "dask_cpu_ms_per_job": dk["cpu_ms_per_job"],
             "dask_overhead_ms_per_job": dk["overhead_ms_per_job"],
             "dask_driver_cpu_ms_per_job": dk["driver_cpu_ms_per_job"], "dask_jobs_per_s": dk["jobs_per_s"],

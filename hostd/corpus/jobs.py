@@ -33,8 +33,11 @@ SCHEMA: tuple[tuple[str, str], ...] = (
     ("length_mm", "float"), ("n_keep", "int"), ("bytes", "int"), ("bits_per_mm", "float"),
     ("bits_per_s", "float"), ("Ip", "float"), ("Ia", "float"), ("Iobj", "float"), ("iobj_db", "float"),
     ("spqi", "float"), ("encode_cpu_s", "float"), ("decode_cpu_s", "float"), ("error", "str"),
-    ("error_reason", "str"),
+    ("error_reason", "str"), ("scoring", "str"), ("run", "int"), ("texture_group", "str"),
 )
+# the columns of stores written before `scoring`, `run` and `texture_group` (hostd.corpus.store
+# migrates them)
+COLUMNS_V1 = tuple(c for c, _ in SCHEMA[:-3])
 COLUMNS = tuple(c for c, _ in SCHEMA)
 TIMING_COLUMNS = ("encode_cpu_s", "decode_cpu_s")
 
@@ -55,6 +58,7 @@ class TextureSpec:
     source: str
     loader: str  # canonical JSON of the LoadOptions
     input_sha256: str
+    group: str = ""  # the manifest's label for summaries (not part of the key)
 
 
 @dataclass(frozen=True)
@@ -68,13 +72,44 @@ class JobSpec:
 
 @dataclass(frozen=True)
 class Scoring:
+    """How rows are scored; everything but the time limit is part of each row's key.
+    `calibration`: a display's calibration label (NAME@ID, hostd.perception.calibration) whose
+    threshold curve `thresholds` (frequencies, thresholds in µm) replaces the default curve."""
+
     spqi: bool = True
     timeout_s: float = 60.0
     a: float = 0.581
     b: float = 0.464
+    calibration: str | None = None
+    thresholds: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+
+    @classmethod
+    def calibrated(cls, cal, **kw) -> Scoring:
+        """Scored with a Calibration: its (a, b) and its threshold curve."""
+        return cls(a=float(cal.a), b=float(cal.b), calibration=cal.label,
+                   thresholds=(tuple(map(float, cal.curve.freq_hz)),
+                               tuple(map(float, cal.curve.threshold_um))), **kw)
 
     def as_json(self) -> str:
-        return json.dumps({"spqi": self.spqi, "a": self.a, "b": self.b}, sort_keys=True)
+        d = {"spqi": self.spqi, "a": self.a, "b": self.b}
+        if self.calibration is not None:  # (absent: the keys of rows scored before calibrations)
+            d["calibration"] = self.calibration
+        return json.dumps(d, sort_keys=True)
+
+    def curve(self):
+        """The detection-threshold curve b(f) of this scoring."""
+        from hostd.perception import thresholds as th
+
+        if self.thresholds is None:
+            return th.default_curve()
+        return _curve_of(self.thresholds, self.calibration or "calibration")
+
+
+@lru_cache(maxsize=8)
+def _curve_of(table: tuple[tuple[float, ...], tuple[float, ...]], name: str):
+    from hostd.perception.thresholds import ThresholdCurve
+
+    return ThresholdCurve(np.array(table[0]), np.array(table[1]), name=name)
 
 
 @dataclass(frozen=True)
@@ -82,6 +117,7 @@ class Task:
     texture: TextureSpec
     jobs: tuple[JobSpec, ...]
     scoring: Scoring
+    seq: int = 0  # the driver's number for it: a worker says which job of which task it runs
 
 
 # ----------------------------------------------------------------------------- keys
@@ -119,7 +155,14 @@ def job_key(tex: TextureSpec, codec_name: str, codec_version: str, setting_json:
             speed_mm_s: float, fmax_hz: float, scoring: Scoring) -> str:
     blob = json.dumps([KEY_VERSION, tex.input_sha256, tex.loader, codec_name, codec_version,
                        setting_json, repr(float(speed_mm_s)), repr(float(fmax_hz)), scoring.as_json()])
-    return hashlib.sha256(blob.encode()).hexdigest()
+    return named_key(hashlib.sha256(blob.encode()).hexdigest(), tex.name)
+
+
+def named_key(content_key: str, texture_name: str) -> str:
+    """A row's key: its content's hash and the texture's name, so two textures of identical
+    bytes under two names each get their rows (stores of content-only keys are re-keyed by
+    this same function when they are opened: hostd.corpus.store)."""
+    return hashlib.sha256(f"{content_key}|{texture_name}".encode()).hexdigest()
 
 
 class KeyMaker:
@@ -133,9 +176,9 @@ class KeyMaker:
         self._enc = encode_basestring_ascii  # what json.dumps uses for a str (ensure_ascii)
         self._tail = ", " + self._enc(scoring.as_json()) + "]"
 
-    def texture(self, tex: TextureSpec) -> str:
+    def texture(self, tex: TextureSpec) -> tuple[str, str]:
         e = self._enc
-        return f"[{e(KEY_VERSION)}, {e(tex.input_sha256)}, {e(tex.loader)}, "
+        return f"[{e(KEY_VERSION)}, {e(tex.input_sha256)}, {e(tex.loader)}, ", tex.name
 
     def point(self, codec_name: str, codec_version: str, setting_json: str, speed_mm_s: float,
               fmax_hz: float) -> str:
@@ -144,8 +187,9 @@ class KeyMaker:
                 f"{e(repr(float(fmax_hz)))}") + self._tail
 
     @staticmethod
-    def key(texture_part: str, point_part: str) -> str:
-        return hashlib.sha256((texture_part + point_part).encode()).hexdigest()
+    def key(texture_part: tuple[str, str], point_part: str) -> str:
+        content = hashlib.sha256((texture_part[0] + point_part).encode()).hexdigest()
+        return named_key(content, texture_part[1])
 
 
 # ----------------------------------------------------------------------------- time limit
@@ -244,15 +288,14 @@ def load_texture(tex: TextureSpec):
 
 
 @lru_cache(maxsize=16)
-def _reference(tex: TextureSpec, speed_mm_s: float, fmax_hz: float):
-    """(geometry, N', b_k, C_k) of a texture at one geometry."""
+def _reference(tex: TextureSpec, speed_mm_s: float, fmax_hz: float, scoring: Scoring | None = None):
+    """(geometry, N', b_k, C_k) of a texture at one geometry (b_k: the scoring's curve)."""
     from hostd.codec import transform
-    from hostd.perception import thresholds as th
 
     prof = load_texture(tex)
     geom = transform.Geometry(prof.n, prof.length_mm, speed_mm_s, fmax_hz)
     nk = geom.n_keep
-    b_k = th.default_curve()(geom.frequencies_hz(nk))
+    b_k = (scoring or Scoring()).curve()(geom.frequencies_hz(nk))
     return geom, nk, b_k, transform.analyze(prof.heights_um, nk)
 
 
@@ -263,8 +306,14 @@ def empty_row(tex: TextureSpec, job: JobSpec) -> dict:
     row = dict.fromkeys(COLUMNS)
     row.update(key=job.key, texture=tex.name, source=tex.source, input_sha256=tex.input_sha256,
                loader=tex.loader, codec=job.codec, setting=job.setting,
-               speed_mm_s=float(job.speed_mm_s), fmax_hz=float(job.fmax_hz))
+               speed_mm_s=float(job.speed_mm_s), fmax_hz=float(job.fmax_hz), texture_group=tex.group or None)
     return row
+
+
+def empty_task_rows(task: Task, error: str, reason: str) -> list[dict]:
+    """A row per job of a task that gave no rows of its own (its worker was lost or killed)."""
+    return [{**empty_row(task.texture, j), "scoring": task.scoring.as_json(), "error": error,
+             "error_reason": reason} for j in task.jobs]
 
 
 def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
@@ -274,6 +323,7 @@ def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
     from hostd.perception import indices, peer
 
     row = empty_row(tex, job)
+    row["scoring"] = scoring.as_json()
     try:
         codec = codecs.resolve(job.codec)
         row.update(codec=codec.name, codec_version=codec.version)
@@ -282,7 +332,7 @@ def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
         prof = load_texture(tex)
         row.update(n=prof.n, spacing_um=prof.spacing_um, length_mm=prof.length_mm)
         try:
-            _geom, nk, b_k, c_ref = _reference(tex, float(job.speed_mm_s), float(job.fmax_hz))
+            _geom, nk, b_k, c_ref = _reference(tex, float(job.speed_mm_s), float(job.fmax_hz), scoring)
         except HostdError as exc:
             raise InputError(str(exc), "geometry") from None
         row["n_keep"] = nk
@@ -322,14 +372,121 @@ def run_job(tex: TextureSpec, job: JobSpec, scoring: Scoring) -> dict:
     return row
 
 
+# A pool worker's slot in an array the driver reads (hostd.corpus.run._Local): pid, task seq,
+# job index, CLOCK_MONOTONIC start of the job (0: idle). The driver kills a worker whose job has
+# run past the time limit, whatever the job is doing (a C call, a blocked signal).
+SLOT_FIELDS = 4
+_slot: tuple | None = None
+
+
+def _mark(task_seq: int, job: int, start: float) -> None:
+    if _slot is not None:
+        arr, i = _slot
+        base = SLOT_FIELDS * i
+        arr[base + 3] = 0.0  # (the driver reads t, seq, job, t again: a torn read is skipped)
+        arr[base + 1] = float(task_seq)
+        arr[base + 2] = float(job)
+        arr[base + 3] = start
+
+
+KILL_GRACE_S = 1.0  # a worker is killed this long (+ 10 %) after a job's limit; SIGALRM (or, on a
+#                     Dask thread, the asynchronous exception) comes first for a codec stuck in Python
+TIMEOUT_TOPIC = "hostd-corpus-timeout"  # Dask: the event a worker logs before it kills itself
+_watched: dict[int, tuple[int, int, float, float]] = {}  # thread -> (task seq, job, start, limit)
+_watch_lock = threading.Lock()
+_watchdog: list = []
+
+
+def kill_after_s(timeout_s: float) -> float:
+    return timeout_s * 1.1 + KILL_GRACE_S if math.isfinite(timeout_s) and timeout_s > 0 else math.inf
+
+
+def _dask_worker():
+    """The Dask worker running this thread's task, or None (a pool worker, the driver)."""
+    import sys
+
+    if _slot is not None or "distributed" not in sys.modules \
+            or threading.current_thread() is threading.main_thread():
+        return None
+    try:
+        from distributed import get_worker
+
+        return get_worker()
+    except Exception:  # not in a worker
+        return None
+
+
+def _watch_dask(worker) -> None:
+    """A Dask worker's watchdog thread: a job past its limit (a codec stuck where the asynchronous
+    exception cannot reach it: a C call, a sleep, a waited-for child) makes the worker log the
+    job (TIMEOUT_TOPIC: the driver writes its timeout row and cancels the task) and SIGKILL
+    itself; its nanny starts a new worker."""
+    import os
+
+    while True:
+        time.sleep(0.25)
+        now = time.monotonic()
+        with _watch_lock:
+            late = [(seq, job) for seq, job, start, limit in _watched.values() if now - start > limit]
+        if late:
+            for seq, job in late:
+                try:
+                    worker.log_event(TIMEOUT_TOPIC, {"seq": seq, "job": job})
+                except Exception:  # the scheduler is gone: the task is lost anyway
+                    pass
+            time.sleep(0.5)  # the event's batched send goes out
+            os.kill(os.getpid(), signal.SIGKILL)
+
+
 def run_task(task: Task) -> list[dict]:
     """Every job of a task, in order (what a worker process runs); the first row carries the
     task's wall time in "_task_s" (the driver sizes later tasks by it; the store ignores it)."""
     t0 = time.perf_counter()
-    rows = [run_job(task.texture, j, task.scoring) for j in task.jobs]
+    rows = []
+    worker = _dask_worker()
+    limit = kill_after_s(task.scoring.timeout_s)
+    me = threading.get_ident()
+    if worker is not None and math.isfinite(limit):
+        with _watch_lock:
+            if not _watchdog:
+                th = threading.Thread(target=_watch_dask, args=(worker,), name="hostd-watchdog", daemon=True)
+                th.start()
+                _watchdog.append(th)
+    try:
+        for i, j in enumerate(task.jobs):
+            start = time.monotonic()
+            _mark(task.seq, i, start)
+            if worker is not None:
+                with _watch_lock:
+                    _watched[me] = (task.seq, i, start, limit)
+            rows.append(run_job(task.texture, j, task.scoring))
+    finally:
+        _mark(task.seq, 0, 0.0)
+        if worker is not None:
+            with _watch_lock:
+                _watched.pop(me, None)
     if rows:
         rows[0]["_task_s"] = time.perf_counter() - t0
     return rows
+
+
+def pool_worker_init(slots, counter) -> None:
+    """A local pool worker's initializer: Ctrl-C is the driver's; die with the fork server (which
+    dies with the driver: hostd.corpus.lifeline); take the next slot of `slots`."""
+    import os
+
+    from hostd.corpus.lifeline import die_with_parent
+
+    global _slot
+    ignore_sigint()
+    die_with_parent()
+    with counter.get_lock():
+        i = counter.value
+        counter.value += 1
+    n = len(slots) // SLOT_FIELDS
+    if i < n:
+        slots[SLOT_FIELDS * i] = float(os.getpid())
+        _slot = (slots, i)
 
 
 def run_task_measured(task: Task) -> list[dict]:
@@ -343,7 +500,7 @@ def run_task_measured(task: Task) -> list[dict]:
     try:
         load_texture(task.texture)
         for v, f in dict.fromkeys((float(j.speed_mm_s), float(j.fmax_hz)) for j in task.jobs):
-            _reference(task.texture, v, f)
+            _reference(task.texture, v, f, task.scoring)
     except Exception:  # run_job makes the error row
         pass
     loaded = load_texture.cache_info().misses + _reference.cache_info().misses > misses

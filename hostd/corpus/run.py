@@ -10,6 +10,8 @@ keeps every row already written.
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import time
 from collections import Counter
@@ -40,6 +42,7 @@ def textures_from(inputs: Sequence[str], opts) -> list[TextureSpec]:
     from hostd.texture import formats, manifest, synth
 
     entries: list[tuple[str, str, Any]] = []
+    groups: dict[str, str] = {}
     for raw in inputs:
         s = str(raw)
         if synth.is_spec(s):
@@ -69,6 +72,7 @@ def textures_from(inputs: Sequence[str], opts) -> list[TextureSpec]:
         elif manifest.is_manifest(p):
             for e in manifest.read(p, opts):
                 entries.append((e.name, e.source, e.options))
+                groups[e.name] = e.group
         elif p.exists():
             entries.append((p.stem, str(p.resolve()), opts))
         else:
@@ -78,11 +82,11 @@ def textures_from(inputs: Sequence[str], opts) -> list[TextureSpec]:
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise HostdError(f"texture name(s) given twice: {', '.join(dup[:5])}; use a manifest with `name`")
-    return [TextureSpec(n, src, jobs.loader_json(o), "") for n, src, o in entries]
+    return [TextureSpec(n, src, jobs.loader_json(o), "", groups.get(n, "")) for n, src, o in entries]
 
 
 def hashed(tex: TextureSpec) -> TextureSpec:
-    return TextureSpec(tex.name, tex.source, tex.loader, jobs.input_sha256(tex.source))
+    return TextureSpec(tex.name, tex.source, tex.loader, jobs.input_sha256(tex.source), tex.group)
 
 
 # ----------------------------------------------------------------------------- the sweep
@@ -107,14 +111,33 @@ def make_plan(codec_specs: Sequence[str], *, speeds_mm_s: Sequence[float] = (50.
               settings: Mapping[str, Sequence[Mapping]] | None = None) -> Plan:
     """The sweep. hostd's codecs take the method grids (`methods`, `g_db`, `levels`, `b0_db`;
     None = the defaults of hostd.corpus.hostdcodec) and `target_iobj` adds rate-control points;
-    an external codec runs its own `settings` unless `settings[spec]` gives others."""
+    an external codec runs its own `settings` unless `settings[spec]` (or `settings[its name]`) gives
+    others. `settings` never adds a codec: a key that is neither a spec nor a codec's name is an error."""
     from hostd.corpus import hostdcodec
 
+    settings = dict(settings or {})
+    foreign = set(settings) - set(codec_specs)
+    if foreign:
+        # checked before any codec is resolved: a settings file (a colleague's sweep) is data;
+        # only the codecs the command line or the caller names are imported
+        names = {}
+        for spec in codec_specs:
+            names[codecs.resolve(spec).name] = spec
+        unknown = sorted(foreign - set(names))
+        if unknown:
+            raise HostdError(f"the sweep names codec(s) not given with --codec: {', '.join(unknown)} "
+                             "(a sweep gives settings for the codecs named on the command line; add "
+                             "--codec NAME)")
+        for name in foreign:
+            settings.setdefault(names[name], settings.pop(name))
     points: list[tuple[str, str]] = []
     for spec in codec_specs:
         codec = codecs.resolve(spec)
         if isinstance(codec, hostdcodec.HostdStream):
-            grid = {"shaped": g_db, "quant": levels, "cut": b0_db}
+            # the same numbers give the same keys, as ints or floats (the API takes either)
+            grid = {"shaped": None if g_db is None else [float(v) for v in g_db],
+                    "quant": None if levels is None else [int(v) for v in levels],
+                    "cut": None if b0_db is None else [float(v) for v in b0_db]}
             ms = [m for m in formats.get(codec.fmt).methods if methods is None or m in methods]
             if methods is not None:
                 bad = set(methods) - {"shaped", "quant", "cut"}
@@ -127,7 +150,7 @@ def make_plan(codec_specs: Sequence[str], *, speeds_mm_s: Sequence[float] = (50.
                 pts += [{"method": m, hostdcodec.KNOB[m]: v} for v in values]
             pts += [{"target_iobj": float(t)} for t in target_iobj]
         else:
-            pts = [dict(s) for s in (settings or {}).get(spec, codec.settings)]
+            pts = [dict(s) for s in settings.get(spec, codec.settings)]
         if not pts:
             raise HostdError(f"codec {spec}: the sweep gives it no setting")
         points += [(spec, codecs.setting_json(s)) for s in pts]
@@ -228,8 +251,50 @@ class _Serial:
         pass
 
 
+def _no_main_context():
+    """The fork server context, whose worker processes do not import the driver's __main__: a
+    plain script that calls the API without `if __name__ == "__main__":` would otherwise run
+    again in every worker (multiprocessing re-imports the main module in each child). The jobs
+    need nothing from __main__: codecs are named and resolved in the workers."""
+    from multiprocessing.context import ForkServerContext
+
+    class Context(ForkServerContext):
+        Process = _NoMainProcess
+
+    return Context()
+
+
+try:
+    from multiprocessing.context import ForkServerProcess as _ForkServerProcess
+except ImportError:  # (Windows)
+    _ForkServerProcess = object  # type: ignore[assignment,misc]
+
+
+class _NoMainProcess(_ForkServerProcess):  # type: ignore[misc,valid-type]
+    """A fork server process started with __main__'s file and spec hidden for the moment it is
+    started (multiprocessing.spawn.get_preparation_data reads them then)."""
+
+    def start(self) -> None:
+        import sys
+
+        main = sys.modules.get("__main__")
+        names = ("__file__", "__spec__")
+        saved = {k: main.__dict__[k] for k in names if main is not None and k in main.__dict__}
+        try:
+            if main is not None:
+                main.__dict__.pop("__file__", None)
+                main.__dict__["__spec__"] = None
+            super().start()
+        finally:
+            if main is not None:
+                main.__dict__.pop("__spec__", None)
+                main.__dict__.update(saved)
+
+
 class _Local:
-    """A process pool over `workers` processes (default: every core)."""
+    """A process pool over `workers` processes (default: every core). Workers die with the
+    driver (hostd.corpus.lifeline); a worker whose job runs past `job_limit_s` is killed (the
+    pool is then replaced, and the job gets a `timeout` row: `killed`)."""
 
     name = "local"
 
@@ -238,19 +303,26 @@ class _Local:
 
         self.workers = workers
         self.lost = (BrokenProcessPool,)
+        self.job_limit_s = math.inf
+        self.killed: dict[int, int] = {}  # task seq -> index of the job that ran past its limit
         self._start()
 
     def _start(self) -> None:
-        import multiprocessing as mp
         from concurrent.futures import ProcessPoolExecutor
 
+        from hostd.corpus import lifeline
+
         _one_thread_per_worker()
-        ctx = mp.get_context("forkserver")
+        os.environ[lifeline.ENV] = str(os.getpid())  # the fork server dies with this process
+        ctx = _no_main_context()
         # imported once in the fork server, inherited by every worker (and every replacement)
-        ctx.set_forkserver_preload(["hostd.corpus.jobs", "hostd.corpus.hostdcodec", "hostd.codec.stream",
-                                    "hostd.codec.ratecontrol", "hostd.perception.peer", "hostd.render.series",
-                                    "hostd.texture.load", "scipy.signal", "scipy.fft"])
-        self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=jobs.ignore_sigint)
+        ctx.set_forkserver_preload(["hostd.corpus.lifeline", "hostd.corpus.jobs", "hostd.corpus.hostdcodec",
+                                    "hostd.codec.stream", "hostd.codec.ratecontrol", "hostd.perception.peer",
+                                    "hostd.render.series", "hostd.texture.load", "scipy.signal", "scipy.fft"])
+        self.marks = ctx.Array("d", jobs.SLOT_FIELDS * self.workers, lock=False)
+        counter = ctx.Value("i", 0)
+        self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=jobs.pool_worker_init,
+                                        initargs=(self.marks, counter))
 
     def submit(self, task: Task, fn=jobs.run_task):
         return self.pool.submit(fn, task)
@@ -268,8 +340,29 @@ class _Local:
     def next_done(self, pending):
         from concurrent.futures import FIRST_COMPLETED, wait
 
-        done, _ = wait(pending, return_when=FIRST_COMPLETED)
-        return next(iter(done))
+        poll = None if not math.isfinite(self.job_limit_s) else min(0.25, self.job_limit_s / 4)
+        while True:
+            done, _ = wait(pending, timeout=poll, return_when=FIRST_COMPLETED)
+            if done:
+                return next(iter(done))
+            self._watch()
+
+    def _watch(self) -> None:
+        """Kill every worker whose job has run past job_limit_s (+ grace)."""
+        import signal
+
+        limit = jobs.kill_after_s(self.job_limit_s)
+        now = time.monotonic()
+        a, f = self.marks, jobs.SLOT_FIELDS
+        for i in range(self.workers):
+            t = a[f * i + 3]
+            pid, seq, job = int(a[f * i]), int(a[f * i + 1]), int(a[f * i + 2])
+            if t > 0 and now - t > limit and a[f * i + 3] == t and pid > 0 and seq not in self.killed:
+                self.killed[seq] = job
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
 
     def restart(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
@@ -292,28 +385,61 @@ class _Dask:
         from hostd.extras import need
 
         need("distributed", "corpus", "--dask")
-        from distributed import Client, LocalCluster
+        from distributed import Client
         from distributed.client import FutureCancelledError
         from distributed.scheduler import KilledWorker
         self.cluster = None
         if address == "local":
+            from hostd.corpus.dasknode import local_cluster
+
             _one_thread_per_worker()
-            # no dashboard here, so no use for the workers' statistical profiler (it samples
-            # every thread every 10 ms: CPU taken from the jobs)
-            os.environ.setdefault("DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED", "False")
-            self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                        dashboard_address=None)
-            self.client = Client(self.cluster)
+            self.cluster, self.client = local_cluster(workers)
         else:
             try:
                 self.client = Client(address, timeout="20s")
-            except OSError as exc:
+            except (OSError, ValueError, TypeError) as exc:
                 raise HostdError(f"cannot reach the Dask scheduler at {address}: {exc} (start it with "
-                                 "`dask scheduler`, workers with `dask worker ADDRESS`)") from None
+                                 "`dask scheduler`, workers with `dask worker ADDRESS`; a tls:// cluster "
+                                 "needs a client certificate in Dask's configuration, "
+                                 "distributed.comm.tls.client)") from None
         self.lost = (KilledWorker, FutureCancelledError)
         from distributed import as_completed
 
         self._ac = as_completed()
+        # what Dask lost and ran again on its own (a task whose worker died is rescheduled by the
+        # scheduler: the driver sees no error unless it dies on 3 workers): from its events
+        self._keys: dict[str, int] = {}  # task key -> seq
+        self.workers_lost: list[str] = []
+        self.tasks_redone = 0
+        # a job past its limit: its worker logs it and kills itself (hostd.corpus.jobs._watch_dask);
+        # the task is cancelled here and comes back as lost, with the job to write as `timeout`
+        self.killed: dict[int, int] = {}
+        self._by_seq: dict[int, Any] = {}
+        self.client.subscribe_topic("all", self._on_event)
+        self.client.subscribe_topic(jobs.TIMEOUT_TOPIC, self._on_timeout)
+
+    async def _on_timeout(self, event) -> None:
+        msg = event[1] if isinstance(event, tuple) and len(event) == 2 else None
+        try:
+            seq, job = int(msg["seq"]), int(msg["job"])
+        except (TypeError, KeyError, ValueError):
+            return
+        fut = self._by_seq.get(seq)
+        if fut is None or seq in self.killed:
+            return
+        self.killed[seq] = job
+        await self.client.cancel([fut], asynchronous=True)
+
+    def _on_event(self, event) -> None:
+        msg = event[1] if isinstance(event, tuple) and len(event) == 2 else None
+        if not isinstance(msg, dict) or msg.get("action") != "remove-worker" or msg.get("expected"):
+            return
+        # (a worker that killed itself for a job past its limit logged that first: not "lost")
+        ours = [k for k in msg.get("processing-tasks", ())
+                if str(k) in self._keys and self._keys[str(k)] not in self.killed]
+        if ours:
+            self.workers_lost.append(str(msg.get("worker", "")))
+            self.tasks_redone += len(ours)
 
     def slots(self) -> int:
         """Worker threads of the cluster now (at least 1)."""
@@ -324,6 +450,8 @@ class _Dask:
 
     def submit(self, task: Task, fn=jobs.run_task):
         f = self.client.submit(fn, task, pure=False)
+        self._keys[str(f.key)] = task.seq
+        self._by_seq[task.seq] = f
         self._ac.add(f)
         return f
 
@@ -331,6 +459,7 @@ class _Dask:
         while True:
             f = next(self._ac)
             if f in pending:
+                self._by_seq.pop(pending[f].seq, None)
                 return f
 
     def restart(self) -> None:
@@ -338,6 +467,11 @@ class _Dask:
 
     def close(self, cancel: bool = False) -> None:
         try:
+            try:  # (else the scheduler sends this client the event of its own leaving, to a closed comm)
+                self.client.unsubscribe_topic("all")
+                self.client.unsubscribe_topic(jobs.TIMEOUT_TOPIC)
+            except Exception:  # the scheduler has gone: nothing to unsubscribe from
+                pass
             self.client.close()
         finally:
             if self.cluster is not None:
@@ -367,6 +501,8 @@ class Summary:
     ok: int = 0
     failed: Counter = field(default_factory=Counter)
     retried_tasks: int = 0
+    workers_lost: int = 0  # Dask: workers that died running this run's tasks
+    redone_by_dask: int = 0  # Dask: tasks those workers were running, run again by the scheduler
     interrupted: bool = False
     seconds: float = 0.0
     executor: str = ""
@@ -375,8 +511,14 @@ class Summary:
         return {"store": self.store, "executor": self.executor, "total": self.total,
                 "skipped": self.skipped, "written": self.written, "ok": self.ok,
                 "failed": sum(self.failed.values()), "failed_by_reason": dict(self.failed),
-                "retried_tasks": self.retried_tasks, "interrupted": self.interrupted,
+                "retried_tasks": self.retried_tasks, "workers_lost": self.workers_lost,
+                "redone_by_dask": self.redone_by_dask, "interrupted": self.interrupted,
                 "seconds": round(self.seconds, 3)}
+
+    def hard_failures(self) -> int:
+        """Failed jobs, not counting those of a codec that cannot run here (`unavailable`: the
+        rows say what to install; a sweep that names an absent peer is not a failed run)."""
+        return sum(v for k, v in self.failed.items() if k != "unavailable")
 
     def lines(self) -> list[str]:
         out = [f"{self.written} rows written to {self.store} ({self.ok} ok, {sum(self.failed.values())} "
@@ -385,6 +527,13 @@ class Summary:
         if self.failed:
             out.append("failed: " + ", ".join(f"{k} {v}" for k, v in self.failed.most_common())
                        + "  (the rows' `error` column says why; rerun with --retry-errors after a fix)")
+        if self.retried_tasks:
+            out.append(f"lost: {self.retried_tasks} tasks came back from a lost worker and ran again "
+                       "(their rows are written once)")
+        if self.workers_lost:
+            out.append(f"lost: {self.workers_lost} Dask worker(s) died running this run's tasks; the "
+                       f"scheduler ran their {self.redone_by_dask} task(s) again elsewhere (rows written "
+                       "once)")
         if self.interrupted:
             out.append("interrupted: the rows above are kept; run the same command again to go on")
         return out
@@ -406,6 +555,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
     scoring = scoring or Scoring()
     t0 = time.monotonic()
     st = Store(store_path)
+    st.begin_run()
     summ = Summary(str(store_path), total=len(textures) * plan.per_texture)
     from hostd.tty import progress_bar
 
@@ -435,8 +585,35 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
         return max(1, min(batch, int(TASK_TARGET_S * pace[1] / pace[0])))
 
     pending: dict = {}
-    tries: Counter = Counter()
+    tries: Counter = Counter()  # task seq -> times its worker was lost
     exhausted = False
+    seqs = iter(range(1, 1 << 62))
+
+    def submit(t: Task) -> None:
+        t = Task(t.texture, t.jobs, t.scoring, next(seqs)) if t.seq == 0 else t
+        pending[ex.submit(t, task_fn)] = t
+
+    def timed_out(t: Task, j: int) -> None:
+        """The job the driver killed its worker for: a timeout row; the task's other jobs again."""
+        limit = f"{scoring.timeout_s:g} s" if math.isfinite(scoring.timeout_s) else "its limit"
+        record(stamped(jobs.empty_task_rows(Task(t.texture, (t.jobs[j],), t.scoring),
+                                            f"the codec did not finish within the per-job limit of {limit} "
+                                            "(--timeout); its worker process was killed and replaced",
+                                            "timeout")))
+        rest = t.jobs[:j] + t.jobs[j + 1:]
+        if rest:
+            submit(Task(t.texture, rest, t.scoring))
+
+    def stamped(rows: list[dict]) -> list[dict]:
+        """Rows the driver makes (no worker ran the job): the codec's name, version and curve."""
+        for r in rows:
+            try:
+                c = codecs.resolve(r["codec"])
+                setting = json.loads(r["setting"])
+                r.update(codec=c.name, codec_version=c.version, curve=codecs.curve_of(c, setting))
+            except Exception:  # the row says what failed; the names stay as given
+                continue
+        return rows
 
     def fill() -> None:
         nonlocal exhausted
@@ -448,7 +625,7 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             if t is None:
                 exhausted = True
                 return
-            pending[ex.submit(t, task_fn)] = t
+            submit(t)
 
     def record(rows: list[dict]) -> None:
         if rows and rows[0].get("_task_s") is not None:
@@ -467,6 +644,9 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
 
     try:
         ex = using if using is not None else executor(dask, workers, pool)
+        if hasattr(ex, "job_limit_s"):
+            ex.job_limit_s = scoring.timeout_s
+            ex.killed.clear()
         # task sizes shrink towards the end in proportion to the workers there are
         tasks = iter_tasks(textures, plan, scoring, batch, lambda keys: st.known(keys, ok_only=retry_errors),
                            skipped, ex.slots() if hasattr(ex, "slots") else n_workers, cap)
@@ -477,8 +657,10 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             try:
                 rows = fut.result()
             except ex.lost as exc:
-                tries[id(task)] += 1
-                summ.retried_tasks += 1
+                killed = getattr(ex, "killed", {})
+                if task.seq not in killed:  # (a worker killed for a job past its limit: not lost)
+                    tries[task.seq] += 1
+                    summ.retried_tasks += 1
                 if ex.name == "local":  # the pool is broken: every pending future with it
                     redo = [task, *pending.values()]
                     pending.clear()
@@ -486,18 +668,18 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
                 else:
                     redo = [task]
                 for t in redo:
-                    if tries[id(t)] > MAX_TASK_RETRIES:
-                        rows = [{**jobs.empty_row(t.texture, j), "error": f"the worker running this job "
-                                 f"was lost {tries[id(t)]} times ({type(exc).__name__})",
-                                 "error_reason": "worker_lost"} for j in t.jobs]
-                        record(rows)
+                    if t.seq in killed:
+                        timed_out(t, killed.pop(t.seq))
+                    elif tries[t.seq] > MAX_TASK_RETRIES:
+                        record(stamped(jobs.empty_task_rows(t, f"the worker running this job was lost "
+                                                            f"{tries[t.seq]} times ({type(exc).__name__})",
+                                                            "worker_lost")))
                     else:
-                        pending[ex.submit(t, task_fn)] = t
+                        submit(t)
                 continue
             except Exception as exc:  # the task itself failed in the worker (not a codec: those are rows)
                 text = f"the task failed in its worker: {type(exc).__name__}: {exc}"[:500]
-                rows = [{**jobs.empty_row(task.texture, j), "error": text, "error_reason": "worker_error"}
-                        for j in task.jobs]
+                rows = jobs.empty_task_rows(task, text, "worker_error")
             record(rows)
             done_tasks += 1
             fill()
@@ -507,6 +689,8 @@ def run(textures: Sequence[TextureSpec], plan: Plan, store_path: str | Path, *,
             ex.close(cancel=True)
         ex = None
     finally:
+        if ex is not None and hasattr(ex, "workers_lost"):
+            summ.workers_lost, summ.redone_by_dask = len(ex.workers_lost), ex.tasks_redone
         if ex is not None and using is None:
             ex.close()
         if bar is not None:

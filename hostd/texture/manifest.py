@@ -16,6 +16,7 @@ default. TOML: optional `[defaults]`, then `[[texture]]` tables with the same ke
     detrend        none, mean, linear                                        none
     decimal_comma  true/false                                                false
     member         the array of a container file (.mat variable, .hjif channel)
+    group          a label for summaries (material class, instrument, ...)       none
 
 A key the manifest does not know is an error naming the line (a typo must not silently fall
 back to a default unit).
@@ -36,7 +37,7 @@ from hostd.texture.load import UNITS_TO_UM, LoadOptions, parse_columns
 
 MAX_BYTES = 16 << 20  # a manifest is a list of files: 16 MiB is some 100,000 rows
 KEYS = ("file", "name", "units", "x_unit", "y_unit", "spacing", "columns", "offset_mm", "length_mm",
-        "detrend", "decimal_comma", "member")
+        "detrend", "decimal_comma", "member", "group")
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,7 @@ class Entry:
     name: str
     source: str  # a path (absolute) or synthetic:KIND[:SEED]
     options: LoadOptions
+    group: str = ""  # a label for per-group summaries (hostd corpus report)
 
 
 def header_fields(path: str | Path) -> list[str]:
@@ -195,7 +197,7 @@ def _entry(item: dict, where: str, manifest: Path, base: LoadOptions) -> Entry:
     except ProfileError as exc:
         raise ProfileError(f"{manifest} {where}: {exc}") from None
     name = str(item.get("name") or (src if src.startswith("synthetic:") else Path(src).stem))
-    return Entry(name=name, source=src, options=opts)
+    return Entry(name=name, source=src, options=opts, group=str(item.get("group") or ""))
 
 
 def _unit(v) -> str:
