@@ -18,6 +18,7 @@ import json
 import os
 import sqlite3
 import time
+import uuid
 from pathlib import Path
 
 from hostd.errors import HostdError
@@ -46,6 +47,7 @@ CREATE TABLE IF NOT EXISTS streams (
     a REAL NOT NULL,
     b REAL NOT NULL,
     calibration TEXT,               -- NAME@ID of the calibration that scored it (NULL: none)
+    uuid TEXT,                      -- the row's stable key, written with it (hostd fleet ships by it)
     UNIQUE (name, sha256)   -- one row per stored (name, content); re-sending it adds none
 );
 CREATE INDEX IF NOT EXISTS streams_received ON streams(received_at);
@@ -61,7 +63,8 @@ CREATE TABLE IF NOT EXISTS plays (
     played_s REAL NOT NULL,         -- samples played from the device's buffer / 3 kHz, s (device
                                     -- mode: played_fraction x device_s, the time it rendered)
     played_fraction REAL,           -- the pump's played_fraction at the end (NULL: never ran)
-    underruns INTEGER NOT NULL      -- underrun episodes the device counted meanwhile
+    underruns INTEGER NOT NULL,     -- underrun episodes the device counted meanwhile
+    uuid TEXT                       -- the row's stable key, written with it (hostd fleet ships by it)
 );
 CREATE INDEX IF NOT EXISTS plays_stream ON plays(name, sha256);
 """
@@ -88,7 +91,27 @@ def connect(path: str | Path) -> sqlite3.Connection:
     con.executescript(SCHEMA)
     if "calibration" not in _stream_columns(con):  # a log written before calibrations: add it
         con.execute("ALTER TABLE streams ADD COLUMN calibration TEXT")
+    _add_uuids(con)
     return con
+
+
+def _add_uuids(con: sqlite3.Connection) -> None:
+    """A log written before rows had a stable key: add the uuid column to streams and plays and
+    give every existing row one, in one transaction (all rows keyed, or the log as it was)."""
+    for table in ("streams", "plays"):
+        if "uuid" in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
+            continue
+        con.execute("BEGIN IMMEDIATE")
+        try:
+            if "uuid" not in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
+                con.execute(f"ALTER TABLE {table} ADD COLUMN uuid TEXT")
+                ids = [r[0] for r in con.execute(f"SELECT id FROM {table} WHERE uuid IS NULL")]
+                con.executemany(f"UPDATE {table} SET uuid = ? WHERE id = ?",
+                                [(str(uuid.uuid4()), i) for i in ids])
+            con.execute("COMMIT")
+        except BaseException:
+            con.execute("ROLLBACK")
+            raise
 
 
 def _stream_columns(con: sqlite3.Connection) -> set[str]:
@@ -198,9 +221,9 @@ def score_row(data: bytes, name: str, sha: str, received_at: float, a: float, b:
 
 
 def insert(con: sqlite3.Connection, row: dict) -> None:
-    cols = [c for c in COLUMNS if c != "id"]
+    cols = [c for c in COLUMNS if c != "id"] + ["uuid"]
     con.execute(f"INSERT OR IGNORE INTO streams ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})",
-                [row.get(c) for c in cols])
+                [row.get(c) for c in cols[:-1]] + [row.get("uuid") or str(uuid.uuid4())])
 
 
 def known(con: sqlite3.Connection) -> set[tuple[str, str]]:
@@ -214,9 +237,9 @@ DELIVERED = ("plays", "played_s", "played_fraction", "underruns")
 
 
 def insert_play(con: sqlite3.Connection, play: dict) -> None:
-    marks = ", ".join("?" * len(PLAY_COLUMNS))
-    con.execute(f"INSERT INTO plays ({', '.join(PLAY_COLUMNS)}) VALUES ({marks})",
-                [play.get(c) for c in PLAY_COLUMNS])
+    marks = ", ".join("?" * (len(PLAY_COLUMNS) + 1))
+    con.execute(f"INSERT INTO plays ({', '.join(PLAY_COLUMNS)}, uuid) VALUES ({marks})",
+                [play.get(c) for c in PLAY_COLUMNS] + [play.get("uuid") or str(uuid.uuid4())])
 
 
 def query(con: sqlite3.Connection, since: float | None = None) -> list[dict]:

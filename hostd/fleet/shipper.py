@@ -1,0 +1,350 @@
+"""The shipper: the daemon's quality log, read as it grows, shipped to the central PostgreSQL.
+
+An outbox, not a second source of truth. The local log stays authoritative and the daemon its only
+writer: the shipper reads it (WAL mode lets a reader in beside the writer) and keeps what it has
+shipped in its own state file (hostd.service.outbox). Per batch: one central transaction inserts
+each row's uuid into fleet.row_keys (ON CONFLICT DO NOTHING: the uuids the centre has not had come
+back) and then those rows, and commits; only then is the batch marked shipped locally. A crash
+before the commit: nothing central, the batch is sent again. A crash after the commit and before
+the mark: the batch is sent again and every row of it is a no-op. So a retry never doubles a row and
+a crash never loses one. The daemon never waits on any of this: it knows nothing of the shipper.
+
+While the centre is away (down, restarted, unreachable) the shipper waits, doubling from
+backoff_min_s to backoff_max_s, and the rows wait in the local log. What cannot mend by waiting
+(a wrong password, a certificate that does not match, an unsupported server, a schema newer than
+this PC knows, a wrong database name) stops it with one line saying what to do (FatalError).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import sqlite3
+import threading
+import time
+import uuid
+from pathlib import Path
+
+from hostd.errors import HostdError
+from hostd.fleet.config import FleetCfg, password
+from hostd.service import outbox
+
+log = logging.getLogger("hostd.fleet")
+
+QUALITY_COLS = ("sha256", "name", "bytes", "method", "levels", "b0_db", "n", "n_keep", "length_mm",
+                "speed_mm_s", "curve_id", "ratio_coeffs", "ratio_profile", "ip", "ia", "iobj", "a", "b",
+                "calibration")
+QUALITY_TIMES = ("received_at", "scored_at")  # unix s on the PC -> pc_received_at, scored_at (UTC)
+PLAY_COLS = ("name", "sha256", "device_s", "played_s", "played_fraction", "underruns")
+PLAY_TIMES = ("started_at", "ended_at")
+HEALTH_COLS = ("serial", "firmware", "transport", "device_state", "device_underruns", "played_fraction",
+               "stalls", "recoveries", "waiting_rows")
+HEALTH_TIMES = ("taken_at", "waiting_since")
+
+
+class FatalError(HostdError):
+    """What waiting does not mend: the one line says what to do."""
+
+
+def classify(e: Exception, cfg: FleetCfg) -> Exception:
+    """A connection error as FatalError (bad input: one line saying what to do) or as itself (the
+    centre is away: wait and try again)."""
+    import psycopg
+
+    msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    low = str(e).lower()
+    where = cfg.url.split("?")[0]
+    if isinstance(e, psycopg.ProgrammingError) or "invalid connection option" in low \
+            or "invalid uri" in low or "invalid integer value" in low:
+        return FatalError(f"fleet.url {where} is not a valid PostgreSQL URL ({msg}): correct it in {cfg.path}")
+    if "password authentication failed" in low or "no password supplied" in low:
+        return FatalError(f"the central server refused role {cfg.role}'s password: write the role's password "
+                          "in fleet.password_file (or the systemd credential), or reset it on the server "
+                          "(hostd fleet add-pc)")
+    if "certificate" in low or "ssl error" in low or "sslmode" in low or "server common name" in low \
+            or "does not match host name" in low:
+        return FatalError(f"TLS to {where} failed ({msg}): the server's certificate does not match "
+                          "sslrootcert/the host name, or this PC's client certificate is refused; fix the "
+                          f"certificates or sslmode in fleet.url ({cfg.path})")
+    if "does not exist" in low and "database" in low:
+        return FatalError(f"fleet.url {where}: {msg}: correct the database name in {cfg.path}")
+    if "role" in low and "does not exist" in low:
+        return FatalError(f"{msg}: create this PC's role on the server (hostd fleet add-pc) or correct "
+                          f"fleet.role in {cfg.path}")
+    if "could not translate host name" in low or "name or service not known" in low:
+        return FatalError(f"fleet.url {where}: unknown host ({msg}): correct the host in {cfg.path}")
+    if "no pg_hba.conf entry" in low:
+        return FatalError(f"{msg}: the server's pg_hba.conf must let role {cfg.role} in from this PC")
+    return e
+
+
+def _iso(t):
+    return None if t is None else float(t)
+
+
+def _serial(spec: str | None) -> str | None:
+    """The USB serial number of the display on this transport spec (hid:/dev/hidraw0, serial:PORT,
+    usb:BUS/DEV), from the system's device list; None for the simulated display or none found."""
+    if not spec or spec.startswith("sim"):
+        return None
+    try:
+        from hostd.device.transport import find_displays
+
+        return next((d.get("serial") or None for d in find_displays() if d.get("spec") == spec), None)
+    except Exception:  # a summary without the serial, never a stopped shipper
+        return None
+
+
+class Shipper:
+    def __init__(self, cfg: FleetCfg, clock=time.time, status=None):
+        self.cfg = cfg
+        self.clock = clock  # this PC's clock (unix s); a test gives it one wrong by hours
+        self.status = status if status is not None else self._daemon_status
+        self.conn = None
+        self.stop_event = threading.Event()
+        self.backoff_s = cfg.backoff_min_s
+        self.failing_since: float | None = None
+        self.last_health = -1e18
+        self.last_partitions = -1e18
+        self._log_con: sqlite3.Connection | None = None
+        self._log_ino = None
+        self.state = self._open_state(Path(cfg.state))
+        self.shipped = 0  # rows committed centrally by this process (each counted once)
+
+    # ------------------------------------------------------------ local files
+    @staticmethod
+    def _open_state(p: Path) -> sqlite3.Connection:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        if not p.exists():  # readable by the daemon's group (hostd status), written by the shipper only
+            os.close(os.open(p, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o640))
+        con = sqlite3.connect(p, timeout=10.0, isolation_level=None)
+        con.execute("PRAGMA journal_mode=WAL")
+        con.execute("PRAGMA synchronous=FULL")
+        con.executescript(outbox.STATE_SCHEMA)
+        return con
+
+    def _log(self) -> sqlite3.Connection | None:
+        """The daemon's log, read only; opened again when the file is a new one (moved away and
+        begun anew). None while it does not exist or is older than the uuid column."""
+        from hostd.service.qualitylog import connect_readonly
+
+        try:
+            ino = os.stat(self.cfg.quality_db).st_ino
+        except FileNotFoundError:
+            return None
+        if self._log_con is None or ino != self._log_ino:
+            if self._log_con is not None:
+                self._log_con.close()
+            self._log_con, self._log_ino = connect_readonly(self.cfg.quality_db), ino
+        return self._log_con
+
+    def _set_info(self, **kv) -> None:
+        self.state.executemany("INSERT INTO info (key, value) VALUES (?, ?) ON CONFLICT (key) DO UPDATE "
+                               "SET value = excluded.value", [(k, None if v is None else str(v))
+                                                              for k, v in kv.items()])
+
+    # ------------------------------------------------------------ what waits
+    def pending(self, limit: int) -> dict[str, list[dict]]:
+        """The rows not yet shipped, at most `limit` of each kind, in the log's id order."""
+        out: dict[str, list[dict]] = {"streams": [], "plays": [], "health": []}
+        con = self._log()
+        if con is not None:
+            marks = outbox.marks(self.state)
+            have = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+            for table, _when in outbox.KINDS:
+                if table not in have:
+                    continue
+                cols = [r[1] for r in con.execute(f"PRAGMA table_info({table})")]
+                if "uuid" not in cols:
+                    raise HostdError(f"the quality log {self.cfg.quality_db} has no uuid column yet: start "
+                                     "(or restart) hostd of this version once, which adds it")
+                first = outbox.start_id(con, marks.get(table), table)
+                cur = con.execute(f"SELECT * FROM {table} WHERE id > ? ORDER BY id LIMIT ?", (first, limit))
+                names = [d[0] for d in cur.description]
+                out[table] = [dict(zip(names, r, strict=True)) for r in cur]
+        for hid, uid, taken, doc in self.state.execute(
+                "SELECT id, uuid, taken_at, doc FROM health WHERE shipped = 0 ORDER BY id LIMIT ?", (limit,)):
+            out["health"].append({"id": hid, "uuid": uid, "taken_at": taken, **json.loads(doc)})
+        return out
+
+    def _daemon_status(self) -> dict | None:
+        if not self.cfg.socket or not os.path.exists(self.cfg.socket):
+            return None
+        from hostd.service.client import request
+
+        try:
+            return request(self.cfg.socket, {"cmd": "status"}, timeout_s=2.0)
+        except HostdError:
+            return None
+
+    def take_health(self) -> None:
+        """A device-health summary from the daemon's status, kept in the state file (its outbox)
+        before it is shipped: serial, firmware, underruns, played fraction, what waits."""
+        st = self.status()
+        if not st:
+            return
+        w = outbox.waiting(self.cfg.quality_db, self.cfg.state) if Path(self.cfg.quality_db).exists() else None
+        doc = {"serial": st.get("serial") or _serial(st.get("transport")), "firmware": st.get("firmware"),
+               "transport": st.get("transport") or st.get("device"), "device_state": st.get("device_state"),
+               "device_underruns": st.get("device_underruns"), "played_fraction": st.get("played_fraction"),
+               "stalls": st.get("stalls"), "recoveries": st.get("recoveries"),
+               "waiting_rows": w["waiting"] if w else None, "waiting_since": w["since"] if w else None}
+        self.state.execute("INSERT INTO health (uuid, taken_at, doc) VALUES (?, ?, ?)",
+                           (str(uuid.uuid4()), self.clock(), json.dumps(doc)))
+
+    # ------------------------------------------------------------ the centre
+    def connect(self):
+        import psycopg
+
+        from hostd.fleet import schema
+
+        try:
+            conn = psycopg.connect(self.cfg.url, user=self.cfg.role, password=password(self.cfg),
+                                   connect_timeout=max(1, round(self.cfg.connect_timeout_s)),
+                                   application_name="hostd-fleet", options="-c TimeZone=UTC")
+        except psycopg.Error as e:
+            raise classify(e, self.cfg) from None
+        try:
+            schema.check_server(conn)
+            schema.check_client(conn)
+        except BaseException:
+            conn.close()
+            raise
+        self.conn = conn
+        self.last_partitions = -1e18
+        return conn
+
+    def _close(self) -> None:
+        if self.conn is not None:
+            try:
+                self.conn.close()
+            except Exception:
+                pass
+        self.conn = None
+
+    def ship(self, batch: dict[str, list[dict]]) -> int:
+        """One central transaction for the batch; the local marks after its commit. Rows new to
+        the centre (those it had already: no-ops)."""
+        conn = self.conn
+        now_mono = time.monotonic()
+        if now_mono - self.last_partitions > 3600:
+            with conn.transaction():
+                conn.execute("SELECT fleet.ensure_partitions()")
+            self.last_partitions = now_mono
+        pc = self.cfg.role
+        new_rows = 0
+        with conn.transaction():
+            cur = conn.cursor()
+            t0 = self.clock()
+            server_t = cur.execute("SELECT extract(epoch FROM clock_timestamp())::float8").fetchone()[0]
+            offset_s = (t0 + self.clock()) / 2 - server_t  # this PC's clock minus the server's
+            for kind, table, cols, times, rows in (
+                    ("quality", "quality", QUALITY_COLS, QUALITY_TIMES, batch["streams"]),
+                    ("play", "plays", PLAY_COLS, PLAY_TIMES, batch["plays"]),
+                    ("health", "health", HEALTH_COLS, HEALTH_TIMES, batch["health"])):
+                if not rows:
+                    continue
+                got = cur.execute("INSERT INTO fleet.row_keys (uuid, pc_id, kind) SELECT u, %s, %s FROM "
+                                  "unnest(%s::uuid[]) AS u ON CONFLICT DO NOTHING RETURNING uuid::text",
+                                  (pc, kind, [r["uuid"] for r in rows])).fetchall()
+                fresh = {g[0] for g in got}
+                rows = [r for r in rows if r["uuid"] in fresh]
+                if not rows:
+                    continue
+                tcols = ["pc_received_at" if (kind, t) == ("quality", "received_at") else t for t in times]
+                local = ["local_id"] if kind != "health" else []
+                names = ["uuid", "pc_id", "pc_clock_offset_s", *local, *cols, *tcols]
+                marks = ["%s", "%s", "%s", *(["%s"] * len(local)), *(["%s"] * len(cols)),
+                         *(["to_timestamp(%s)"] * len(tcols))]
+                cur.executemany(f"INSERT INTO fleet.{table} ({', '.join(names)}) VALUES ({', '.join(marks)}) "
+                                "ON CONFLICT DO NOTHING",
+                                [[r["uuid"], pc, offset_s, *([r["id"]] if local else []),
+                                  *(r.get(c) for c in cols), *(_iso(r.get(t)) for t in times)] for r in rows])
+                new_rows += len(rows)
+        # committed centrally: now, and only now, marked shipped here (a crash in between: sent again,
+        # and each row of it a no-op there)
+        when = self.clock()
+        self.state.execute("BEGIN IMMEDIATE")
+        try:
+            for table in ("streams", "plays"):
+                if batch[table]:
+                    last = batch[table][-1]
+                    self.state.execute("INSERT INTO marks (kind, last_id, last_uuid, shipped_at) VALUES "
+                                       "(?, ?, ?, ?) ON CONFLICT (kind) DO UPDATE SET last_id = excluded.last_id, "
+                                       "last_uuid = excluded.last_uuid, shipped_at = excluded.shipped_at",
+                                       (table, last["id"], last["uuid"], when))
+            self.state.executemany("UPDATE health SET shipped = 1 WHERE id = ?", [(h["id"],) for h in batch["health"]])
+            self.state.execute("COMMIT")
+        except BaseException:
+            self.state.execute("ROLLBACK")
+            raise
+        self.shipped += new_rows
+        return new_rows
+
+    # ------------------------------------------------------------ the loop
+    def step(self) -> int:
+        """Take a health summary when due, ship what waits (batch by batch); the rows shipped.
+        Connection errors propagate (the caller waits and tries again)."""
+        now = time.monotonic()
+        if now - self.last_health >= self.cfg.health_interval_s:
+            self.last_health = now
+            self.take_health()
+        total = 0
+        while not self.stop_event.is_set():
+            batch = self.pending(self.cfg.batch_rows)
+            if not any(batch.values()):
+                break
+            if self.conn is None:
+                self.connect()
+            total += self.ship(batch)
+        return total
+
+    def run(self, once: bool = False) -> int:
+        """Ship until stopped (SIGTERM, SIGINT). once: ship what waits now and return; any failure
+        is then an error. FatalError stops the loop."""
+        import psycopg
+
+        while not self.stop_event.is_set():
+            try:
+                self.step()
+                if self.failing_since is not None:
+                    log.info("the central store is back after %.0f s; shipping", time.monotonic()
+                             - self.failing_since)
+                    self.failing_since = None
+                    self._set_info(last_error=None)
+                self.backoff_s = self.cfg.backoff_min_s
+                if once:
+                    return 0
+                self.stop_event.wait(self.cfg.interval_s)
+            except FatalError:
+                self._close()
+                raise
+            except (psycopg.Error, OSError) as e:
+                err = classify(e, self.cfg) if isinstance(e, psycopg.Error) else e
+                self._close()
+                if isinstance(err, FatalError):
+                    raise err from None
+                if once:
+                    raise HostdError(f"cannot ship to {self.cfg.url.split('?')[0]}: "
+                                     f"{str(e).strip().splitlines()[0] if str(e).strip() else e!r}: is the "
+                                     "central server up and fleet.url right?") from None
+                if self.failing_since is None:
+                    self.failing_since = time.monotonic()
+                    log.warning("the central store is away (%s); rows wait in the local log, retried "
+                                "from %.3g s up to every %.3g s", str(e).strip().splitlines()[0] if str(e)
+                                else type(e).__name__, self.backoff_s, self.cfg.backoff_max_s)
+                self._set_info(last_error=str(e).strip().splitlines()[0] if str(e).strip() else repr(e))
+                self.stop_event.wait(self.backoff_s)
+                self.backoff_s = min(self.backoff_s * 2, self.cfg.backoff_max_s)
+        self._close()
+        return 0
+
+
+def main(cfg: FleetCfg, once: bool = False) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    s = Shipper(cfg)
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: s.stop_event.set())
+    return s.run(once=once)
