@@ -55,8 +55,14 @@ class LocalPG:
                 f"unix_socket_directories = '{self.dir}'", "fsync = off", "full_page_writes = off",
                 "shared_buffers = 16MB", "max_connections = 40", "log_min_messages = warning",
                 "TimeZone = 'UTC'"]
-        if ssl:
-            conf += ["ssl = on", f"ssl_cert_file = '{ssl[0]}'", f"ssl_key_file = '{ssl[1]}'"]
+        if ssl:  # copied into the server's directory: its own, mode 0600
+            for src, name in zip(ssl, ("server.pem", "server.key"), strict=True):
+                shutil.copyfile(src, self.dir / name)
+                os.chmod(self.dir / name, 0o600)
+                if self.as_user:
+                    shutil.chown(self.dir / name, "nobody")
+            conf += ["ssl = on", f"ssl_cert_file = '{self.dir / 'server.pem'}'",
+                     f"ssl_key_file = '{self.dir / 'server.key'}'"]
         with open(self.data / "postgresql.conf", "a") as f:
             f.write("\n".join(conf) + "\n")
         if ssl:  # TCP only with TLS
@@ -67,7 +73,9 @@ class LocalPG:
     def _run(self, cmd: list[str], timeout: float = 60) -> None:
         r = subprocess.run(self.as_user + cmd, capture_output=True, text=True, timeout=timeout)
         if r.returncode:
-            raise HostdError(f"{Path(cmd[0]).name} failed: {(r.stderr or r.stdout).strip()[-300:]}")
+            logf = self.dir / "server.log"
+            tail = logf.read_text()[-300:] if logf.exists() else ""
+            raise HostdError(f"{Path(cmd[0]).name} failed: {(r.stderr or r.stdout).strip()[-300:]} {tail}")
 
     def start(self) -> None:
         self._run([str(self.bin / "pg_ctl"), "-D", str(self.data), "-l", str(self.dir / "server.log"),

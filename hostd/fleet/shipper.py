@@ -328,7 +328,7 @@ class Shipper:
                     raise err from None
                 if once:
                     raise HostdError(f"cannot ship to {self.cfg.url.split('?')[0]}: "
-                                     f"{str(e).strip().splitlines()[0] if str(e).strip() else e!r}: is the "
+                                     f"{str(e).strip().splitlines()[0].strip(chr(39)) if str(e).strip() else e!r}: is the "
                                      "central server up and fleet.url right?") from None
                 if self.failing_since is None:
                     self.failing_since = time.monotonic()

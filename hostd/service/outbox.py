@@ -88,3 +88,29 @@ def waiting(log_db: str | Path, state: str | Path | None = None) -> dict | None:
     finally:
         log.close()
     return {"waiting": n, "since": since, "last_shipped_at": shipped_at, "last_error": info.get("last_error")}
+
+
+def describe(w: dict) -> str:
+    """One line: how many rows wait and since when (`hostd status`, `hostd doctor`)."""
+    import datetime as dt
+
+    def at(t):
+        return dt.datetime.fromtimestamp(t, dt.UTC).isoformat(timespec="seconds") if t else "never"
+
+    if not w["waiting"]:
+        return f"fleet: nothing waits to be shipped (last shipped {at(w['last_shipped_at'])})"
+    return (f"fleet: {w['waiting']} rows wait to be shipped, the oldest since {at(w['since'])} (this PC's "
+            f"clock); last shipped {at(w['last_shipped_at'])}"
+            + (f"; last error: {w['last_error']}" if w.get("last_error") else ""))
+
+
+def status_of(log_db: str | Path) -> tuple[dict | None, str | None]:
+    """(waiting(...), its line), or (None, None) without a shipper; a log or state file this user
+    cannot read gives (None, the line saying so)."""
+    from hostd.errors import HostdError
+
+    try:
+        w = waiting(log_db)
+    except (sqlite3.Error, OSError, HostdError) as e:
+        return None, f"fleet: cannot read what waits to be shipped ({e})"
+    return w, (describe(w) if w is not None else None)
