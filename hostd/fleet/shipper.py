@@ -44,6 +44,9 @@ HEALTH_COLS = ("serial", "firmware", "transport", "device_state", "device_underr
 HEALTH_TIMES = ("taken_at", "waiting_since")
 
 
+RELOOK_S = 10.0  # the log is read at least this often, changed or not
+
+
 class FatalError(HostdError):
     """What waiting does not mend: the one line says what to do."""
 
@@ -58,7 +61,8 @@ def classify(e: Exception, cfg: FleetCfg) -> Exception:
     where = cfg.url.split("?")[0]
     if isinstance(e, psycopg.ProgrammingError) or "invalid connection option" in low \
             or "invalid uri" in low or "invalid integer value" in low:
-        return FatalError(f"fleet.url {where} is not a valid PostgreSQL URL ({msg}): correct it in {cfg.path}")
+        return FatalError(f"fleet.url {where} is not a valid PostgreSQL URL ({msg}): "
+                          f"correct it in {cfg.path}")
     if "password authentication failed" in low or "no password supplied" in low:
         return FatalError(f"the central server refused role {cfg.role}'s password: write the role's password "
                           "in fleet.password_file (or the systemd credential), or reset it on the server "
@@ -108,8 +112,9 @@ class Shipper:
         self.failing_since: float | None = None
         self.last_health = -1e18
         self.last_partitions = -1e18
-        self._log_con: sqlite3.Connection | None = None
-        self._log_ino = None
+        self._sig = None
+        self._looked = -1e18
+        self._more = False
         self.state = self._open_state(Path(cfg.state))
         self.shipped = 0  # rows committed centrally by this process (each counted once)
 
@@ -125,20 +130,34 @@ class Shipper:
         con.executescript(outbox.STATE_SCHEMA)
         return con
 
-    def _log(self) -> sqlite3.Connection | None:
-        """The daemon's log, read only; opened again when the file is a new one (moved away and
-        begun anew). None while it does not exist or is older than the uuid column."""
-        from hostd.service.qualitylog import connect_readonly
+    def _signature(self):
+        """What changes when the daemon commits: the log's and its -wal's inode, size and mtime."""
+        out = []
+        for p in (self.cfg.quality_db, self.cfg.quality_db + "-wal"):
+            try:
+                st = os.stat(p)
+                out.append((st.st_ino, st.st_size, st.st_mtime_ns))
+            except FileNotFoundError:
+                out.append(None)
+        return tuple(out)
 
-        try:
-            ino = os.stat(self.cfg.quality_db).st_ino
-        except FileNotFoundError:
+    def _log(self) -> sqlite3.Connection | None:
+        """The daemon's log, read only, beside its writer (WAL), opened for one look and closed: a
+        reader held open would see a daemon killed and started again through a stale view, and keep
+        the daemon's checkpoints from cutting the -wal. None while it does not exist or cannot be
+        read yet (the daemon creating it): tried again at the next look. Never opened immutable, as
+        `hostd quality` may open a stopped daemon's log."""
+        if not os.path.exists(self.cfg.quality_db):
             return None
-        if self._log_con is None or ino != self._log_ino:
-            if self._log_con is not None:
-                self._log_con.close()
-            self._log_con, self._log_ino = connect_readonly(self.cfg.quality_db), ino
-        return self._log_con
+        uri = Path(self.cfg.quality_db).absolute().as_uri()
+        con = sqlite3.connect(f"{uri}?mode=ro", uri=True, timeout=5.0, isolation_level=None)
+        try:
+            con.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        except sqlite3.OperationalError as e:
+            con.close()
+            log.debug("the quality log cannot be read yet: %s", e)
+            return None
+        return con
 
     def _set_info(self, **kv) -> None:
         self.state.executemany("INSERT INTO info (key, value) VALUES (?, ?) ON CONFLICT (key) DO UPDATE "
@@ -149,25 +168,37 @@ class Shipper:
     def pending(self, limit: int) -> dict[str, list[dict]]:
         """The rows not yet shipped, at most `limit` of each kind, in the log's id order."""
         out: dict[str, list[dict]] = {"streams": [], "plays": [], "health": []}
-        con = self._log()
+        sig, now = self._signature(), time.monotonic()
+        # unchanged since the last look that found all there was: nothing new (a look every
+        # RELOOK_S all the same, for a commit within the file system's mtime tick of the last look)
+        fresh = sig != self._sig or self._more or now - self._looked > RELOOK_S
+        con = self._log() if fresh else None
         if con is not None:
-            marks = outbox.marks(self.state)
-            have = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
-            for table, _when in outbox.KINDS:
-                if table not in have:
-                    continue
-                cols = [r[1] for r in con.execute(f"PRAGMA table_info({table})")]
-                if "uuid" not in cols:
-                    raise HostdError(f"the quality log {self.cfg.quality_db} has no uuid column yet: start "
-                                     "(or restart) hostd of this version once, which adds it")
-                first = outbox.start_id(con, marks.get(table), table)
-                cur = con.execute(f"SELECT * FROM {table} WHERE id > ? ORDER BY id LIMIT ?", (first, limit))
-                names = [d[0] for d in cur.description]
-                out[table] = [dict(zip(names, r, strict=True)) for r in cur]
+            try:
+                self._read_log(con, limit, out)
+            finally:
+                con.close()
+            self._sig, self._looked = sig, now  # all there was at sig (else: read again next time)
         for hid, uid, taken, doc in self.state.execute(
                 "SELECT id, uuid, taken_at, doc FROM health WHERE shipped = 0 ORDER BY id LIMIT ?", (limit,)):
             out["health"].append({"id": hid, "uuid": uid, "taken_at": taken, **json.loads(doc)})
         return out
+
+    def _read_log(self, con: sqlite3.Connection, limit: int, out: dict) -> None:
+        self._more = False
+        marks = outbox.marks(self.state)
+        have = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        for table, _when in outbox.KINDS:
+            if table not in have:
+                continue
+            if "uuid" not in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
+                raise sqlite3.OperationalError("the log has no uuid column yet: start (or restart) hostd "
+                                               "of this version once, which adds it")
+            first = outbox.start_id(con, marks.get(table), table)
+            cur = con.execute(f"SELECT * FROM {table} WHERE id > ? ORDER BY id LIMIT ?", (first, limit))
+            names = [d[0] for d in cur.description]
+            out[table] = [dict(zip(names, r, strict=True)) for r in cur]
+            self._more |= len(out[table]) == limit
 
     def _daemon_status(self) -> dict | None:
         if not self.cfg.socket or not os.path.exists(self.cfg.socket):
@@ -185,7 +216,8 @@ class Shipper:
         st = self.status()
         if not st:
             return
-        w = outbox.waiting(self.cfg.quality_db, self.cfg.state) if Path(self.cfg.quality_db).exists() else None
+        w = outbox.waiting(self.cfg.quality_db, self.cfg.state) if Path(self.cfg.quality_db).exists() \
+            else None
         doc = {"serial": st.get("serial") or _serial(st.get("transport")), "firmware": st.get("firmware"),
                "transport": st.get("transport") or st.get("device"), "device_state": st.get("device_state"),
                "device_underruns": st.get("device_underruns"), "played_fraction": st.get("played_fraction"),
@@ -272,10 +304,12 @@ class Shipper:
                 if batch[table]:
                     last = batch[table][-1]
                     self.state.execute("INSERT INTO marks (kind, last_id, last_uuid, shipped_at) VALUES "
-                                       "(?, ?, ?, ?) ON CONFLICT (kind) DO UPDATE SET last_id = excluded.last_id, "
+                                       "(?, ?, ?, ?) ON CONFLICT (kind) DO UPDATE SET "
+                                       "last_id = excluded.last_id, "
                                        "last_uuid = excluded.last_uuid, shipped_at = excluded.shipped_at",
                                        (table, last["id"], last["uuid"], when))
-            self.state.executemany("UPDATE health SET shipped = 1 WHERE id = ?", [(h["id"],) for h in batch["health"]])
+            self.state.executemany("UPDATE health SET shipped = 1 WHERE id = ?",
+                                   [(h["id"],) for h in batch["health"]])
             self.state.execute("COMMIT")
         except BaseException:
             self.state.execute("ROLLBACK")
@@ -321,14 +355,20 @@ class Shipper:
             except FatalError:
                 self._close()
                 raise
+            except sqlite3.Error as e:  # the local log busy or being replaced: look again soon
+                log.warning("reading the quality log: %s; trying again", e)
+                self._sig = None
+                if once:
+                    raise HostdError(f"cannot read the quality log {self.cfg.quality_db}: {e}") from None
+                self.stop_event.wait(self.cfg.backoff_min_s)
             except (psycopg.Error, OSError) as e:
                 err = classify(e, self.cfg) if isinstance(e, psycopg.Error) else e
                 self._close()
                 if isinstance(err, FatalError):
                     raise err from None
                 if once:
-                    raise HostdError(f"cannot ship to {self.cfg.url.split('?')[0]}: "
-                                     f"{str(e).strip().splitlines()[0].strip(chr(39)) if str(e).strip() else e!r}: is the "
+                    why = str(e).strip().splitlines()[0].strip("'") if str(e).strip() else repr(e)
+                    raise HostdError(f"cannot ship to {self.cfg.url.split('?')[0]}: {why}: is the "
                                      "central server up and fleet.url right?") from None
                 if self.failing_since is None:
                     self.failing_since = time.monotonic()
