@@ -22,7 +22,7 @@ from hostd.service import outbox, qualitylog
 psycopg = pytest.importorskip("psycopg") if os.environ.get("CI") != "true" else __import__("psycopg")
 
 ROOT = Path(__file__).resolve().parents[1]
-PCS = ("pc_a", "pc_b", "pc_c")
+PCS = ("pc_a", "pc_b", "pc_c", "pc_d", "pc_e")  # one per test that compares a PC's whole store
 
 
 def _server_or_fail(**kw):
@@ -58,7 +58,7 @@ def _certs(d: Path) -> tuple[Path, Path, Path, Path]:
 
 @pytest.fixture(scope="module")
 def pg(tmp_path_factory):
-    """One server for the module: TLS on (its own CA), the schema migrated, three PCs' roles with
+    """One server for the module: TLS on (its own CA), the schema migrated, the PCs' roles with
     their passwords in root-only files, and a reader."""
     from hostd.cli import main
 
@@ -380,3 +380,99 @@ def test_the_default_largest_backoff_is_at_least_a_minute(tmp_path):
     p = tmp_path / "f.toml"
     p.write_text('[fleet]\nurl = "postgresql://h/db"\nrole = "pc_x"\n')
     assert config.load(p).backoff_max_s >= 60.0
+
+
+# ---------------------------------------------------------------- crashes at the two edges of a commit
+class _CrashAfterCommit:
+    """The state file, as a shipper killed right after the central commit sees it: the marks never
+    written (the process is gone before its local transaction)."""
+
+    def __init__(self, con):
+        self.con = con
+
+    def execute(self, sql, *a):
+        if sql.startswith("BEGIN IMMEDIATE"):
+            raise KeyboardInterrupt("killed between the central commit and the local mark")
+        return self.con.execute(sql, *a)
+
+    def __getattr__(self, name):
+        return getattr(self.con, name)
+
+
+def test_a_shipper_killed_either_side_of_the_central_commit_loses_and_doubles_nothing(pg, tmp_path):
+    from hostd.fleet import config
+    from hostd.fleet.shipper import Shipper
+
+    db = tmp_path / "q.sqlite"
+    _write(db, 300, 4)
+    cfg = config.load(_cfg(tmp_path, pg, "pc_d"))
+    # killed before the commit: the server is cut off mid-transaction (its backend terminated)
+    s = Shipper(cfg)
+    s.connect()
+    pid = s.conn.info.backend_pid
+    with _admin(pg) as c:
+        c.execute("SELECT pg_terminate_backend(%s)", (pid,))
+    with pytest.raises(psycopg.OperationalError):
+        s.ship(s.pending(100))
+    assert outbox.waiting(db, cfg.state)["waiting"] == 8
+    with _admin(pg) as c:
+        assert c.execute("SELECT count(*) FROM fleet.quality WHERE name = 'tex300'").fetchone()[0] == 0
+    # killed after the commit, before the mark: the rows are central, the marks are not
+    s = Shipper(cfg)
+    s.connect()
+    s.state = _CrashAfterCommit(s.state)
+    with pytest.raises(KeyboardInterrupt):
+        s.ship(s.pending(100))
+    s._close()
+    assert outbox.waiting(db, cfg.state)["waiting"] == 8
+    # the next shipper sends them again: each a no-op, then marked
+    s = Shipper(cfg)
+    assert s.run(once=True) == 0 and s.shipped == 0
+    assert outbox.waiting(db, cfg.state)["waiting"] == 0
+    _assert_exactly_once(pg, "pc_d", db)
+
+
+def test_the_password_from_a_systemd_credential_and_the_unit_keeps_it_out_of_argv(pg, tmp_path):
+    import shutil
+
+    creds = tmp_path / "creds"
+    creds.mkdir()
+    shutil.copy(pg.pw["pc_e"], creds / "hostd-fleet-password")
+    os.chmod(creds / "hostd-fleet-password", 0o400)
+    _write(tmp_path / "q.sqlite", 400, 1)
+    r = _ship(_cfg(tmp_path, pg, "pc_e", password_file=""), "--once",
+              env={"CREDENTIALS_DIRECTORY": str(creds)})
+    assert r.returncode == 0, r.stderr
+    unit = (ROOT / "systemd" / "hostd-fleet.service").read_text()
+    assert "LoadCredential=hostd-fleet-password:" in unit
+    exec_start = next(ln for ln in unit.splitlines() if ln.startswith("ExecStart="))
+    assert exec_start.split()[1:] == ["fleet", "ship", "--config", "/etc/hostd/fleet.toml"]
+    if shutil.which("systemd-analyze"):
+        f = tmp_path / "hostd-fleet.service"
+        f.write_text(unit.replace("/opt/hostd/bin/hostd", shutil.which("true")))
+        out = subprocess.run(["systemd-analyze", "security", "--offline=true", str(f)], capture_output=True,
+                             text=True, timeout=60)
+        m = re.search(r"Overall exposure level for hostd-fleet.service: (\d+\.\d)", out.stdout)
+        assert m and float(m.group(1)) <= 2.0, out.stdout[-300:]
+
+
+def test_doctor_says_how_many_rows_wait_and_since_when(pg, tmp_path, monkeypatch, capsys):
+    from hostd.cli import main
+
+    db = tmp_path / "q.sqlite"
+    _write(db, 500, 2, t0=1.7e9)
+    (tmp_path / "hostd.toml").write_text(f'[device]\ntransport = "sim"\n[quality]\ndb = "{db}"\n'
+                                         f'[control]\nsocket = "{tmp_path / "none.sock"}"\n')
+    monkeypatch.setenv("HOSTD_FLEET_STATE", str(tmp_path / "outbox.sqlite"))
+    main(["doctor", "--config", str(tmp_path / "hostd.toml")])
+    assert "fleet:" not in capsys.readouterr().out  # no shipper on this PC: nothing said
+    bad = tmp_path / "bad.pw"
+    bad.write_text("nope\n")
+    os.chmod(bad, 0o600)
+    assert _ship(_cfg(tmp_path, pg, "pc_e", password_file=str(bad)), "--once").returncode != 0
+    main(["doctor", "--config", str(tmp_path / "hostd.toml")])
+    out = capsys.readouterr().out
+    assert "fleet: 4 rows wait to be shipped, the oldest since 2023-11-14T22:21:40+00:00" in out, out
+    assert _ship(_cfg(tmp_path, pg, "pc_e"), "--once").returncode == 0
+    main(["doctor", "--config", str(tmp_path / "hostd.toml")])
+    assert "fleet: nothing waits to be shipped" in capsys.readouterr().out
