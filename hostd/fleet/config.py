@@ -30,7 +30,7 @@ class FleetCfg:
     state: str = STATE_DEFAULT      # the shipper's own file: what was shipped, health summaries
     socket: str = "/run/hostd/hostd.sock"   # the daemon's control socket (its status: device health)
     batch_rows: int = 500           # rows per central transaction
-    interval_s: float = 1.0         # how often the log is looked at for new rows
+    interval_s: float = 10.0        # how often the log is looked at for new rows (a central commit each)
     health_interval_s: float = 300.0  # how often a device-health summary is taken
     backoff_min_s: float = 1.0      # the first wait after a failed try; doubles up to backoff_max_s
     backoff_max_s: float = DEFAULT_BACKOFF_MAX_S

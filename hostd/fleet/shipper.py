@@ -42,9 +42,43 @@ PLAY_TIMES = ("started_at", "ended_at")
 HEALTH_COLS = ("serial", "firmware", "transport", "device_state", "device_underruns", "played_fraction",
                "stalls", "recoveries", "waiting_rows")
 HEALTH_TIMES = ("taken_at", "waiting_since")
+# the central columns' types (hostd/fleet/sql), for the rows sent as one JSON array per kind
+TYPES = {"sha256": "text", "name": "text", "bytes": "integer", "method": "text", "levels": "integer",
+         "n": "integer", "n_keep": "integer", "curve_id": "text", "calibration": "text",
+         "underruns": "bigint",
+         "serial": "text", "firmware": "text", "transport": "text", "device_state": "text",
+         "device_underruns": "bigint", "stalls": "bigint", "recoveries": "bigint", "waiting_rows": "bigint"}
+KIND_TABLES = {"quality": "quality", "play": "plays", "health": "health"}
 
 
-RELOOK_S = 10.0  # the log is read at least this often, changed or not
+def _ship_sql() -> str:
+    """Per kind: the rows (a JSON array), their uuids into the ledger (ON CONFLICT DO NOTHING: those
+    the centre has not had come back), those rows into their table; the count of rows new. Each
+    row records the PC's clock offset (this PC's clock when it sent minus the server's: it includes
+    the one-way network delay) and gets the server's receive time (the default, now())."""
+    ctes, counts = [], []
+    for kind, cols, times in (("quality", QUALITY_COLS, QUALITY_TIMES), ("play", PLAY_COLS, PLAY_TIMES),
+                              ("health", HEALTH_COLS, HEALTH_TIMES)):
+        table, local = KIND_TABLES[kind], kind != "health"
+        spec = ", ".join(["uuid uuid", *(["id bigint"] if local else []),
+                          *(f"{c} {TYPES.get(c, 'double precision')}" for c in (*cols, *times))])
+        dest = ["pc_received_at" if (kind, t) == ("quality", "received_at") else t for t in times]
+        ctes += [f"{kind}_r AS (SELECT * FROM jsonb_to_recordset(%({kind})s::jsonb) AS r({spec}))",
+                 f"{kind}_k AS (INSERT INTO fleet.row_keys (uuid, pc_id, kind) SELECT uuid, %(pc)s, "
+                 f"'{kind}' FROM {kind}_r ON CONFLICT DO NOTHING RETURNING uuid)",
+                 f"{kind}_i AS (INSERT INTO fleet.{table} (uuid, pc_id, pc_clock_offset_s, "
+                 f"{'local_id, ' if local else ''}{', '.join((*cols, *dest))}) "
+                 f"SELECT uuid, %(pc)s, %(pc_now)s::float8 - extract(epoch FROM clock_timestamp()), "
+                 f"{'id, ' if local else ''}{', '.join((*cols, *(f'to_timestamp({t})' for t in times)))} "
+                 f"FROM {kind}_r JOIN {kind}_k USING (uuid) ON CONFLICT DO NOTHING RETURNING 1)"]
+        counts.append(f"(SELECT count(*) FROM {kind}_i)")
+    return f"WITH {', '.join(ctes)} SELECT {' + '.join(counts)}"
+
+
+SHIP_SQL = _ship_sql()
+
+
+RELOOK_S = 60.0  # the log is read at least this often, changed or not
 
 
 class FatalError(HostdError):
@@ -82,10 +116,6 @@ def classify(e: Exception, cfg: FleetCfg) -> Exception:
     if "no pg_hba.conf entry" in low:
         return FatalError(f"{msg}: the server's pg_hba.conf must let role {cfg.role} in from this PC")
     return e
-
-
-def _iso(t):
-    return None if t is None else float(t)
 
 
 def _serial(spec: str | None) -> str | None:
@@ -126,7 +156,9 @@ class Shipper:
             os.close(os.open(p, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o640))
         con = sqlite3.connect(p, timeout=10.0, isolation_level=None)
         con.execute("PRAGMA journal_mode=WAL")
-        con.execute("PRAGMA synchronous=FULL")
+        # NORMAL: a power cut can take the last marks back, never leave the file broken; a mark
+        # taken back only sends its rows again, which the centre ignores
+        con.execute("PRAGMA synchronous=NORMAL")
         con.executescript(outbox.STATE_SCHEMA)
         return con
 
@@ -234,7 +266,7 @@ class Shipper:
 
         try:
             conn = psycopg.connect(self.cfg.url, user=self.cfg.role, password=password(self.cfg),
-                                   connect_timeout=max(1, round(self.cfg.connect_timeout_s)),
+                                   autocommit=True, connect_timeout=max(1, round(self.cfg.connect_timeout_s)),
                                    application_name="hostd-fleet", options="-c TimeZone=UTC")
         except psycopg.Error as e:
             raise classify(e, self.cfg) from None
@@ -262,39 +294,16 @@ class Shipper:
         conn = self.conn
         now_mono = time.monotonic()
         if now_mono - self.last_partitions > 3600:
-            with conn.transaction():
-                conn.execute("SELECT fleet.ensure_partitions()")
+            conn.execute("SELECT fleet.ensure_partitions()")
             self.last_partitions = now_mono
-        pc = self.cfg.role
-        new_rows = 0
-        with conn.transaction():
-            cur = conn.cursor()
-            t0 = self.clock()
-            server_t = cur.execute("SELECT extract(epoch FROM clock_timestamp())::float8").fetchone()[0]
-            offset_s = (t0 + self.clock()) / 2 - server_t  # this PC's clock minus the server's
-            for kind, table, cols, times, rows in (
-                    ("quality", "quality", QUALITY_COLS, QUALITY_TIMES, batch["streams"]),
-                    ("play", "plays", PLAY_COLS, PLAY_TIMES, batch["plays"]),
-                    ("health", "health", HEALTH_COLS, HEALTH_TIMES, batch["health"])):
-                if not rows:
-                    continue
-                got = cur.execute("INSERT INTO fleet.row_keys (uuid, pc_id, kind) SELECT u, %s, %s FROM "
-                                  "unnest(%s::uuid[]) AS u ON CONFLICT DO NOTHING RETURNING uuid::text",
-                                  (pc, kind, [r["uuid"] for r in rows])).fetchall()
-                fresh = {g[0] for g in got}
-                rows = [r for r in rows if r["uuid"] in fresh]
-                if not rows:
-                    continue
-                tcols = ["pc_received_at" if (kind, t) == ("quality", "received_at") else t for t in times]
-                local = ["local_id"] if kind != "health" else []
-                names = ["uuid", "pc_id", "pc_clock_offset_s", *local, *cols, *tcols]
-                marks = ["%s", "%s", "%s", *(["%s"] * len(local)), *(["%s"] * len(cols)),
-                         *(["to_timestamp(%s)"] * len(tcols))]
-                cur.executemany(f"INSERT INTO fleet.{table} ({', '.join(names)}) VALUES ({', '.join(marks)}) "
-                                "ON CONFLICT DO NOTHING",
-                                [[r["uuid"], pc, offset_s, *([r["id"]] if local else []),
-                                  *(r.get(c) for c in cols), *(_iso(r.get(t)) for t in times)] for r in rows])
-                new_rows += len(rows)
+        sent = {"quality": (QUALITY_COLS, QUALITY_TIMES, batch["streams"]),
+                "play": (PLAY_COLS, PLAY_TIMES, batch["plays"]),
+                "health": (HEALTH_COLS, HEALTH_TIMES, batch["health"])}
+        docs = {kind: json.dumps([{c: r.get(c) for c in ("uuid", "id", *cols, *times)} for r in rows])
+                for kind, (cols, times, rows) in sent.items()}
+        # one statement, one round trip, its own transaction (autocommit): all of it or none
+        new_rows = conn.execute(SHIP_SQL, {"pc": self.cfg.role, "pc_now": self.clock(), **docs},
+                                prepare=True).fetchone()[0]
         # committed centrally: now, and only now, marked shipped here (a crash in between: sent again,
         # and each row of it a no-op there)
         when = self.clock()
