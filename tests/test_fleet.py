@@ -476,3 +476,21 @@ def test_doctor_says_how_many_rows_wait_and_since_when(pg, tmp_path, monkeypatch
     assert _ship(_cfg(tmp_path, pg, "pc_e"), "--once").returncode == 0
     main(["doctor", "--config", str(tmp_path / "hostd.toml")])
     assert "fleet: nothing waits to be shipped" in capsys.readouterr().out
+
+
+def test_the_display_serial_is_read_from_sysfs_as_udev_has_it(tmp_path):
+    from hostd.fleet.shipper import _serial
+
+    hid = tmp_path / "class/hidraw/hidraw3/device"
+    hid.mkdir(parents=True)
+    (hid / "uevent").write_text("DRIVER=hid-generic\nHID_NAME=hostd display\nHID_UNIQ=VT-00042\n")
+    usb = tmp_path / "devices/usb1/1-2"
+    (usb / "1-2:1.0/tty/ttyACM0").mkdir(parents=True)
+    (usb / "serial").write_text("VT-00043\n")
+    (tmp_path / "class/tty/ttyACM0").mkdir(parents=True)
+    (tmp_path / "class/tty/ttyACM0/device").symlink_to(usb / "1-2:1.0")
+    s = str(tmp_path)
+    assert _serial("hid:/dev/hidraw3", s) == "VT-00042"
+    assert _serial("serial:/dev/ttyACM0", s) == "VT-00043"
+    assert _serial("serial:/dev/pts/4", s) is None and _serial("sim", s) is None
+    assert _serial("hid:/dev/hidraw9", s) is None
