@@ -78,7 +78,29 @@ def _prefer_system_libpq() -> None:
         os.environ.setdefault("PSYCOPG_IMPL", "python")
 
 
+def _lean_exec(args) -> None:
+    """`hostd fleet ship` run as a command (the unit's ExecStart): exec the lean entry
+    (hostd/fleet/__main__.py) in this same process, leaving the full parser's modules behind, and
+    without docstrings (-OO: 0.5 MB of psycopg's; the shipper asserts nothing).
+    Not when called in-process (main([...]) from Python: tests, scripts)."""
+    import os
+    import sys
+
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    if os.path.basename(sys.argv[0]) == "hostd" or (spec is not None and spec.name == "hostd.__main__"):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execv(sys.executable, [sys.executable, "-OO", "-m", "hostd.fleet", "ship", "--config", args.config,
+                                  *(["--once"] if args.once else [])])
+
+
 def cmd_ship(args) -> int:
+    _lean_exec(args)
+    return run_ship(args.config, args.once)
+
+
+def run_ship(config_path: str, once: bool) -> int:
     _prefer_system_libpq()
     try:
         import psycopg  # noqa: F401
@@ -86,7 +108,7 @@ def cmd_ship(args) -> int:
         raise HostdError("psycopg is not installed: pip install 'hostd[fleet]'") from None
     from hostd.fleet import config, shipper
 
-    return shipper.main(config.load(args.config), once=args.once)
+    return shipper.main(config.load(config_path), once=once)
 
 
 def add_parser(sub) -> None:
