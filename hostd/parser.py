@@ -176,6 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     from hostd.corpus.cli import add_parser as add_corpus
     from hostd.experiment.cli import add_parser as add_experiment
     from hostd.export_cli import add_parser as add_export
+    from hostd.fleet.cli import add_parser as add_fleet
     from hostd.service.cli import add_parsers as add_service
     from hostd.sim.cli import add_parser as add_sim
 
@@ -187,6 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub.choices["install-service"].set_defaults(root_parser=ap)
     add_sim(sub)
     add_experiment(sub)
+    add_fleet(sub)
 
     from hostd.helptext import add_epilogs
 

@@ -26,6 +26,7 @@ NO_JSON = {
     "decode": "its output is the data itself (heights, one per line, or .npy)",
     "install-service": "prints the commands it ran or would run",
     "corpus export": "writes the store to -o FILE and prints nothing",
+    "fleet ship": "the shipper service: it logs what it ships (as hostd run)",
     "experiment threshold": "a live session: the participant's URL, then its files",
     "experiment similarity": "a live session: the participant's URL, then its files",
 }

@@ -206,3 +206,34 @@ print("ok")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(),
                          timeout=120)
     assert out.stdout.strip() == "ok", out.stderr[-1500:]
+
+
+def _imports(path: Path) -> set[str]:
+    import ast
+
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            out.add(node.module)
+    return out
+
+
+def test_the_service_and_the_codec_never_import_the_fleet_room():
+    """The daemon never sees the central store's credentials nor loads its driver: no module of the
+    service (nor codec, perception, render) imports hostd.fleet or psycopg, at any depth of the
+    function bodies; and a process that loads the daemon, status and doctor has neither loaded."""
+    bad = []
+    for room in ("service", "codec", "perception", "render"):
+        for f in sorted((ROOT / "hostd" / room).rglob("*.py")):
+            bad += [f"{f.relative_to(ROOT)}: {m}" for m in _imports(f)
+                    if m == "hostd.fleet" or m.startswith(("hostd.fleet.", "psycopg"))]
+    assert not bad, bad
+    code = ("import sys\nimport hostd.service.daemon, hostd.service.doctor, hostd.service.cli\n"
+            "import hostd.service.outbox\n"
+            "print(sorted(m for m in sys.modules if m.startswith(('hostd.fleet', 'psycopg'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(),
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-500:]
+    assert out.stdout.strip() == "[]", out.stdout

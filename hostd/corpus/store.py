@@ -10,7 +10,7 @@ deletes every row written, would run on our reads and writes), and so is a file 
 corpus store (the daemon's quality log, any other database). A store is marked as one by
 `PRAGMA application_id` and versioned by `PRAGMA user_version`; a store of an older version is
 migrated in place, one of a newer hostd is refused. Reading (`report`, `export`) never creates
-a file. The -wal is bounded as the quality log's is (hostd.service.qualitylog).
+a file. The -wal is bounded as the quality log's is (hostd.sqlitewal).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 
 from hostd.corpus.jobs import COLUMNS, COLUMNS_V1, SCHEMA, named_key
 from hostd.errors import HostdError
-from hostd.service.qualitylog import JOURNAL_LIMIT_BYTES, WAL_AUTOCHECKPOINT_PAGES
+from hostd.sqlitewal import bound_wal
 
 _SQL_TYPE = {"str": "TEXT", "float": "REAL", "int": "INTEGER"}
 TABLE = "results"
@@ -140,8 +140,7 @@ class Store:
             # WAL + NORMAL: a committed task survives a killed process (not a power cut)
             self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=NORMAL")
-            self.db.execute(f"PRAGMA journal_size_limit={JOURNAL_LIMIT_BYTES}")
-            self.db.execute(f"PRAGMA wal_autocheckpoint={WAL_AUTOCHECKPOINT_PAGES}")
+            bound_wal(self.db)
 
     def _columns(self) -> list[str]:
         return [r[1] for r in self.db.execute(f"PRAGMA table_info({TABLE})")]

@@ -120,6 +120,15 @@ def cmd_status(args) -> int:
 
     st = request(_sock(args), {"cmd": "status"})
     st.pop("ok", None)
+    from hostd.service.config import load
+    from hostd.service.outbox import status_of
+
+    try:  # rows waiting for the shipper (hostd fleet), if this PC has one
+        fleet, fleet_line = status_of(load(_config(args)).quality.db)
+    except HostdError:
+        fleet, fleet_line = None, None
+    if fleet is not None:
+        st["fleet"] = fleet
     if args.json:
         json.dump(st, sys.stdout, indent=1)
         print()
@@ -132,6 +141,8 @@ def cmd_status(args) -> int:
             print(f"rendered on the {st['render_at']}: {st['render_reason']}"
                   + (f"; host lost {st['device_host_lost']}x, re-uploads {st['device_reuploads']}"
                      if st["render_at"] == "device" else ""))
+        if fleet_line:
+            print(fleet_line)
     return 0
 
 

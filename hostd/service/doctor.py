@@ -174,6 +174,11 @@ def doctor(config: str | None, json_out: bool = False) -> int:
         if kept:
             note(f"quality log: {len(kept)} rows pending in {pending} (not written when hostd last stopped; "
                  "the next start writes them once the disk has space)")
+    from hostd.service.outbox import status_of
+
+    _fleet, fleet_line = status_of(db)  # rows waiting for the shipper (hostd fleet), if it runs here
+    if fleet_line:
+        note(fleet_line)
     head("codec")
     from hostd.codec import rangecoder
 

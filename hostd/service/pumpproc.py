@@ -419,7 +419,8 @@ class PumpProcess:
         if self.arrival[0] is not None:
             self.arrival[1] = time.monotonic()
         self.backlog.clear()
-        self.tell(transport=transport.describe())
+        self.tell(transport=transport.describe(),
+                  firmware=f"{ident['fw_major']}.{ident['fw_minor']}.{ident['fw_patch']}")
         self.log(f"device: {transport.describe()} firmware {ident['fw_major']}.{ident['fw_minor']}."
                  f"{ident['fw_patch']}, protocol v{ident['protocol_version']}")
         if self.pump is None:

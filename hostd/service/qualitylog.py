@@ -20,9 +20,11 @@ import json
 import os
 import sqlite3
 import time
+import uuid
 from pathlib import Path
 
 from hostd.errors import HostdError
+from hostd.sqlitewal import JOURNAL_LIMIT_BYTES, WAL_AUTOCHECKPOINT_PAGES, bound_wal  # noqa: F401
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS streams (
@@ -48,6 +50,7 @@ CREATE TABLE IF NOT EXISTS streams (
     a REAL NOT NULL,
     b REAL NOT NULL,
     calibration TEXT,               -- NAME@ID of the calibration that scored it (NULL: none)
+    uuid TEXT,                      -- the row's stable key, written with it (hostd fleet ships by it)
     UNIQUE (name, sha256)   -- one row per stored (name, content); re-sending it adds none
 );
 CREATE INDEX IF NOT EXISTS streams_received ON streams(received_at);
@@ -63,7 +66,8 @@ CREATE TABLE IF NOT EXISTS plays (
     played_s REAL NOT NULL,         -- samples played from the device's buffer / 3 kHz, s (device
                                     -- mode: played_fraction x device_s, the time it rendered)
     played_fraction REAL,           -- the pump's played_fraction at the end (NULL: never ran)
-    underruns INTEGER NOT NULL      -- underrun episodes the device counted meanwhile
+    underruns INTEGER NOT NULL,     -- underrun episodes the device counted meanwhile
+    uuid TEXT                       -- the row's stable key, written with it (hostd fleet ships by it)
 );
 CREATE INDEX IF NOT EXISTS plays_stream ON plays(name, sha256);
 """
@@ -73,8 +77,6 @@ COLUMNS = ("id", "sha256", "name", "received_at", "scored_at", "bytes", "method"
            "ip", "ia", "iobj", "a", "b", "calibration")
 
 
-JOURNAL_LIMIT_BYTES = 16 * 1024  # the -wal is cut back to this when a writer restarts it
-WAL_AUTOCHECKPOINT_PAGES = 16   # (SQLite's default, 1000 pages = 4 MB, is never reached on a small disk)
 BATCH_ROWS = 16                 # rows per transaction: bounded so that a batch fits in 64 kB free
 PENDING_SUFFIX = ".pending"     # rows not written when the daemon stopped, one JSON object per line
 
@@ -85,12 +87,41 @@ def connect(path: str | Path) -> sqlite3.Connection:
     con = sqlite3.connect(p, timeout=10.0, isolation_level=None)
     con.execute("PRAGMA journal_mode=WAL")
     con.execute("PRAGMA synchronous=FULL")
-    con.execute(f"PRAGMA journal_size_limit={JOURNAL_LIMIT_BYTES}")
-    con.execute(f"PRAGMA wal_autocheckpoint={WAL_AUTOCHECKPOINT_PAGES}")
+    bound_wal(con)
     con.executescript(SCHEMA)
     if "calibration" not in _stream_columns(con):  # a log written before calibrations: add it
         con.execute("ALTER TABLE streams ADD COLUMN calibration TEXT")
+    _add_uuids(con)
     return con
+
+
+def _add_uuids(con: sqlite3.Connection) -> None:
+    """A log written before rows had a stable key: add the uuid column to streams and plays and
+    give every existing row one (the rows of a table in one transaction: all keyed or none, and
+    those not keyed are keyed at the next connect). Rows an older hostd wrote since (a downgrade)
+    are keyed the same way; a partial index finds them at once."""
+    for table in ("streams", "plays"):
+        if "uuid" not in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                if "uuid" not in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
+                    con.execute(f"ALTER TABLE {table} ADD COLUMN uuid TEXT")
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+        con.execute(f"CREATE INDEX IF NOT EXISTS {table}_keyless ON {table}(id) WHERE uuid IS NULL")
+        if con.execute(f"SELECT 1 FROM {table} WHERE uuid IS NULL LIMIT 1").fetchone() is None:
+            continue
+        con.execute("BEGIN IMMEDIATE")
+        try:
+            ids = [r[0] for r in con.execute(f"SELECT id FROM {table} WHERE uuid IS NULL")]
+            con.executemany(f"UPDATE {table} SET uuid = ? WHERE id = ?",
+                            [(str(uuid.uuid4()), i) for i in ids])
+            con.execute("COMMIT")
+        except BaseException:
+            con.execute("ROLLBACK")
+            raise
 
 
 def _stream_columns(con: sqlite3.Connection) -> set[str]:
@@ -224,9 +255,9 @@ def score_row(data: bytes, name: str, sha: str, received_at: float, a: float, b:
 
 
 def insert(con: sqlite3.Connection, row: dict) -> None:
-    cols = [c for c in COLUMNS if c != "id"]
+    cols = [c for c in COLUMNS if c != "id"] + ["uuid"]
     con.execute(f"INSERT OR IGNORE INTO streams ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})",
-                [row.get(c) for c in cols])
+                [row.get(c) for c in cols[:-1]] + [row.get("uuid") or str(uuid.uuid4())])
 
 
 def known(con: sqlite3.Connection) -> set[tuple[str, str]]:
@@ -240,12 +271,14 @@ DELIVERED = ("plays", "played_s", "played_fraction", "underruns")
 
 
 def insert_play(con: sqlite3.Connection, play: dict) -> None:
-    """One plays row; none when the log has this play already (the same stream, started at the same
-    instant: a pending play written, then kept again by a stop before its file was removed)."""
-    marks = ", ".join("?" * len(PLAY_COLUMNS))
-    con.execute(f"INSERT INTO plays ({', '.join(PLAY_COLUMNS)}) SELECT {marks} WHERE NOT EXISTS "
+    """One plays row (with its stable uuid, for the fleet's shipper); none when the log has this
+    play already (the same stream, started at the same instant: a pending play written, then kept
+    again by a stop before its file was removed)."""
+    marks = ", ".join("?" * (len(PLAY_COLUMNS) + 1))
+    con.execute(f"INSERT INTO plays ({', '.join(PLAY_COLUMNS)}, uuid) SELECT {marks} WHERE NOT EXISTS "
                 "(SELECT 1 FROM plays WHERE name = ? AND sha256 = ? AND started_at = ?)",
-                [play.get(c) for c in PLAY_COLUMNS] + [play["name"], play["sha256"], play["started_at"]])
+                [play.get(c) for c in PLAY_COLUMNS] + [play.get("uuid") or str(uuid.uuid4())]
+                + [play["name"], play["sha256"], play["started_at"]])
 
 
 def query(con: sqlite3.Connection, since: float | None = None) -> list[dict]:
