@@ -19,8 +19,8 @@ setup(ext_modules=[
     Extension("hostd.device._fastlink", ["hostd/device/_fastlink.c"], optional=True,
               depends=["hostd/device/framing.h"]),
     Extension("hostd.render._fastrender", ["hostd/render/_fastrender.c"], optional=True,
-              depends=["hostd/render/render_core.h"], extra_compile_args=["-ffp-contract=off"]),
+              depends=["hostd/render/render_core.h", "hostd/device/cycle_state.h"], extra_compile_args=["-ffp-contract=off"]),
     Extension("hostd.device._fastpump", ["hostd/device/_fastpump.c"], optional=True,
-              depends=["hostd/render/render_core.h", "hostd/device/framing.h"],
+              depends=["hostd/render/render_core.h", "hostd/device/framing.h", "hostd/device/cycle_state.h"],
               extra_compile_args=["-ffp-contract=off"]),
 ])

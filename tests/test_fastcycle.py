@@ -17,7 +17,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hostd.device import fastlink
+from hostd import cyclestate
+from hostd.device import fastlink, fastpump, gen_header
 from hostd.device import protocol as pr
 from hostd.render import fastrender
 from hostd.render.equalizer import SMALL_BATCH, Equalizer, EqualizerConfig
@@ -60,6 +61,27 @@ def test_the_compiled_fast_path_is_built_where_a_c_compiler_is():
 
 # ---------------------------------------------------------------- link messages
 @needs_c
+def test_the_cycle_state_header_is_generated_from_the_one_schema():
+    """hostd/device/cycle_state.h is checked in (the sdist builds without running Python code
+    first, as with the firmware's hostd_proto.h): it must be what the schema generates now."""
+    assert (ROOT / "hostd" / "device" / "cycle_state.h").read_text() == gen_header.render_state()
+
+
+def test_a_stage_holds_its_declared_fields_in_its_record():
+    """Each declared field is an attribute of its stage, stored in the struct the C reads (a write
+    through the buffer shows in the attribute: one memory, no copy); optional ones map None."""
+    import ctypes
+
+    out = OutputStage()
+    assert set(cyclestate.state_fields(out)) == set(cyclestate.SCHEMA["output"])
+    raw = cyclestate.RECORDS["output"].from_buffer(memoryview(out).cast("B"))
+    raw.last_um = 2.5
+    assert out.last_um == 2.5 and "last_um" not in vars(out)
+    assert ctypes.sizeof(out) == 8 * len(cyclestate.fields("output"))
+    if fastpump._C is not None:
+        assert fastpump._C.RECORD_SIZES == {k: ctypes.sizeof(r) for k, r in cyclestate.RECORDS.items()}
+
+
 def test_golden_protocol_vectors_decode_alike():
     lines = [ln.split() for ln in VECTORS.read_text().splitlines() if ln.startswith(("msg ", "bad "))]
     assert len(lines) >= 10

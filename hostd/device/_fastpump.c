@@ -45,7 +45,7 @@
 #include "framing.h" /* crc16, cobs_decode */
 
 #define STALL_MARGIN_CYCLES 2 /* pump.STALL_MARGIN_CYCLES */
-#define REVISION 6 /* fastpump.C_REVISION must equal this */
+#define REVISION 7 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
 #define MAX_MSGS 64
 #define MAX_UNACKED 64
@@ -57,6 +57,8 @@
 #define MODE_SERIAL 0
 #define MODE_HID 1
 #define REPORT_SIZE 64 /* protocol.REPORT_SIZE (checked at init) */
+#define HS_COUNT(kind) +1
+#define HS_NREC (0 HS_RECORDS(HS_COUNT)) /* the records a cycle holds at most */
 
 /* ------------------------------------------------------------------ constants (init) */
 static int C_STATUS_ID = -1, C_SAMPLES_ID = -1, C_MAX_SAMPLES = 0, C_RUNNING = 1, C_SMALL_BATCH = 32,
@@ -84,9 +86,8 @@ static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the refere
     X(order)                                                                                              \
     X(glitch_um) X(rest_speed_mm_s) X(rest_hold_um) X(max_predict_s) X(max_gap_s) X(max_speed_mm_s)       \
     X(n) X(length_mm) X(band) X(speed_bucket) X(_v_full_mm_s) X(_w_bucket) X(_w) X(_w_cache) X(sos)     \
-    X(zi) X(last_um)                                                                                      \
-    X(envelope) X(target_envelope) X(limit_um) X(max_step_um) X(ramp_step) X(_codes_per_um) X(limit_code) \
-    X(nonfinite) X(clipped) X(ser) X(fd) X(deframer) X(_buf) X(bad_frames) X(_queue) X(_pending)          \
+    X(zi)                                                                                                 \
+    X(ser) X(fd) X(deframer) X(_buf) X(bad_frames) X(_queue) X(_pending)          \
     X(_vmin) X(after_poll) X(_take) X(clear) X(extend) X(step) X(empty_reads)
 #define DECL(name) static PyObject *N_##name;
 NAMES(DECL)
@@ -157,8 +158,26 @@ typedef struct {
     double length_mm, speed_bucket, v_full;
     /* equalizer, output stage */
     Py_ssize_t ns;
-    rc_out_t o;
+    hs_output_t *o; /* the output stage's record (through the buffer protocol) */
+    Py_buffer recbuf[HS_NREC];
+    int nrec;
 } S;
+
+/* ------------------------------------------------------------------ records
+ * A stage's state record (hostd/device/cycle_state.toml): the stage object holds its fields in
+ * the struct and exposes it through the buffer protocol. NULL with TypeError: not a record. */
+#define REC(s, obj, kind) ((hs_##kind##_t *)get_rec(s, obj, sizeof(hs_##kind##_t)))
+static void *get_rec(S *s, PyObject *o, Py_ssize_t size) {
+    Py_buffer *b = &s->recbuf[s->nrec];
+    if (s->nrec >= HS_NREC || PyObject_GetBuffer(o, b, PyBUF_WRITABLE) < 0)
+        return NULL;
+    s->nrec++;
+    if (b->len != size) {
+        PyErr_SetString(PyExc_TypeError, "a cycle_state record expected");
+        return NULL;
+    }
+    return b->buf;
+}
 
 /* ------------------------------------------------------------------ attribute helpers */
 static int get_obj(PyObject *o, PyObject *name, PyObject **dst) {
@@ -243,6 +262,8 @@ static void release(S *s) {
     if (s->have_ring)
         PyBuffer_Release(&s->ringbuf);
     s->have_w = s->have_sos = s->have_zi = s->have_ring = 0;
+    while (s->nrec > 0)
+        PyBuffer_Release(&s->recbuf[--s->nrec]);
     Py_CLEAR(s->pump);
     Py_CLEAR(s->link);
     Py_CLEAR(s->t);
@@ -620,23 +641,9 @@ static int load(S *s, PyObject *pump, int mode) {
         s->ns = 0;
     }
     TRY(get_obj(s->r, N_out, &s->out));
-    TRY(get_d(s->out, N_last_um, &s->o.last));
-    TRY(get_d(s->out, N_envelope, &s->o.env));
-    TRY(get_d(s->out, N_target_envelope, &s->o.target));
-    TRY(get_d(s->out, N_limit_um, &s->o.lim));
-    TRY(get_d(s->out, N_max_step_um, &s->o.step));
-    TRY(get_d(s->out, N_ramp_step, &s->o.ramp));
-    TRY(get_d(s->out, N__codes_per_um, &s->o.codes_per_um));
-    TRY(get_obj(s->out, N_cfg, &o));
-    r = get_ll(o, N_limit_code, &ll);
-    Py_CLEAR(o);
-    TRY(r);
-    NO(ll < 0 || ll > 32767);
-    s->o.limit_code = (long)ll;
-    TRY(get_ll(s->out, N_nonfinite, &ll));
-    s->o.nonfinite = (long)ll;
-    TRY(get_ll(s->out, N_clipped, &ll));
-    s->o.clipped = (long)ll;
+    if (!(s->o = REC(s, s->out, output)))
+        goto fail;
+    NO(s->o->_limit_code < 0 || s->o->_limit_code > 32767);
     return 1;
 no:
     if (PyErr_Occurred()) {
@@ -781,11 +788,6 @@ static int store(S *s) {
     if (s->has_wb)
         e |= SET_LL(s->height, _w_bucket, s->w_bucket);
     e |= PyObject_SetAttr(s->height, N__w, s->w);
-    /* output stage (the equalizer's state was updated in place) */
-    e |= SET_D(s->out, last_um, s->o.last);
-    e |= SET_D(s->out, envelope, s->o.env);
-    e |= SET_LL(s->out, nonfinite, s->o.nonfinite);
-    e |= SET_LL(s->out, clipped, s->o.clipped);
     release(s);
     return e ? -1 : 0;
 }
@@ -1374,7 +1376,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
     if (fill < (double)s->spb)
         s->late_batches++;
     rc_tail(s->have_sos ? (const double *)s->sosbuf.buf : NULL, s->ns, s->have_zi ? (double *)s->zibuf.buf : NULL, h,
-            n, codes, &s->o);
+            n, codes, s->o);
     /* send_samples */
     long long done = 0;
     for (long long i = 0; i < n; i += C_MAX_SAMPLES) {
@@ -1832,6 +1834,21 @@ PyMODINIT_FUNC PyInit__fastpump(void) {
     if (!m)
         return NULL;
     if (PyModule_AddIntConstant(m, "REVISION", REVISION) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    PyObject *sizes = PyDict_New(); /* RECORD_SIZES: kind -> sizeof(hs_<kind>_t), checked by fastpump.py */
+#define SIZE(kind)                                                                                        \
+    if (sizes) {                                                                                          \
+        PyObject *v = PyLong_FromSize_t(sizeof(hs_##kind##_t));                                           \
+        if (!v || PyDict_SetItemString(sizes, #kind, v) < 0)                                              \
+            Py_CLEAR(sizes);                                                                              \
+        Py_XDECREF(v);                                                                                    \
+    }
+    HS_RECORDS(SIZE)
+#undef SIZE
+    if (!sizes || PyModule_AddObject(m, "RECORD_SIZES", sizes) < 0) {
+        Py_XDECREF(sizes);
         Py_DECREF(m);
         return NULL;
     }

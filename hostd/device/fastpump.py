@@ -18,10 +18,12 @@ real-time batch is the Clenshaw recurrence on both sides (hostd.render.series.cl
 
 from __future__ import annotations
 
+import ctypes
 import functools
 
 import numpy as np
 
+from hostd import cyclestate
 from hostd.compiled import load as load_compiled
 from hostd.device import fastlink
 from hostd.device import protocol as pr
@@ -29,7 +31,7 @@ from hostd.errors import DeviceBusy
 from hostd.render import equalizer, fastrender, motion
 from hostd.render.pipeline import Renderer
 
-C_REVISION = 6  # _fastpump.c's REVISION this module is written for
+C_REVISION = 7  # _fastpump.c's REVISION this module is written for
 _STATUS = ["id:u8", "state:u8", "fault_flags:u16", "device_time_us:u32", "encoder_count:u32",
            "samples_played:u32", "buffer_fill:u16", "last_seq:u16", "underruns:u16",
            "malformed:u16", "encoder_errors:u16"]  # the layout _fastpump.c reads
@@ -43,6 +45,8 @@ def _load():
     lay = pr.LAYOUTS["STATUS"]
     if [f"{n}:{_CODE.get(code, code)}" for n, code in lay.fields] != _STATUS:
         return None  # STATUS changed shape: the compiled reader no longer applies
+    if c.RECORD_SIZES != {k: ctypes.sizeof(r) for k, r in cyclestate.RECORDS.items()}:
+        return None  # built from another cycle_state.toml (or another ABI): not the records here
     from hostd.device.health import MAX_GAP_US
 
     c.init({"rate": pr.SAMPLE_RATE_HZ, "buffer_capacity": pr.BUFFER_CAPACITY,
