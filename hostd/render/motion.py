@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hostd.cyclestate import record
+
 SMALL_BATCH = 32  # at or below this many instants, predict in scalar Python (same values)
 # A cubic needs this many readings in its window (after a start or a re-lock it has fewer): the
 # encoder's 0.4 µm steps reach a prediction 6 ms ahead as 3.7 µm RMS from a cubic over 8
@@ -81,7 +83,10 @@ def _dots(rows, x) -> list[float]:
     return [_dot(r, x) for r in rows]
 
 
-class MotionEstimator:
+class MotionEstimator(record("motion")):
+    """Its numeric state (and its config's, copied) is the "motion" record of
+    hostd/device/cycle_state.toml; the readings' window stays two deques."""
+
     def __init__(self, cfg: MotionConfig | None = None) -> None:
         self.cfg = cfg = cfg or MotionConfig()
         if cfg.order not in (0, 1, 2, 3) or cfg.window < cfg.order + 2:
@@ -93,6 +98,10 @@ class MotionEstimator:
             v = getattr(cfg, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"motion.{name} must be a finite number >= 0")
+        self._window, self._order, self._glitch_um = cfg.window, cfg.order, cfg.glitch_um
+        self._rest_speed_mm_s, self._rest_hold_um = cfg.rest_speed_mm_s, cfg.rest_hold_um
+        self._max_predict_s, self._max_gap_s = cfg.max_predict_s, cfg.max_gap_s
+        self._max_speed_mm_s = cfg.max_speed_mm_s
         self._t: deque[float] = deque(maxlen=cfg.window)
         self._x: deque[float] = deque(maxlen=cfg.window)
         # x(t) = c0 + c1 (t - t_ref) + c2 (t - t_ref)^2 + c3 (t - t_ref)^3, t in s, x in mm
