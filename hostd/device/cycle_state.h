@@ -102,7 +102,6 @@ typedef struct {
 
 typedef struct {
     double period_s;
-    bool record;
     int64_t _extra;
     int64_t _fill;
     int64_t _flags_seen;

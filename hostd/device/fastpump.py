@@ -132,14 +132,80 @@ def _renderer_ok(r) -> bool:
             and r.height.dtype is np.float64 and r.out._code_dtype is np.int16)
 
 
+def _parts(pump, mode: int) -> tuple | None:
+    """What the compiled cycle takes, in _fastpump.c's order (its P_* enum): the stages, which it
+    reads and writes as their records (hostd/device/cycle_state.toml), then the objects that are
+    not records. None when the cycle is not ordinary here (what the records cannot say: an
+    episode object, a queue, a crossfade's fit, the STATUS dict the health shares)."""
+    link, r, t = pump.link, pump.renderer, pump.link.t
+    if r is None or pump._episode is not None or link.stats.last_status is not pump.health._last:
+        return None
+    m, h = r.motion, r.height
+    if m._outliers:
+        return None
+    if mode == MODE_HID:
+        tr = (t.fd, t.empty_reads, None, 0)
+    elif t._queue or t._pending or t._vmin:
+        return None
+    else:
+        tr = (t.ser.fd, 0, t.deframer._buf, t.deframer.bad_frames)
+    return (pump, pump.stats, link, link.stats, pump.health, r, r.position, m, h, r.out,
+            pump._motion_base, pump.stats.step_us, link._unacked, link.stats.last_status, m._t, m._x,
+            m._cache, h._w, h._w_cache, r.eq.sos, r.eq.zi,
+            pump.sent_codes.append if pump.record else None, *tr)
+
+
+def _put(pump, w) -> None:
+    """Put back what the compiled cycle changed that is not a record (_fastpump.c's writes())."""
+    mt, mx, unacked, status, weights, tr = w
+    link, r = pump.link, pump.renderer
+    for dq, v in ((r.motion._t, mt), (r.motion._x, mx), (link._unacked, unacked)):
+        dq.clear()
+        dq.extend(v)
+    if status is not None:  # the latest STATUS: one dict for the link and the health
+        link.stats.last_status = pump.health._last = status
+    r.height._w = weights
+    t = link.t
+    if len(tr) == 1:
+        (t.empty_reads,) = tr
+    else:
+        t.deframer.bad_frames, buf, t._pending = tr
+        t.deframer._buf = bytearray(buf)
+
+
+def _hand(pump, hand) -> int:
+    """The rest of a cycle the compiled one handed over, the reference's way."""
+    code, arg, extra = hand
+    if code == _HAND_MSGS:  # link.poll's loop over the messages from `arg` on, then the cycle's tail
+        link = pump.link
+        stale = len(extra) - link.FRESH
+        for i in range(arg, len(extra)):
+            link._take(extra[i], i >= stale)
+        return pump.after_poll()
+    if code == _HAND_AFTER:
+        return pump.after_poll()
+    if code == _HAND_SEND:  # the batch's SAMPLES from the message that did not go out
+        sent = pump._send_codes(extra, arg)
+        pump._motion_stats()
+        return sent
+    return pump.step()  # a read failed: the reference's cycle from the top (it reads again)
+
+
+_HAND_MSGS, _HAND_AFTER, _HAND_READERR, _HAND_SEND = 1, 2, 3, 4  # _fastpump.c's hand-over codes
+
+
 def step(pump, now_s: float | None = None) -> int:
     """pump.step(), compiled where the cycle is ordinary. now_s: the host clock the cycle reads
     (tests: it must equal what pump.link.t.now() returns during the call); None: the monotonic
     clock, which is what the transport's now() reads. Returns the number of samples sent."""
     mode = _mode(pump.link.t) if _C is not None else None
-    if mode is None or not _ordinary(pump):
+    parts = _parts(pump, mode) if mode is not None and _ordinary(pump) else None
+    res = _C.step(parts, now_s, mode) if mode is not None else None
+    if res is None:
         return pump.step()
-    return _C.step(pump, now_s, mode)
+    sent, hand, w = res
+    _put(pump, w)
+    return sent if hand is None else _hand(pump, hand)
 
 
 def run(pump, start_s: float, k: int, duration_s: float | None, fds=(), top_done: bool = True
@@ -153,7 +219,18 @@ def run(pump, start_s: float, k: int, duration_s: float | None, fds=(), top_done
     mode = _mode(pump.link.t)
     if mode is None or pump.renderer is None or not _ordinary(pump):
         return k, "reference", 0.0
-    return _C.run(pump, start_s, k, duration_s, BUDGET_S, list(fds), mode, top_done)
+    res = _C.run(_parts(pump, mode), start_s, k, duration_s, BUDGET_S, list(fds), mode, top_done)
+    if res is None:
+        return k, "reference", 0.0
+    k, why, due, hand, c0, w = res
+    _put(pump, w)
+    if hand is not None:  # the reference finishes the cycle; Pump.run's tail ends it
+        try:
+            _hand(pump, hand)
+        except DeviceBusy:
+            pump.stats.io_dropped += 1
+        k, due = pump._end_cycle(c0, start_s, k)
+    return k, why, due
 
 
 def compiled_cycles() -> int:
