@@ -1,7 +1,8 @@
 """The real-time cycle's state records, declared once in hostd/device/cycle_state.toml.
 
-Each record is a ctypes.Structure whose layout is the C struct of hostd/device/cycle_state.h
-(generated from the same file by hostd.device.gen_header). A stage class derives from its
+Each record is a ctypes.Structure whose layout is the C struct of hostd/device/cycle_state.h,
+which setup.py generates from the same file at build (c_header; stdlib only, so the build needs
+nothing else: python hostd/cyclestate.py writes it by hand). A stage class derives from its
 record, so its fields live in the struct and the compiled cycle reads and writes them through
 the buffer protocol (no attribute crosses by name); everything else the stage holds (configs,
 caches, arrays) stays in its __dict__. A field declared "f64?" or "i64?" may be None: the
@@ -11,12 +12,15 @@ struct keeps a `<name>_set` flag beside the value, and the Python attribute maps
 from __future__ import annotations
 
 import ctypes
+import sys
 import tomllib
 from pathlib import Path
 
 SCHEMA_PATH = Path(__file__).resolve().parent / "device" / "cycle_state.toml"
 SCHEMA: dict[str, dict[str, str]] = tomllib.loads(SCHEMA_PATH.read_text())
 CTYPES = {"f64": ctypes.c_double, "i64": ctypes.c_int64, "bool": ctypes.c_bool}
+C_TYPES = {"f64": "double", "i64": "int64_t", "bool": "bool"}
+HEADER_PATH = SCHEMA_PATH.with_suffix(".h")
 
 
 def fields(kind: str) -> list[tuple[str, str]]:
@@ -72,3 +76,26 @@ def state_fields(obj) -> dict:
         if isinstance(obj, cls):
             return {n: getattr(obj, n) for n in SCHEMA[kind]}
     return {}
+
+
+def c_header() -> str:
+    """hostd/device/cycle_state.h: a struct per record, hs_<kind>_t, and HS_RECORDS(X)."""
+    lines = ["/* GENERATED at build (setup.py) from hostd/device/cycle_state.toml by hostd/cyclestate.py:",
+             " * not in git. The layout is the ctypes.Structure of hostd.cyclestate.record(kind): a stage",
+             " * object is read as its struct through the buffer protocol. */",
+             "#ifndef HOSTD_CYCLE_STATE_H", "#define HOSTD_CYCLE_STATE_H", "",
+             "#include <stdbool.h>", "#include <stdint.h>", ""]
+    for kind in SCHEMA:
+        members = [f"    {C_TYPES[t]} {n};" for n, t in fields(kind)]
+        lines += ["typedef struct {", *members, f"}} hs_{kind}_t;", ""]
+    lines += ["#define HS_RECORDS(X) " + " ".join(f"X({k})" for k in SCHEMA), "", "#endif"]
+    return "\n".join(lines) + "\n"
+
+
+def write_header(out: Path = HEADER_PATH) -> None:
+    """Write the C header (setup.py does at build)."""
+    out.write_text(c_header())
+
+
+if __name__ == "__main__":
+    write_header(Path(sys.argv[1]) if len(sys.argv) > 1 else HEADER_PATH)

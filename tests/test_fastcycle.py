@@ -18,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from hostd import cyclestate
-from hostd.device import fastlink, fastpump, gen_header
+from hostd.device import fastlink, fastpump
 from hostd.device import protocol as pr
 from hostd.render import fastrender
 from hostd.render.equalizer import SMALL_BATCH, Equalizer, EqualizerConfig
@@ -61,12 +61,6 @@ def test_the_compiled_fast_path_is_built_where_a_c_compiler_is():
 
 # ---------------------------------------------------------------- link messages
 @needs_c
-def test_the_cycle_state_header_is_generated_from_the_one_schema():
-    """hostd/device/cycle_state.h is checked in (the sdist builds without running Python code
-    first, as with the firmware's hostd_proto.h): it must be what the schema generates now."""
-    assert (ROOT / "hostd" / "device" / "cycle_state.h").read_text() == gen_header.render_state()
-
-
 def test_a_stage_holds_its_declared_fields_in_its_record():
     """Each declared field is an attribute of its stage, stored in the struct the C reads (a write
     through the buffer shows in the attribute: one memory, no copy); optional ones map None."""

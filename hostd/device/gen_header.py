@@ -1,18 +1,15 @@
-"""Generate firmware/include/hostd_proto.h from protocol.toml and hostd/device/cycle_state.h from
-cycle_state.toml: python -m hostd.device.gen_header [OUT] (OUT: the firmware's header only)"""
+"""Generate firmware/include/hostd_proto.h from protocol.toml: python -m hostd.device.gen_header [OUT]
+(the cycle's state header, hostd/device/cycle_state.h, is generated at build: hostd.cyclestate)"""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
-from hostd import cyclestate
 from hostd.device import protocol as pr
 
 _ROOT = Path(__file__).resolve().parents[2]
 HEADER = _ROOT / "firmware" / "include" / "hostd_proto.h"
-STATE_HEADER = Path(__file__).with_name("cycle_state.h")
-_C_TYPES = {"f64": "double", "i64": "int64_t", "bool": "bool"}
 _SIZES = {"B": 1, "H": 2, "I": 4, "h": 2, "i": 4, "f": 4}
 _KIND = {"h": 1, "i": 1, "f": 2}  # X macro's 4th argument: 0 unsigned, 1 signed, 2 float32
 
@@ -57,24 +54,6 @@ def render() -> str:
     return "\n".join(lines) + "\n"
 
 
-def render_state() -> str:
-    """The C structs of the cycle's state records (hostd.cyclestate holds the same in ctypes)."""
-    lines = ["/* GENERATED from hostd/device/cycle_state.toml by `python -m hostd.device.gen_header`.",
-             " * Do not edit: change the TOML and regenerate (a test checks this file is current).",
-             " * The layout is the ctypes.Structure of hostd.cyclestate.record(kind): a stage object is",
-             " * read as its struct through the buffer protocol. */",
-             "#ifndef HOSTD_CYCLE_STATE_H", "#define HOSTD_CYCLE_STATE_H", "",
-             "#include <stdbool.h>", "#include <stdint.h>", ""]
-    for kind in cyclestate.SCHEMA:
-        lines.append("typedef struct {")
-        lines += [f"    {_C_TYPES[t]} {name};" for name, t in cyclestate.fields(kind)]
-        lines += [f"}} hs_{kind}_t;", ""]
-    lines.append("/* X(kind) per record: hs_<kind>_t */")
-    lines.append("#define HS_RECORDS(X) " + " ".join(f"X({k})" for k in cyclestate.SCHEMA))
-    lines += ["", "#endif"]
-    return "\n".join(lines) + "\n"
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv:
@@ -88,9 +67,6 @@ def main(argv: list[str] | None = None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(render())
     print(out)
-    if out == HEADER:
-        STATE_HEADER.write_text(render_state())
-        print(STATE_HEADER)
     return 0
 
 
