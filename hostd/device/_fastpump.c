@@ -5,16 +5,22 @@
  * Why: a cycle of the Python reference costs ~190 µs of CPU (a 1 kHz loop: ~19 % of a core);
  * this one costs the kernel's wake-up plus a few µs of arithmetic (docs/benchmarks.md).
  *
- * How it stays equal to the reference. The state lives in the Python objects (pump, link,
- * health, renderer, motion, position, height, equalizer, output stage, transport); `load` reads
- * it into a C struct, `store` writes it back. A cycle is done here only while everything is
- * ordinary: a serial port with nothing queued or a hidraw node (mode), STATUS messages only (at most FRESH per
+ * How it stays equal to the reference. The state is declared once, in
+ * hostd/device/cycle_state.toml: each stage (pump and its stats, link and its stats, health,
+ * renderer, position, motion, height, output stage) holds its fields in a record, a struct this
+ * file reads and writes in place through the buffer protocol (hs_<kind>_t, cycle_state.h,
+ * generated at build). What is not a record (the motion window, the unacknowledged messages,
+ * the latest STATUS dict, the weight caches and arrays, the transport's descriptor and buffers)
+ * comes positionally from fastpump._parts and goes back through fastpump._put; no attribute is
+ * read or written by name. A cycle is done here only while everything is ordinary: a serial
+ * port with nothing queued or a hidraw node (mode), STATUS messages only (at most FRESH per
  * poll, no fault flag, counters that move forwards), a motion fit on evenly spaced readings whose
  * least-squares weights are cached, no glitch or re-lock, no open recovery episode, a speed
  * bucket whose weights are cached, no crossfade. Each STATUS is checked before anything is
- * changed; at the first thing that is not ordinary the state is stored and the reference does
- * the rest of the cycle (`link._take` for the messages left, then `pump.after_poll()`), so the
- * rare paths (recovery, re-locks, new buckets, stalls) have one implementation: the Python one.
+ * changed; at the first thing that is not ordinary the cycle returns a hand-over, and
+ * fastpump._hand does the rest the reference's way (`link._take` for the messages left, then
+ * `pump.after_poll()`), so the rare paths (recovery, re-locks, new buckets, stalls) have one
+ * implementation: the Python one.
  * The GIL is held throughout, the sleeps included: nothing else in the pump's process runs
  * Python meanwhile (it has no other Python thread), so nothing can change the state held here
  * behind its back; a signal ends the sleep and the run, and its handler runs at once.
@@ -23,8 +29,10 @@
  * and min() that keep the first of equals, round() half to even = rint()).
  *
  *   init(consts, DeviceBusy, decode, codes_from_bytes)   the protocol's ids, sizes, constants
- *   step(pump, now_s, mode) -> int           one pump.step(); now_s: the host clock (None: CLOCK_MONOTONIC)
- *   run(pump, start_s, k, duration_s, budget_s, fds, mode, top_done) -> (k, why, due_s)
+ *   step(parts, now_s, mode) -> (sent, hand, writes) | None    one pump.step(); now_s: the host
+ *        clock (None: CLOCK_MONOTONIC); None: not ordinary (the reference's cycle)
+ *   run(parts, start_s, k, duration_s, budget_s, fds, mode, top_done)
+ *        -> (k, why, due_s, hand, c0, writes) | None
  *        Pump.run's iterations (deadline grid start_s + k x period) while they are ordinary, at
  *        most budget_s, waking early for none of them: returns at an iteration's top when the
  *        budget is spent, end_s passed, a descriptor of fds became readable (after the sleep to
@@ -1368,10 +1376,11 @@ static PyMethodDef methods[] = {
     {"handovers", fp_handovers, METH_NOARGS,
      "handovers() -> {cause: cycles handed to the reference, 'compiled': cycles done compiled}"},
     {"init", fp_init, METH_VARARGS, "init(consts, DeviceBusy, decode, codes_from_bytes)"},
-    {"step", fp_step, METH_VARARGS, "step(pump, now_s | None, mode) -> samples sent: pump.step()"},
+    {"step", fp_step, METH_VARARGS,
+     "step(parts, now_s | None, mode) -> (sent, hand, writes) | None: pump.step() (fastpump.step)"},
     {"run", fp_run, METH_VARARGS,
-     "run(pump, start_s, k, duration_s | None, budget_s, fds, mode, top_done) -> (k, why, due_s): Pump.run's "
-     "ordinary iterations (top_done: the caller began the first one: stall check, _last_cycle_start)"},
+     "run(parts, start_s, k, duration_s | None, budget_s, fds, mode, top_done) -> (k, why, due_s, hand, c0, "
+     "writes) | None: Pump.run's ordinary iterations (fastpump.run)"},
     {NULL, NULL, 0, NULL},
 };
 

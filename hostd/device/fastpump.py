@@ -9,6 +9,11 @@ any other cycle to the reference, so recovery, re-locks and new speed buckets ha
 implementation. tests/test_fastpump.py drives both on the same scripted display and checks,
 cycle by cycle, the same bytes on the wire and the same state bit for bit.
 
+The state both share is declared once (hostd/device/cycle_state.toml): the stages hold their
+fields in records the C reads and writes in place. This module is the C's thin face: _parts hands
+it the stages and the objects that are not records, _put puts back what changed in those, and
+_hand finishes a cycle the C handed over, with the reference's own methods.
+
 Used when: it is built (and its REVISION matches), HOSTD_PURE_PYTHON is unset, the transport is
 a SerialTransport (the firmware's host port, CDC-ACM and serial bridges) or a HidrawTransport
 (a USB HID display on Linux; raw USB through pyusb and hidapi go through the reference), the
