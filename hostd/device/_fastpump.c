@@ -28,7 +28,7 @@
  * -ffp-contract=off; Python's float semantics are spelled out where C differs (floored %, max()
  * and min() that keep the first of equals, round() half to even = rint()).
  *
- *   init(consts, DeviceBusy, decode, codes_from_bytes)   the protocol's ids, sizes, constants
+ *   init(rate, ..., decode, codes_from_bytes)   the protocol's ids and sizes, the cycle's constants
  *   step(parts, now_s, mode) -> (sent, hand, writes) | None    one pump.step(); now_s: the host
  *        clock (None: CLOCK_MONOTONIC); None: not ordinary (the reference's cycle)
  *   run(parts, start_s, k, duration_s, budget_s, fds, mode, top_done)
@@ -53,7 +53,7 @@
 #include "framing.h" /* crc16, cobs_decode */
 
 #define STALL_MARGIN_CYCLES 2 /* pump.STALL_MARGIN_CYCLES */
-#define REVISION 7 /* fastpump.C_REVISION must equal this */
+#define REVISION 8 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
 #define MAX_MSGS 64
 #define MAX_UNACKED 64
@@ -73,7 +73,6 @@ static int C_STATUS_ID = -1, C_SAMPLES_ID = -1, C_MAX_SAMPLES = 0, C_RUNNING = 1
            C_CUBIC_MIN = 24; /* motion.CUBIC_MIN_READINGS (init) */
 static long long C_RATE = 3000, C_CAP = 0, C_MAX_FRAME = 0, C_MAX_GAP_US = 600000000LL;
 static PyObject *decode_fn = NULL; /* hostd.device.fastlink.decode: builds last_status dicts */
-static PyObject *DeviceBusy = NULL; /* hostd.errors.DeviceBusy (init) */
 static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the reference renders (init) */
 
 
@@ -1301,53 +1300,19 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
 }
 
 static PyObject *fp_init(PyObject *self, PyObject *args) {
-    PyObject *d, *busy, *dec, *cf;
-    if (!PyArg_ParseTuple(args, "O!OOO", &PyDict_Type, &d, &busy, &dec, &cf))
+    PyObject *dec, *cf;
+    int report_size;
+    if (!PyArg_ParseTuple(args, "LLLLiiiiiiiOO", &C_RATE, &C_CAP, &C_MAX_FRAME, &C_MAX_GAP_US, &C_STATUS_ID,
+                          &C_SAMPLES_ID, &C_MAX_SAMPLES, &C_RUNNING, &C_SMALL_BATCH, &C_CUBIC_MIN, &report_size,
+                          &dec, &cf))
         return NULL;
-    struct {
-        const char *key;
-        long long *dst;
-    } ll[] = {{"rate", &C_RATE}, {"buffer_capacity", &C_CAP}, {"max_frame", &C_MAX_FRAME}, {"max_gap_us", &C_MAX_GAP_US}};
-    for (size_t i = 0; i < sizeof ll / sizeof ll[0]; i++) {
-        PyObject *v = PyDict_GetItemString(d, ll[i].key);
-        if (!v) {
-            PyErr_Format(PyExc_KeyError, "init: %s", ll[i].key);
-            return NULL;
-        }
-        *ll[i].dst = PyLong_AsLongLong(v);
-    }
-    struct {
-        const char *key;
-        int *dst;
-    } ii[] = {{"status_id", &C_STATUS_ID}, {"samples_id", &C_SAMPLES_ID}, {"max_samples", &C_MAX_SAMPLES},
-              {"running", &C_RUNNING}, {"small_batch", &C_SMALL_BATCH},
-              {"cubic_min_readings", &C_CUBIC_MIN}};
-    for (size_t i = 0; i < sizeof ii / sizeof ii[0]; i++) {
-        PyObject *v = PyDict_GetItemString(d, ii[i].key);
-        if (!v) {
-            PyErr_Format(PyExc_KeyError, "init: %s", ii[i].key);
-            return NULL;
-        }
-        *ii[i].dst = (int)PyLong_AsLong(v);
-    }
-    if (PyErr_Occurred())
-        return NULL;
-    PyObject *rs = PyDict_GetItemString(d, "report_size");
-    if (!rs || PyLong_AsLong(rs) != REPORT_SIZE) {
-        PyErr_SetString(PyExc_ValueError, "init: a report of 64 bytes expected");
+    if (report_size != REPORT_SIZE || C_MAX_SAMPLES < 1 || 5 + 2 * C_MAX_SAMPLES > REPORT_SIZE ||
+        C_SMALL_BATCH > RC_MAX_N || C_RATE <= 0 || C_CUBIC_MIN < 4) {
+        PyErr_SetString(PyExc_ValueError, "init: constants out of range (a report of 64 bytes expected)");
         return NULL;
     }
-    if (C_MAX_SAMPLES < 1 || 5 + 2 * C_MAX_SAMPLES > REPORT_SIZE || C_SMALL_BATCH > RC_MAX_N || C_RATE <= 0 ||
-        C_CUBIC_MIN < 4) {
-        PyErr_SetString(PyExc_ValueError, "init: constants out of range");
-        return NULL;
-    }
-    Py_INCREF(busy);
-    Py_XSETREF(DeviceBusy, busy);
-    Py_INCREF(dec);
-    Py_XSETREF(decode_fn, dec);
-    Py_INCREF(cf);
-    Py_XSETREF(codes_fn, cf);
+    Py_XSETREF(decode_fn, Py_NewRef(dec));
+    Py_XSETREF(codes_fn, Py_NewRef(cf));
     Py_RETURN_NONE;
 }
 
@@ -1375,7 +1340,9 @@ static PyObject *fp_handovers(PyObject *self, PyObject *noargs) {
 static PyMethodDef methods[] = {
     {"handovers", fp_handovers, METH_NOARGS,
      "handovers() -> {cause: cycles handed to the reference, 'compiled': cycles done compiled}"},
-    {"init", fp_init, METH_VARARGS, "init(consts, DeviceBusy, decode, codes_from_bytes)"},
+    {"init", fp_init, METH_VARARGS,
+     "init(rate, capacity, max_frame, max_gap_us, status_id, samples_id, max_samples, running, small_batch, "
+     "cubic_min_readings, report_size, decode, codes_from_bytes)"},
     {"step", fp_step, METH_VARARGS,
      "step(parts, now_s | None, mode) -> (sent, hand, writes) | None: pump.step() (fastpump.step)"},
     {"run", fp_run, METH_VARARGS,

@@ -36,7 +36,7 @@ from hostd.errors import DeviceBusy
 from hostd.render import equalizer, fastrender, motion
 from hostd.render.pipeline import Renderer
 
-C_REVISION = 7  # _fastpump.c's REVISION this module is written for
+C_REVISION = 8  # _fastpump.c's REVISION this module is written for
 _STATUS = ["id:u8", "state:u8", "fault_flags:u16", "device_time_us:u32", "encoder_count:u32",
            "samples_played:u32", "buffer_fill:u16", "last_seq:u16", "underruns:u16",
            "malformed:u16", "encoder_errors:u16"]  # the layout _fastpump.c reads
@@ -54,13 +54,9 @@ def _load():
         return None  # built from another cycle_state.toml (or another ABI): not the records here
     from hostd.device.health import MAX_GAP_US
 
-    c.init({"rate": pr.SAMPLE_RATE_HZ, "buffer_capacity": pr.BUFFER_CAPACITY,
-            "max_frame": pr.Deframer.MAX_FRAME, "max_gap_us": MAX_GAP_US,
-            "status_id": pr.IDS["STATUS"], "samples_id": pr.IDS["SAMPLES"],
-            "max_samples": pr.MAX_SAMPLES, "running": pr.STATES["RUNNING"],
-            "small_batch": equalizer.SMALL_BATCH, "report_size": pr.REPORT_SIZE,
-            "cubic_min_readings": motion.CUBIC_MIN_READINGS},
-           DeviceBusy, fastlink.decode, _codes_from_bytes)
+    c.init(pr.SAMPLE_RATE_HZ, pr.BUFFER_CAPACITY, pr.Deframer.MAX_FRAME, MAX_GAP_US, pr.IDS["STATUS"],
+           pr.IDS["SAMPLES"], pr.MAX_SAMPLES, pr.STATES["RUNNING"], equalizer.SMALL_BATCH,
+           motion.CUBIC_MIN_READINGS, pr.REPORT_SIZE, fastlink.decode, _codes_from_bytes)
     return c
 
 
