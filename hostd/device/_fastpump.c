@@ -185,29 +185,6 @@ static int set_weights(S *s, PyObject *w) { /* the height weights array in force
     return 1;
 }
 
-static int read_status_fields(PyObject *d, status_t *st) { /* from a last_status dict */
-    static const char *keys[] = {"state", "fault_flags", "device_time_us", "encoder_count", "samples_played",
-                                 "buffer_fill", "last_seq", "underruns"};
-    long long v[8];
-    for (int i = 0; i < 8; i++) {
-        PyObject *x = PyDict_GetItemString(d, keys[i]);
-        if (!x || !PyLong_Check(x))
-            return 0;
-        v[i] = PyLong_AsLongLong(x);
-        if (v[i] == -1 && PyErr_Occurred())
-            return -1;
-    }
-    st->state = (int)v[0];
-    st->flags = v[1];
-    st->us = v[2];
-    st->enc = v[3];
-    st->played = v[4];
-    st->fill = v[5];
-    st->last_seq = v[6];
-    st->under = v[7];
-    return 1;
-}
-
 static int load_deque(PyObject *dq, double *dst, int max, int *n) {
     PyObject *it = PyObject_GetIter(dq);
     if (!it)
@@ -300,10 +277,9 @@ static int load(S *s, PyObject *parts, int mode) {
         if (PyErr_Occurred())
             goto fail;
     }
-    o = PART(P_LAST_STATUS); /* (the health's last STATUS is the same dict: fastpump checks) */
-    r = PyDict_Check(o) ? read_status_fields(o, &s->ls) : 0;
-    TRY(r);
-    NO(!r);
+    /* the latest STATUS's fields (fastpump._parts: the link's and the health's, one dict) */
+    TRY(PyArg_ParseTuple(PART(P_LAST_STATUS), "iLLLLLLL", &s->ls.state, &s->ls.flags, &s->ls.us, &s->ls.enc,
+                         &s->ls.played, &s->ls.fill, &s->ls.last_seq, &s->ls.under) ? 0 : -1);
     /* transport */
     {
         long long fd = PyLong_AsLongLong(PART(P_FD));

@@ -41,6 +41,8 @@ _STATUS = ["id:u8", "state:u8", "fault_flags:u16", "device_time_us:u32", "encode
            "samples_played:u32", "buffer_fill:u16", "last_seq:u16", "underruns:u16",
            "malformed:u16", "encoder_errors:u16"]  # the layout _fastpump.c reads
 _CODE = {"B": "u8", "H": "u16", "I": "u32"}
+_PREVIOUS = ("state", "fault_flags", "device_time_us", "encoder_count", "samples_played", "buffer_fill",
+             "last_seq", "underruns")  # the latest STATUS's fields the compiled cycle goes on from
 
 
 def _load():
@@ -139,7 +141,8 @@ def _parts(pump, mode: int) -> tuple | None:
     not records. None when the cycle is not ordinary here (what the records cannot say: an
     episode object, a queue, a crossfade's fit, the STATUS dict the health shares)."""
     link, r, t = pump.link, pump.renderer, pump.link.t
-    if r is None or pump._episode is not None or link.stats.last_status is not pump.health._last:
+    status = link.stats.last_status
+    if r is None or pump._episode is not None or not status or status is not pump.health._last:
         return None
     m, h = r.motion, r.height
     if m._outliers:
@@ -151,7 +154,8 @@ def _parts(pump, mode: int) -> tuple | None:
     else:
         tr = (t.ser.fd, 0, t.deframer._buf, t.deframer.bad_frames)
     return (pump, pump.stats, link, link.stats, pump.health, r, r.position, m, h, r.out,
-            pump._motion_base, pump.stats.step_us, link._unacked, link.stats.last_status, m._t, m._x,
+            pump._motion_base, pump.stats.step_us, link._unacked, tuple(map(status.get, _PREVIOUS)),
+            m._t, m._x,
             m._cache, h._w, h._w_cache, r.eq.sos, r.eq.zi,
             pump.sent_codes.append if pump.record else None, *tr)
 
