@@ -135,7 +135,11 @@ typedef struct {
 #define REC(s, obj, kind) ((hs_##kind##_t *)get_rec(s, obj, sizeof(hs_##kind##_t)))
 static void *get_rec(S *s, PyObject *o, Py_ssize_t size) {
     Py_buffer *b = &s->recbuf[s->nrec];
-    if (s->nrec >= HS_NREC || PyObject_GetBuffer(o, b, PyBUF_WRITABLE) < 0)
+    if (s->nrec >= HS_NREC) {
+        PyErr_SetString(PyExc_SystemError, "more records than cycle_state.toml declares");
+        return NULL;
+    }
+    if (PyObject_GetBuffer(o, b, PyBUF_WRITABLE) < 0)
         return NULL;
     s->nrec++;
     if (b->len != size) {
