@@ -6,7 +6,8 @@ nothing else: python hostd/cyclestate.py writes it by hand). A stage class deriv
 record, so its fields live in the struct and the compiled cycle reads and writes them through
 the buffer protocol (no attribute crosses by name); everything else the stage holds (configs,
 caches, arrays) stays in its __dict__. A field declared "f64?" or "i64?" may be None: the
-struct keeps a `<name>_set` flag beside the value, and the Python attribute maps it.
+struct keeps a `<name>_set` flag beside the value, and the Python attribute maps it; "f64[N]" is
+a fixed array (a ctypes array in Python).
 """
 
 from __future__ import annotations
@@ -23,17 +24,18 @@ C_TYPES = {"f64": "double", "i64": "int64_t", "bool": "bool"}
 HEADER_PATH = SCHEMA_PATH.with_suffix(".h")
 
 
-def fields(kind: str) -> list[tuple[str, str]]:
-    """(C member name, type) of a record, in layout order: an optional field is its value
-    then its `_set` flag."""
+def fields(kind: str) -> list[tuple[str, str, int]]:
+    """(C member name, type, array length or 0) of a record, in layout order: an optional field
+    is its value then its `_set` flag."""
     out = []
     for name, t in SCHEMA[kind].items():
-        base = t.rstrip("?")
-        if base not in CTYPES:
-            raise ValueError(f"cycle_state.toml [{kind}] {name}: type {t!r} is not f64, i64 or bool")
-        out.append((name, base))
+        base, _, n = t.rstrip("?").partition("[")
+        if base not in CTYPES or (n and not (n[:-1].isdigit() and n.endswith("]"))):
+            raise ValueError(f"cycle_state.toml [{kind}] {name}: type {t!r} is not f64, i64 or bool "
+                             "(optionally [N] or ?)")
+        out.append((name, base, int(n[:-1]) if n else 0))
         if t.endswith("?"):
-            out.append((f"{name}_set", "bool"))
+            out.append((f"{name}_set", "bool", 0))
     return out
 
 
@@ -55,7 +57,7 @@ def _optional(value, flag) -> property:
 
 def _record(kind: str) -> type[ctypes.Structure]:
     raw = type(f"_{kind}_raw", (ctypes.Structure,),
-               {"_fields_": [(n, CTYPES[t]) for n, t in fields(kind)]})
+               {"_fields_": [(n, CTYPES[t] * k if k else CTYPES[t]) for n, t, k in fields(kind)]})
     opt = {n: _optional(getattr(raw, n), getattr(raw, f"{n}_set"))
            for n, t in SCHEMA[kind].items() if t.endswith("?")}
     return type(f"{kind.title()}Record", (raw,), opt)
@@ -74,7 +76,8 @@ def state_fields(obj) -> dict:
     value), name -> value; {} for an object that holds no record."""
     for kind, cls in RECORDS.items():
         if isinstance(obj, cls):
-            return {n: getattr(obj, n) for n in SCHEMA[kind]}
+            return {n: list(v) if isinstance(v, ctypes.Array) else v
+                    for n in SCHEMA[kind] for v in (getattr(obj, n),)}
     return {}
 
 
@@ -86,7 +89,7 @@ def c_header() -> str:
              "#ifndef HOSTD_CYCLE_STATE_H", "#define HOSTD_CYCLE_STATE_H", "",
              "#include <stdbool.h>", "#include <stdint.h>", ""]
     for kind in SCHEMA:
-        members = [f"    {C_TYPES[t]} {n};" for n, t in fields(kind)]
+        members = [f"    {C_TYPES[t]} {n}{f'[{k}]' if k else ''};" for n, t, k in fields(kind)]
         lines += ["typedef struct {", *members, f"}} hs_{kind}_t;", ""]
     lines += ["#define HS_RECORDS(X) " + " ".join(f"X({k})" for k in SCHEMA), "", "#endif"]
     return "\n".join(lines) + "\n"

@@ -692,7 +692,7 @@ class Twin:
         if r is not None:
             m = r.motion
             seen["xfade"] += r._xfade_left > 0
-            seen["irregular_fit"] += len(m._t) > 2 and m._uniform < len(m._t) - 1
+            seen["irregular_fit"] += m._n > 2 and m._uniform < m._n - 1
             seen["rest"] += m._rest_x is not None
             if r.height._w_bucket is not None:
                 seen["buckets"].add(r.height._w_bucket)

@@ -580,8 +580,8 @@ def test_the_snapshot_covers_the_cycle_s_state(textures):
     want = {p + f for kind, p in records.items() for f in cyclestate.SCHEMA[kind]} - EXCLUDE | {
         "_episode", "_started", "_motion_base", "_retries_base", "stats.recoveries", "stats.io_dropped",
         "link._unacked", "link.stats.bad_messages_received", "link.stats.last_status", "link.render_status",
-        "link.ident", "health._last", "health._recent_flags", "renderer.motion._t", "renderer.motion._x",
-        "renderer.motion._outliers", "renderer.motion.previous_fit", "renderer.height._w", "renderer.eq.zi",
+        "link.ident", "health._last", "health._recent_flags", "renderer.motion._outliers",
+        "renderer.motion.previous_fit", "renderer.height._w", "renderer.eq.zi",
         "link.t._pending", "link.t._queue", "link.t.deframer._buf", "link.t.deframer.bad_frames",
     }
     assert want <= keys, sorted(want - keys)

@@ -117,9 +117,7 @@ typedef struct {
     /* pump */
     long long motion_base0, motion_base1;
     PyObject *append; /* pump.sent_codes.append while it records, else None (borrowed) */
-    /* motion: its window (a copy of the deques) and the least-squares rows in use */
-    double mt[MAX_WIN], mx[MAX_WIN];
-    int mn;
+    /* motion: the least-squares rows in use */
     long long wkey_n, wkey_dt, wkey_order; /* the motion weights in mw (-1: none) */
     double mw[4][MAX_WIN];
     /* equalizer, output stage */
@@ -189,34 +187,12 @@ static int set_weights(S *s, PyObject *w) { /* the height weights array in force
     return 1;
 }
 
-static int load_deque(PyObject *dq, double *dst, int max, int *n) {
-    PyObject *it = PyObject_GetIter(dq);
-    if (!it)
-        return -1;
-    PyObject *x;
-    int k = 0;
-    while ((x = PyIter_Next(it))) {
-        if (k >= max || !PyFloat_Check(x)) {
-            Py_DECREF(x);
-            Py_DECREF(it);
-            return 0;
-        }
-        dst[k++] = PyFloat_AS_DOUBLE(x);
-        Py_DECREF(x);
-    }
-    Py_DECREF(it);
-    if (PyErr_Occurred())
-        return -1;
-    *n = k;
-    return 1;
-}
-
 /* The parts of a cycle, in the order hostd/device/fastpump.py's _parts gives them: the stages
  * (each read as its record), then the objects that are not records (arrays, caches, the window,
  * the transport's descriptor and buffers). Nothing is looked up by name. */
 enum {
     P_PUMP, P_PSTATS, P_LINK, P_LSTATS, P_HEALTH, P_RENDERER, P_POSITION, P_MOTION, P_HEIGHT, P_OUT,
-    P_MOTION_BASE, P_STEP_US, P_UNACKED, P_LAST_STATUS, P_MT, P_MX, P_MCACHE, P_W, P_WCACHE, P_SOS, P_ZI,
+    P_MOTION_BASE, P_STEP_US, P_UNACKED, P_LAST_STATUS, P_MCACHE, P_W, P_WCACHE, P_SOS, P_ZI,
     P_APPEND, P_FD, P_EMPTY_READS, P_DBUF, P_BAD_FRAMES, P_N
 };
 
@@ -313,16 +289,7 @@ static int load(S *s, PyObject *parts, int mode) {
     NO(s->R->_xfade_left != 0 || !s->Z->_last_set);
     NO(s->Z->_total > (1LL << 52) || s->Z->_total < -(1LL << 52));
     NO(s->M->_window < 2 || s->M->_window > MAX_WIN || s->M->_order < 0 || s->M->_order > 3);
-    {
-        int nt = 0, nx = 0;
-        r = load_deque(PART(P_MT), s->mt, (int)s->M->_window, &nt);
-        TRY(r);
-        NO(!r);
-        r = load_deque(PART(P_MX), s->mx, (int)s->M->_window, &nx);
-        TRY(r);
-        NO(!r || nt != nx || nt == 0);
-        s->mn = nt;
-    }
+    NO(s->M->_n < 1 || s->M->_n > s->M->_window);
     s->append = PART(P_APPEND); /* (borrowed: the parts outlive the call) */
     s->mcache = Py_NewRef(PART(P_MCACHE));
     NO(!PyDict_Check(s->mcache));
@@ -375,11 +342,7 @@ fail:
  * motion window, the unacknowledged messages, the latest STATUS (decoded), the height weights in
  * force, the transport's count or buffers. NULL on error. Releases s. */
 static PyObject *writes(S *s) {
-    PyObject *mt = PyList_New(s->mn), *mx = PyList_New(s->mn), *un = PyList_New(s->n_un), *st = NULL, *tr = NULL;
-    for (int i = 0; mt && mx && i < s->mn; i++) {
-        PyList_SET_ITEM(mt, i, PyFloat_FromDouble(s->mt[i]));
-        PyList_SET_ITEM(mx, i, PyFloat_FromDouble(s->mx[i]));
-    }
+    PyObject *un = PyList_New(s->n_un), *st = NULL, *tr = NULL;
     for (int i = 0; un && i < s->n_un; i++)
         PyList_SET_ITEM(un, i, Py_BuildValue("(LL)", s->un_seq[i], s->un_cnt[i]));
     if (s->ls_new) { /* the latest STATUS as the reference decodes it */
@@ -396,10 +359,8 @@ static PyObject *writes(S *s) {
     else
         tr = Py_BuildValue("(Ly#y#)", s->bad_frames, (const char *)s->dbuf, s->dlen, (const char *)s->pend, s->plen);
     PyObject *ret = NULL;
-    if (mt && mx && un && st && tr && !PyErr_Occurred())
-        ret = PyTuple_Pack(6, mt, mx, un, st, s->w, tr);
-    Py_XDECREF(mt);
-    Py_XDECREF(mx);
+    if (un && st && tr && !PyErr_Occurred())
+        ret = PyTuple_Pack(4, un, st, s->w, tr);
     Py_XDECREF(un);
     Py_XDECREF(st);
     Py_XDECREF(tr);
@@ -631,21 +592,21 @@ static int take_status(S *s, const msg_t *m, double now) {
     if (!isfinite(t_s) || !isfinite(x_mm))
         return HAND(H_GLITCH, 0);
     double mt[MAX_WIN], mx[MAX_WIN];
-    int mn = s->mn;
+    int mn = (int)s->M->_n;
     long long since = s->M->_since_restart, mdt = s->M->_dt_us, uni = s->M->_uniform;
     double c0 = s->M->_c0, c1 = s->M->_c1, c2 = s->M->_c2, c3 = s->M->_c3, t_ref = s->M->_t_ref, rest_x = s->M->_rest_x;
     int has_rest = s->M->_rest_x_set;
-    const int stale = t_s <= s->mt[s->mn - 1];
+    const int stale = t_s <= s->M->_tw[mn - 1];
     if (!stale) {
-        if (t_s - s->mt[s->mn - 1] > s->M->_max_gap_s)
+        if (t_s - s->M->_tw[mn - 1] > s->M->_max_gap_s)
             return HAND(H_GAP, 0); /* a gap: the fit restarts (reference) */
         if (mn >= s->M->_order + 2) {
             const double pred = predict_one(s, t_s);
             if (fabs(x_mm - pred) * 1000.0 > s->M->_glitch_um)
                 return HAND(H_GLITCH, 0); /* a glitch or a real move (reference) */
         }
-        memcpy(mt, s->mt, sizeof(double) * (size_t)mn);
-        memcpy(mx, s->mx, sizeof(double) * (size_t)mn);
+        memcpy(mt, s->M->_tw, sizeof(double) * (size_t)mn);
+        memcpy(mx, s->M->_xw, sizeof(double) * (size_t)mn);
         since += 1;
         const long long dtu = (long long)rint((t_s - mt[mn - 1]) * 1e6); /* round() */
         uni = dtu == mdt ? uni + 1 : 1;
@@ -755,9 +716,9 @@ static int take_status(S *s, const msg_t *m, double now) {
     s->Z->_last = raw;
     s->Z->_total = total;
     if (!stale) {
-        memcpy(s->mt, mt, sizeof(double) * (size_t)mn);
-        memcpy(s->mx, mx, sizeof(double) * (size_t)mn);
-        s->mn = mn;
+        memcpy(s->M->_tw, mt, sizeof(double) * (size_t)mn);
+        memcpy(s->M->_xw, mx, sizeof(double) * (size_t)mn);
+        s->M->_n = mn;
         s->M->_since_restart = since;
         s->M->_dt_us = mdt;
         s->M->_uniform = uni;

@@ -155,18 +155,16 @@ def _parts(pump, mode: int) -> tuple | None:
         tr = (t.ser.fd, 0, t.deframer._buf, t.deframer.bad_frames)
     return (pump, pump.stats, link, link.stats, pump.health, r, r.position, m, h, r.out,
             pump._motion_base, pump.stats.step_us, link._unacked, tuple(map(status.get, _PREVIOUS)),
-            m._t, m._x,
             m._cache, h._w, h._w_cache, r.eq.sos, r.eq.zi,
             pump.sent_codes.append if pump.record else None, *tr)
 
 
 def _put(pump, w) -> None:
     """Put back what the compiled cycle changed that is not a record (_fastpump.c's writes())."""
-    mt, mx, unacked, status, weights, tr = w
+    unacked, status, weights, tr = w
     link, r = pump.link, pump.renderer
-    for dq, v in ((r.motion._t, mt), (r.motion._x, mx), (link._unacked, unacked)):
-        dq.clear()
-        dq.extend(v)
+    link._unacked.clear()
+    link._unacked.extend(unacked)
     if status is not None:  # the latest STATUS: one dict for the link and the health
         link.stats.last_status = pump.health._last = status
     r.height._w = weights

@@ -105,7 +105,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
     M._max_gap_s = 0.05;
     M._max_speed_mm_s = 2000.0;
     Z.um_per_count = 0.4;
-    s.mn = 1; /* the reference's window starts with a reading (motion.update after a restart) */
+    M._n = 1; /* the reference's window starts with a reading (motion.update after a restart) */
     s.wkey_n = s.wkey_dt = s.wkey_order = -1;
     P._fill = 12;
     P._base_fill = 12;
@@ -173,7 +173,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
                   "the fields differ from a little-endian reading");
             check(LS.statuses == statuses + 1, "an accepted report not counted");
         }
-        check(s.mn >= 1 && s.mn <= M._window, "the motion window out of 1..win");
+        check(M._n >= 1 && M._n <= M._window, "the motion window out of 1..win");
         check(isfinite(M._c0) && isfinite(M._c1) && isfinite(M._c2) && isfinite(M._c3), "a fit that is not finite");
         check(fabs(M._c1) <= M._max_speed_mm_s, "a speed past max_speed");
         check(s.n_un >= 0 && s.n_un <= MAX_UNACKED, "the unacknowledged batches out of their array");
