@@ -10,17 +10,25 @@ which is the reference each compiled module is tested against (same bytes, same 
   hostd/device/_fastpump.c    the host-rendering pump's steady-state cycle (reference:
                               hostd/device/pump.py Pump.step / Pump.run)
 -ffp-contract=off: no fused multiply-add, so the compiled renderer rounds exactly as Python does.
+hostd/device/cycle_state.h, the structs of the cycle's state records, is generated here from
+hostd/device/cycle_state.toml (hostd/cyclestate.py, stdlib only), so it is never out of date.
 """
 
+import runpy
+
 from setuptools import Extension, setup
+
+runpy.run_path("hostd/cyclestate.py")["write_header"]()  # hostd/device/cycle_state.h
 
 setup(ext_modules=[
     Extension("hostd.codec._rangecoder", ["hostd/codec/_rangecoder.c"], optional=True),
     Extension("hostd.device._fastlink", ["hostd/device/_fastlink.c"], optional=True,
               depends=["hostd/device/framing.h"]),
     Extension("hostd.render._fastrender", ["hostd/render/_fastrender.c"], optional=True,
-              depends=["hostd/render/render_core.h"], extra_compile_args=["-ffp-contract=off"]),
+              depends=["hostd/render/render_core.h", "hostd/device/cycle_state.toml"],
+              extra_compile_args=["-ffp-contract=off"]),
     Extension("hostd.device._fastpump", ["hostd/device/_fastpump.c"], optional=True,
-              depends=["hostd/render/render_core.h", "hostd/device/framing.h"],
+              depends=["hostd/render/render_core.h", "hostd/device/framing.h",
+                       "hostd/device/cycle_state.toml"],
               extra_compile_args=["-ffp-contract=off"]),
 ])

@@ -48,6 +48,7 @@ from collections import deque
 import numpy as np
 
 from hostd.bench.accuracy import texture_coeffs
+from hostd.cyclestate import state_fields
 from hostd.device import protocol as pr
 from hostd.device.hidlink import HidrawTransport
 from hostd.device.link import DeviceLink
@@ -135,7 +136,7 @@ def _walk(v, path: str, out: dict, seen: dict) -> None:
             return
         seen[id(v)] = path
         out[path] = ("obj", t.__qualname__)
-        for k, x in vars(v).items():
+        for k, x in (*state_fields(v).items(), *vars(v).items()):  # its record's fields, then the rest
             p = f"{path}.{k}" if path else k
             if p not in EXCLUDE and not k.startswith(OWN_PREFIX):
                 _walk(x, p, out, seen)
@@ -691,7 +692,7 @@ class Twin:
         if r is not None:
             m = r.motion
             seen["xfade"] += r._xfade_left > 0
-            seen["irregular_fit"] += len(m._t) > 2 and m._uniform < len(m._t) - 1
+            seen["irregular_fit"] += m._n > 2 and m._uniform < m._n - 1
             seen["rest"] += m._rest_x is not None
             if r.height._w_bucket is not None:
                 seen["buckets"].add(r.height._w_bucket)

@@ -17,7 +17,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hostd.device import fastlink
+from hostd import cyclestate
+from hostd.device import fastlink, fastpump
 from hostd.device import protocol as pr
 from hostd.render import fastrender
 from hostd.render.equalizer import SMALL_BATCH, Equalizer, EqualizerConfig
@@ -60,6 +61,40 @@ def test_the_compiled_fast_path_is_built_where_a_c_compiler_is():
 
 # ---------------------------------------------------------------- link messages
 @needs_c
+def test_every_stage_holds_its_declared_fields_in_its_record():
+    """Each field of hostd/device/cycle_state.toml is an attribute of its stage stored in the
+    struct the C reads (not in the instance's __dict__): a write through the buffer shows in the
+    attribute, one memory; an optional field maps None to its _set flag."""
+    import ctypes
+
+    from hostd.device.link import DeviceLink
+    from hostd.device.pump import Pump
+    from hostd.render.pipeline import Renderer
+
+    class Clock:
+        def now(self):
+            return 0.0
+
+    pump = Pump(DeviceLink(Clock()), None)
+    r = Renderer(np.array([1.0, 0.5]), 100, 10.0)
+    stages = {"pump": pump, "pump_stats": pump.stats, "link": pump.link, "link_stats": pump.link.stats,
+              "health": pump.health, "renderer": r, "position": r.position, "motion": r.motion,
+              "height": r.height, "output": r.out}
+    assert set(stages) == set(cyclestate.SCHEMA)
+    for kind, obj in stages.items():
+        assert set(cyclestate.state_fields(obj)) == set(cyclestate.SCHEMA[kind]), kind
+        assert not set(cyclestate.SCHEMA[kind]) & set(vars(obj)), kind  # (a class attribute would shadow one)
+        assert memoryview(obj).nbytes == ctypes.sizeof(cyclestate.RECORDS[kind]), kind
+    raw = cyclestate.RECORDS["output"].from_buffer(memoryview(r.out).cast("B"))
+    raw.last_um = 2.5
+    assert r.out.last_um == 2.5
+    assert r.motion._rest_x is None and not r.motion._rest_x_set
+    r.motion._rest_x = 0.25
+    assert r.motion._rest_x_set and r.motion._rest_x == 0.25
+    if fastpump._C is not None:
+        assert fastpump._C.RECORD_SIZES == {k: ctypes.sizeof(c) for k, c in cyclestate.RECORDS.items()}
+
+
 def test_golden_protocol_vectors_decode_alike():
     lines = [ln.split() for ln in VECTORS.read_text().splitlines() if ln.startswith(("msg ", "bad "))]
     assert len(lines) >= 10

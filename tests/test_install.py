@@ -48,7 +48,8 @@ def test_wheel_carries_the_data_the_code_needs(wheel):
     names = set(zipfile.ZipFile(wheel).namelist())
     for f in ("hostd/data/hostd.toml", "hostd/data/thresholds/default.csv",
               "hostd/data/actuators/paper-parametric.toml", "hostd/data/scenes/ideal.toml",
-              "hostd/device/protocol.toml", "hostd/systemd/hostd.service", "hostd/systemd/70-hostd.rules",
+              "hostd/device/protocol.toml", "hostd/device/cycle_state.toml", "hostd/systemd/hostd.service",
+              "hostd/systemd/70-hostd.rules",
               "hostd/systemd/hostd-sysusers.conf", "hostd/systemd/hostd-tmpfiles.conf",
               "hostd/experiment/page.html", "hostd/data/experiment-plan.toml"):
         assert f in names, f
@@ -307,7 +308,8 @@ def test_sdist_builds_a_complete_wheel_and_ships_no_tests(tmp_path):
     names = [n.split("/", 1)[1] for n in tarfile.open(sdist).getnames() if "/" in n]
     assert not [n for n in names if n.startswith(("tests/", "firmware/"))], names
     for f in ("hostd/codec/_rangecoder.c", "hostd/device/_fastpump.c", "hostd/render/_fastrender.c",
-              "hostd/render/render_core.h", "hostd/device/framing.h", "docs/daemon.md", "README.md",
+              "hostd/render/render_core.h", "hostd/device/framing.h", "hostd/device/cycle_state.toml",
+              "hostd/cyclestate.py", "docs/daemon.md", "README.md",
               "LICENSE", "setup.py",
               "hostd/data/hostd.toml", "hostd/systemd/hostd.service"):  # the symlinks' files
         assert f in names, f

@@ -123,9 +123,18 @@ class Task:
 # ----------------------------------------------------------------------------- keys
 
 
+# The loader options the first stores keyed on: always in the key. An option added since counts
+# only when it differs from its default, so a new option (full_scale_um) re-keys, hence re-runs,
+# no row of an existing store.
+KEYED_LOADER_FIELDS = ("x_unit", "y_unit", "spacing", "length_mm", "offset_mm", "detrend", "columns",
+                       "decimal_comma", "member")
+
+
 def loader_json(opts) -> str:
     d = asdict(opts)
     d.pop("progress", None)
+    defaults = asdict(type(opts)())
+    d = {k: v for k, v in d.items() if k in KEYED_LOADER_FIELDS or v != defaults.get(k)}
     return json.dumps(d, sort_keys=True, separators=(",", ":"))
 
 

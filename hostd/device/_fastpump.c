@@ -5,16 +5,22 @@
  * Why: a cycle of the Python reference costs ~190 µs of CPU (a 1 kHz loop: ~19 % of a core);
  * this one costs the kernel's wake-up plus a few µs of arithmetic (docs/benchmarks.md).
  *
- * How it stays equal to the reference. The state lives in the Python objects (pump, link,
- * health, renderer, motion, position, height, equalizer, output stage, transport); `load` reads
- * it into a C struct, `store` writes it back. A cycle is done here only while everything is
- * ordinary: a serial port with nothing queued or a hidraw node (mode), STATUS messages only (at most FRESH per
+ * How it stays equal to the reference. The state is declared once, in
+ * hostd/device/cycle_state.toml: each stage (pump and its stats, link and its stats, health,
+ * renderer, position, motion, height, output stage) holds its fields in a record, a struct this
+ * file reads and writes in place through the buffer protocol (hs_<kind>_t, cycle_state.h,
+ * generated at build). What is not a record (the motion window, the unacknowledged messages,
+ * the latest STATUS dict, the weight caches and arrays, the transport's descriptor and buffers)
+ * comes positionally from fastpump._parts and goes back through fastpump._put; no attribute is
+ * read or written by name. A cycle is done here only while everything is ordinary: a serial
+ * port with nothing queued or a hidraw node (mode), STATUS messages only (at most FRESH per
  * poll, no fault flag, counters that move forwards), a motion fit on evenly spaced readings whose
  * least-squares weights are cached, no glitch or re-lock, no open recovery episode, a speed
  * bucket whose weights are cached, no crossfade. Each STATUS is checked before anything is
- * changed; at the first thing that is not ordinary the state is stored and the reference does
- * the rest of the cycle (`link._take` for the messages left, then `pump.after_poll()`), so the
- * rare paths (recovery, re-locks, new buckets, stalls) have one implementation: the Python one.
+ * changed; at the first thing that is not ordinary the cycle returns a hand-over, and
+ * fastpump._hand does the rest the reference's way (`link._take` for the messages left, then
+ * `pump.after_poll()`), so the rare paths (recovery, re-locks, new buckets, stalls) have one
+ * implementation: the Python one.
  * The GIL is held throughout, the sleeps included: nothing else in the pump's process runs
  * Python meanwhile (it has no other Python thread), so nothing can change the state held here
  * behind its back; a signal ends the sleep and the run, and its handler runs at once.
@@ -22,9 +28,11 @@
  * -ffp-contract=off; Python's float semantics are spelled out where C differs (floored %, max()
  * and min() that keep the first of equals, round() half to even = rint()).
  *
- *   init(consts, DeviceBusy, decode, codes_from_bytes)   the protocol's ids, sizes, constants
- *   step(pump, now_s, mode) -> int           one pump.step(); now_s: the host clock (None: CLOCK_MONOTONIC)
- *   run(pump, start_s, k, duration_s, budget_s, fds, mode, top_done) -> (k, why, due_s)
+ *   init(rate, ..., decode, codes_from_bytes)   the protocol's ids and sizes, the cycle's constants
+ *   step(parts, now_s, mode) -> (sent, hand, writes) | None    one pump.step(); now_s: the host
+ *        clock (None: CLOCK_MONOTONIC); None: not ordinary (the reference's cycle)
+ *   run(parts, start_s, k, duration_s, budget_s, fds, mode, top_done)
+ *        -> (k, why, due_s, hand, c0, writes) | None
  *        Pump.run's iterations (deadline grid start_s + k x period) while they are ordinary, at
  *        most budget_s, waking early for none of them: returns at an iteration's top when the
  *        budget is spent, end_s passed, a descriptor of fds became readable (after the sleep to
@@ -45,7 +53,7 @@
 #include "framing.h" /* crc16, cobs_decode */
 
 #define STALL_MARGIN_CYCLES 2 /* pump.STALL_MARGIN_CYCLES */
-#define REVISION 6 /* fastpump.C_REVISION must equal this */
+#define REVISION 8 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
 #define MAX_MSGS 64
 #define MAX_UNACKED 64
@@ -57,40 +65,16 @@
 #define MODE_SERIAL 0
 #define MODE_HID 1
 #define REPORT_SIZE 64 /* protocol.REPORT_SIZE (checked at init) */
+#define HS_COUNT(kind) +1
+#define HS_NREC (0 HS_RECORDS(HS_COUNT)) /* the records a cycle holds at most */
 
 /* ------------------------------------------------------------------ constants (init) */
 static int C_STATUS_ID = -1, C_SAMPLES_ID = -1, C_MAX_SAMPLES = 0, C_RUNNING = 1, C_SMALL_BATCH = 32,
            C_CUBIC_MIN = 24; /* motion.CUBIC_MIN_READINGS (init) */
 static long long C_RATE = 3000, C_CAP = 0, C_MAX_FRAME = 0, C_MAX_GAP_US = 600000000LL;
 static PyObject *decode_fn = NULL; /* hostd.device.fastlink.decode: builds last_status dicts */
-static PyObject *DeviceBusy = NULL; /* hostd.errors.DeviceBusy (init) */
 static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the reference renders (init) */
 
-
-/* interned attribute names */
-#define NAMES(X)                                                                                          \
-    X(renderer) X(record) X(_episode) X(_guard_seq) X(_flags_seen) X(_last_samples_played)                \
-    X(_last_played_dev_s) X(_under_seen) X(_fill) X(_last_decay) X(_extra) X(jitter) X(base_fill)         \
-    X(_low_fill) X(quiet_s)                                                                               \
-    X(stats) X(cycles) X(late_batches) X(samples) X(deadline_misses) X(max_late_us)      \
-    X(step_us) X(relocks) X(implausible_speed) X(_motion_base)             \
-    X(_last_cycle_start) X(period_s) X(link) X(health) X(t) X(target_fill) X(_seq) X(_unacked)            \
-    X(_time_hi) X(_last_us) X(device_time_s) X(status_host_time) X(_offset_s) X(_offset_host_t)           \
-    X(_fill_from_seq) X(statuses) X(messages_sent) X(samples_sent) X(last_status) X(_last) X(state)        \
-    X(underruns) X(samples_played) X(_time_s) X(_sel_active) X(_sel_device) X(_sel_due) X(_sel_played)    \
-    X(_sel_started) X(motion) X(position) X(height) X(eq) X(out) X(latency_s) X(_xfade_left) X(cfg)        \
-    X(samples_per_batch) X(_total) X(um_per_count) X(_t) X(_x) X(_c0) X(_c1) X(_c2) X(_c3) X(_t_ref) \
-    X(_rest_x) X(_dt_us) X(_uniform) X(_cache) X(implausible) X(_outliers) X(_since_restart) X(window)    \
-    X(order)                                                                                              \
-    X(glitch_um) X(rest_speed_mm_s) X(rest_hold_um) X(max_predict_s) X(max_gap_s) X(max_speed_mm_s)       \
-    X(n) X(length_mm) X(band) X(speed_bucket) X(_v_full_mm_s) X(_w_bucket) X(_w) X(_w_cache) X(sos)     \
-    X(zi) X(last_um)                                                                                      \
-    X(envelope) X(target_envelope) X(limit_um) X(max_step_um) X(ramp_step) X(_codes_per_um) X(limit_code) \
-    X(nonfinite) X(clipped) X(ser) X(fd) X(deframer) X(_buf) X(bad_frames) X(_queue) X(_pending)          \
-    X(_vmin) X(after_poll) X(_take) X(clear) X(extend) X(step) X(empty_reads)
-#define DECL(name) static PyObject *N_##name;
-NAMES(DECL)
-#undef DECL
 
 /* ------------------------------------------------------------------ the state */
 typedef struct {
@@ -101,7 +85,7 @@ typedef struct {
 
 typedef struct {
     /* objects (new references) */
-    PyObject *pump, *link, *t, *health, *r, *motion, *pos, *height, *eq, *out, *pstats, *lstats, *deframer;
+    PyObject *pump; /* (held while loaded) */
     PyObject *mcache, *wcache, *w; /* motion weight cache, height weight cache, current weights */
     PyObject *overflow;             /* messages of one poll beyond MAX_MSGS (a backlog), or NULL */
     Py_buffer wbuf, sosbuf, zibuf, ringbuf;
@@ -115,124 +99,55 @@ typedef struct {
     long long bad_frames;
     unsigned char pend[MAX_PENDING + 256];
     Py_ssize_t plen;
+    /* the stages' records (hostd/device/cycle_state.toml), read and written in place */
+    hs_pump_t *P;
+    hs_pump_stats_t *PS;
+    hs_link_t *L;
+    hs_link_stats_t *LS;
+    hs_health_t *H;
+    hs_renderer_t *R;
+    hs_position_t *Z;
+    hs_motion_t *M;
+    hs_height_t *E;
     /* link */
-    long long seq, time_hi, last_us, statuses, messages_sent, samples_sent, target_fill;
     int n_un;
     long long un_seq[MAX_UNACKED], un_cnt[MAX_UNACKED];
-    double device_time_s, status_host_time, offset_s, offset_host_t;
     status_t ls; /* the latest STATUS (link.stats.last_status, health._last) */
     int ls_new;  /* it came in this C run: its dict is built at store */
-    /* health */
-    long long h_underruns, h_played;
-    int h_state;
-    double h_time_s, sel_due;
-    int sel_active, sel_device, sel_started;
-    long long sel_played;
     /* pump */
-    long long flags_seen, last_sp, under_seen, fill, extra, base_fill, cycles, late_batches, samples;
-    long long deadline_misses, motion_base0, motion_base1;
-    int has_last_played, has_last_cycle, sent_any, record;
-    double last_played_dev_s, last_decay, max_late_us, period_s, last_cycle_start;
-    long long low_fill; /* the device's lowest reported fill while the target is raised (Pump._low_fill) */
-    double quiet_s;     /* JitterConfig.quiet_s */
-    /* renderer */
-    double latency_s;
-    long long spb;
-    /* position */
-    long long pos_last, pos_total;
-    double um_per_count;
-    /* motion */
-    int win, order;
-    double glitch_um, rest_speed, rest_hold, max_predict, max_gap, max_speed;
-    double mt[MAX_WIN], mx[MAX_WIN];
-    int mn;
-    double c0, c1, c2, c3, t_ref, rest_x;
-    int has_rest;
-    long long dt_us, uniform, since_restart, m_relocks, m_implausible;
+    long long motion_base0, motion_base1;
+    PyObject *append; /* pump.sent_codes.append while it records, else None (borrowed) */
+    /* motion: the least-squares rows in use */
     long long wkey_n, wkey_dt, wkey_order; /* the motion weights in mw (-1: none) */
     double mw[4][MAX_WIN];
-    /* height */
-    long long hn, w_bucket;
-    int has_wb;
-    double length_mm, speed_bucket, v_full;
     /* equalizer, output stage */
     Py_ssize_t ns;
-    rc_out_t o;
+    hs_output_t *o; /* the output stage's record (through the buffer protocol) */
+    Py_buffer recbuf[HS_NREC];
+    int nrec;
 } S;
 
-/* ------------------------------------------------------------------ attribute helpers */
-static int get_obj(PyObject *o, PyObject *name, PyObject **dst) {
-    *dst = PyObject_GetAttr(o, name);
-    return *dst ? 0 : -1;
-}
-static int get_d(PyObject *o, PyObject *name, double *dst) {
-    PyObject *v = PyObject_GetAttr(o, name);
-    if (!v)
-        return -1;
-    *dst = PyFloat_AsDouble(v);
-    Py_DECREF(v);
-    return (*dst == -1.0 && PyErr_Occurred()) ? -1 : 0;
-}
-static int get_ll(PyObject *o, PyObject *name, long long *dst) {
-    PyObject *v = PyObject_GetAttr(o, name);
-    if (!v)
-        return -1;
-    if (!PyLong_Check(v)) { /* bool is an int; anything else is not ordinary */
-        Py_DECREF(v);
-        PyErr_SetString(PyExc_TypeError, "an int expected");
-        return -1;
+/* ------------------------------------------------------------------ records
+ * A stage's state record (hostd/device/cycle_state.toml): the stage object holds its fields in
+ * the struct and exposes it through the buffer protocol. NULL with TypeError: not a record. */
+#define REC(s, obj, kind) ((hs_##kind##_t *)get_rec(s, obj, sizeof(hs_##kind##_t)))
+static void *get_rec(S *s, PyObject *o, Py_ssize_t size) {
+    Py_buffer *b = &s->recbuf[s->nrec];
+    if (s->nrec >= HS_NREC) {
+        PyErr_SetString(PyExc_SystemError, "more records than cycle_state.toml declares");
+        return NULL;
     }
-    *dst = PyLong_AsLongLong(v);
-    Py_DECREF(v);
-    return (*dst == -1 && PyErr_Occurred()) ? -1 : 0;
-}
-/* an attribute that may be None: *has = 0 for None */
-static int get_opt_d(PyObject *o, PyObject *name, double *dst, int *has) {
-    PyObject *v = PyObject_GetAttr(o, name);
-    if (!v)
-        return -1;
-    *has = v != Py_None;
-    if (*has)
-        *dst = PyFloat_AsDouble(v);
-    Py_DECREF(v);
-    return (*has && *dst == -1.0 && PyErr_Occurred()) ? -1 : 0;
-}
-static int get_opt_ll(PyObject *o, PyObject *name, long long *dst, int *has) {
-    PyObject *v = PyObject_GetAttr(o, name);
-    if (!v)
-        return -1;
-    *has = v != Py_None;
-    if (*has) {
-        if (!PyLong_Check(v)) {
-            Py_DECREF(v);
-            PyErr_SetString(PyExc_TypeError, "an int expected");
-            return -1;
-        }
-        *dst = PyLong_AsLongLong(v);
+    if (PyObject_GetBuffer(o, b, PyBUF_WRITABLE) < 0)
+        return NULL;
+    s->nrec++;
+    if (b->len != size) {
+        PyErr_SetString(PyExc_TypeError, "a cycle_state record expected");
+        return NULL;
     }
-    Py_DECREF(v);
-    return (*has && *dst == -1 && PyErr_Occurred()) ? -1 : 0;
+    return b->buf;
 }
-static int is_none(PyObject *o, PyObject *name) { /* 1 None, 0 not, -1 error */
-    PyObject *v = PyObject_GetAttr(o, name);
-    if (!v)
-        return -1;
-    int r = v == Py_None;
-    Py_DECREF(v);
-    return r;
-}
-static int set_obj(PyObject *o, PyObject *name, PyObject *v) { /* steals v */
-    if (!v)
-        return -1;
-    int r = PyObject_SetAttr(o, name, v);
-    Py_DECREF(v);
-    return r;
-}
-#define SET_D(o, name, v) set_obj(o, N_##name, PyFloat_FromDouble(v))
-#define SET_LL(o, name, v) set_obj(o, N_##name, PyLong_FromLongLong(v))
-#define SET_B(o, name, v) set_obj(o, N_##name, PyBool_FromLong(v))
 
-/* ------------------------------------------------------------------ load / store */
+/* ------------------------------------------------------------------ load, writes */
 static void release(S *s) {
     if (s->have_w)
         PyBuffer_Release(&s->wbuf);
@@ -243,19 +158,9 @@ static void release(S *s) {
     if (s->have_ring)
         PyBuffer_Release(&s->ringbuf);
     s->have_w = s->have_sos = s->have_zi = s->have_ring = 0;
+    while (s->nrec > 0)
+        PyBuffer_Release(&s->recbuf[--s->nrec]);
     Py_CLEAR(s->pump);
-    Py_CLEAR(s->link);
-    Py_CLEAR(s->t);
-    Py_CLEAR(s->health);
-    Py_CLEAR(s->r);
-    Py_CLEAR(s->motion);
-    Py_CLEAR(s->pos);
-    Py_CLEAR(s->height);
-    Py_CLEAR(s->eq);
-    Py_CLEAR(s->out);
-    Py_CLEAR(s->pstats);
-    Py_CLEAR(s->lstats);
-    Py_CLEAR(s->deframer);
     Py_CLEAR(s->mcache);
     Py_CLEAR(s->wcache);
     Py_CLEAR(s->w);
@@ -282,61 +187,21 @@ static int set_weights(S *s, PyObject *w) { /* the height weights array in force
     return 1;
 }
 
-static int read_status_fields(PyObject *d, status_t *st) { /* from a last_status dict */
-    static const char *keys[] = {"state", "fault_flags", "device_time_us", "encoder_count", "samples_played",
-                                 "buffer_fill", "last_seq", "underruns"};
-    long long v[8];
-    for (int i = 0; i < 8; i++) {
-        PyObject *x = PyDict_GetItemString(d, keys[i]);
-        if (!x || !PyLong_Check(x))
-            return 0;
-        v[i] = PyLong_AsLongLong(x);
-        if (v[i] == -1 && PyErr_Occurred())
-            return -1;
-    }
-    st->state = (int)v[0];
-    st->flags = v[1];
-    st->us = v[2];
-    st->enc = v[3];
-    st->played = v[4];
-    st->fill = v[5];
-    st->last_seq = v[6];
-    st->under = v[7];
-    return 1;
-}
-
-static int load_deque(PyObject *dq, double *dst, int max, int *n) {
-    PyObject *it = PyObject_GetIter(dq);
-    if (!it)
-        return -1;
-    PyObject *x;
-    int k = 0;
-    while ((x = PyIter_Next(it))) {
-        if (k >= max || !PyFloat_Check(x)) {
-            Py_DECREF(x);
-            Py_DECREF(it);
-            return 0;
-        }
-        dst[k++] = PyFloat_AS_DOUBLE(x);
-        Py_DECREF(x);
-    }
-    Py_DECREF(it);
-    if (PyErr_Occurred())
-        return -1;
-    *n = k;
-    return 1;
-}
+/* The parts of a cycle, in the order hostd/device/fastpump.py's _parts gives them: the stages
+ * (each read as its record), then the objects that are not records (arrays, caches, the window,
+ * the transport's descriptor and buffers). Nothing is looked up by name. */
+enum {
+    P_PUMP, P_PSTATS, P_LINK, P_LSTATS, P_HEALTH, P_RENDERER, P_POSITION, P_MOTION, P_HEIGHT, P_OUT,
+    P_MOTION_BASE, P_STEP_US, P_UNACKED, P_LAST_STATUS, P_MCACHE, P_W, P_WCACHE, P_SOS, P_ZI,
+    P_APPEND, P_FD, P_EMPTY_READS, P_DBUF, P_BAD_FRAMES, P_N
+};
 
 /* 1: loaded and ordinary; 0: not ordinary (the reference does the cycle); -1: error */
-static int load(S *s, PyObject *pump, int mode) {
+static int load(S *s, PyObject *parts, int mode) {
     memset(s, 0, sizeof *s);
     s->mode = mode;
     s->wkey_n = -1;
-    Py_INCREF(pump);
-    s->pump = pump;
-    long long ll;
-    int has, r;
-    PyObject *o = NULL;
+    int r;
 #define TRY(x)                                                                                            \
     do {                                                                                                  \
         if ((x) < 0)                                                                                      \
@@ -347,78 +212,32 @@ static int load(S *s, PyObject *pump, int mode) {
         if (cond)                                                                                         \
             goto no;                                                                                      \
     } while (0)
-    /* pump */
-    TRY(get_obj(pump, N_renderer, &s->r));
-    NO(s->r == Py_None);
-    TRY(get_obj(pump, N_record, &o));
-    r = PyObject_IsTrue(o);
-    Py_CLEAR(o);
-    TRY(r);
-    s->record = r; /* (the demo's summary: pump.sent_codes gets each batch sent) */
-    TRY(r = is_none(pump, N__episode));
-    NO(!r);
-    TRY(r = is_none(pump, N__guard_seq));
-    NO(!r);
-    TRY(get_ll(pump, N__flags_seen, &s->flags_seen));
-    NO(s->flags_seen != 0);
-    TRY(get_opt_ll(pump, N__last_samples_played, &s->last_sp, &has));
-    NO(!has);
-    TRY(get_opt_d(pump, N__last_played_dev_s, &s->last_played_dev_s, &s->has_last_played));
-    TRY(get_ll(pump, N__under_seen, &s->under_seen));
-    TRY(get_ll(pump, N__fill, &s->fill));
-    TRY(get_d(pump, N__last_decay, &s->last_decay));
-    TRY(get_ll(pump, N__low_fill, &s->low_fill));
-    TRY(get_ll(pump, N__extra, &s->extra));
-    TRY(get_d(pump, N_period_s, &s->period_s));
-    TRY(get_opt_d(pump, N__last_cycle_start, &s->last_cycle_start, &s->has_last_cycle));
-    TRY(get_obj(pump, N_jitter, &o));
-    r = get_ll(o, N_base_fill, &s->base_fill) < 0 || get_d(o, N_quiet_s, &s->quiet_s) < 0;
-    Py_CLEAR(o);
-    if (r)
+#define PART(i) PyTuple_GET_ITEM(parts, i)
+    if (!PyTuple_Check(parts) || PyTuple_GET_SIZE(parts) != P_N)
+        return 0; /* (None: fastpump found the cycle not ordinary) */
+    Py_INCREF(PART(P_PUMP));
+    s->pump = PART(P_PUMP);
+    if (!(s->P = REC(s, PART(P_PUMP), pump)) || !(s->PS = REC(s, PART(P_PSTATS), pump_stats)) ||
+        !(s->L = REC(s, PART(P_LINK), link)) || !(s->LS = REC(s, PART(P_LSTATS), link_stats)) ||
+        !(s->H = REC(s, PART(P_HEALTH), health)) || !(s->R = REC(s, PART(P_RENDERER), renderer)) ||
+        !(s->Z = REC(s, PART(P_POSITION), position)) || !(s->M = REC(s, PART(P_MOTION), motion)) ||
+        !(s->E = REC(s, PART(P_HEIGHT), height)) || !(s->o = REC(s, PART(P_OUT), output)))
         goto fail;
-    TRY(get_obj(pump, N__motion_base, &o));
-    if (!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != 2) {
-        Py_CLEAR(o);
-        goto no;
-    }
+    /* pump */
+    NO(s->P->_guard_seq_set || s->P->_flags_seen != 0 || !s->P->_last_samples_played_set);
+    PyObject *o = PART(P_MOTION_BASE);
+    NO(!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != 2);
     s->motion_base0 = PyLong_AsLongLong(PyTuple_GET_ITEM(o, 0));
     s->motion_base1 = PyLong_AsLongLong(PyTuple_GET_ITEM(o, 1));
-    Py_CLEAR(o);
     if (PyErr_Occurred())
         goto fail;
-    TRY(get_obj(pump, N_stats, &s->pstats));
-    TRY(get_ll(s->pstats, N_cycles, &s->cycles));
-    TRY(get_ll(s->pstats, N_late_batches, &s->late_batches));
-    TRY(get_ll(s->pstats, N_samples, &s->samples));
-    TRY(get_ll(s->pstats, N_deadline_misses, &s->deadline_misses));
-    TRY(get_d(s->pstats, N_max_late_us, &s->max_late_us));
-    TRY(get_obj(s->pstats, N_step_us, &o));
-    if (PyObject_GetBuffer(o, &s->ringbuf, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT) < 0) {
-        Py_CLEAR(o);
-        goto fail;
-    }
-    Py_CLEAR(o);
+    TRY(PyObject_GetBuffer(PART(P_STEP_US), &s->ringbuf, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT));
     s->have_ring = 1;
     NO(s->ringbuf.itemsize != 8 || strcmp(s->ringbuf.format, "d") || s->ringbuf.len < 8);
-    TRY(get_obj(pump, N_health, &s->health));
     /* link */
-    TRY(get_obj(pump, N_link, &s->link));
-    TRY(r = is_none(s->link, N__fill_from_seq));
-    NO(!r);
-    TRY(get_ll(s->link, N_target_fill, &s->target_fill));
-    TRY(get_ll(s->link, N__seq, &s->seq));
-    TRY(get_ll(s->link, N__time_hi, &s->time_hi));
-    TRY(get_opt_ll(s->link, N__last_us, &s->last_us, &has));
-    NO(!has);
-    TRY(get_d(s->link, N_device_time_s, &s->device_time_s));
-    TRY(get_d(s->link, N_status_host_time, &s->status_host_time));
-    TRY(get_opt_d(s->link, N__offset_s, &s->offset_s, &has));
-    NO(!has);
-    TRY(get_d(s->link, N__offset_host_t, &s->offset_host_t));
-    TRY(get_obj(s->link, N__unacked, &o));
+    NO(s->L->_fill_from_seq_set || !s->L->_last_us_set || !s->L->_offset_s_set);
     {
-        PyObject *it = PyObject_GetIter(o), *x;
-        Py_CLEAR(o);
+        PyObject *it = PyObject_GetIter(PART(P_UNACKED)), *x;
         if (!it)
             goto fail;
         while ((x = PyIter_Next(it))) {
@@ -438,205 +257,67 @@ static int load(S *s, PyObject *pump, int mode) {
         if (PyErr_Occurred())
             goto fail;
     }
-    TRY(get_obj(s->link, N_stats, &s->lstats));
-    TRY(get_ll(s->lstats, N_statuses, &s->statuses));
-    TRY(get_ll(s->lstats, N_messages_sent, &s->messages_sent));
-    TRY(get_ll(s->lstats, N_samples_sent, &s->samples_sent));
-    TRY(get_obj(s->lstats, N_last_status, &o));
-    r = PyDict_Check(o) ? read_status_fields(o, &s->ls) : 0;
-    Py_CLEAR(o);
-    TRY(r);
-    NO(!r);
-    /* health: its last STATUS is the link's (the same dict) */
-    TRY(get_obj(s->health, N__last, &o));
-    {
-        PyObject *ls = PyObject_GetAttr(s->lstats, N_last_status);
-        if (!ls) {
-            Py_CLEAR(o);
-            goto fail;
-        }
-        r = o == ls;
-        Py_DECREF(ls);
-        Py_CLEAR(o);
-        NO(!r);
-    }
-    TRY(get_ll(s->health, N_underruns, &s->h_underruns));
-    TRY(get_ll(s->health, N_samples_played, &s->h_played));
-    TRY(get_ll(s->health, N_state, &ll));
-    s->h_state = (int)ll;
-    TRY(get_d(s->health, N__time_s, &s->h_time_s));
-    TRY(get_d(s->health, N__sel_due, &s->sel_due));
-    TRY(get_ll(s->health, N__sel_played, &s->sel_played));
-    TRY(get_ll(s->health, N__sel_active, &ll));
-    s->sel_active = ll != 0;
-    TRY(get_ll(s->health, N__sel_device, &ll));
-    s->sel_device = ll != 0;
-    TRY(get_ll(s->health, N__sel_started, &ll));
-    s->sel_started = ll != 0;
+    /* the latest STATUS's fields (fastpump._parts: the link's and the health's, one dict) */
+    TRY(PyArg_ParseTuple(PART(P_LAST_STATUS), "iLLLLLLL", &s->ls.state, &s->ls.flags, &s->ls.us, &s->ls.enc,
+                         &s->ls.played, &s->ls.fill, &s->ls.last_seq, &s->ls.under) ? 0 : -1);
     /* transport */
-    TRY(get_obj(s->link, N_t, &s->t));
-    if (mode == MODE_HID) { /* HidrawTransport: its descriptor, its count of empty reads */
-        TRY(get_ll(s->t, N_fd, &ll));
-        NO(ll < 0);
-        s->fd = (int)ll;
-        TRY(get_ll(s->t, N_empty_reads, &s->empty_reads));
-    } else { /* SerialTransport, with nothing queued either way */
-        TRY(get_obj(s->t, N__queue, &o));
-        r = PyList_Check(o) && PyList_GET_SIZE(o) == 0;
-        Py_CLEAR(o);
-        NO(!r);
-        TRY(get_obj(s->t, N__pending, &o));
-        r = PyBytes_Check(o) && PyBytes_GET_SIZE(o) == 0;
-        Py_CLEAR(o);
-        NO(!r);
-        TRY(get_ll(s->t, N__vmin, &ll));
-        NO(ll != 0);
-        TRY(get_obj(s->t, N_ser, &o));
-        r = get_ll(o, N_fd, &ll);
-        Py_CLEAR(o);
-        TRY(r);
-        s->fd = (int)ll;
-        TRY(get_obj(s->t, N_deframer, &s->deframer));
-        TRY(get_ll(s->deframer, N_bad_frames, &s->bad_frames));
-        TRY(get_obj(s->deframer, N__buf, &o));
-        if (!PyByteArray_Check(o)) {
-            Py_CLEAR(o);
-            goto no;
-        }
+    {
+        long long fd = PyLong_AsLongLong(PART(P_FD));
+        if (fd == -1 && PyErr_Occurred())
+            goto fail;
+        NO(fd < 0);
+        s->fd = (int)fd;
+    }
+    if (mode == MODE_HID) { /* HidrawTransport: its count of empty reads */
+        s->empty_reads = PyLong_AsLongLong(PART(P_EMPTY_READS));
+    } else { /* SerialTransport, with nothing queued either way (fastpump checks): the deframer's */
+        s->bad_frames = PyLong_AsLongLong(PART(P_BAD_FRAMES));
+        o = PART(P_DBUF);
+        NO(!PyByteArray_Check(o));
         s->dlen = PyByteArray_GET_SIZE(o);
         s->dcap = s->dlen + 2 * READ_SIZE;
         s->dbuf = PyMem_Malloc((size_t)s->dcap);
         if (!s->dbuf) {
-            Py_CLEAR(o);
             PyErr_NoMemory();
             goto fail;
         }
         memcpy(s->dbuf, PyByteArray_AS_STRING(o), (size_t)s->dlen);
-        Py_CLEAR(o);
     }
-    /* renderer */
-    TRY(get_ll(s->r, N__xfade_left, &ll));
-    NO(ll != 0);
-    TRY(get_d(s->r, N_latency_s, &s->latency_s));
-    TRY(get_obj(s->r, N_cfg, &o));
-    r = get_ll(o, N_samples_per_batch, &s->spb);
-    Py_CLEAR(o);
-    TRY(r);
-    TRY(get_obj(s->r, N_position, &s->pos));
-    TRY(get_opt_ll(s->pos, N__last, &s->pos_last, &has));
-    NO(!has);
-    TRY(get_ll(s->pos, N__total, &s->pos_total));
-    NO(s->pos_total > (1LL << 52) || s->pos_total < -(1LL << 52));
-    TRY(get_d(s->pos, N_um_per_count, &s->um_per_count));
-    TRY(get_obj(s->r, N_motion, &s->motion));
-    TRY(get_obj(s->motion, N_cfg, &o));
-    {
-        long long w, ord;
-        r = get_ll(o, N_window, &w) < 0 || get_ll(o, N_order, &ord) < 0 || get_d(o, N_glitch_um, &s->glitch_um) < 0 ||
-            get_d(o, N_rest_speed_mm_s, &s->rest_speed) < 0 || get_d(o, N_rest_hold_um, &s->rest_hold) < 0 ||
-            get_d(o, N_max_predict_s, &s->max_predict) < 0 || get_d(o, N_max_gap_s, &s->max_gap) < 0 ||
-            get_d(o, N_max_speed_mm_s, &s->max_speed) < 0;
-        Py_CLEAR(o);
-        if (r)
-            goto fail;
-        NO(w < 2 || w > MAX_WIN || ord < 0 || ord > 3);
-        s->win = (int)w;
-        s->order = (int)ord;
-    }
-    TRY(get_obj(s->motion, N__outliers, &o));
-    r = PyList_Check(o) && PyList_GET_SIZE(o) == 0;
-    Py_CLEAR(o);
-    NO(!r);
-    {
-        int nt = 0, nx = 0;
-        TRY(get_obj(s->motion, N__t, &o));
-        r = load_deque(o, s->mt, s->win, &nt);
-        Py_CLEAR(o);
-        TRY(r);
-        NO(!r);
-        TRY(get_obj(s->motion, N__x, &o));
-        r = load_deque(o, s->mx, s->win, &nx);
-        Py_CLEAR(o);
-        TRY(r);
-        NO(!r || nt != nx || nt == 0);
-        s->mn = nt;
-    }
-    TRY(get_d(s->motion, N__c0, &s->c0));
-    TRY(get_d(s->motion, N__c1, &s->c1));
-    TRY(get_d(s->motion, N__c2, &s->c2));
-    TRY(get_d(s->motion, N__c3, &s->c3));
-    TRY(get_d(s->motion, N__t_ref, &s->t_ref));
-    TRY(get_opt_d(s->motion, N__rest_x, &s->rest_x, &s->has_rest));
-    TRY(get_ll(s->motion, N__dt_us, &s->dt_us));
-    TRY(get_ll(s->motion, N__uniform, &s->uniform));
-    TRY(get_ll(s->motion, N__since_restart, &s->since_restart));
-    TRY(get_ll(s->motion, N_relocks, &s->m_relocks));
-    TRY(get_ll(s->motion, N_implausible, &s->m_implausible));
-    TRY(get_obj(s->motion, N__cache, &s->mcache));
+    if (PyErr_Occurred())
+        goto fail;
+    /* renderer, position, motion */
+    NO(s->R->_xfade_left != 0 || !s->Z->_last_set);
+    NO(s->Z->_total > (1LL << 52) || s->Z->_total < -(1LL << 52));
+    NO(s->M->_window < 2 || s->M->_window > MAX_WIN || s->M->_order < 0 || s->M->_order > 3);
+    NO(s->M->_n < 1 || s->M->_n > s->M->_window);
+    s->append = PART(P_APPEND); /* (borrowed: the parts outlive the call) */
+    s->mcache = Py_NewRef(PART(P_MCACHE));
     NO(!PyDict_Check(s->mcache));
     /* height: the series on float64 weights (checked by the wrapper: method, dtype) */
-    TRY(get_obj(s->r, N_height, &s->height));
-    TRY(get_ll(s->height, N_n, &s->hn));
-    NO(s->hn <= 0);
-    TRY(get_d(s->height, N_length_mm, &s->length_mm));
-    TRY(get_d(s->height, N__v_full_mm_s, &s->v_full));
-    TRY(get_obj(s->height, N_band, &o));
-    r = get_d(o, N_speed_bucket, &s->speed_bucket);
-    Py_CLEAR(o);
-    TRY(r);
-    TRY(get_opt_ll(s->height, N__w_bucket, &s->w_bucket, &s->has_wb));
-    TRY(get_obj(s->height, N__w_cache, &s->wcache));
+    NO(s->E->n <= 0);
+    s->wcache = Py_NewRef(PART(P_WCACHE));
     NO(!PyDict_Check(s->wcache));
-    TRY(get_obj(s->height, N__w, &o));
-    r = set_weights(s, o);
-    Py_CLEAR(o);
+    r = set_weights(s, PART(P_W));
     TRY(r);
     NO(!r);
     /* equalizer and output stage (fastrender.tail's conditions) */
-    TRY(get_obj(s->r, N_eq, &s->eq));
-    TRY(get_obj(s->eq, N_sos, &o));
+    o = PART(P_SOS);
     if (o != Py_None) {
-        r = PyObject_GetBuffer(o, &s->sosbuf, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT);
-        Py_CLEAR(o);
-        TRY(r);
+        TRY(PyObject_GetBuffer(o, &s->sosbuf, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT));
         s->have_sos = 1;
         NO(s->sosbuf.itemsize != 8 || strcmp(s->sosbuf.format, "d") || s->sosbuf.len % 48);
         s->ns = s->sosbuf.len / 48;
-        TRY(get_obj(s->eq, N_zi, &o));
-        if (o == Py_None) {
-            Py_CLEAR(o);
-            goto no;
-        }
-        r = PyObject_GetBuffer(o, &s->zibuf, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT);
-        Py_CLEAR(o);
-        if (r < 0) {
+        o = PART(P_ZI);
+        NO(o == Py_None);
+        if (PyObject_GetBuffer(o, &s->zibuf, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT) < 0) {
             PyErr_Clear(); /* not writable or not contiguous: the reference copes */
             goto no;
         }
         s->have_zi = 1;
         NO(s->zibuf.itemsize != 8 || strcmp(s->zibuf.format, "d") || s->zibuf.len != s->ns * 16);
-    } else {
-        Py_CLEAR(o);
+    } else
         s->ns = 0;
-    }
-    TRY(get_obj(s->r, N_out, &s->out));
-    TRY(get_d(s->out, N_last_um, &s->o.last));
-    TRY(get_d(s->out, N_envelope, &s->o.env));
-    TRY(get_d(s->out, N_target_envelope, &s->o.target));
-    TRY(get_d(s->out, N_limit_um, &s->o.lim));
-    TRY(get_d(s->out, N_max_step_um, &s->o.step));
-    TRY(get_d(s->out, N_ramp_step, &s->o.ramp));
-    TRY(get_d(s->out, N__codes_per_um, &s->o.codes_per_um));
-    TRY(get_obj(s->out, N_cfg, &o));
-    r = get_ll(o, N_limit_code, &ll);
-    Py_CLEAR(o);
-    TRY(r);
-    NO(ll < 0 || ll > 32767);
-    s->o.limit_code = (long)ll;
-    TRY(get_ll(s->out, N_nonfinite, &ll));
-    s->o.nonfinite = (long)ll;
-    TRY(get_ll(s->out, N_clipped, &ll));
-    s->o.clipped = (long)ll;
+    NO(s->o->_limit_code < 0 || s->o->_limit_code > 32767);
     return 1;
 no:
     if (PyErr_Occurred()) {
@@ -654,140 +335,37 @@ fail:
     }
     release(s);
     return -1;
+#undef PART
 }
 
-static int store_deque(PyObject *owner, PyObject *name, const double *v, int n) {
-    PyObject *dq = PyObject_GetAttr(owner, name);
-    if (!dq)
-        return -1;
-    PyObject *lst = PyList_New(n);
-    if (!lst) {
-        Py_DECREF(dq);
-        return -1;
-    }
-    for (int i = 0; i < n; i++) {
-        PyObject *f = PyFloat_FromDouble(v[i]);
-        if (!f) {
-            Py_DECREF(lst);
-            Py_DECREF(dq);
-            return -1;
-        }
-        PyList_SET_ITEM(lst, i, f);
-    }
-    PyObject *r1 = PyObject_CallMethodNoArgs(dq, N_clear);
-    PyObject *r2 = r1 ? PyObject_CallMethodOneArg(dq, N_extend, lst) : NULL;
-    Py_XDECREF(r1);
-    Py_XDECREF(r2);
-    Py_DECREF(lst);
-    Py_DECREF(dq);
-    return r2 ? 0 : -1;
-}
-
-/* write the state back into the Python objects and release them */
-static int store(S *s) {
-    int e = 0;
-    PyObject *o;
-    /* transport */
-    if (s->mode == MODE_HID)
-        e |= SET_LL(s->t, empty_reads, s->empty_reads);
-    else {
-        o = PyByteArray_FromStringAndSize((const char *)s->dbuf, s->dlen);
-        e |= set_obj(s->deframer, N__buf, o);
-        e |= SET_LL(s->deframer, bad_frames, s->bad_frames);
-        e |= set_obj(s->t, N__pending, PyBytes_FromStringAndSize((const char *)s->pend, s->plen));
-    }
-    /* link */
-    e |= SET_LL(s->link, _seq, s->seq);
-    e |= SET_LL(s->link, _time_hi, s->time_hi);
-    e |= SET_LL(s->link, _last_us, s->last_us);
-    e |= SET_D(s->link, device_time_s, s->device_time_s);
-    e |= SET_D(s->link, status_host_time, s->status_host_time);
-    e |= SET_D(s->link, _offset_s, s->offset_s);
-    e |= SET_D(s->link, _offset_host_t, s->offset_host_t);
-    o = PyObject_GetAttr(s->link, N__unacked);
-    if (o) {
-        PyObject *lst = PyList_New(s->n_un);
-        for (int i = 0; lst && i < s->n_un; i++)
-            PyList_SET_ITEM(lst, i, Py_BuildValue("(LL)", s->un_seq[i], s->un_cnt[i]));
-        PyObject *r1 = lst ? PyObject_CallMethodNoArgs(o, N_clear) : NULL;
-        PyObject *r2 = r1 ? PyObject_CallMethodOneArg(o, N_extend, lst) : NULL;
-        e |= r2 ? 0 : -1;
-        Py_XDECREF(r1);
-        Py_XDECREF(r2);
-        Py_XDECREF(lst);
-        Py_DECREF(o);
-    } else
-        e = -1;
-    e |= SET_LL(s->lstats, statuses, s->statuses);
-    e |= SET_LL(s->lstats, messages_sent, s->messages_sent);
-    e |= SET_LL(s->lstats, samples_sent, s->samples_sent);
-    if (s->ls_new) { /* the latest STATUS as the reference decodes it: one dict for link and health */
+/* What the cycle changed that is not a record, for fastpump.py to put back (its _put): the
+ * motion window, the unacknowledged messages, the latest STATUS (decoded), the height weights in
+ * force, the transport's count or buffers. NULL on error. Releases s. */
+static PyObject *writes(S *s) {
+    PyObject *un = PyList_New(s->n_un), *st = NULL, *tr = NULL;
+    for (int i = 0; un && i < s->n_un; i++)
+        PyList_SET_ITEM(un, i, Py_BuildValue("(LL)", s->un_seq[i], s->un_cnt[i]));
+    if (s->ls_new) { /* the latest STATUS as the reference decodes it */
         PyObject *msg = PyBytes_FromStringAndSize((const char *)s->ls.b, STATUS_LEN);
         PyObject *res = msg ? PyObject_CallOneArg(decode_fn, msg) : NULL;
         Py_XDECREF(msg);
-        if (res && PyTuple_Check(res) && PyTuple_GET_SIZE(res) == 2) {
-            PyObject *d = PyTuple_GET_ITEM(res, 1);
-            e |= PyObject_SetAttr(s->lstats, N_last_status, d);
-            e |= PyObject_SetAttr(s->health, N__last, d);
-        } else
-            e = -1;
+        if (res && PyTuple_Check(res) && PyTuple_GET_SIZE(res) == 2)
+            st = Py_NewRef(PyTuple_GET_ITEM(res, 1));
         Py_XDECREF(res);
-    }
-    /* health */
-    e |= SET_LL(s->health, underruns, s->h_underruns);
-    e |= SET_LL(s->health, samples_played, s->h_played);
-    e |= SET_LL(s->health, state, s->h_state);
-    e |= SET_D(s->health, _time_s, s->h_time_s);
-    e |= SET_D(s->health, _sel_due, s->sel_due);
-    e |= SET_LL(s->health, _sel_played, s->sel_played);
-    e |= SET_B(s->health, _sel_started, s->sel_started);
-    /* pump */
-    e |= SET_LL(s->pump, _flags_seen, s->flags_seen);
-    e |= SET_LL(s->pump, _last_samples_played, s->last_sp);
-    if (s->has_last_played)
-        e |= SET_D(s->pump, _last_played_dev_s, s->last_played_dev_s);
-    e |= SET_LL(s->pump, _under_seen, s->under_seen);
-    e |= SET_D(s->pump, _last_decay, s->last_decay);
-    e |= SET_LL(s->pump, _low_fill, s->low_fill);
-    if (s->has_last_cycle)
-        e |= SET_D(s->pump, _last_cycle_start, s->last_cycle_start);
-    e |= SET_LL(s->pstats, cycles, s->cycles);
-    e |= SET_LL(s->pstats, late_batches, s->late_batches);
-    e |= SET_LL(s->pstats, samples, s->samples);
-    e |= SET_LL(s->pstats, deadline_misses, s->deadline_misses);
-    e |= SET_D(s->pstats, max_late_us, s->max_late_us);
-    if (s->sent_any) { /* after_poll sets these after a send */
-        e |= SET_LL(s->pstats, relocks, s->motion_base0 + s->m_relocks);
-        e |= SET_LL(s->pstats, implausible_speed, s->motion_base1 + s->m_implausible);
-    }
-    /* position, motion */
-    e |= SET_LL(s->pos, _last, s->pos_last);
-    e |= SET_LL(s->pos, _total, s->pos_total);
-    e |= store_deque(s->motion, N__t, s->mt, s->mn);
-    e |= store_deque(s->motion, N__x, s->mx, s->mn);
-    e |= SET_D(s->motion, _c0, s->c0);
-    e |= SET_D(s->motion, _c1, s->c1);
-    e |= SET_D(s->motion, _c2, s->c2);
-    e |= SET_D(s->motion, _c3, s->c3);
-    e |= SET_D(s->motion, _t_ref, s->t_ref);
-    if (s->has_rest)
-        e |= SET_D(s->motion, _rest_x, s->rest_x);
+    } else
+        st = Py_NewRef(Py_None);
+    if (s->mode == MODE_HID)
+        tr = Py_BuildValue("(L)", s->empty_reads);
     else
-        e |= PyObject_SetAttr(s->motion, N__rest_x, Py_None);
-    e |= SET_LL(s->motion, _dt_us, s->dt_us);
-    e |= SET_LL(s->motion, _uniform, s->uniform);
-    e |= SET_LL(s->motion, _since_restart, s->since_restart);
-    /* height: the bucket in force and its weights */
-    if (s->has_wb)
-        e |= SET_LL(s->height, _w_bucket, s->w_bucket);
-    e |= PyObject_SetAttr(s->height, N__w, s->w);
-    /* output stage (the equalizer's state was updated in place) */
-    e |= SET_D(s->out, last_um, s->o.last);
-    e |= SET_D(s->out, envelope, s->o.env);
-    e |= SET_LL(s->out, nonfinite, s->o.nonfinite);
-    e |= SET_LL(s->out, clipped, s->o.clipped);
+        tr = Py_BuildValue("(Ly#y#)", s->bad_frames, (const char *)s->dbuf, s->dlen, (const char *)s->pend, s->plen);
+    PyObject *ret = NULL;
+    if (un && st && tr && !PyErr_Occurred())
+        ret = PyTuple_Pack(4, un, st, s->w, tr);
+    Py_XDECREF(un);
+    Py_XDECREF(st);
+    Py_XDECREF(tr);
     release(s);
-    return e ? -1 : 0;
+    return ret;
 }
 
 /* ------------------------------------------------------------------ serial framing
@@ -925,9 +503,9 @@ static long long compiled_count; /* cycles done here from start to end */
 
 /* ------------------------------------------------------------------ motion (MotionEstimator) */
 static double predict_one(const S *s, double t) {
-    const double m = s->max_predict;
-    const double dt = py_min(py_max(t - s->t_ref, -m), m);
-    return s->c0 + dt * (s->c1 + dt * (s->c2 + dt * s->c3));
+    const double m = s->M->_max_predict_s;
+    const double dt = py_min(py_max(t - s->M->_t_ref, -m), m);
+    return s->M->_c0 + dt * (s->M->_c1 + dt * (s->M->_c2 + dt * s->M->_c3));
 }
 
 /* the cached least-squares rows for (n, dt_us, order): 1 found, 0 not cached, -1 error */
@@ -996,44 +574,44 @@ static int take_status(S *s, const msg_t *m, double now) {
     if (dt_us > C_MAX_GAP_US || d_played > dt_us * C_RATE / 1000000 + 3)
         return HAND(H_RESET, 0); /* a reset */
     /* link._status: the device's clock */
-    long long time_hi = s->time_hi;
-    if (f.us < s->last_us && s->last_us - f.us > (1LL << 31))
+    long long time_hi = s->L->_time_hi;
+    if (f.us < s->L->_last_us && s->L->_last_us - f.us > (1LL << 31))
         time_hi += 1LL << 32;
     const double device_time_s = (double)(time_hi + f.us) * 1e-6;
     /* position.update */
     const long long raw = f.enc;
-    long long d = u32(raw - s->pos_last);
+    long long d = u32(raw - s->Z->_last);
     if (d >= (1LL << 31))
         d -= 1LL << 32;
-    const long long total = s->pos_total + d;
+    const long long total = s->Z->_total + d;
     if (total > (1LL << 52) || total < -(1LL << 52))
         return HAND(H_RESET, 0);
-    const double x_mm = (double)total * s->um_per_count * 1e-3;
+    const double x_mm = (double)total * s->Z->um_per_count * 1e-3;
     /* motion.update, on a copy of the window */
     const double t_s = device_time_s;
     if (!isfinite(t_s) || !isfinite(x_mm))
         return HAND(H_GLITCH, 0);
     double mt[MAX_WIN], mx[MAX_WIN];
-    int mn = s->mn;
-    long long since = s->since_restart, mdt = s->dt_us, uni = s->uniform;
-    double c0 = s->c0, c1 = s->c1, c2 = s->c2, c3 = s->c3, t_ref = s->t_ref, rest_x = s->rest_x;
-    int has_rest = s->has_rest;
-    const int stale = t_s <= s->mt[s->mn - 1];
+    int mn = (int)s->M->_n;
+    long long since = s->M->_since_restart, mdt = s->M->_dt_us, uni = s->M->_uniform;
+    double c0 = s->M->_c0, c1 = s->M->_c1, c2 = s->M->_c2, c3 = s->M->_c3, t_ref = s->M->_t_ref, rest_x = s->M->_rest_x;
+    int has_rest = s->M->_rest_x_set;
+    const int stale = t_s <= s->M->_tw[mn - 1];
     if (!stale) {
-        if (t_s - s->mt[s->mn - 1] > s->max_gap)
+        if (t_s - s->M->_tw[mn - 1] > s->M->_max_gap_s)
             return HAND(H_GAP, 0); /* a gap: the fit restarts (reference) */
-        if (mn >= s->order + 2) {
+        if (mn >= s->M->_order + 2) {
             const double pred = predict_one(s, t_s);
-            if (fabs(x_mm - pred) * 1000.0 > s->glitch_um)
+            if (fabs(x_mm - pred) * 1000.0 > s->M->_glitch_um)
                 return HAND(H_GLITCH, 0); /* a glitch or a real move (reference) */
         }
-        memcpy(mt, s->mt, sizeof(double) * (size_t)mn);
-        memcpy(mx, s->mx, sizeof(double) * (size_t)mn);
+        memcpy(mt, s->M->_tw, sizeof(double) * (size_t)mn);
+        memcpy(mx, s->M->_xw, sizeof(double) * (size_t)mn);
         since += 1;
         const long long dtu = (long long)rint((t_s - mt[mn - 1]) * 1e6); /* round() */
         uni = dtu == mdt ? uni + 1 : 1;
         mdt = dtu;
-        if (mn == s->win) {
+        if (mn == s->M->_window) {
             memmove(mt, mt + 1, sizeof(double) * (size_t)(mn - 1));
             memmove(mx, mx + 1, sizeof(double) * (size_t)(mn - 1));
             mn--;
@@ -1043,8 +621,8 @@ static int take_status(S *s, const msg_t *m, double now) {
         mn++;
         /* _fit */
         t_ref = mt[mn - 1];
-        long long order = s->order < mn - 1 ? s->order : mn - 1;
-        if (since < 2 * (s->order + 1) && order > 1)
+        long long order = s->M->_order < mn - 1 ? s->M->_order : mn - 1;
+        if (since < 2 * (s->M->_order + 1) && order > 1)
             order = 1;
         if (order == 3 && mn < C_CUBIC_MIN)
             order = 2; /* a short window: motion.CUBIC_MIN_READINGS */
@@ -1071,12 +649,12 @@ static int take_status(S *s, const msg_t *m, double now) {
                 if (mx[i] < lo)
                     lo = mx[i];
             }
-            if (fabs(c1) < s->rest_speed && hi - lo <= s->rest_speed * (mt[mn - 1] - mt[0]) + s->rest_hold * 1e-3) {
+            if (fabs(c1) < s->M->_rest_speed_mm_s && hi - lo <= s->M->_rest_speed_mm_s * (mt[mn - 1] - mt[0]) + s->M->_rest_hold_um * 1e-3) {
                 double acc = 0.0;
                 for (int i = 0; i < mn; i++)
                     acc += 1.0 * mx[i];
                 const double mean = acc / (double)mn;
-                if (!has_rest || fabs(mean - rest_x) * 1000.0 > s->rest_hold) {
+                if (!has_rest || fabs(mean - rest_x) * 1000.0 > s->M->_rest_hold_um) {
                     rest_x = mean;
                     has_rest = 1;
                 }
@@ -1085,22 +663,22 @@ static int take_status(S *s, const msg_t *m, double now) {
             } else
                 has_rest = 0;
         }
-        if (fabs(c1) > s->max_speed)
+        if (fabs(c1) > s->M->_max_speed_mm_s)
             return HAND(H_IMPLAUSIBLE, 0); /* implausible (reference) */
     }
     /* ---- commit. link._status */
-    s->time_hi = time_hi;
-    s->last_us = f.us;
-    s->device_time_s = device_time_s;
-    s->status_host_time = now;
+    s->L->_time_hi = time_hi;
+    s->L->_last_us = f.us;
+    s->L->device_time_s = device_time_s;
+    s->L->status_host_time = now;
     const double off = device_time_s - now;
-    if (off < s->offset_s - 30.0)
-        s->offset_s = off;
+    if (off < s->L->_offset_s - 30.0)
+        s->L->_offset_s = off;
     else {
-        const double decayed = s->offset_s - 1e-3 * (now - s->offset_host_t);
-        s->offset_s = py_max(off, decayed);
+        const double decayed = s->L->_offset_s - 1e-3 * (now - s->L->_offset_host_t);
+        s->L->_offset_s = py_max(off, decayed);
     }
-    s->offset_host_t = now;
+    s->L->_offset_host_t = now;
     int drop = 0;
     while (drop < s->n_un && ((f.last_seq - s->un_seq[drop]) & 0xFFFF) < 0x8000)
         drop++;
@@ -1109,48 +687,48 @@ static int take_status(S *s, const msg_t *m, double now) {
         memmove(s->un_cnt, s->un_cnt + drop, sizeof(long long) * (size_t)(s->n_un - drop));
         s->n_un -= drop;
     }
-    s->statuses++;
+    s->LS->statuses++;
     /* health.update */
-    s->h_state = f.state;
-    s->h_time_s += (double)dt_us * 1e-6;
-    s->h_played += d_played;
-    s->h_underruns += d_under;
-    if (s->sel_active && !s->sel_device) {
-        if (!s->sel_started && f.state == C_RUNNING)
-            s->sel_started = 1;
-        if (s->sel_started) {
-            s->sel_due += (double)dt_us * 1e-6 * (double)C_RATE;
-            s->sel_played += d_played;
+    s->H->state = f.state;
+    s->H->_time_s += (double)dt_us * 1e-6;
+    s->H->samples_played += d_played;
+    s->H->underruns += d_under;
+    if (s->H->_sel_active && !s->H->_sel_device) {
+        if (!s->H->_sel_started && f.state == C_RUNNING)
+            s->H->_sel_started = 1;
+        if (s->H->_sel_started) {
+            s->H->_sel_due += (double)dt_us * 1e-6 * (double)C_RATE;
+            s->H->_sel_played += d_played;
         }
     }
     /* pump._on_status */
-    s->flags_seen |= f.flags;
-    if (f.played != s->last_sp && f.state == C_RUNNING) {
-        s->last_played_dev_s = device_time_s;
-        s->has_last_played = 1;
+    s->P->_flags_seen |= f.flags;
+    if (f.played != s->P->_last_samples_played && f.state == C_RUNNING) {
+        s->P->_last_played_dev_s = device_time_s;
+        s->P->_last_played_dev_s_set = 1;
     }
-    if (s->fill > s->base_fill && f.state == C_RUNNING && f.fill < s->low_fill)
-        s->low_fill = f.fill; /* the evidence a raised target comes down on (no episode here) */
-    s->last_sp = f.played;
+    if (s->P->_fill > s->P->_base_fill && f.state == C_RUNNING && f.fill < s->P->_low_fill)
+        s->P->_low_fill = f.fill; /* the evidence a raised target comes down on (no episode here) */
+    s->P->_last_samples_played = f.played;
     s->ls = f;
     s->ls_new = 1;
     /* renderer.on_encoder */
-    s->pos_last = raw;
-    s->pos_total = total;
+    s->Z->_last = raw;
+    s->Z->_total = total;
     if (!stale) {
-        memcpy(s->mt, mt, sizeof(double) * (size_t)mn);
-        memcpy(s->mx, mx, sizeof(double) * (size_t)mn);
-        s->mn = mn;
-        s->since_restart = since;
-        s->dt_us = mdt;
-        s->uniform = uni;
-        s->c0 = c0;
-        s->c1 = c1;
-        s->c2 = c2;
-        s->c3 = c3;
-        s->t_ref = t_ref;
-        s->rest_x = rest_x;
-        s->has_rest = has_rest;
+        memcpy(s->M->_tw, mt, sizeof(double) * (size_t)mn);
+        memcpy(s->M->_xw, mx, sizeof(double) * (size_t)mn);
+        s->M->_n = mn;
+        s->M->_since_restart = since;
+        s->M->_dt_us = mdt;
+        s->M->_uniform = uni;
+        s->M->_c0 = c0;
+        s->M->_c1 = c1;
+        s->M->_c2 = c2;
+        s->M->_c3 = c3;
+        s->M->_t_ref = t_ref;
+        s->M->_rest_x = rest_x;
+        s->M->_rest_x_set = has_rest;
     }
     return 1;
 }
@@ -1158,7 +736,7 @@ static int take_status(S *s, const msg_t *m, double now) {
 /* ------------------------------------------------------------------ the cycle */
 enum { DONE = 0, HAND_MSGS = 1, HAND_AFTER = 2, HAND_READERR = 3, HAND_SEND = 4 };
 
-static double device_now(const S *s, double now) { return py_max(s->device_time_s, now + s->offset_s); }
+static double device_now(const S *s, double now) { return py_max(s->L->device_time_s, now + s->L->_offset_s); }
 
 /* One SAMPLES message out, as link._send does it: 0 sent (serial: what the port did not take
  * waits in the pending bytes, as SerialTransport.send_raw keeps it), 1 not sent and nothing
@@ -1291,11 +869,11 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         }
     }
     /* after_poll: _supervise (ordinary: nothing to act on) */
-    if (s->flags_seen != 0 || s->h_underruns != s->under_seen || s->ls.state != C_RUNNING)
+    if (s->P->_flags_seen != 0 || s->H->underruns != s->P->_under_seen || s->ls.state != C_RUNNING)
         return HAND(H_SUPERVISE, HAND_AFTER);
     /* _decay: at base, the quiet period starts now (committed below); a raised target after its
      * quiet period comes down by the reference's rule (Pump._decay), handed over when it is due */
-    if (s->fill > s->base_fill && now - s->last_decay >= s->quiet_s)
+    if (s->P->_fill > s->P->_base_fill && now - s->P->_last_decay >= s->P->_quiet_s)
         return HAND(H_DECAY, HAND_AFTER);
     /* fill_estimate, wanted */
     long long in_flight = 0;
@@ -1303,10 +881,10 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         in_flight += s->un_cnt[i];
     double dfill = (double)s->ls.fill;
     if (s->ls.state == C_RUNNING)
-        dfill -= (device_now(s, now) - s->device_time_s) * (double)C_RATE;
+        dfill -= (device_now(s, now) - s->L->device_time_s) * (double)C_RATE;
     dfill = py_max(0.0, dfill);
     const double fill = dfill + (double)in_flight;
-    long long n = (long long)rint((double)s->target_fill - fill);
+    long long n = (long long)rint((double)s->L->target_fill - fill);
     if (n > 2 * C_MAX_SAMPLES)
         n = 2 * C_MAX_SAMPLES;
     if (n < 0)
@@ -1318,26 +896,26 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         if (n > C_SMALL_BATCH || s->n_un + (n + C_MAX_SAMPLES - 1) / C_MAX_SAMPLES > MAX_UNACKED)
             return HAND(H_BIG_BATCH, HAND_AFTER); /* the reference's numpy path; or more in flight than held here */
         /* next_play_time_s */
-        const double queued = s->device_time_s + (double)(s->ls.fill + in_flight + 1) / (double)C_RATE;
+        const double queued = s->L->device_time_s + (double)(s->ls.fill + in_flight + 1) / (double)C_RATE;
         const double t0 = py_max(queued, device_now(s, now) + (double)(in_flight + 1) / (double)C_RATE);
         /* plan: predict; heights: phase, weights of the speed's bucket, the series */
-        const double m = s->max_predict;
+        const double m = s->M->_max_predict_s;
         /* Renderer.plan: the speed at the batch's middle instant (motion.velocity_at) */
-        const double t_first = (t0 + 0.0 / (double)C_RATE) + s->latency_s;
-        const double t_last = (t0 + (double)(n - 1) / (double)C_RATE) + s->latency_s;
-        const double dtv = py_min(py_max(0.5 * (t_first + t_last) - s->t_ref, -m), m);
-        const double v = s->c1 + dtv * (2.0 * s->c2 + dtv * (3.0 * s->c3));
+        const double t_first = (t0 + 0.0 / (double)C_RATE) + s->R->latency_s;
+        const double t_last = (t0 + (double)(n - 1) / (double)C_RATE) + s->R->latency_s;
+        const double dtv = py_min(py_max(0.5 * (t_first + t_last) - s->M->_t_ref, -m), m);
+        const double v = s->M->_c1 + dtv * (2.0 * s->M->_c2 + dtv * (3.0 * s->M->_c3));
         long long b;
         const double sp = fabs(v);
-        if (sp < 1e-9 || sp <= s->v_full) /* HeightEvaluator._bucket: every gain 1 up to v_full */
+        if (sp < 1e-9 || sp <= s->E->_v_full_mm_s) /* HeightEvaluator._bucket: every gain 1 up to v_full */
             b = REST_BUCKET;
         else {
-            const double q = floor(log(sp) / log1p(s->speed_bucket));
+            const double q = floor(log(sp) / log1p(s->E->_speed_bucket));
             if (!(q > -4e18 && q < 4e18))
                 return HAND(H_NEW_BUCKET, HAND_AFTER);
             b = (long long)q;
         }
-        if (!s->has_wb || b != s->w_bucket) {
+        if (!s->E->_w_bucket_set || b != s->E->_w_bucket) {
             PyObject *key = PyLong_FromLongLong(b);
             if (!key)
                 return -1;
@@ -1350,36 +928,36 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
                 return r < 0 ? -1 : HAND(H_NEW_BUCKET, HAND_AFTER);
             new_w = 1;
         }
-        const double two_l = 2.0 * s->length_mm, dx = s->length_mm / (double)s->hn, kph = M_PI / (double)s->hn;
+        const double two_l = 2.0 * s->E->length_mm, dx = s->E->length_mm / (double)s->E->n, kph = M_PI / (double)s->E->n;
         for (long long i = 0; i < n; i++) {
             const double tp = t0 + (double)i / (double)C_RATE;
-            const double t = tp + s->latency_s;
-            const double dt = py_min(py_max(t - s->t_ref, -m), m);
-            const double x = s->c0 + dt * (s->c1 + dt * (s->c2 + dt * s->c3));
+            const double t = tp + s->R->latency_s;
+            const double dt = py_min(py_max(t - s->M->_t_ref, -m), m);
+            const double x = s->M->_c0 + dt * (s->M->_c1 + dt * (s->M->_c2 + dt * s->M->_c3));
             theta[i] = (py_mod(x, two_l) / dx + 0.5) * kph;
         }
         rc_clenshaw((const double *)s->wbuf.buf, s->wbuf.len / 8, theta, n, h, 1);
         if (new_w) {
-            s->w_bucket = b;
-            s->has_wb = 1;
+            s->E->_w_bucket = b;
+            s->E->_w_bucket_set = 1;
         }
     }
     /* ---- commit the after-poll part */
-    s->flags_seen = 0;
-    s->under_seen = s->h_underruns;
-    if (s->fill <= s->base_fill)
-        s->last_decay = now;
+    s->P->_flags_seen = 0;
+    s->P->_under_seen = s->H->underruns;
+    if (s->P->_fill <= s->P->_base_fill)
+        s->P->_last_decay = now;
     if (n == 0)
         return DONE;
-    if (fill < (double)s->spb)
-        s->late_batches++;
+    if (fill < (double)s->R->_samples_per_batch)
+        s->PS->late_batches++;
     rc_tail(s->have_sos ? (const double *)s->sosbuf.buf : NULL, s->ns, s->have_zi ? (double *)s->zibuf.buf : NULL, h,
-            n, codes, &s->o);
+            n, codes, s->o);
     /* send_samples */
     long long done = 0;
     for (long long i = 0; i < n; i += C_MAX_SAMPLES) {
         const long long cnt = n - i < C_MAX_SAMPLES ? n - i : C_MAX_SAMPLES;
-        const long long seq = (s->seq + 1) & 0xFFFF;
+        const long long seq = (s->L->_seq + 1) & 0xFFFF;
         unsigned char msg[8 + 2 * 64];
         msg[0] = (unsigned char)C_SAMPLES_ID;
         msg[1] = 0;
@@ -1397,119 +975,81 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
             *sent = done;
             return HAND(H_WRITE, HAND_SEND); /* the reference sends from this message on */
         }
-        s->messages_sent++;
-        s->seq = seq;
+        s->LS->messages_sent++;
+        s->L->_seq = seq;
         s->un_seq[s->n_un] = seq;
         s->un_cnt[s->n_un] = cnt;
         s->n_un++;
-        s->samples_sent += cnt;
+        s->LS->samples_sent += cnt;
         done += cnt;
     }
-    if (s->record) { /* Pump._send_codes: pump.sent_codes.append(codes[:sent]) */
+    if (s->append != Py_None) { /* Pump._send_codes: pump.sent_codes.append(codes[:sent]) when recording */
         PyObject *raw = PyBytes_FromStringAndSize((const char *)codes, (Py_ssize_t)(done * 2));
         PyObject *arr = raw ? PyObject_CallOneArg(codes_fn, raw) : NULL;
         Py_XDECREF(raw);
-        PyObject *lst = arr ? PyObject_GetAttrString(s->pump, "sent_codes") : NULL;
-        int r = lst ? PyList_Append(lst, arr) : -1;
-        Py_XDECREF(lst);
+        PyObject *x = arr ? PyObject_CallOneArg(s->append, arr) : NULL;
         Py_XDECREF(arr);
-        if (r < 0)
+        if (!x)
             return -1;
+        Py_DECREF(x);
     }
-    s->samples += done;
-    s->sent_any = 1;
+    s->PS->samples += done;
+    /* Pump._motion_stats */
+    s->PS->relocks = s->motion_base0 + s->M->relocks;
+    s->PS->implausible_speed = s->motion_base1 + s->M->implausible;
     *sent = done;
     return DONE;
 }
 
 /* ------------------------------------------------------------------ hand-over, step, run */
 
-/* A cycle: here while ordinary, else stored and finished by the reference. Returns the samples
- * sent (a new int), NULL on error. *loaded: whether s is still loaded afterwards. */
-static PyObject *do_cycle(S *s, double now, int *loaded) {
+/* A cycle: DONE here (*sent: the samples sent), or handed over: the state is in the records (and,
+ * from writes(), in what fastpump.py puts back) and *hand = (code, arg, extra) says where the
+ * reference takes the cycle on (fastpump._hand): HAND_MSGS (link._take of extra's messages from
+ * arg on, then after_poll), HAND_AFTER (after_poll), HAND_SEND (Pump._send_codes(extra, arg)),
+ * HAND_READERR (the reference's cycle from the top). -1: error. */
+static int do_cycle(S *s, double now, long long *sent, PyObject **hand) {
     msg_t *msgs = g_msgs;
     int nm, first, more;
-    long long sent, ncodes = 0;
-    int r = cycle(s, now, msgs, &nm, &first, &more, &sent, &ncodes);
+    long long ncodes = 0;
+    *hand = NULL;
+    int r = cycle(s, now, msgs, &nm, &first, &more, sent, &ncodes);
     if (r == DONE) {
         compiled_count++;
-        return PyLong_FromLongLong(sent);
+        return DONE;
     }
-    *loaded = 0;
-    if (r < 0) {
-        release(s);
-        return NULL;
-    }
-    PyObject *pump = s->pump, *link = s->link, *t = s->t, *overflow = s->overflow;
-    Py_INCREF(pump);
-    Py_INCREF(link);
-    Py_INCREF(t);
-    Py_XINCREF(overflow);
-    PyObject *res = NULL;
-    if (store(s) < 0)
-        goto out;
-    if (r == HAND_MSGS) { /* link.poll's loop over the messages, from `first` on */
-        PyObject *all = PyList_New(0);
-        if (!all)
-            goto out;
-        for (int i = 0; i < nm; i++) {
+    if (r < 0)
+        return -1;
+    PyObject *extra = NULL;
+    long long arg = 0;
+    if (r == HAND_MSGS) { /* link.poll's messages (then the rest of a backlog) */
+        arg = first;
+        extra = PyList_New(0);
+        for (int i = 0; extra && i < nm; i++) {
             PyObject *m = PyBytes_FromStringAndSize((const char *)msgs[i].b, msgs[i].n);
-            if (!m || PyList_Append(all, m) < 0) {
-                Py_XDECREF(m);
-                Py_DECREF(all);
-                goto out;
-            }
-            Py_DECREF(m);
+            if (!m || PyList_Append(extra, m) < 0)
+                Py_CLEAR(extra);
+            Py_XDECREF(m);
         }
-        if (more) { /* the rest of the backlog */
-            PyObject *x = PyObject_CallMethodOneArg(all, N_extend, overflow);
-            if (!x) {
-                Py_DECREF(all);
-                goto out;
-            }
-            Py_DECREF(x);
-        }
-        const Py_ssize_t total = PyList_GET_SIZE(all), stale = total - FRESH;
-        for (Py_ssize_t i = first; i < total; i++) {
-            PyObject *x = PyObject_CallMethodObjArgs(link, N__take, PyList_GET_ITEM(all, i),
-                                                     i >= stale ? Py_True : Py_False, NULL);
-            if (!x) {
-                Py_DECREF(all);
-                goto out;
-            }
-            Py_DECREF(x);
-        }
-        Py_DECREF(all);
-        res = PyObject_CallMethodNoArgs(pump, N_after_poll);
-    } else if (r == HAND_AFTER) {
-        res = PyObject_CallMethodNoArgs(pump, N_after_poll);
-    } else if (r == HAND_SEND) { /* Pump._send_codes from the message that did not go out */
+        if (extra && more && PyList_SetSlice(extra, nm, nm, s->overflow) < 0)
+            Py_CLEAR(extra);
+    } else if (r == HAND_SEND) { /* the batch, of which *sent went out */
+        arg = *sent;
         PyObject *raw = PyBytes_FromStringAndSize((const char *)g_codes, (Py_ssize_t)(ncodes * 2));
-        PyObject *codes = raw ? PyObject_CallOneArg(codes_fn, raw) : NULL;
+        extra = raw ? PyObject_CallOneArg(codes_fn, raw) : NULL;
         Py_XDECREF(raw);
-        if (codes) {
-            res = PyObject_CallMethod(pump, "_send_codes", "OL", codes, sent);
-            Py_DECREF(codes);
-            PyObject *x = res ? PyObject_CallMethod(pump, "_motion_stats", NULL) : NULL;
-            if (!x)
-                Py_CLEAR(res);
-            Py_XDECREF(x);
-        }
-    } else { /* a read failed: the reference's cycle, from the top (it reads again) */
-        res = PyObject_CallMethodNoArgs(pump, N_step);
-    }
-out:
-    Py_DECREF(pump);
-    Py_DECREF(link);
-    Py_DECREF(t);
-    Py_XDECREF(overflow);
-    return res;
+    } else
+        extra = Py_NewRef(Py_None);
+    if (!extra)
+        return -1;
+    *hand = Py_BuildValue("(iLN)", r, arg, extra);
+    return *hand ? r : -1;
 }
 
 static PyObject *fp_step(PyObject *self, PyObject *args) {
-    PyObject *pump, *o_now;
+    PyObject *parts, *o_now;
     int mode;
-    if (!PyArg_ParseTuple(args, "OOi", &pump, &o_now, &mode))
+    if (!PyArg_ParseTuple(args, "OOi", &parts, &o_now, &mode))
         return NULL;
     double now;
     if (o_now == Py_None)
@@ -1523,39 +1063,26 @@ static PyObject *fp_step(PyObject *self, PyObject *args) {
     if (!s)
         return PyErr_NoMemory();
     PyObject *res = NULL;
-    int r = load(s, pump, mode);
+    int r = load(s, parts, mode);
     s->clock_live = o_now == Py_None;
-    if (r < 0)
-        goto done;
-    if (r == 0) {
-        hand_count[H_LOAD]++;
-        res = PyObject_CallMethodNoArgs(pump, N_step);
-        goto done;
+    if (r <= 0) {
+        if (r == 0) {
+            hand_count[H_LOAD]++;
+            res = Py_NewRef(Py_None); /* not ordinary: the reference's cycle */
+        }
+        PyMem_Free(s);
+        return res;
     }
-    int loaded = 1;
-    res = do_cycle(s, now, &loaded);
-    if (loaded) {
-        if (store(s) < 0)
-            Py_CLEAR(res);
-    }
-done:
+    long long sent = 0;
+    PyObject *hand = NULL;
+    r = do_cycle(s, now, &sent, &hand);
+    PyObject *w = writes(s);
+    if (r >= 0 && w)
+        res = Py_BuildValue("(LOO)", sent, hand ? hand : Py_None, w);
+    Py_XDECREF(hand);
+    Py_XDECREF(w);
     PyMem_Free(s);
     return res;
-}
-
-static int add_dropped(PyObject *pump) { /* pump.stats.io_dropped += 1 */
-    PyObject *st = PyObject_GetAttrString(pump, "stats");
-    if (!st)
-        return -1;
-    PyObject *v = PyObject_GetAttrString(st, "io_dropped");
-    PyObject *one = PyLong_FromLong(1);
-    PyObject *nv = v && one ? PyNumber_Add(v, one) : NULL;
-    int r = nv ? PyObject_SetAttrString(st, "io_dropped", nv) : -1;
-    Py_XDECREF(nv);
-    Py_XDECREF(one);
-    Py_XDECREF(v);
-    Py_DECREF(st);
-    return r;
 }
 
 /* sleep until `due` (CLOCK_MONOTONIC s) or until one of fds is readable (then on to due):
@@ -1593,11 +1120,11 @@ static int sleep_until(double due, struct pollfd *pfd, int nfd, int *fd_ready) {
 }
 
 static PyObject *fp_run(PyObject *self, PyObject *args) {
-    PyObject *pump, *o_dur, *o_fds;
+    PyObject *parts, *o_dur, *o_fds;
     double start, budget;
     long long k;
     int mode, top_done;
-    if (!PyArg_ParseTuple(args, "OdLOdOip", &pump, &start, &k, &o_dur, &budget, &o_fds, &mode, &top_done))
+    if (!PyArg_ParseTuple(args, "OdLOdOip", &parts, &start, &k, &o_dur, &budget, &o_fds, &mode, &top_done))
         return NULL;
     int has_dur = o_dur != Py_None;
     double duration = has_dur ? PyFloat_AsDouble(o_dur) : 0.0;
@@ -1624,24 +1151,25 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
     if (!s)
         return PyErr_NoMemory();
     const char *why = "reference";
-    double due_out = 0.0;
-    PyObject *ret = NULL;
-    int r = load(s, pump, mode);
+    double due_out = 0.0, c0 = 0.0;
+    PyObject *ret = NULL, *hand = NULL;
+    int r = load(s, parts, mode);
     s->clock_live = 1;
-    if (r < 0)
-        goto done;
-    if (r == 0) {
-        hand_count[H_LOAD]++;
-        goto out;
+    if (r <= 0) {
+        if (r == 0) {
+            hand_count[H_LOAD]++;
+            ret = Py_NewRef(Py_None); /* not ordinary: the reference's cycle */
+        }
+        PyMem_Free(s);
+        return ret;
     }
-    int loaded = 1;
     const double t_run0 = mono_now();
     const long long lim_fill = C_CAP - C_MAX_SAMPLES;
-    int skip_top = top_done && s->has_last_cycle; /* the caller's loop did this iteration's top */
+    int skip_top = top_done && s->P->_last_cycle_start_set; /* the caller's loop did this iteration's top */
     while (1) {
         double now = mono_now();
         if (skip_top) {
-            now = s->last_cycle_start;
+            now = s->P->_last_cycle_start;
             skip_top = 0;
             goto cycle_now;
         }
@@ -1649,12 +1177,12 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
             why = "end";
             break;
         }
-        if (s->has_last_cycle) {
-            long long lf = s->fill + s->extra;
+        if (s->P->_last_cycle_start_set) {
+            long long lf = s->P->_fill + s->P->_extra;
             if (lf > lim_fill)
                 lf = lim_fill;
             /* Pump.run: a pause that left less than STALL_MARGIN_CYCLES cycles of the buffer */
-            if (now - s->last_cycle_start > (double)lf / (double)C_RATE - STALL_MARGIN_CYCLES * s->period_s) {
+            if (now - s->P->_last_cycle_start > (double)lf / (double)C_RATE - STALL_MARGIN_CYCLES * s->P->period_s) {
                 why = "stall"; /* (Pump.run counts it) */
                 break;
             }
@@ -1663,48 +1191,32 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
             why = "budget";
             break;
         }
-        s->last_cycle_start = now;
-        s->has_last_cycle = 1;
+        s->P->_last_cycle_start = now;
+        s->P->_last_cycle_start_set = 1;
     cycle_now:;
-        const double c0 = thread_now();
-        PyObject *res = do_cycle(s, now, &loaded);
-        if (!loaded) { /* handed over: the reference finished the cycle; Pump.run's tail ends it */
-            if (!res) {
-                if (!DeviceBusy || !PyErr_ExceptionMatches(DeviceBusy))
-                    goto done;
-                PyErr_Clear();
-                if (add_dropped(pump) < 0)
-                    goto done;
-            }
-            Py_XDECREF(res);
-            PyObject *tail = PyObject_CallMethod(pump, "_end_cycle", "ddL", c0, start, k);
-            if (!tail)
-                goto done;
-            if (!PyArg_ParseTuple(tail, "Ld", &k, &due_out)) {
-                Py_DECREF(tail);
-                goto done;
-            }
-            Py_DECREF(tail);
-            why = "handed";
-            goto out;
-        }
-        if (!res) /* (no memory for the count) */
+        c0 = thread_now();
+        long long sent;
+        r = do_cycle(s, now, &sent, &hand);
+        if (r < 0)
             break;
-        Py_DECREF(res);
+        if (r != DONE) { /* handed over: fastpump finishes the cycle the reference's way, and ends it */
+            why = "handed";
+            break;
+        }
         /* Pump._end_cycle */
         double *ring = (double *)s->ringbuf.buf;
         const Py_ssize_t rn = s->ringbuf.len / 8;
-        ring[s->cycles % rn] = (thread_now() - c0) * 1e6;
-        s->cycles++;
+        ring[s->PS->cycles % rn] = (thread_now() - c0) * 1e6;
+        s->PS->cycles++;
         k++;
-        const double due = start + (double)k * s->period_s;
+        const double due = start + (double)k * s->P->period_s;
         now = mono_now();
         if (now > due) {
             const double late = (now - due) * 1e6;
-            s->max_late_us = py_max(s->max_late_us, late);
-            if (late > s->period_s * 0.5e6)
-                s->deadline_misses++;
-            k = (long long)((now - start) / s->period_s);
+            s->PS->max_late_us = py_max(s->PS->max_late_us, late);
+            if (late > s->P->period_s * 0.5e6)
+                s->PS->deadline_misses++;
+            k = (long long)((now - start) / s->P->period_s);
             continue;
         }
         int fd_ready = 0;
@@ -1719,69 +1231,29 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
             break;
         }
     }
-    if (PyErr_Occurred()) {
-        store(s);
-        goto done;
-    }
-    if (store(s) < 0)
-        goto done;
-out:
-    ret = Py_BuildValue("(Lsd)", k, why, due_out);
-done:
-    if (s->pump)
-        release(s);
+    PyObject *w = writes(s);
+    if (w && !PyErr_Occurred())
+        ret = Py_BuildValue("(LsdOdO)", k, why, due_out, hand ? hand : Py_None, c0, w);
+    Py_XDECREF(w);
+    Py_XDECREF(hand);
     PyMem_Free(s);
     return ret;
 }
 
 static PyObject *fp_init(PyObject *self, PyObject *args) {
-    PyObject *d, *busy, *dec, *cf;
-    if (!PyArg_ParseTuple(args, "O!OOO", &PyDict_Type, &d, &busy, &dec, &cf))
+    PyObject *dec, *cf;
+    int report_size;
+    if (!PyArg_ParseTuple(args, "LLLLiiiiiiiOO", &C_RATE, &C_CAP, &C_MAX_FRAME, &C_MAX_GAP_US, &C_STATUS_ID,
+                          &C_SAMPLES_ID, &C_MAX_SAMPLES, &C_RUNNING, &C_SMALL_BATCH, &C_CUBIC_MIN, &report_size,
+                          &dec, &cf))
         return NULL;
-    struct {
-        const char *key;
-        long long *dst;
-    } ll[] = {{"rate", &C_RATE}, {"buffer_capacity", &C_CAP}, {"max_frame", &C_MAX_FRAME}, {"max_gap_us", &C_MAX_GAP_US}};
-    for (size_t i = 0; i < sizeof ll / sizeof ll[0]; i++) {
-        PyObject *v = PyDict_GetItemString(d, ll[i].key);
-        if (!v) {
-            PyErr_Format(PyExc_KeyError, "init: %s", ll[i].key);
-            return NULL;
-        }
-        *ll[i].dst = PyLong_AsLongLong(v);
-    }
-    struct {
-        const char *key;
-        int *dst;
-    } ii[] = {{"status_id", &C_STATUS_ID}, {"samples_id", &C_SAMPLES_ID}, {"max_samples", &C_MAX_SAMPLES},
-              {"running", &C_RUNNING}, {"small_batch", &C_SMALL_BATCH},
-              {"cubic_min_readings", &C_CUBIC_MIN}};
-    for (size_t i = 0; i < sizeof ii / sizeof ii[0]; i++) {
-        PyObject *v = PyDict_GetItemString(d, ii[i].key);
-        if (!v) {
-            PyErr_Format(PyExc_KeyError, "init: %s", ii[i].key);
-            return NULL;
-        }
-        *ii[i].dst = (int)PyLong_AsLong(v);
-    }
-    if (PyErr_Occurred())
-        return NULL;
-    PyObject *rs = PyDict_GetItemString(d, "report_size");
-    if (!rs || PyLong_AsLong(rs) != REPORT_SIZE) {
-        PyErr_SetString(PyExc_ValueError, "init: a report of 64 bytes expected");
+    if (report_size != REPORT_SIZE || C_MAX_SAMPLES < 1 || 5 + 2 * C_MAX_SAMPLES > REPORT_SIZE ||
+        C_SMALL_BATCH > RC_MAX_N || C_RATE <= 0 || C_CUBIC_MIN < 4) {
+        PyErr_SetString(PyExc_ValueError, "init: constants out of range (a report of 64 bytes expected)");
         return NULL;
     }
-    if (C_MAX_SAMPLES < 1 || 5 + 2 * C_MAX_SAMPLES > REPORT_SIZE || C_SMALL_BATCH > RC_MAX_N || C_RATE <= 0 ||
-        C_CUBIC_MIN < 4) {
-        PyErr_SetString(PyExc_ValueError, "init: constants out of range");
-        return NULL;
-    }
-    Py_INCREF(busy);
-    Py_XSETREF(DeviceBusy, busy);
-    Py_INCREF(dec);
-    Py_XSETREF(decode_fn, dec);
-    Py_INCREF(cf);
-    Py_XSETREF(codes_fn, cf);
+    Py_XSETREF(decode_fn, Py_NewRef(dec));
+    Py_XSETREF(codes_fn, Py_NewRef(cf));
     Py_RETURN_NONE;
 }
 
@@ -1809,11 +1281,14 @@ static PyObject *fp_handovers(PyObject *self, PyObject *noargs) {
 static PyMethodDef methods[] = {
     {"handovers", fp_handovers, METH_NOARGS,
      "handovers() -> {cause: cycles handed to the reference, 'compiled': cycles done compiled}"},
-    {"init", fp_init, METH_VARARGS, "init(consts, DeviceBusy, decode, codes_from_bytes)"},
-    {"step", fp_step, METH_VARARGS, "step(pump, now_s | None, mode) -> samples sent: pump.step()"},
+    {"init", fp_init, METH_VARARGS,
+     "init(rate, capacity, max_frame, max_gap_us, status_id, samples_id, max_samples, running, small_batch, "
+     "cubic_min_readings, report_size, decode, codes_from_bytes)"},
+    {"step", fp_step, METH_VARARGS,
+     "step(parts, now_s | None, mode) -> (sent, hand, writes) | None: pump.step() (fastpump.step)"},
     {"run", fp_run, METH_VARARGS,
-     "run(pump, start_s, k, duration_s | None, budget_s, fds, mode, top_done) -> (k, why, due_s): Pump.run's "
-     "ordinary iterations (top_done: the caller began the first one: stall check, _last_cycle_start)"},
+     "run(parts, start_s, k, duration_s | None, budget_s, fds, mode, top_done) -> (k, why, due_s, hand, c0, "
+     "writes) | None: Pump.run's ordinary iterations (fastpump.run)"},
     {NULL, NULL, 0, NULL},
 };
 
@@ -1823,15 +1298,25 @@ static struct PyModuleDef module = {
 };
 
 PyMODINIT_FUNC PyInit__fastpump(void) {
-#define INTERN(name)                                                                                      \
-    if (!(N_##name = PyUnicode_InternFromString(#name)))                                                  \
-        return NULL;
-    NAMES(INTERN)
-#undef INTERN
     PyObject *m = PyModule_Create(&module);
     if (!m)
         return NULL;
     if (PyModule_AddIntConstant(m, "REVISION", REVISION) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    PyObject *sizes = PyDict_New(); /* RECORD_SIZES: kind -> sizeof(hs_<kind>_t), checked by fastpump.py */
+#define SIZE(kind)                                                                                        \
+    if (sizes) {                                                                                          \
+        PyObject *v = PyLong_FromSize_t(sizeof(hs_##kind##_t));                                           \
+        if (!v || PyDict_SetItemString(sizes, #kind, v) < 0)                                              \
+            Py_CLEAR(sizes);                                                                              \
+        Py_XDECREF(v);                                                                                    \
+    }
+    HS_RECORDS(SIZE)
+#undef SIZE
+    if (!sizes || PyModule_AddObject(m, "RECORD_SIZES", sizes) < 0) {
+        Py_XDECREF(sizes);
         Py_DECREF(m);
         return NULL;
     }

@@ -9,6 +9,11 @@ any other cycle to the reference, so recovery, re-locks and new speed buckets ha
 implementation. tests/test_fastpump.py drives both on the same scripted display and checks,
 cycle by cycle, the same bytes on the wire and the same state bit for bit.
 
+The state both share is declared once (hostd/device/cycle_state.toml): the stages hold their
+fields in records the C reads and writes in place. This module is the C's thin face: _parts hands
+it the stages and the objects that are not records, _put puts back what changed in those, and
+_hand finishes a cycle the C handed over, with the reference's own methods.
+
 Used when: it is built (and its REVISION matches), HOSTD_PURE_PYTHON is unset, the transport is
 a SerialTransport (the firmware's host port, CDC-ACM and serial bridges) or a HidrawTransport
 (a USB HID display on Linux; raw USB through pyusb and hidapi go through the reference), the
@@ -18,10 +23,12 @@ real-time batch is the Clenshaw recurrence on both sides (hostd.render.series.cl
 
 from __future__ import annotations
 
+import ctypes
 import functools
 
 import numpy as np
 
+from hostd import cyclestate
 from hostd.compiled import load as load_compiled
 from hostd.device import fastlink
 from hostd.device import protocol as pr
@@ -29,11 +36,13 @@ from hostd.errors import DeviceBusy
 from hostd.render import equalizer, fastrender, motion
 from hostd.render.pipeline import Renderer
 
-C_REVISION = 6  # _fastpump.c's REVISION this module is written for
+C_REVISION = 8  # _fastpump.c's REVISION this module is written for
 _STATUS = ["id:u8", "state:u8", "fault_flags:u16", "device_time_us:u32", "encoder_count:u32",
            "samples_played:u32", "buffer_fill:u16", "last_seq:u16", "underruns:u16",
            "malformed:u16", "encoder_errors:u16"]  # the layout _fastpump.c reads
 _CODE = {"B": "u8", "H": "u16", "I": "u32"}
+_PREVIOUS = ("state", "fault_flags", "device_time_us", "encoder_count", "samples_played", "buffer_fill",
+             "last_seq", "underruns")  # the latest STATUS's fields the compiled cycle goes on from
 
 
 def _load():
@@ -43,15 +52,13 @@ def _load():
     lay = pr.LAYOUTS["STATUS"]
     if [f"{n}:{_CODE.get(code, code)}" for n, code in lay.fields] != _STATUS:
         return None  # STATUS changed shape: the compiled reader no longer applies
+    if c.RECORD_SIZES != {k: ctypes.sizeof(r) for k, r in cyclestate.RECORDS.items()}:
+        return None  # built from another cycle_state.toml (or another ABI): not the records here
     from hostd.device.health import MAX_GAP_US
 
-    c.init({"rate": pr.SAMPLE_RATE_HZ, "buffer_capacity": pr.BUFFER_CAPACITY,
-            "max_frame": pr.Deframer.MAX_FRAME, "max_gap_us": MAX_GAP_US,
-            "status_id": pr.IDS["STATUS"], "samples_id": pr.IDS["SAMPLES"],
-            "max_samples": pr.MAX_SAMPLES, "running": pr.STATES["RUNNING"],
-            "small_batch": equalizer.SMALL_BATCH, "report_size": pr.REPORT_SIZE,
-            "cubic_min_readings": motion.CUBIC_MIN_READINGS},
-           DeviceBusy, fastlink.decode, _codes_from_bytes)
+    c.init(pr.SAMPLE_RATE_HZ, pr.BUFFER_CAPACITY, pr.Deframer.MAX_FRAME, MAX_GAP_US, pr.IDS["STATUS"],
+           pr.IDS["SAMPLES"], pr.MAX_SAMPLES, pr.STATES["RUNNING"], equalizer.SMALL_BATCH,
+           motion.CUBIC_MIN_READINGS, pr.REPORT_SIZE, fastlink.decode, _codes_from_bytes)
     return c
 
 
@@ -128,14 +135,80 @@ def _renderer_ok(r) -> bool:
             and r.height.dtype is np.float64 and r.out._code_dtype is np.int16)
 
 
+def _parts(pump, mode: int) -> tuple | None:
+    """What the compiled cycle takes, in _fastpump.c's order (its P_* enum): the stages, which it
+    reads and writes as their records (hostd/device/cycle_state.toml), then the objects that are
+    not records. None when the cycle is not ordinary here (what the records cannot say: an
+    episode object, a queue, a crossfade's fit, the STATUS dict the health shares)."""
+    link, r, t = pump.link, pump.renderer, pump.link.t
+    status = link.stats.last_status
+    if r is None or pump._episode is not None or not status or status is not pump.health._last:
+        return None
+    m, h = r.motion, r.height
+    if m._outliers:
+        return None
+    if mode == MODE_HID:
+        tr = (t.fd, t.empty_reads, None, 0)
+    elif t._queue or t._pending or t._vmin:
+        return None
+    else:
+        tr = (t.ser.fd, 0, t.deframer._buf, t.deframer.bad_frames)
+    return (pump, pump.stats, link, link.stats, pump.health, r, r.position, m, h, r.out,
+            pump._motion_base, pump.stats.step_us, link._unacked, tuple(map(status.get, _PREVIOUS)),
+            m._cache, h._w, h._w_cache, r.eq.sos, r.eq.zi,
+            pump.sent_codes.append if pump.record else None, *tr)
+
+
+def _put(pump, w) -> None:
+    """Put back what the compiled cycle changed that is not a record (_fastpump.c's writes())."""
+    unacked, status, weights, tr = w
+    link, r = pump.link, pump.renderer
+    link._unacked.clear()
+    link._unacked.extend(unacked)
+    if status is not None:  # the latest STATUS: one dict for the link and the health
+        link.stats.last_status = pump.health._last = status
+    r.height._w = weights
+    t = link.t
+    if len(tr) == 1:
+        (t.empty_reads,) = tr
+    else:
+        t.deframer.bad_frames, buf, t._pending = tr
+        t.deframer._buf = bytearray(buf)
+
+
+def _hand(pump, hand) -> int:
+    """The rest of a cycle the compiled one handed over, the reference's way."""
+    code, arg, extra = hand
+    if code == _HAND_MSGS:  # link.poll's loop over the messages from `arg` on, then the cycle's tail
+        link = pump.link
+        stale = len(extra) - link.FRESH
+        for i in range(arg, len(extra)):
+            link._take(extra[i], i >= stale)
+        return pump.after_poll()
+    if code == _HAND_AFTER:
+        return pump.after_poll()
+    if code == _HAND_SEND:  # the batch's SAMPLES from the message that did not go out
+        sent = pump._send_codes(extra, arg)
+        pump._motion_stats()
+        return sent
+    return pump.step()  # a read failed: the reference's cycle from the top (it reads again)
+
+
+_HAND_MSGS, _HAND_AFTER, _HAND_READERR, _HAND_SEND = 1, 2, 3, 4  # _fastpump.c's hand-over codes
+
+
 def step(pump, now_s: float | None = None) -> int:
     """pump.step(), compiled where the cycle is ordinary. now_s: the host clock the cycle reads
     (tests: it must equal what pump.link.t.now() returns during the call); None: the monotonic
     clock, which is what the transport's now() reads. Returns the number of samples sent."""
     mode = _mode(pump.link.t) if _C is not None else None
-    if mode is None or not _ordinary(pump):
+    parts = _parts(pump, mode) if mode is not None and _ordinary(pump) else None
+    res = _C.step(parts, now_s, mode) if mode is not None else None
+    if res is None:
         return pump.step()
-    return _C.step(pump, now_s, mode)
+    sent, hand, w = res
+    _put(pump, w)
+    return sent if hand is None else _hand(pump, hand)
 
 
 def run(pump, start_s: float, k: int, duration_s: float | None, fds=(), top_done: bool = True
@@ -149,7 +222,18 @@ def run(pump, start_s: float, k: int, duration_s: float | None, fds=(), top_done
     mode = _mode(pump.link.t)
     if mode is None or pump.renderer is None or not _ordinary(pump):
         return k, "reference", 0.0
-    return _C.run(pump, start_s, k, duration_s, BUDGET_S, list(fds), mode, top_done)
+    res = _C.run(_parts(pump, mode), start_s, k, duration_s, BUDGET_S, list(fds), mode, top_done)
+    if res is None:
+        return k, "reference", 0.0
+    k, why, due, hand, c0, w = res
+    _put(pump, w)
+    if hand is not None:  # the reference finishes the cycle; Pump.run's tail ends it
+        try:
+            _hand(pump, hand)
+        except DeviceBusy:
+            pump.stats.io_dropped += 1
+        k, due = pump._end_cycle(c0, start_s, k)
+    return k, why, due
 
 
 def compiled_cycles() -> int:

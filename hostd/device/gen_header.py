@@ -1,4 +1,5 @@
-"""Generate firmware/include/hostd_proto.h from protocol.toml: python -m hostd.device.gen_header [OUT]"""
+"""Generate firmware/include/hostd_proto.h from protocol.toml: python -m hostd.device.gen_header [OUT]
+(the cycle's state header, hostd/device/cycle_state.h, is generated at build: hostd.cyclestate)"""
 
 from __future__ import annotations
 

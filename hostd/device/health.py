@@ -21,6 +21,7 @@ instead of a negative count. Nothing here allocates per STATUS beyond a few Pyth
 
 from __future__ import annotations
 
+from hostd.cyclestate import record
 from hostd.device import protocol as pr
 
 STATE_NAMES = {v: k.lower() for k, v in pr.STATES.items()}  # 0 idle, 1 running, 2 ramp_down
@@ -83,7 +84,7 @@ def fault_names(flags: int) -> list[str]:
     return [name for name, bit in FAULT_NAMES if flags & bit]
 
 
-class DeviceHealth:
+class DeviceHealth(record("health")):
     """Feed every STATUS (in arrival order); read totals and the current selection's figures."""
 
     def __init__(self, fault_window_s: float = 1.0) -> None:

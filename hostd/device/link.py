@@ -22,16 +22,14 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
+from hostd.cyclestate import record
 from hostd.device import fastlink
 from hostd.device import protocol as pr
 from hostd.errors import DeviceBusy, DeviceError, DeviceGone, DeviceVersion
 
 
 @dataclass
-class LinkStats:
-    statuses: int = 0
-    messages_sent: int = 0
-    samples_sent: int = 0
+class LinkStats(record("link_stats")):  # statuses, messages_sent, samples_sent: in the record
     bad_messages_received: int = 0
     last_status: dict = field(default_factory=dict)
     io_retries: int = 0  # transient write errors retried
@@ -43,7 +41,7 @@ IDENTITY = ("protocol_version", "fw_major", "fw_minor", "fw_patch", "dac_bits", 
             "buffer_capacity", "max_samples", "um_per_count_nm")
 
 
-class DeviceLink:
+class DeviceLink(record("link")):
     def __init__(self, transport, target_fill: int = 12) -> None:
         if not 1 <= target_fill <= pr.BUFFER_CAPACITY - pr.MAX_SAMPLES:
             raise DeviceError(f"target_fill must be 1..{pr.BUFFER_CAPACITY - pr.MAX_SAMPLES} samples")

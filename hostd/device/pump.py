@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hostd.cyclestate import record
 from hostd.device import protocol as pr
 from hostd.device.health import (
     CLOCK_TOLERANCE,
@@ -78,12 +79,10 @@ class JitterConfig:
 
 
 @dataclass
-class PumpStats:
-    cycles: int = 0
-    deadline_misses: int = 0
-    late_batches: int = 0  # a batch sent when the device had less than one batch queued
-    max_late_us: float = 0.0
-    samples: int = 0  # samples sent (host side; what was PLAYED comes from the device)
+class PumpStats(record("pump_stats")):
+    # in the record (hostd/device/cycle_state.toml): cycles, deadline_misses, late_batches (a batch
+    # sent when the device had less than one batch queued), max_late_us, samples (sent: host side;
+    # what was PLAYED comes from the device), relocks, implausible_speed
     stalls: int = 0  # host pauses that left the device's buffer < STALL_MARGIN_CYCLES cycles
     longest_stall_ms: float = 0.0
     recoveries: int = 0  # episodes where the device stopped playing and was brought back
@@ -92,8 +91,6 @@ class PumpStats:
     # STATUS reports flagging OVERFLOW: the device's buffer was full and it dropped samples it was
     # sent (the device's own flag; it has no counter): what it played next was not what followed
     overflows: int = 0
-    implausible_speed: int = 0  # motion estimates rejected as physically impossible
-    relocks: int = 0  # motion estimator restarts after a real jump
     # stall intervals in host monotonic time (start, end), the latest 4096, for tests/benches
     stall_log: deque = field(default_factory=lambda: deque(maxlen=4096))
     # step durations (µs, thread CPU) for percentiles, a ring of the latest 65536 cycles
@@ -117,7 +114,7 @@ def _log_nothing(_msg: str) -> None:
 _NO_LOW = 1 << 16  # above any fill the device can report (u16)
 
 
-class Pump:
+class Pump(record("pump")):
     """One device link, one renderer (None = nothing selected), the recovery state machine.
 
     cycle: what runs the ordinary cycles in Pump.run, an object with usable(pump) -> bool and
@@ -168,6 +165,7 @@ class Pump:
         self._motion_base = (0, 0)  # relocks, implausible speeds
         self._retries_base = 0
         self._fill = self.jitter.base_fill
+        self._base_fill, self._quiet_s = self.jitter.base_fill, self.jitter.quiet_s  # (for the C)
         self.attach(link)
 
     # ------------------------------------------------------------------ wiring

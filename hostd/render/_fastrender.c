@@ -16,8 +16,8 @@
  * a multiply and an add into an FMA (which rounds once instead of twice). rint() rounds half
  * to even in the default rounding mode, as numpy's rint does.
  *
- *   tail(sos, zi, x, codes, last, env, target, lim, step, ramp, codes_per_um, limit_code)
- *       -> (last, env, nonfinite, clipped)
+ *   tail(sos, zi, x, codes, out) -> None
+ *   out: the OutputStage, read and updated as its record (hs_output_t, hostd/device/cycle_state.h)
  *   sos: C-contiguous float64 (n_sections x 6: b0 b1 b2 a0 a1 a2), n_sections may be 0
  *   zi: writable C-contiguous float64 (n_sections x 2), updated in place
  *   x: C-contiguous float64 heights (µm), n <= 64; codes: writable int16 of the same length
@@ -30,7 +30,7 @@
 
 #include "render_core.h"
 
-#define REVISION 2 /* fastrender.C_REVISION (and series._load_compiled) must equal this */
+#define REVISION 3 /* fastrender.C_REVISION (and series._load_compiled) must equal this */
 #define MAX_N RC_MAX_N
 
 static int get_buf(PyObject *o, Py_buffer *b, int writable, Py_ssize_t itemsize, const char *what) {
@@ -45,28 +45,37 @@ static int get_buf(PyObject *o, Py_buffer *b, int writable, Py_ssize_t itemsize,
 }
 
 static PyObject *fr_tail(PyObject *self, PyObject *args) {
-    PyObject *o_sos, *o_zi, *o_x, *o_codes;
-    double last, env, target, lim, step, ramp, cpu;
-    long lc;
-    if (!PyArg_ParseTuple(args, "OOOOdddddddl", &o_sos, &o_zi, &o_x, &o_codes, &last, &env, &target, &lim,
-                          &step, &ramp, &cpu, &lc))
+    PyObject *o_sos, *o_zi, *o_x, *o_codes, *o_out;
+    if (!PyArg_ParseTuple(args, "OOOOO", &o_sos, &o_zi, &o_x, &o_codes, &o_out))
         return NULL;
-    Py_buffer sos, zi, x, codes;
-    if (get_buf(o_sos, &sos, 0, 8, "sos") < 0)
+    Py_buffer sos, zi, x, codes, out;
+    if (PyObject_GetBuffer(o_out, &out, PyBUF_WRITABLE) < 0)
         return NULL;
+    if (out.len != sizeof(hs_output_t)) {
+        PyBuffer_Release(&out);
+        PyErr_SetString(PyExc_TypeError, "tail: an OutputStage (its hs_output_t record) expected");
+        return NULL;
+    }
+    if (get_buf(o_sos, &sos, 0, 8, "sos") < 0) {
+        PyBuffer_Release(&out);
+        return NULL;
+    }
     if (get_buf(o_zi, &zi, 1, 8, "zi") < 0) {
         PyBuffer_Release(&sos);
+        PyBuffer_Release(&out);
         return NULL;
     }
     if (get_buf(o_x, &x, 0, 8, "x") < 0) {
         PyBuffer_Release(&sos);
         PyBuffer_Release(&zi);
+        PyBuffer_Release(&out);
         return NULL;
     }
     if (get_buf(o_codes, &codes, 1, 2, "codes") < 0) {
         PyBuffer_Release(&sos);
         PyBuffer_Release(&zi);
         PyBuffer_Release(&x);
+        PyBuffer_Release(&out);
         return NULL;
     }
     Py_ssize_t ns = sos.len / 48, n = x.len / 8;
@@ -75,10 +84,11 @@ static PyObject *fr_tail(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "tail: sos (n x 6), zi (n x 2), x and codes (same length) expected");
         goto done;
     }
-    rc_out_t o = {last, env, target, lim, step, ramp, cpu, lc, 0, 0};
-    rc_tail((const double *)sos.buf, ns, (double *)zi.buf, (const double *)x.buf, n, (int16_t *)codes.buf, &o);
-    ret = Py_BuildValue("ddll", o.last, o.env, o.nonfinite, o.clipped);
+    rc_tail((const double *)sos.buf, ns, (double *)zi.buf, (const double *)x.buf, n, (int16_t *)codes.buf,
+            (hs_output_t *)out.buf);
+    ret = Py_NewRef(Py_None);
 done:
+    PyBuffer_Release(&out);
     PyBuffer_Release(&sos);
     PyBuffer_Release(&zi);
     PyBuffer_Release(&x);

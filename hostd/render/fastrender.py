@@ -16,7 +16,7 @@ from hostd.compiled import load as load_compiled
 from hostd.render.equalizer import SMALL_BATCH, Equalizer
 from hostd.render.output import OutputStage
 
-C_REVISION = 2  # _fastrender.c's REVISION this module is written for
+C_REVISION = 3  # _fastrender.c's REVISION this module is written for
 _NO_SECTIONS = np.zeros((0, 6))
 
 
@@ -40,10 +40,5 @@ def tail(eq: Equalizer, out: OutputStage, h_um: np.ndarray) -> np.ndarray:
             and sos.flags.c_contiguous and sos.dtype == np.float64):
         return tail_py(eq, out, x)
     codes = np.empty(x.size, dtype=np.int16)
-    last, env, nonfinite, clipped = _C.tail(
-        sos, zi, np.ascontiguousarray(x), codes, out.last_um, out.envelope, out.target_envelope,
-        out.limit_um, out.max_step_um, out.ramp_step, out._codes_per_um, out.cfg.limit_code)
-    out.last_um, out.envelope = last, env
-    out.nonfinite += nonfinite
-    out.clipped += clipped
+    _C.tail(sos, zi, np.ascontiguousarray(x), codes, out)  # out: read and updated as its record
     return codes

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hostd.cyclestate import record
 from hostd.render.series import evaluate as series_evaluate
 from hostd.render.series import phase_rad as series_phase
 
@@ -64,7 +65,7 @@ def band_gains(k: np.ndarray, speed_mm_s, length_mm: float, cfg: BandLimitConfig
     return g
 
 
-class HeightEvaluator:
+class HeightEvaluator(record("height")):
     """Evaluate band-limited heights (µm) at positions x (mm) for a given hand speed."""
 
     def __init__(self, coeffs_um: np.ndarray, n: int, length_mm: float, method: str = "series",
@@ -81,6 +82,7 @@ class HeightEvaluator:
         self.dx_mm = self.length_mm / self.n
         self.method = method
         self.band = band or BandLimitConfig()
+        self._speed_bucket = self.band.speed_bucket
         self.dtype = dtype
         self.k = np.arange(1, c.size + 1, dtype=np.float64)
         self._w_bucket: int | None = None

@@ -25,10 +25,11 @@ up to four dot products in scalar Python (a few µs). Irregular spacing (a lost 
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+
+from hostd.cyclestate import record
 
 SMALL_BATCH = 32  # at or below this many instants, predict in scalar Python (same values)
 # A cubic needs this many readings in its window (after a start or a re-lock it has fewer): the
@@ -81,11 +82,14 @@ def _dots(rows, x) -> list[float]:
     return [_dot(r, x) for r in rows]
 
 
-class MotionEstimator:
+class MotionEstimator(record("motion")):
+    """Its numeric state (its config's too, copied, and the window of readings: _tw[:_n],
+    _xw[:_n], oldest first) is the "motion" record of hostd/device/cycle_state.toml."""
+
     def __init__(self, cfg: MotionConfig | None = None) -> None:
         self.cfg = cfg = cfg or MotionConfig()
-        if cfg.order not in (0, 1, 2, 3) or cfg.window < cfg.order + 2:
-            raise ValueError("order must be 0, 1, 2 or 3 and window >= order + 2")
+        if cfg.order not in (0, 1, 2, 3) or not cfg.order + 2 <= cfg.window <= len(self._tw):
+            raise ValueError(f"order must be 0, 1, 2 or 3 and order + 2 <= window <= {len(self._tw)}")
         if cfg.relock_reports < 1:
             raise ValueError("relock_reports must be >= 1")
         for name in ("glitch_um", "rest_speed_mm_s", "rest_hold_um", "max_predict_s", "max_gap_s",
@@ -93,8 +97,10 @@ class MotionEstimator:
             v = getattr(cfg, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"motion.{name} must be a finite number >= 0")
-        self._t: deque[float] = deque(maxlen=cfg.window)
-        self._x: deque[float] = deque(maxlen=cfg.window)
+        self._window, self._order, self._glitch_um = cfg.window, cfg.order, cfg.glitch_um
+        self._rest_speed_mm_s, self._rest_hold_um = cfg.rest_speed_mm_s, cfg.rest_hold_um
+        self._max_predict_s, self._max_gap_s = cfg.max_predict_s, cfg.max_gap_s
+        self._max_speed_mm_s = cfg.max_speed_mm_s
         # x(t) = c0 + c1 (t - t_ref) + c2 (t - t_ref)^2 + c3 (t - t_ref)^3, t in s, x in mm
         self._c0 = self._c1 = self._c2 = self._c3 = 0.0
         self._t_ref = 0.0
@@ -112,8 +118,7 @@ class MotionEstimator:
 
     def _restart(self, readings: list[tuple[float, float]]) -> None:
         self.previous_fit = (self._c0, self._c1, self._c2, self._c3, self._t_ref)
-        self._t.clear()
-        self._x.clear()
+        self._n = 0
         self._outliers.clear()
         self._rest_x = None
         self._dt_us = -1
@@ -128,14 +133,15 @@ class MotionEstimator:
         if not (math.isfinite(t_s) and math.isfinite(x_mm)):
             self.glitches += 1
             return
-        if self._t and t_s <= self._t[-1]:
+        n = self._n
+        if n and t_s <= self._tw[n - 1]:
             return  # a stale or repeated reading adds nothing
         cfg = self.cfg
-        if self._t and t_s - self._t[-1] > cfg.max_gap_s:
+        if n and t_s - self._tw[n - 1] > cfg.max_gap_s:
             self.relocks += 1
             self._restart([(t_s, x_mm)])
             return
-        if len(self._t) >= cfg.order + 2:
+        if n >= cfg.order + 2:
             pred = self.predict_one(t_s)
             if abs(x_mm - pred) * 1000.0 > cfg.glitch_um:
                 out = self._outliers
@@ -154,7 +160,8 @@ class MotionEstimator:
         self._fit()
         if abs(self._c1) > cfg.max_speed_mm_s:
             self.implausible += 1
-            self._restart([(self._t[-1], self._x[-1])])
+            n = self._n
+            self._restart([(self._tw[n - 1], self._xw[n - 1])])
 
     def _consistent(self, pts: list[tuple[float, float]]) -> bool:
         """Do these readings agree with each other (one hand, moving at most max_speed)?"""
@@ -164,12 +171,16 @@ class MotionEstimator:
 
     def _append(self, t_s: float, x_mm: float) -> None:
         self._since_restart += 1
-        if self._t:
-            dt_us = round((t_s - self._t[-1]) * 1e6)
+        n = self._n
+        if n:
+            dt_us = round((t_s - self._tw[n - 1]) * 1e6)
             self._uniform = self._uniform + 1 if dt_us == self._dt_us else 1
             self._dt_us = dt_us
-        self._t.append(t_s)
-        self._x.append(x_mm)
+        if n == self._window:  # full: the oldest reading leaves
+            self._tw[: n - 1], self._xw[: n - 1] = self._tw[1:n], self._xw[1:n]
+            n -= 1
+        self._tw[n], self._xw[n] = t_s, x_mm
+        self._n = n + 1
 
     def _weights(self, tau_ms: np.ndarray, order: int) -> tuple[list[float], ...]:
         """Rows of the least-squares solution matrix: coefficients = W @ x."""
@@ -178,8 +189,8 @@ class MotionEstimator:
         return tuple(row.tolist() for row in w)
 
     def _fit(self) -> None:
-        t, x = self._t, self._x
-        n = len(t)
+        n = self._n
+        t, x = self._tw[:n], self._xw[:n]
         tr = t[-1]
         self._t_ref = tr
         order = min(self.cfg.order, n - 1)

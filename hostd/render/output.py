@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hostd.cyclestate import record
+
 
 @dataclass
 class OutputConfig:
@@ -35,7 +37,9 @@ class OutputConfig:
         return min(int(np.floor(self.travel_um / 2 / self.um_per_code)), (1 << (self.dac_bits - 1)) - 1)
 
 
-class OutputStage:
+class OutputStage(record("output")):
+    """Its numeric state is the "output" record of hostd/device/cycle_state.toml."""
+
     def __init__(self, cfg: OutputConfig | None = None) -> None:
         self.cfg = cfg or OutputConfig()
         c = self.cfg
@@ -50,6 +54,7 @@ class OutputStage:
         self.max_step_um = c.slew_um_s / c.sample_rate_hz
         self.ramp_step = 1.0 / max(1.0, c.ramp_s * c.sample_rate_hz)
         self._codes_per_um = 1.0 / c.um_per_code
+        self._limit_code = c.limit_code
         self._code_dtype = np.int16 if c.dac_bits <= 16 else np.int32
         self.last_um = 0.0
         self.envelope = 0.0
@@ -122,6 +127,6 @@ class OutputStage:
         return y
 
     def to_codes(self, y_um: np.ndarray) -> np.ndarray:
-        lc = self.cfg.limit_code
+        lc = self._limit_code
         codes = np.rint(np.asarray(y_um, dtype=np.float64) * self._codes_per_um).clip(-lc, lc)
         return codes.astype(self._code_dtype)

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from hostd.cyclestate import record
 from hostd.render import fastrender
 from hostd.render.equalizer import ActuatorModel, Equalizer, EqualizerConfig
 from hostd.render.height import BandLimitConfig, HeightEvaluator
@@ -45,14 +46,16 @@ class BatchPlan:
     fade_in: np.ndarray | None = None  # weight of the new estimate per sample (crossfade)
 
 
-class Renderer:
-    """Stateful: feed encoder readings, ask for batches of samples at their play times."""
+class Renderer(record("renderer")):
+    """Stateful: feed encoder readings, ask for batches of samples at their play times. Its
+    scalar state is the "renderer" record of hostd/device/cycle_state.toml."""
 
     def __init__(self, coeffs_um: np.ndarray, n: int, length_mm: float,
                  cfg: RenderConfig | None = None) -> None:
         self.cfg = cfg = cfg or RenderConfig()
         if cfg.samples_per_batch < 1:
             raise ValueError("samples_per_batch must be >= 1")
+        self._samples_per_batch = cfg.samples_per_batch
         # The pipeline's rate is the one source of truth; stage configs get copies with it,
         # and the caller's objects are left untouched.
         fs = cfg.sample_rate_hz

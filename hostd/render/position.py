@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from hostd.cyclestate import record
+
 COUNTER_MOD = 1 << 32
 
 
-class EncoderPosition:
+class EncoderPosition(record("position")):
     """Unwraps a wrapping 32-bit (unsigned or two's-complement) count into an unbounded one.
 
     Between two readings the hand moves far less than half the counter range (2^31 counts =
-    859 m at 0.4 µm), so the shortest signed difference is the true one.
+    859 m at 0.4 µm), so the shortest signed difference is the true one. Its state is the
+    "position" record of hostd/device/cycle_state.toml.
     """
 
     def __init__(self, um_per_count: float = 0.4) -> None:

@@ -19,6 +19,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "../device/cycle_state.h" /* hs_output_t: the output stage's record */
+
 #define RC_MAX_N 64             /* the real-time batches are <= equalizer.SMALL_BATCH samples */
 #define RC_DENORMAL_GUARD 1e-30 /* equalizer.DENORMAL_GUARD */
 
@@ -72,15 +74,10 @@ static void rc_clenshaw(const double *c, ptrdiff_t k, const double *theta, ptrdi
     }
 }
 
-typedef struct {
-    double last, env, target, lim, step, ramp, codes_per_um;
-    long limit_code;
-    long nonfinite, clipped; /* added to */
-} rc_out_t;
-
-/* heights x (n <= RC_MAX_N, µm) -> codes; updates the sections' state z (ns x 2) and o */
+/* heights x (n <= RC_MAX_N, µm) -> codes; updates the sections' state z (ns x 2) and the output
+ * stage's record o (OutputStage's own fields: last_um, envelope, nonfinite, clipped) */
 static void rc_tail(const double *sos, ptrdiff_t ns, double *z, const double *x, ptrdiff_t n, int16_t *codes,
-                    rc_out_t *o) {
+                    hs_output_t *o) {
     double ys[RC_MAX_N];
     for (ptrdiff_t i = 0; i < n; i++)
         ys[i] = x[i];
@@ -98,9 +95,10 @@ static void rc_tail(const double *sos, ptrdiff_t ns, double *z, const double *x,
         z[2 * k] = fabs(z0) >= RC_DENORMAL_GUARD ? z0 : 0.0;
         z[2 * k + 1] = fabs(z1) >= RC_DENORMAL_GUARD ? z1 : 0.0;
     }
-    double last = o->last, env = o->env;
-    const double target = o->target, lim = o->lim, step = o->step, ramp = o->ramp, cpu = o->codes_per_um;
-    const double lcd = (double)o->limit_code;
+    double last = o->last_um, env = o->envelope;
+    const double target = o->target_envelope, lim = o->limit_um, step = o->max_step_um, ramp = o->ramp_step,
+                 cpu = o->_codes_per_um;
+    const double lcd = (double)o->_limit_code;
     for (ptrdiff_t i = 0; i < n; i++) {
         double v = ys[i];
         if (!isfinite(v)) {
@@ -134,8 +132,8 @@ static void rc_tail(const double *sos, ptrdiff_t ns, double *z, const double *x,
             c = lcd;
         codes[i] = (int16_t)c;
     }
-    o->last = last;
-    o->env = env;
+    o->last_um = last;
+    o->envelope = env;
 }
 
 #endif

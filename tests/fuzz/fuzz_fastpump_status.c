@@ -79,22 +79,37 @@ static void check(int ok, const char *what) {
 
 int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
     static S s;
+    static hs_pump_t P;
+    static hs_pump_stats_t PS;
+    static hs_link_t L;
+    static hs_link_stats_t LS;
+    static hs_health_t H;
+    static hs_position_t Z;
+    static hs_motion_t M;
     memset(&s, 0, sizeof s);
+    memset(&P, 0, sizeof P);
+    memset(&PS, 0, sizeof PS);
+    memset(&L, 0, sizeof L);
+    memset(&LS, 0, sizeof LS);
+    memset(&H, 0, sizeof H);
+    memset(&Z, 0, sizeof Z);
+    memset(&M, 0, sizeof M);
+    s.P = &P, s.PS = &PS, s.L = &L, s.LS = &LS, s.H = &H, s.Z = &Z, s.M = &M; /* the stages' records */
     s.mcache = g_mcache;
-    s.win = WIN;
-    s.order = 3;
-    s.glitch_um = 20.0;
-    s.rest_speed = 0.5;
-    s.rest_hold = 2.0;
-    s.max_predict = 0.02;
-    s.max_gap = 0.05;
-    s.max_speed = 2000.0;
-    s.um_per_count = 0.4;
-    s.mn = 1; /* the reference's window starts with a reading (motion.update after a restart) */
+    M._window = WIN;
+    M._order = 3;
+    M._glitch_um = 20.0;
+    M._rest_speed_mm_s = 0.5;
+    M._rest_hold_um = 2.0;
+    M._max_predict_s = 0.02;
+    M._max_gap_s = 0.05;
+    M._max_speed_mm_s = 2000.0;
+    Z.um_per_count = 0.4;
+    M._n = 1; /* the reference's window starts with a reading (motion.update after a restart) */
     s.wkey_n = s.wkey_dt = s.wkey_order = -1;
-    s.fill = 12;
-    s.base_fill = 12;
-    s.low_fill = 1 << 30;
+    P._fill = 12;
+    P._base_fill = 12;
+    P._low_fill = 1 << 30;
     memset(hand_count, 0, sizeof hand_count);
     /* the display's counters, stepped as it would */
     long long us = 0, enc = 0, played = 0, seq = 0, under = 0; /* as the last report (s.ls) says */
@@ -142,27 +157,27 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
                 m.b[m.n - 1] = 1; /* garbage after the layout */
         }
         now += 1e-3;
-        const long long statuses = s.statuses;
+        const long long statuses = LS.statuses;
         const int r = take_status(&s, &m, now);
         check(r == 0 || r == 1, "an error (a Python exception)");
         int padded = 0;
         for (Py_ssize_t i = STATUS_LEN; i < m.n; i++)
             padded |= m.b[i] != 0;
         if (m.n < STATUS_LEN || m.b[0] != STATUS_ID || padded)
-            check(r == 0 && s.statuses == statuses, "a message that is not a STATUS was taken");
+            check(r == 0 && LS.statuses == statuses, "a message that is not a STATUS was taken");
         if (r == 1) {
             const unsigned char *p = m.b;
             check(s.ls.state == p[1] && s.ls.flags == get(p + 2, 2) && s.ls.us == get(p + 4, 4) &&
                       s.ls.enc == get(p + 8, 4) && s.ls.played == get(p + 12, 4) && s.ls.fill == get(p + 16, 2) &&
                       s.ls.last_seq == get(p + 18, 2) && s.ls.under == get(p + 20, 2),
                   "the fields differ from a little-endian reading");
-            check(s.statuses == statuses + 1, "an accepted report not counted");
+            check(LS.statuses == statuses + 1, "an accepted report not counted");
         }
-        check(s.mn >= 1 && s.mn <= s.win, "the motion window out of 1..win");
-        check(isfinite(s.c0) && isfinite(s.c1) && isfinite(s.c2) && isfinite(s.c3), "a fit that is not finite");
-        check(fabs(s.c1) <= s.max_speed, "a speed past max_speed");
+        check(M._n >= 1 && M._n <= M._window, "the motion window out of 1..win");
+        check(isfinite(M._c0) && isfinite(M._c1) && isfinite(M._c2) && isfinite(M._c3), "a fit that is not finite");
+        check(fabs(M._c1) <= M._max_speed_mm_s, "a speed past max_speed");
         check(s.n_un >= 0 && s.n_un <= MAX_UNACKED, "the unacknowledged batches out of their array");
-        check(isfinite(s.device_time_s), "a device time that is not finite");
+        check(isfinite(L.device_time_s), "a device time that is not finite");
     }
     return 0;
 }

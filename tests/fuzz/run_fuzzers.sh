@@ -13,6 +13,7 @@ inc=$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
 libdir=$("$py" -c 'import sysconfig; print(sysconfig.get_config_var("LIBDIR"))')
 ver=$("$py" -c 'import sysconfig; print(sysconfig.get_config_var("LDVERSION"))')
 np_inc=$("$py" -c 'import numpy; print(numpy.get_include())')
+"$py" "$here/../../hostd/cyclestate.py"  # hostd/device/cycle_state.h, as setup.py generates it
 for h in fuzz_fastpump_deframe fuzz_fastpump_status fuzz_fastlink_decode; do
     clang -g -O1 -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=undefined \
         -I"$inc" -I"$np_inc" -I"$here/../../hostd/device" "$here/$h.c" -o "$out/$h" \
