@@ -117,6 +117,8 @@ def add_parser(sub, parents) -> None:
     cb.add_argument("--no-typical", action="store_true",
                     help="skip the typical jobs (20 000 heights, hostd-v2's default sweep, SPQI)")
     cb.add_argument("--no-dask", action="store_true", help="skip the Dask LocalCluster run")
+    _check_opt(cb, "overhead <= 1 ms per job on the local pool, parallel efficiency >= 0.85 on a quiet "
+               "machine, driver RSS growth <= 50 MB from job 10^3 to the last")
     lb = bsub.add_parser("load", help="reading a large two-column CSV against np.loadtxt (goal <= 1.5x)")
     lb.add_argument("--lines", type=int, default=2_000_000)
     lb.add_argument("--json", action="store_true")
@@ -369,6 +371,9 @@ def _check(what: str, rows: list[dict], level: str) -> int:
         return g.check(rows, [g.CLI_ENCODE_CPU_S], level, "cli encode")
     if what == "scoring":
         return g.check(rows, [g.SCORING_PER_S], level, "scoring")
+    if what == "corpus":
+        return g.check(rows, [g.CORPUS_OVERHEAD_MS, g.CORPUS_EFFICIENCY, g.CORPUS_EFFICIENCY_CPU,
+                              g.CORPUS_RSS_GROWTH_MB], level, "corpus")
     if what == "accuracy":
         modes = [r for r in rows if r["knob"] == "render_at"]
         if {r["setting"] for r in modes} != {"host", "device"}:

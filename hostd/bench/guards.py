@@ -40,6 +40,14 @@ DEVICE_WAKEUPS_PER_RUN = Guard("pump_wakeups_per_run", 1.10, 1.10)
 # the fleet shipper beside it (`hostd fleet ship`, a live PostgreSQL, one row a second; docs/fleet.md)
 FLEET_CPU_SHARE = Guard("fleet_cpu_share", 0.0005, 0.0010, unit="of a core")
 FLEET_PSS_MB = Guard("fleet_pss_mb", 25.0, 27.0, unit="MB")  # (the wheel's own libpq: 28.6 MB)
+# `hostd bench corpus`: the corpus runner's machinery, tiny jobs on the local pool of every core.
+# Overhead per job and the driver's memory are its own (CI: twice the CPU goal, the memory goal);
+# the wall-clock parallel efficiency is held on a quiet machine only (a busy one halves it by
+# construction), in CI its CPU-time form, which other load moves far less
+CORPUS_OVERHEAD_MS = Guard("overhead_ms_per_job", 1.0, 2.0, unit=" ms")
+CORPUS_EFFICIENCY = Guard("parallel_efficiency", 0.85, None, upper=False)
+CORPUS_EFFICIENCY_CPU = Guard("parallel_efficiency_cpu", None, 0.6, upper=False)
+CORPUS_RSS_GROWTH_MB = Guard("driver_rss_growth_mb", 50.0, 50.0, unit=" MB")
 # `hostd bench cli`: CPU time of `hostd encode synthetic:wood:3 -o /dev/null --target-iobj 0.05`
 CLI_ENCODE_CPU_S = Guard("cpu_s", 0.4, 0.8, unit="s")
 # `hostd bench scoring`: indices.score, N' = 160, every batch size
