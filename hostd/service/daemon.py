@@ -31,7 +31,8 @@ from hostd.service.library import Library, check_name
 from hostd.service.logsetup import CONTROL_CHARS
 from hostd.service.notify import Notifier
 from hostd.service.pumplink import PumpWriter, bound_play, read_counters
-from hostd.service.pumpproc import STAT_FIELDS, pump_main
+from hostd.service.pumpproc import pump_main
+from hostd.service.pumpstate import STAT_FIELDS
 from hostd.service.qualityworker import QUALITY_QUEUE_MAX, QualityWorker  # noqa: F401 (tests import it here)
 from hostd.service.spool import SpoolWatcher, _drain
 from hostd.service.stimuli import Stimuli, StimulusFailed  # noqa: F401 (StimulusFailed: named here before)

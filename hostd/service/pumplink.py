@@ -13,7 +13,7 @@ from hostd.device.health import CLOCK_TOLERANCE, REPORT_SLACK_S, fault_names
 from hostd.device.health import STATE_NAMES as DEVICE_STATES
 from hostd.device.protocol import BUFFER_CAPACITY, SAMPLE_RATE_HZ
 from hostd.errors import HostdError
-from hostd.service.pumpproc import FLOAT_FIELDS, PUBLISH_SEQ, RENDER_REASONS, STAT_FIELDS, STATE_NAMES
+from hostd.service.pumpstate import FLOAT_FIELDS, PUBLISH_SEQ, RENDER_REASONS, STAT_FIELDS, STATE_NAMES
 
 log = logging.getLogger("hostd")
 
