@@ -5,7 +5,8 @@ cannot hold a GIL that the pump needs, so Python's 5 ms switch interval never re
 The parent sends commands over a Pipe (select a texture, stop, quit); the pump publishes its
 counters in shared memory (no pickling per cycle) and log lines over the Pipe. After set-up
 it calls gc.freeze(); the steady-state loop allocates only numpy temporaries of a few samples.
-pump_main runs a PumpProcess, whose Phase names where its lifecycle is.
+pump_main runs a PumpProcess, whose Phase names where its lifecycle is. Its parts: pumpstate (the
+counters, the Phase), pumpsetup (its set-up), pumpstimulus (stimuli), pumpguards (display claims).
 """
 
 from __future__ import annotations

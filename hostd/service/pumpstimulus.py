@@ -1,5 +1,5 @@
-"""A stimulus being played by the pump process (hostd.render.stimulus; the daemon's `stimulus`
-command), and the verdict on it: played whole, by the device's own count, or not."""
+"""A stimulus played by the pump process (hostd.render.stimulus; the daemon's `stimulus` command):
+the verdict on it by the device's own count (Stimulus), and the one being played (StimulusPlayer)."""
 
 from __future__ import annotations
 
