@@ -35,12 +35,16 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from hostd.errors import ConfigError
+from hostd.errors import ConfigError, HostdError
 
 log = logging.getLogger("hostd")
 REQUEST_DEADLINE_S = 10.0  # the whole request (line and upload) from accept to the last byte
 EVICT_AFTER_S = 1.0  # a client still sending its request after this may give its handler away
 REPLY_TIMEOUT_S = 5.0
+
+
+class BadRequest(HostdError):
+    """A control-socket request that is not well formed."""
 
 
 class RequestTimeout(TimeoutError):

@@ -9,7 +9,6 @@ signals). The real-time pump is a separate process (pumpproc).
 from __future__ import annotations
 
 import hashlib
-import itertools
 import json
 import logging
 import math
@@ -18,205 +17,36 @@ import os
 import queue
 import signal
 import sqlite3
-import stat
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
-from hostd.device.health import CLOCK_TOLERANCE, REPORT_SLACK_S, fault_names
-from hostd.device.health import STATE_NAMES as DEVICE_STATES
-from hostd.device.protocol import BUFFER_CAPACITY, SAMPLE_RATE_HZ
 from hostd.errors import ConfigError, HostdError
-from hostd.fileio import open_dir, read_regular_at, write_at
-from hostd.perception.indices import DEFAULT_AB
 from hostd.service import qualitylog
 from hostd.service.config import Config, check_paths
-from hostd.service.control import REQUEST_DEADLINE_S, ClientConn, ControlServer
+from hostd.service.control import REQUEST_DEADLINE_S, BadRequest, ClientConn, ControlServer
 from hostd.service.lean import children_with_one_blas_thread
 from hostd.service.library import Library, check_name
 from hostd.service.logsetup import CONTROL_CHARS
 from hostd.service.notify import Notifier
-from hostd.service.pumpproc import (
-    FLOAT_FIELDS,
-    PUBLISH_SEQ,
-    RENDER_REASONS,
-    STAT_FIELDS,
-    STATE_NAMES,
-    pump_main,
-)
+from hostd.service.pumplink import PumpWriter, bound_play, read_counters
+from hostd.service.pumpproc import pump_main
+from hostd.service.pumpstate import STAT_FIELDS
+from hostd.service.qualityworker import QUALITY_QUEUE_MAX, QualityWorker  # noqa: F401 (tests import it here)
+from hostd.service.spool import SpoolWatcher, _drain
+from hostd.service.stimuli import Stimuli, StimulusFailed  # noqa: F401 (StimulusFailed: named here before)
+from hostd.service.supervisor import RESTARTS_PER_MINUTE, Supervisor  # noqa: F401 (tests import it here)
 
 log = logging.getLogger("hostd")
 MAX_HEADER = 4096
-RESTARTS_PER_MINUTE = 3  # a worker that dies more often stays dead and the watchdog starves
-QUALITY_RETRY_S = (0.5, 30.0)  # a quality row that cannot be written is retried, back-off doubling
-# streams waiting to be scored: a producer waits for room (an upload's handler, the start-up's look
-# for streams without a row), so what waits is bounded whatever the backlog; the start-up's entries
-# are names (read when scored), an upload's its bytes (in memory already; at most this many kept)
-QUALITY_QUEUE_MAX = 16
-
-
-IN_MODIFY, IN_ATTRIB, IN_CLOSE_WRITE, IN_MOVED_TO, IN_CREATE = 0x2, 0x4, 0x8, 0x80, 0x100
-
-
-def _spool_events(dir_fd: int) -> int | None:
-    """An inotify descriptor that turns readable when an entry of the directory `dir_fd` is
-    created, written, closed, moved in or changes its attributes (Linux; the directory by its
-    descriptor, so a rename of the path changes nothing); None where there is none (the
-    watcher then scans every period)."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        fd = libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
-        if fd < 0:
-            return None
-        mask = IN_MODIFY | IN_ATTRIB | IN_CLOSE_WRITE | IN_MOVED_TO | IN_CREATE
-        if libc.inotify_add_watch(fd, f"/proc/self/fd/{dir_fd}".encode(), mask) < 0:
-            os.close(fd)
-            return None
-        return fd
-    except (OSError, AttributeError):
-        return None
-
-
-def _drain(fd: int) -> None:
-    """Read whatever is waiting on a non-blocking descriptor (the events themselves do not matter:
-    any change means a look at the directory)."""
-    try:
-        while os.read(fd, 4096):
-            pass
-    except BlockingIOError:
-        pass
-
-
-class BadRequest(HostdError):
-    """A control-socket request that is not well formed."""
-
-
-class StimulusFailed(HostdError):
-    """A stimulus that was not played whole (no display, the display lost or running dry
-    mid-stimulus, interrupted): the client may ask again (its reply says "retry": true)."""
-
-    retry = True
-
-
-STIMULUS_SLACK_S = 5.0  # beyond its duration, how long a stimulus may take before hostd gives up
-MAX_REACH_FREQUENCIES = 256  # per `reach` request
-
-
-class PumpWriter:
-    """The one writer of the pump's pipe. Handler threads hand their commands to this thread, so
-    no two messages ever interleave on the pipe (a texture of N' = 16,000 pickles to more than
-    a pipe's atomic write). A select or stop still waiting to be sent is superseded by a newer
-    one: only the latest choice matters to the pump."""
-
-    def __init__(self, conn) -> None:
-        self.conn = conn
-        self.cv = threading.Condition()
-        self.pending: deque = deque()
-        self.closed = False
-        self.thread = threading.Thread(target=self._run, name="pump-writer", daemon=True)
-        self.thread.start()
-
-    def send(self, msg: tuple) -> None:
-        with self.cv:
-            if self.closed:
-                raise HostdError("hostd is stopping")
-            if msg[0] in ("select", "stop"):
-                kept = [m for m in self.pending if m[0] not in ("select", "stop")]
-                self.pending.clear()
-                self.pending.extend(kept)
-            self.pending.append(msg)
-            self.cv.notify()
-
-    def _run(self) -> None:
-        while True:
-            with self.cv:
-                while not self.pending:
-                    self.cv.wait()
-                msg = self.pending.popleft()
-            if msg is None:
-                return
-            try:
-                self.conn.send(msg)
-            except (OSError, ValueError) as e:  # the pump is gone: the main loop says so and stops
-                log.error("cannot send %s to the pump: %s", msg[0], e)
-
-    def close(self, last: tuple = ("quit",), timeout_s: float = 3.0) -> None:
-        with self.cv:
-            if self.closed:
-                return
-            self.pending.append(last)
-            self.pending.append(None)
-            self.closed = True
-            self.cv.notify()
-        self.thread.join(timeout_s)
-
-
-# what a device's counters may claim over a play, beyond the host's own clock: the device's
-# clock runs at most this much fast (crystal tolerance, with margin), plus its report's age
-
-
-def bound_play(c0: dict, c1: dict, host_s: float) -> tuple[dict, list[str]]:
-    """What a play delivered, from the device's counters at its start (c0) and end (c1), bounded by
-    what the host knows: its own clock, the samples it sent and the device's buffer. Returns the
-    plays row's device_s, played_s, played_fraction and underruns, and the counters that claimed
-    the impossible (empty when none did), each said in a few words.
-
-    Like is compared with like: the device's time between the reports the two snapshots hold
-    against the host's time between their arrivals (device_report_host_s), not the play's host_s;
-    a snapshot is as old as the pump's last publish (0.5 s in device mode, more on a loaded host),
-    so an honest device's clock ran on well past host_s. host_s: without those times."""
-    bad: list[str] = []
-    rx0, rx1 = c0.get("device_report_host_s"), c1.get("device_report_host_s")
-    if rx0 is not None and rx1 is not None and rx1 >= rx0:
-        host_s = rx1 - rx0  # (rx0 0.0: no report before the play; the pump bounds its first ones)
-    limit_s = max(host_s, 0.0) * (1 + CLOCK_TOLERANCE) + REPORT_SLACK_S
-    # device time elapsed between its reports, summed over links (the pump's, never going back;
-    # bounded there by the links' time up): a play that began before the device's first report,
-    # or spans a replug, compares no two clocks
-    device_s = c1["device_elapsed_s"] - c0["device_elapsed_s"]
-    if not math.isfinite(device_s) or device_s < 0:
-        bad.append(f"its clock went from {c0['device_elapsed_s']:.3f} s to {c1['device_elapsed_s']:.3f} s")
-        device_s = 0.0
-    elif device_s > limit_s:
-        bad.append(f"{device_s:.1f} s of its clock in {host_s:.1f} s")
-        device_s = max(host_s, 0.0)
-    fraction = c1["played_fraction"] if device_s > 0 else None
-    if fraction is not None and not (math.isfinite(fraction) and 0.0 <= fraction <= 1.0):
-        bad.append(f"a played fraction of {fraction}")
-        fraction = min(max(fraction, 0.0), 1.0) if math.isfinite(fraction) else None
-    if c1["render_at"] == "device":  # the display renders: nothing is played from its buffer,
-        played_s = (fraction or 0.0) * device_s  # the share of device time it reported rendering
-    else:
-        played = c1["device_samples_played"] - c0["device_samples_played"]
-        # at most what was sent meanwhile, plus what the buffer held at the start
-        most = max(c1["samples"] - c0["samples"], 0) + BUFFER_CAPACITY
-        if played < 0:
-            bad.append(f"samples played went back by {-played}")
-            played = 0
-        elif played > most:
-            bad.append(f"{played} samples played of at most {most} sent and buffered")
-            played = most
-        played_s = played / SAMPLE_RATE_HZ
-        if played_s > limit_s:
-            bad.append(f"{played_s:.1f} s played in {host_s:.1f} s")
-            played_s = max(host_s, 0.0)
-    underruns = c1["device_underruns"] - c0["device_underruns"]
-    most_underruns = int(limit_s * SAMPLE_RATE_HZ / 2) + 1  # an episode: a sample missed, one played
-    if underruns < 0:
-        bad.append(f"underruns went back by {-underruns}")
-        underruns = 0
-    elif underruns > most_underruns:
-        bad.append(f"{underruns} underruns in {host_s:.1f} s")
-        underruns = most_underruns
-    return {"device_s": device_s, "played_s": played_s, "played_fraction": fraction,
-            "underruns": underruns}, bad
 
 
 class Daemon:
+    """The service: intake (accept, select, stop) and the control socket's requests here; the
+    quality worker (QualityWorker), the spool (SpoolWatcher), the stimuli (Stimuli), the pump's
+    pipe (PumpWriter) and the worker threads' supervision (Supervisor) are the parts it holds."""
+
     def __init__(self, cfg: Config, notifier: Notifier | None = None) -> None:
         self.cfg = cfg
         check_paths(cfg)
@@ -226,55 +56,22 @@ class Daemon:
             self.library = Library(cfg.library.dir, cfg.library.max_stream_bytes, cfg.library.max_n,
                                    cfg.library.max_n_keep, travel_um=cfg.output.travel_um)
             self.spool.parent.mkdir(parents=True, exist_ok=True)
-            # group members may drop files here: the spool is sticky (made so if it is not), so
-            # they cannot rename or remove what is not theirs, rejected/ included
-            self.spool_fd = open_dir(self.spool, "library.spool", others_may_write=True, create_mode=0o1770)
-            self.rejected_fd = self._open_rejected()
+            self.spool_watch = SpoolWatcher(cfg, self.spool, self.accept)
             qualitylog.connect(self.db_path).close()
         except (OSError, sqlite3.Error, HostdError) as e:
             raise ConfigError(f"{cfg.path}: cannot set up the library, spool or quality log: {e}") from None
-        self.curve = None
-        self.calibration = None  # NAME@ID recorded with each quality row (quality.calibration)
-        if cfg.quality.calibration:
-            from hostd.perception import calibration
-
-            cal = calibration.load(cfg.quality.calibration)
-            self.curve, self.calibration = cal.curve, cal.label
-        elif cfg.quality.thresholds:
-            from hostd.perception.calibration import load_curve
-
-            self.curve = load_curve(cfg.quality.thresholds)
+        self.lock = threading.Lock()
+        self.stop_event = threading.Event()
+        self.quality = QualityWorker(cfg, self.db_path, self.library, self.lock, self.stop_event)
         ctx = mp.get_context("spawn")
         self.select_lock = threading.Lock()  # one select or stop at a time
         self.selected_sha: str | None = None
-        self.quality_pending: deque = deque()  # scored rows not yet written (disk full, I/O error)
-        self.plays_pending: deque = deque()  # plays not yet written (the same), kept as the rows are
-        # rows the last run could not write: written first (then the pending-rows file is removed)
-        self.pending_paths = qualitylog.pending_paths(self.db_path, cfg.library.dir)
-        kept = []
-        for p in self.pending_paths:
-            try:
-                kept += [r for r in qualitylog.load_pending(p) if r not in kept]
-            except OSError as e:
-                log.warning("quality log: cannot read the pending-rows file %s (%s); its streams are scored "
-                            "again", p, e.strerror or e)
-        for r in kept:
-            (self.plays_pending if qualitylog.is_play(r) else self.quality_pending).append(r)
-        self.pending_file_rows = len(kept)
-        self.pending_keys = {(r["name"], r["sha256"]) for r in self.quality_pending}
-        self.scoring: set[tuple[str, str]] = set(self.pending_keys)  # queued or pending, not yet written
-        if kept:
-            log.info("quality log: %d rows pending from the last run (%s); writing them first", len(kept),
-                     ", ".join(str(p) for p in self.pending_paths if p.exists()))
         self.stats = ctx.Array("d", len(STAT_FIELDS), lock=False)
         self.conn, self.child_conn = ctx.Pipe()
         self.proc = ctx.Process(target=pump_main, args=(cfg, self.child_conn, self.stats),
                                 name="hostd-pump", daemon=True)
         self.pump_writer: PumpWriter | None = None
-        self._stop_deadline = math.inf  # the quality worker's last retry at shutdown
         self.signalled = False  # set by the SIGTERM/SIGINT handler, which must take no lock
-        self.quality_q: queue.Queue = queue.Queue(QUALITY_QUEUE_MAX)
-        self.stop_event = threading.Event()
         # the threads sleep on descriptors, not on timers: stop_r turns readable (for good) at the
         # stop; wake_r wakes the main loop (a signal through set_wakeup_fd, a worker that ended)
         self.stop_r, self.stop_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
@@ -286,29 +83,36 @@ class Daemon:
         self.refused = 0
         # from the pump, on change: transport in use, hotplug mode, last reconnection time
         self.pump_info: dict = {"transport": None, "hotplug": None, "last_reconnect_s": None}
-        self.lock = threading.Lock()
         self.notifier = notifier if notifier is not None else Notifier()
         self.control: ControlServer | None = None
         self.metrics = None  # the Prometheus endpoint's server, when metrics.listen is set
-        self.workers: dict[str, tuple[Callable[[], None], threading.Thread | None, list[float]]] = {}
-        self.dead_workers: set[str] = set()
-        # stimuli ([experiment] stimuli): one at a time; the pump's answers by stimulus id
-        self.stimulus_lock = threading.Lock()
-        self.stimulus_ids = itertools.count(1)
-        self.stimulus_answers: dict[int, list] = {}  # id -> [Event, answer], under self.lock
-        self._stimulus_bound = None
+        self.supervisor = Supervisor(self.stop_event, self._wake)
+        self.stimuli = Stimuli(cfg, self.lock, self.refuse, self.take_over)
 
-    def _open_rejected(self) -> int:
-        """spool/rejected, created and checked by us (a directory, ours, not a link). Anything
-        else by that name (a member's link or directory, left before the spool was sticky) is
-        moved aside first; afterwards its descriptor is used, so renaming it changes nothing."""
-        try:
-            return open_dir("rejected", "library.spool rejected/", dir_fd=self.spool_fd, create_mode=0o750)
-        except HostdError as e:
-            aside = f"rejected.untrusted-{int(time.time())}"
-            log.warning("spool: %s; moved aside as %s", e, aside)
-            os.rename("rejected", aside, src_dir_fd=self.spool_fd, dst_dir_fd=self.spool_fd)
-            return open_dir("rejected", "library.spool rejected/", dir_fd=self.spool_fd, create_mode=0o750)
+    # ------------------------------------------------------------ the parts' state, as before
+    @property
+    def quality_q(self) -> queue.Queue:
+        return self.quality.quality_q
+
+    @property
+    def quality_pending(self):
+        return self.quality.quality_pending
+
+    @property
+    def plays_pending(self):
+        return self.quality.plays_pending
+
+    @property
+    def _stop_deadline(self) -> float:
+        return self.quality._stop_deadline
+
+    @_stop_deadline.setter
+    def _stop_deadline(self, t: float) -> None:
+        self.quality._stop_deadline = t
+
+    @property
+    def workers(self) -> dict:
+        return self.supervisor.workers
 
     # ------------------------------------------------------------ intake
     def accept(self, name: str, data: bytes, source: str) -> dict:
@@ -323,7 +127,7 @@ class Daemon:
             raise
         with self.lock:
             self.accepted += 1
-        self.queue_for_scoring(name, data, sha, time.time())
+        self.quality.queue_for_scoring(name, data, sha, time.time())
         log.info("accepted %s from %s: %d bytes, %s, N'=%d", name, source, len(data), s.method, s.n_keep)
         return {"name": name, "sha256": sha, "bytes": len(data), "method": s.method, "n_keep": s.n_keep}
 
@@ -368,59 +172,21 @@ class Daemon:
             log.warning("device %s reported the impossible while playing %s: %s; logged within what the "
                         "host knows", self.pump_info.get("transport") or self.cfg.device.transport, name,
                         "; ".join(impossible))
-        if not self.plays_pending:  # (else after those: the quality worker writes it with them)
-            try:
-                con = qualitylog.connect(self.db_path)
-                try:
-                    qualitylog.insert_play(con, row)
-                finally:
-                    con.close()
-                self._played(row)
-                return
-            except (sqlite3.Error, OSError) as e:  # the log must not stop playback: kept pending
-                log.error("quality log: cannot record the play of %s now (%s); kept pending and written with "
-                          "the pending quality rows", name, e)
-        self.plays_pending.append(row | {"kind": "play"})
-        try:  # the quality worker retries it (woken, if it sleeps: an empty entry)
-            self.quality_q.put_nowait(())
-        except queue.Full:
-            pass
+        self.quality.record_play(name, row)
 
-    @staticmethod
-    def _played(row: dict) -> None:
-        log.info("played %s: %.1f s from the buffer, played fraction %s, %d underruns", row["name"],
-                 row["played_s"], "-" if row["played_fraction"] is None else f"{row['played_fraction']:.2%}",
-                 row["underruns"])
+    def take_over(self, msg: tuple) -> str | None:
+        """The texture being played (if any) ends and msg (a stimulus) goes to the pump in its
+        place, under the select lock; the name of the texture stopped."""
+        with self.select_lock:
+            stopped = self.selected
+            self.end_play()
+            self.selected = self.selected_sha = None
+            self.pump_writer.send(msg)
+        return stopped
 
     def counters(self) -> dict:
-        """The pump's counters, from shared memory: one snapshot of one publish (the pump's
-        seqlock), so the device's counters and its clock agree; a pump stopped in the middle of
-        a publish (SIGSTOP) leaves a torn one after 10 ms of retries rather than a hang."""
-        for _ in range(20):
-            seq = self.stats[PUBLISH_SEQ]
-            vals = self.stats[:]
-            if seq % 2 == 0 and self.stats[PUBLISH_SEQ] == seq:
-                break
-            time.sleep(0.0005)
-        st = dict(zip(STAT_FIELDS, vals, strict=True))
-        del st["publish_seq"]
-        for k in st:
-            if k not in FLOAT_FIELDS:
-                st[k] = int(st[k])
-        st["state"] = STATE_NAMES.get(st["state"], "?")
-        st["connected"] = bool(st["connected"])
-        # from the device's own STATUS counters (hostd.device.health)
-        code = st["device_state"]
-        st["device_state"] = DEVICE_STATES.get(code, "unknown") if st["connected"] else "unknown"
-        st["device_faults"] = fault_names(st.pop("device_fault_bits"))
-        st["underruns"] = st["device_underruns"]  # the name older clients read
-        st["render_at"] = "device" if st["render_at"] else "host"  # who renders the texture now
-        st["render_reason"] = RENDER_REASONS[st["render_reason"]] if 0 <= st["render_reason"] < len(
-            RENDER_REASONS) else "?"  # and why there ([render] where, the display's version and CAPS)
-        st["target_fill_ms"] = round(st["target_fill"] / SAMPLE_RATE_HZ * 1e3, 2)
-        pf = st["played_fraction"]  # a share: whatever a device says, shown within [0, 1]
-        st["played_fraction"] = min(max(pf, 0.0), 1.0) if math.isfinite(pf) else 0.0
-        return st
+        """The pump's counters (pumplink.read_counters)."""
+        return read_counters(self.stats)
 
     def status(self) -> dict:
         st = self.counters()
@@ -435,287 +201,13 @@ class Daemon:
 
     # ------------------------------------------------------------ workers
     def quality_worker(self) -> None:
-        """Score each accepted stream and write its row. Rows are written in batches (at most
-        qualitylog.BATCH_ROWS per transaction). A batch that cannot be written (disk full, I/O
-        error, a locked or unopenable database) stays in quality_pending and is retried, back-off
-        doubling from 0.5 s to 30 s, and at once when the database's file system has 16 kB more
-        free than at the failure; after a full-disk error the -wal is checkpointed and cut to zero
-        bytes (its frames would squat the space freed). One log line when writing fails and one
-        when it works again. What is still pending at exit goes to the pending-rows file, which
-        the next start writes first (or, if even that cannot be written, the streams are scored
-        again at the next start: a stored stream without a row)."""
-        try:  # opened now, while there is space: its -shm (32 kB) is not made again on a full disk
-            con = qualitylog.connect(self.db_path)
-        except sqlite3.Error:
-            con = None
-        failing_since = None
-        retry_at = 0.0
-        backoff = QUALITY_RETRY_S[0]
-        free_at_fail = None
-        while True:
-            try:
-                # idle: asleep until a stream arrives or the stop (a None); a pending row is retried
-                if self.stop_event.is_set():  # (stop() may have found the queue full: no None)
-                    item = self.quality_q.get_nowait()
-                else:
-                    item = self.quality_q.get(timeout=0.05 if self._pending() else None)
-            except queue.Empty:
-                item = None
-            stopping = self.stop_event.is_set()
-            if item:  # (an empty entry: a play is pending)
-                self._score(*item)
-                if len(self.quality_pending) < qualitylog.BATCH_ROWS:
-                    continue  # (a batch's worth is written at once: a backlog does not wait in memory)
-            if not self._pending():
-                if stopping:
-                    break
-                continue
-            if time.monotonic() < retry_at and not self._db_space_grew(free_at_fail):
-                if stopping and time.monotonic() > self._stop_deadline:
-                    break
-                continue
-            try:
-                if con is None:
-                    con = qualitylog.connect(self.db_path)
-                for pending in (self.quality_pending, self.plays_pending):
-                    while pending:
-                        batch = list(itertools.islice(pending, qualitylog.BATCH_ROWS))
-                        qualitylog.insert_batch(con, batch)
-                        for row in batch:
-                            pending.popleft()
-                            if qualitylog.is_play(row):
-                                self._played(row)
-                                continue
-                            self.scoring.discard((row["name"], row["sha256"]))
-                            log.info("quality %s: Ip=%.4f Ia=%.4f Iobj=%.4f", row["name"], row["ip"],
-                                     row["ia"], row["iobj"])
-                if self.pending_file_rows:  # every row of the pending-rows files is in the log now
-                    for p in self.pending_paths:
-                        p.unlink(missing_ok=True)
-                    self.pending_file_rows = 0
-                if failing_since is not None:
-                    qualitylog.checkpoint(con)  # the -wal back to zero bytes
-                    log.warning("quality log: writing again after %.0f s; every pending row is written",
-                                time.monotonic() - failing_since)
-                failing_since, backoff, free_at_fail = None, QUALITY_RETRY_S[0], None
-            except (sqlite3.Error, OSError) as e:
-                full = qualitylog.is_full(e)
-                if con is not None and full:
-                    qualitylog.checkpoint(con)  # gives back what the -wal holds beyond its last commit
-                if failing_since is None:
-                    failing_since = time.monotonic()
-                    log.error("quality log: cannot write to %s (%s); %d rows kept pending and retried until "
-                              "written (%s)", self.db_path, e,
-                              len(self.quality_pending) + len(self.plays_pending),
-                              "free 64 kB or more on its file system" if full else "see the error")
-                if con is not None and not full:  # (full: kept open, with its -shm)
-                    con.close()
-                    con = None
-                free_at_fail = self._db_free_bytes()
-                retry_at = time.monotonic() + backoff
-                backoff = min(backoff * 2, QUALITY_RETRY_S[1])
-                if stopping and time.monotonic() > self._stop_deadline:
-                    break
-        if con is not None:
-            con.close()
-        if self._pending():
-            self.keep_pending_rows()
-
-    def _pending(self) -> bool:
-        """Rows or plays not yet written."""
-        return bool(self.quality_pending or self.plays_pending)
-
-    def _score(self, name: str, sha: str, received_at: float, data: bytes | None) -> None:
-        """Score one queued stream into quality_pending; data None: read from the library now (a
-        stream found without a row at start-up, queued by its name)."""
-        try:
-            if data is None:
-                data = self.library.read(name)
-                if hashlib.sha256(data).hexdigest() != sha:  # replaced since: its new content is queued
-                    self.scoring.discard((name, sha))
-                    log.info("quality: %s was replaced before it was scored; its new content is scored", name)
-                    return
-            q = self.cfg.quality
-            # a stream made with another curve than the configured one: its own curve, and the
-            # paper's weights under a calibration (its weights go with its curve), else quality.a, b
-            own_ab = DEFAULT_AB if self.calibration else (q.a, q.b)
-            row = qualitylog.score_row(data, name, sha, received_at, q.a, q.b, self.curve, self.calibration,
-                                       own_ab)
-            note = row.pop("scoring_note", None)
-            if note:
-                log.warning("quality %s: %s", name, note)
-            self.quality_pending.append(row)
-        except Exception as e:  # a scoring failure (or a stream removed meanwhile) must not stop the service
-            self.scoring.discard((name, sha))
-            log.error("quality scoring of %s failed: %s", name, e)
-
-    def queue_for_scoring(self, name: str, data: bytes | None, sha: str, received_at: float) -> bool:
-        """Once per (name, content) until its row is written: an upload during the start-up's
-        look for unscored streams is not scored twice. data None: the stored stream, read when
-        scored. Waits for room in the bounded queue (the worker takes an entry per score); False
-        when the daemon stops meanwhile (the stream, stored, is scored at the next start)."""
-        with self.lock:
-            if (name, sha) in self.scoring:
-                return False
-            self.scoring.add((name, sha))
-        while True:
-            try:  # (a timer only while the queue is full)
-                self.quality_q.put((name, sha, received_at, data), timeout=0.25)
-                return True
-            except queue.Full:
-                if self.stop_event.is_set():
-                    self.scoring.discard((name, sha))
-                    return False
-
-    def keep_pending_rows(self) -> None:
-        """At exit: rows not written go to the pending-rows file for the next start."""
-        rows = list(self.quality_pending) + list(self.plays_pending)
-        why = []
-        for path in self.pending_paths:
-            try:
-                qualitylog.save_pending(path, rows)
-                log.error("quality log: %d rows not written at exit; kept in %s, written at the next start",
-                          len(rows), path)
-                return
-            except OSError as e:
-                why.append(f"{path}: {e.strerror or e}")
-        log.error("quality log: %d rows not written at exit and not kept (%s); their streams are scored "
-                  "again at the next start", len(rows), "; ".join(why))
-
-    def _db_free_bytes(self) -> int | None:
-        try:
-            st = os.statvfs(Path(self.db_path).parent)
-            return st.f_bavail * st.f_frsize
-        except OSError:
-            return None
-
-    def _db_space_grew(self, free_at_fail: int | None) -> bool:
-        """True when the database's file system has 16 kB more free than at the last failure."""
-        if free_at_fail is None:
-            return False
-        free = self._db_free_bytes()
-        return free is not None and free >= free_at_fail + 16 * 1024
+        self.quality.quality_worker()
 
     def rescore_missing(self) -> None:
-        """Streams stored before a crash but not yet logged are scored (after READY=1, in its own
-        thread: a large library takes seconds to read; a stop request ends it)."""
-        t0 = time.monotonic()
-        con = qualitylog.connect(self.db_path)
-        try:
-            known = qualitylog.known(con)
-        finally:
-            con.close()
-        queued = 0
-        for name in self.library.names():
-            if self.stop_event.is_set() or self.signalled:
-                return
-            try:
-                data = self.library.read(name)
-                sha = hashlib.sha256(data).hexdigest()
-                if (name, sha) in known:
-                    continue
-                self.library.decode(data)  # within today's limits, or it would fail every start
-                del data  # queued by its name (read again when scored): a backlog is not held in memory
-                if self.queue_for_scoring(name, None, sha, self.library.mtime(name)):
-                    queued += 1
-            except (HostdError, OSError) as e:
-                log.warning("library: %s not scored: %s", name, e)
-        if queued:
-            log.info("library: %d stored streams without a quality row queued for scoring (%.1f s)", queued,
-                     time.monotonic() - t0)
+        self.quality.rescore_missing(lambda: self.stop_event.is_set() or self.signalled)
 
     def spool_watcher(self) -> None:
-        """Take in .vtx files dropped into the spool once their writer is done: size and mtime
-        unchanged for library.spool_settle_s and the mtime at least that old. Anything else
-        named *.vtx (symlink, FIFO, device, directory, too big) is moved to rejected/ with a note.
-        Every operation is relative to the spool's and rejected/'s descriptors (opened and
-        checked at start-up) and follows no link: a member who renames rejected/ or plants
-        links changes nothing the daemon writes or reads."""
-        import select
-
-        settle = self.cfg.library.spool_settle_s
-        limit = self.cfg.library.max_stream_bytes
-        seen: dict[str, tuple[tuple[int, int], float]] = {}  # name -> (size, mtime_ns), since
-        events = _spool_events(self.spool_fd)  # inotify where there is one, else a scan per period
-        period = min(0.3, settle / 2)
-        first = True
-        try:
-            while not self.stop_event.is_set():
-                if not first:
-                    # asleep until the spool changes (or the stop); a timer only while a file settles
-                    wait = [self.stop_r] + ([events] if events is not None else [])
-                    ready = select.select(wait, [], [], period if seen or events is None else None)[0]
-                    if self.stop_event.is_set():
-                        break
-                    if events is not None and events in ready:
-                        _drain(events)
-                first = False
-                self._scan_spool(seen, settle, limit)
-        finally:
-            if events is not None:
-                os.close(events)
-
-    def _scan_spool(self, seen: dict, settle: float, limit: int) -> None:
-        """One look at the spool (spool_watcher)."""
-        try:
-            with os.scandir(self.spool_fd) as it:
-                entries = list(it)
-        except OSError as e:
-            log.error("spool: cannot list %s: %s", self.spool, e.strerror)
-            return
-        now = time.time()
-        for ent in entries:
-            name = ent.name
-            if not name.endswith(".vtx") or name.startswith("."):
-                continue
-            try:
-                st = ent.stat(follow_symlinks=False)
-            except FileNotFoundError:
-                continue
-            if not stat.S_ISREG(st.st_mode):
-                self._reject_spool(name, "not a regular file (symlink, FIFO, device or directory): the "
-                                         "spool takes regular files only")
-                continue
-            if st.st_size > limit:
-                self._reject_spool(name, f"stream of {st.st_size} bytes exceeds the limit of {limit} "
-                                         "(library.max_stream_bytes)")
-                continue
-            sig = (st.st_size, st.st_mtime_ns)
-            prev = seen.get(name)
-            if prev is None or prev[0] != sig:
-                seen[name] = (sig, now)  # (still) being written: wait until it holds still
-                continue
-            if now - prev[1] < settle or now - st.st_mtime_ns / 1e9 < settle:
-                continue
-            seen.pop(name, None)
-            try:
-                data = read_regular_at(self.spool_fd, name, limit, expect=sig)
-            except BlockingIOError:
-                continue
-            except HostdError as e:  # NotRegular (swapped since the stat), too big
-                self._reject_spool(name, str(e))
-                continue
-            except OSError as e:
-                log.error("spool: cannot take in %s: %s", name, e.strerror or e)
-                continue
-            try:
-                self.accept(name[:-4], data, "spool")
-                os.unlink(name, dir_fd=self.spool_fd)
-            except HostdError as e:
-                self._reject_spool(name, str(e))
-            except OSError:
-                pass  # taken in; its writer removed or replaced it meanwhile
-        for name in set(seen) - {e.name for e in entries}:
-            seen.pop(name, None)
-
-    def _reject_spool(self, name: str, why: str) -> None:
-        try:  # the reason first, so that whoever sees the rejected file finds why
-            write_at(self.rejected_fd, name + ".error", (why + "\n").encode(), mode=0o640)
-            # renameat moves the entry itself (a link, not its target) into our rejected/
-            os.rename(name, name, src_dir_fd=self.spool_fd, dst_dir_fd=self.rejected_fd)
-            log.warning("spool: rejected %s: %s", name, why)
-        except (OSError, HostdError) as e:
-            log.error("spool: cannot move %s to rejected/ (%s); it stays: %s", name, e, why)
+        self.spool_watch.spool_watcher(self.stop_event, self.stop_r)
 
     # ------------------------------------------------------------ control socket
     def handle_conn(self, client: ClientConn) -> None:
@@ -804,70 +296,11 @@ class Daemon:
         raise BadRequest(f"unknown command {cmd!r:.40}")
 
     # ------------------------------------------------------------ stimuli
-    def stimulus_bound(self):
-        """The bound every stimulus is checked against (hostd.render.stimulus, from this
-        daemon's config: output.travel_um, output.slew_um_s, render.actuator)."""
-        if not self.cfg.experiment.stimuli:
-            self.refuse(f"this hostd does not play stimuli: set [experiment] stimuli = true in "
-                        f"{self.cfg.path} and restart hostd (`hostd experiment threshold --help`)")
-        if self._stimulus_bound is None:
-            from hostd.render.stimulus import StimulusBound
-
-            self._stimulus_bound = StimulusBound(self.cfg.render_config())
-        return self._stimulus_bound
-
     def reach(self, req: dict) -> dict:
-        """The largest stimulus (µm peak at the finger) at each frequency asked."""
-        from hostd.render.stimulus import MAX_DURATION_S, MAX_FREQUENCY_HZ
-
-        bound = self.stimulus_bound()
-        fs = req.get("frequencies_hz")
-        if not (isinstance(fs, list) and 0 < len(fs) <= MAX_REACH_FREQUENCIES
-                and all(isinstance(f, int | float) and not isinstance(f, bool) and math.isfinite(f)
-                        and 0 < f <= MAX_FREQUENCY_HZ for f in fs)):
-            raise BadRequest(f"bad request: frequencies_hz must be a list of 1..{MAX_REACH_FREQUENCIES} "
-                             f"frequencies in (0, {MAX_FREQUENCY_HZ:g}] Hz")
-        return {"reach_um": [bound.reach_um(float(f)) for f in fs], "max_duration_s": MAX_DURATION_S,
-                "max_frequency_hz": MAX_FREQUENCY_HZ}
+        return self.stimuli.reach(req)
 
     def play_stimulus(self, req: dict) -> dict:
-        """Play one sinusoid (frequency_hz, amplitude_um at the finger, duration_s) on the display
-        and answer once the device has played it (its own count of samples played), then the
-        display is idle. Checked here against the display's reach (StimulusRefused: nothing is
-        played), and again by the pump; it stops a texture being played. One at a time."""
-        bound = self.stimulus_bound()
-        f, a, d = (req.get(k) for k in ("frequency_hz", "amplitude_um", "duration_s"))
-        try:
-            bound.check(f, a, d)
-        except HostdError as e:
-            log.warning("control socket: %s", e)
-            self.refuse(str(e))
-        if not self.stimulus_lock.acquire(blocking=False):
-            raise StimulusFailed("another stimulus is being played: one at a time")
-        sid = None
-        try:
-            with self.select_lock:  # the texture being played (if any) ends here
-                stopped = self.selected
-                self.end_play()
-                self.selected = self.selected_sha = None
-                sid = next(self.stimulus_ids)
-                waiting = [threading.Event(), None]
-                with self.lock:
-                    self.stimulus_answers[sid] = waiting
-                self.pump_writer.send(("stimulus", (sid, float(f), float(a), float(d))))
-            if not waiting[0].wait(d + STIMULUS_SLACK_S) or waiting[1] is None:
-                raise StimulusFailed(f"the pump did not report the stimulus played within "
-                                     f"{d + STIMULUS_SLACK_S:g} s")
-            _sid, error, retry, played = waiting[1]
-            if error:
-                if retry:
-                    raise StimulusFailed(error)
-                self.refuse(error)
-            return {"played": played, "stopped": stopped}
-        finally:
-            with self.lock:
-                self.stimulus_answers.pop(sid, None)
-            self.stimulus_lock.release()
+        return self.stimuli.play_stimulus(req)
 
     def may_shut_down(self, peer_uid: int | None) -> None:
         """`hostd stop --daemon`: refused for anyone under systemd (a clean exit is not restarted:
@@ -910,35 +343,11 @@ class Daemon:
 
     # ------------------------------------------------------------ supervision
     def start_worker(self, name: str, target: Callable[[], None]) -> None:
-        def body() -> None:
-            try:
-                target()
-            except Exception as e:
-                log.error("worker %s failed: %s: %s", name, type(e).__name__, e)
-            finally:
-                self._wake()  # the main loop restarts it (supervise), not a timer
-
-        t = threading.Thread(target=body, name=name, daemon=True)
-        prev = self.workers.get(name)
-        self.workers[name] = (target, t, prev[2] if prev else [])
-        t.start()
+        self.supervisor.start_worker(name, target)
 
     def supervise(self) -> bool:
         """Restart a worker thread that died (with a log line); False when one stays dead."""
-        now = time.monotonic()
-        for name, (target, t, restarts) in list(self.workers.items()):
-            if t is None or t.is_alive() or self.stop_event.is_set() or name in self.dead_workers:
-                continue
-            restarts[:] = [r for r in restarts if now - r < 60.0]
-            if len(restarts) >= RESTARTS_PER_MINUTE:
-                self.dead_workers.add(name)
-                log.error("worker %s stopped %d times within a minute: left stopped; the watchdog is no "
-                          "longer fed, so systemd restarts hostd", name, len(restarts) + 1)
-                continue
-            restarts.append(now)
-            log.error("worker %s stopped; restarted", name)
-            self.start_worker(name, target)
-        return not self.dead_workers
+        return self.supervisor.supervise()
 
     def pump_messages(self) -> bool:
         """Log the pump's lines and take its info (transport, hotplug, reconnection time); False
@@ -950,11 +359,7 @@ class Daemon:
                     self.pump_info = msg
                     continue
                 if kind == "stimulus":  # (id, error or None, retry, what the device played)
-                    with self.lock:
-                        waiting = self.stimulus_answers.get(msg[0])
-                    if waiting is not None:
-                        waiting[1] = msg
-                        waiting[0].set()
+                    self.stimuli.answered(msg)
                     continue
                 # the pump's lines carry their level: device loss and recoveries are
                 # warnings (journald priority 4), the rest information
