@@ -25,7 +25,7 @@ HOSTD = Path(__file__).resolve().parent.parent / "hostd"
 
 # Lowest first. Rooms on one floor may import each other at module level only without a circle.
 FLOORS: tuple[frozenset[str], ...] = tuple(frozenset(f) for f in (
-    {"hostd", "errors", "paths", "compiled", "pocketfft", "tty", "helptext", "tomlfile", "sqlitewal"},
+    {"hostd", "errors", "paths", "compiled", "pocketfft", "tty", "helptext", "tomlfile", "sqlitewal", "cyclestate"},
     {"extras", "plotting", "fileio", "docgen"},
     {"render"},
     {"texture"},
