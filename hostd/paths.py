@@ -69,13 +69,3 @@ def actuators_dir() -> Path:
 
 def scenes_dir() -> Path:
     return shipped_dir() / "scenes"
-
-
-def bundled_profile():
-    """The bundled real instrument profile (data/profiles/dektak-1.csv), or None."""
-    from hostd.texture.load import LoadOptions, load_profile
-
-    p = find("profiles", "dektak-1.csv")
-    if not p.exists():
-        return None
-    return load_profile(p, LoadOptions(x_unit="um", y_unit="um", length_mm=None, detrend="linear"))

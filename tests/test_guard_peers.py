@@ -57,7 +57,7 @@ def test_check_decides_like_the_db_values_and_reports_both():
 
 
 def _real_profile():
-    from hostd.paths import bundled_profile
+    from hostd.texture.load import bundled_profile
 
     prof = bundled_profile()
     if prof is None:

@@ -25,7 +25,8 @@ HOSTD = Path(__file__).resolve().parent.parent / "hostd"
 
 # Lowest first. Rooms on one floor may import each other at module level only without a circle.
 FLOORS: tuple[frozenset[str], ...] = tuple(frozenset(f) for f in (
-    {"hostd", "errors", "paths", "compiled", "pocketfft", "tty", "helptext", "tomlfile", "sqlitewal", "cyclestate"},
+    {"hostd", "errors", "paths", "compiled", "pocketfft", "tty", "helptext", "tomlfile", "sqlitewal",
+     "cyclestate", "procstat"},
     {"extras", "plotting", "fileio", "docgen"},
     {"render"},
     {"texture"},
@@ -119,6 +120,53 @@ def test_every_room_stands_on_a_floor(imports):
     rooms = {room_of(_module_name(p)) for p in HOSTD.rglob("*.py")}
     for room in sorted(rooms):
         floor_of(room)
+
+
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    circles: list[list[str]] = []
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                circles.append(sorted(comp))
+
+    for v in sorted(set(graph) | {w for ws in graph.values() for w in ws}):
+        if v not in index:
+            strong(v)
+    return circles
+
+
+def test_no_import_circle_at_all(imports):
+    """Not even through imports inside functions: a module that reaches back to one that reaches
+    it is a circle a maintainer trips on, lazily loaded or not."""
+    top, inner = imports
+    graph: dict[str, set[str]] = {}
+    for edges in (top, inner):
+        for a, bs in edges.items():
+            graph.setdefault(a, set()).update(bs)
+    circles = _circles(graph)
+    assert not circles, f"import circles (module- and function-level imports): {circles}"
 
 
 def test_no_import_circle_through_module_level_imports(imports):

@@ -172,7 +172,7 @@ def _textures(args) -> dict:
             prof = read_profile(path, args, length_mm=args.length_mm)
             tex[Path(path).stem] = prof
     else:
-        from hostd.paths import bundled_profile
+        from hostd.texture.load import bundled_profile
 
         found = bundled_profile()
         if found is not None:

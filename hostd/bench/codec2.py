@@ -69,7 +69,7 @@ def textures() -> list[tuple[str, np.ndarray, transform.Geometry]]:
             prof = load_profile(d / name, LoadOptions(**opts))
             out.append((name, prof.heights_um, transform.Geometry(prof.n, prof.length_mm,
                                                                    speed_mm_s=speed)))
-    from hostd.paths import bundled_profile
+    from hostd.texture.load import bundled_profile
 
     b = bundled_profile()  # dektak-1 as shipped: whole length, linear detrend, CLI defaults
     if b is not None:
@@ -303,7 +303,7 @@ def guard_calibration_rows() -> list[dict]:
 def guard_heldout_rows() -> list[dict]:
     """Textures not in the calibration set (other seeds, speeds, fmax up to 1000 Hz): the
     stream `--target-iobj 0.05` returns with the default guard and with wSNR >= 25 dB alone."""
-    from hostd.paths import bundled_profile
+    from hostd.texture.load import bundled_profile
 
     curve = thresholds.default_curve()
     cases = []

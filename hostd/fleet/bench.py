@@ -33,9 +33,9 @@ def measure(seconds: float = 30.0, rows_per_s: float = 1.0, db: str | Path | Non
     log to grow (default: one of its own); socket: the daemon's, for the health summaries."""
     import psycopg
 
-    from hostd.bench.soak import CpuClock, pss_kb, threads
     from hostd.fleet import schema
     from hostd.fleet.localpg import LocalPG
+    from hostd.procstat import CpuClock, pss_kb, threads
     from hostd.service import outbox, qualitylog
 
     pg = LocalPG()

@@ -27,6 +27,21 @@ import numpy as np
 
 from hostd.errors import ProfileError
 
+UNITS_TO_UM = {"m": 1e6, "mm": 1e3, "um": 1.0, "µm": 1.0, "nm": 1e-3}
+
+
+def parse_columns(spec: str | None) -> tuple[int, ...] | None:
+    """'--columns 2,3' (1-based x,height) or '3' (heights only) -> 0-based indices."""
+    if spec is None or str(spec).strip() == "":
+        return None
+    try:
+        cols = tuple(int(t) - 1 for t in str(spec).split(","))
+    except ValueError:
+        raise ProfileError(f"--columns {spec!r}: give X,Y (1-based, e.g. 1,2) or Y alone") from None
+    if not 1 <= len(cols) <= 2 or min(cols) < 0 or len(set(cols)) != len(cols):
+        raise ProfileError(f"--columns {spec!r}: give X,Y (1-based, e.g. 1,2) or Y alone")
+    return cols
+
 
 @dataclass(frozen=True)
 class LoadOptions:

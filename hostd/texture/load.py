@@ -16,9 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from hostd.errors import ProfileError, ProfileNotFound
-from hostd.texture.formats import LoadOptions
+from hostd.texture.formats import UNITS_TO_UM, LoadOptions, parse_columns  # noqa: F401 (re-exported)
 
-UNITS_TO_UM = {"m": 1e6, "mm": 1e3, "um": 1.0, "µm": 1.0, "nm": 1e-3}
 _SPLIT = re.compile(r"[,;\s]+")
 MAX_ROWS = 50_000_000
 
@@ -48,19 +47,6 @@ def unit_factor(unit: str, axis: str) -> float:
         raise ProfileError(
             f"unknown {axis} unit {unit!r}: use one of m, mm, um, nm"
         ) from None
-
-
-def parse_columns(spec: str | None) -> tuple[int, ...] | None:
-    """'--columns 2,3' (1-based x,height) or '3' (heights only) -> 0-based indices."""
-    if spec is None or str(spec).strip() == "":
-        return None
-    try:
-        cols = tuple(int(t) - 1 for t in str(spec).split(","))
-    except ValueError:
-        raise ProfileError(f"--columns {spec!r}: give X,Y (1-based, e.g. 1,2) or Y alone") from None
-    if not 1 <= len(cols) <= 2 or min(cols) < 0 or len(set(cols)) != len(cols):
-        raise ProfileError(f"--columns {spec!r}: give X,Y (1-based, e.g. 1,2) or Y alone")
-    return cols
 
 
 PROGRESS_BYTES = 1 << 26  # progress bar on files above 64 MiB
@@ -507,3 +493,14 @@ def cut_patch(y_um: np.ndarray, dx_um: float, opts: LoadOptions, name: str = "")
     elif opts.detrend != "none":
         raise ProfileError(f"unknown --detrend {opts.detrend!r}: use none, mean or linear")
     return Profile(heights_um=y, spacing_um=float(dx_um), source=name)
+
+
+def bundled_profile():
+    """The bundled real instrument profile (data/profiles/dektak-1.csv, whole, linear detrend),
+    or None when the installation lacks it."""
+    from hostd.paths import find
+
+    p = find("profiles", "dektak-1.csv")
+    if not p.exists():
+        return None
+    return load_profile(p, LoadOptions(x_unit="um", y_unit="um", length_mm=None, detrend="linear"))

@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from hostd.errors import HostdError, ProfileError
-from hostd.texture.load import UNITS_TO_UM, LoadOptions, parse_columns
+from hostd.texture.formats import UNITS_TO_UM, LoadOptions, parse_columns
 
 MAX_BYTES = 16 << 20  # a manifest is a list of files: 16 MiB is some 100,000 rows
 KEYS = ("file", "name", "units", "x_unit", "y_unit", "spacing", "columns", "offset_mm", "length_mm",
