@@ -19,7 +19,8 @@ from hostd.service import qualitylog
 
 psycopg = pytest.importorskip("psycopg") if os.environ.get("CI") != "true" else __import__("psycopg")
 
-PCS = {"pc_a": ("fw-1.4", 0.0), "pc_b": ("fw-1.4", 7200.0), "pc_c": ("fw-1.3", 0.0)}  # firmware, clock error s
+# firmware, the PC's clock error (s)
+PCS = {"pc_a": ("fw-1.4", 0.0), "pc_b": ("fw-1.4", 7200.0), "pc_c": ("fw-1.3", 0.0)}
 TEXTURES = ("wood", "cork", "felt")
 
 
@@ -76,7 +77,8 @@ def fleet(tmp_path_factory):
         assert main(["fleet", "migrate", "--url", pg.admin_url]) == 0
         pw = {r: _pw(d, r) for r in (*PCS, "pc_d", "viewer")}
         for role in (*PCS, "pc_d"):
-            assert main(["fleet", "add-pc", role, "--url", pg.admin_url, "--password-file", str(pw[role])]) == 0
+            assert main(["fleet", "add-pc", role, "--url", pg.admin_url,
+                         "--password-file", str(pw[role])]) == 0
         assert main(["fleet", "add-pc", "viewer", "--reader", "--url", pg.admin_url,
                      "--password-file", str(pw["viewer"])]) == 0
         hour0 = (math.floor(time.time() / 3600) - 4) * 3600.0

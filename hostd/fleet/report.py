@@ -48,7 +48,8 @@ QUERIES = {
     "quality_by_texture": _dist_sql("name"),
     "quality_by_display": _dist_sql("pc_id"),
     "plays_by_display": (
-        "SELECT pc_id, date_trunc(%(bucket)s, ended_at - make_interval(secs => pc_clock_offset_s)) AS bucket, "
+        "SELECT pc_id, date_trunc(%(bucket)s, ended_at - make_interval(secs => pc_clock_offset_s)) "
+        "AS bucket, "
         "count(*) AS plays, sum(device_s) AS device_s, sum(played_s) AS played_s, "
         "sum(played_fraction * device_s) / NULLIF(sum(CASE WHEN played_fraction IS NULL THEN 0 ELSE device_s "
         "END), 0) AS played_fraction, sum(underruns) AS underruns FROM fleet.plays "
@@ -69,7 +70,8 @@ QUERIES = {
                 f"/ 3600 AS waiting_hours FROM ({_LATEST_HEALTH}) l "
                 f"ORDER BY waiting_rows DESC NULLS LAST, pc_id"),
 }
-TITLES = {"quality_by_texture": "Quality (Iobj) per texture", "quality_by_display": "Quality (Iobj) per display",
+TITLES = {"quality_by_texture": "Quality (Iobj) per texture",
+          "quality_by_display": "Quality (Iobj) per display",
           "plays_by_display": "Played fraction and underruns per display over time",
           "silent": "Silent displays", "firmware": "Firmware versions in the fleet",
           "waiting": "Rows waiting on each PC (its latest report)"}
@@ -95,7 +97,8 @@ def connect(url: str, role: str | None, password_file: str | None):
     except psycopg.Error as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise HostdError(f"cannot connect to {url.split('?')[0]} ({first}): check --db and --role, and give "
-                         "the reader's password in --password-file (mode 0600), PGPASSFILE or ~/.pgpass") from None
+                         "the reader's password in --password-file (mode 0600), PGPASSFILE or ~/.pgpass"
+                         ) from None
     reader, pc, su = conn.execute(
         "SELECT pg_has_role(current_user, 'hostd_reader', 'MEMBER'), pg_has_role(current_user, 'hostd_pc', "
         "'MEMBER'), rolsuper FROM pg_roles WHERE rolname = current_user").fetchone()
@@ -160,8 +163,8 @@ def figure(data: dict, path: Path, silent_hours: float, bucket: str = "hour", to
         if stats:
             import inspect
 
-            horizontal = {"orientation": "horizontal"} if "orientation" in inspect.signature(ax.bxp).parameters \
-                else {"vert": False}  # matplotlib < 3.10
+            horizontal = {"orientation": "horizontal"} \
+                if "orientation" in inspect.signature(ax.bxp).parameters else {"vert": False}  # < 3.10
             ax.bxp(stats, showmeans=True, **horizontal)
         ax.set_title(f"{title} (p10-p90 whiskers, busiest {top})", fontsize=10)
         ax.set_xlabel("Iobj")
@@ -207,7 +210,8 @@ def write_html(data: dict, path: Path, generated: dt.datetime, silent_hours: flo
              "<style>body{font-family:sans-serif}table{border-collapse:collapse;font-size:12px}"
              "td,th{border:1px solid #ccc;padding:2px 6px}</style></head><body>",
              f"<h1>hostd fleet report</h1><p>Generated {html.escape(_cell(generated))} (UTC); silent: "
-             f"nothing received for more than {silent_hours:g} h.</p><img src='report.png' alt='fleet report'>"]
+             f"nothing received for more than {silent_hours:g} h.</p>",
+             "<img src='report.png' alt='fleet report'>"]
     for name, (cols, rows) in data.items():
         parts.append(f"<h2>{html.escape(TITLES[name])}</h2><p><a href='{name}.csv'>{name}.csv</a>, "
                      f"{len(rows)} rows{f' (the first {limit} below)' if len(rows) > limit else ''}</p>")
