@@ -119,3 +119,6 @@ def add_parser(sub) -> None:
     from hostd.fleet import report
 
     report.add_parser(fsub)
+    from hostd.fleet import simulate
+
+    simulate.add_parser(fsub)

@@ -1,0 +1,298 @@
+"""`hostd fleet simulate`: the central store's scale, measured: many display PCs' shippers against
+one PostgreSQL (a throwaway server, localpg, with fsync on as a real centre runs), without daemons.
+
+Each simulated PC writes rows at `rows_per_pc_day` (a Poisson process: half stream rows, half
+plays, with its own textures, Iobj and underruns) and looks at its log every `interval_s`, at its
+own phase, as the shipper does; a look that finds rows ships them through the shipper's own code
+(Shipper.ship: the one statement, the local marks after the central commit), as that PC's role
+(SET ROLE on one of `workers` pooled connections, as a pooler in front of the centre would do:
+row-level security holds each row to its PC). A health summary every `health_interval_s`.
+
+Measured over the run (after a warm-up): the rows per second committed centrally, the delay from
+each row's local commit to the return of its central commit (p50, p99, max), and the CPU time of
+every PostgreSQL process (utime + stime from /proc, the postmaster's reaped children included)
+per 10^3 rows. `check` holds the goals of hostd/bench/guards.py (FLEET_ROWS_PER_S,
+FLEET_DELAY_P99_S). The store is left for `hostd fleet report` with `--keep DIR`.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import os
+import queue
+import random
+import threading
+import time
+import uuid
+from pathlib import Path
+
+from hostd.errors import HostdError
+
+FIRMWARE = ("0.5.2", "0.5.3", "0.6.0")
+TEXTURES = tuple(f"{m}{k}" for m in ("wood", "cork", "felt", "denim", "sandpaper", "tile")
+                 for k in range(1, 9))
+
+
+def _pg_cpu_s(postmaster: int) -> float:
+    """CPU seconds of the postmaster (with its reaped children) and every live child, from /proc."""
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        pid, ppid = int(d), int(fields[1])
+        if pid == postmaster:
+            total += sum(int(x) for x in fields[11:15])  # utime stime cutime cstime
+        elif ppid == postmaster:
+            total += int(fields[11]) + int(fields[12])
+    return total / tick
+
+
+def _roles(conn, n: int, owner_role: str) -> list[str]:
+    """n display PCs' roles (members of hostd_pc) that the simulator's role may SET ROLE to."""
+    conn.execute(
+        f"DO $$ BEGIN FOR i IN 0..{n - 1} LOOP EXECUTE format('CREATE ROLE %I NOLOGIN IN ROLE hostd_pc "
+        f"ROLE %I', 'pc_sim_' || lpad(i::text, 5, '0'), {_lit(owner_role)}); END LOOP; END $$")
+    return [f"pc_sim_{i:05d}" for i in range(n)]
+
+
+def _lit(s: str) -> str:
+    return "'" + s.replace("'", "''") + "'"
+
+
+class _PC:
+    __slots__ = (
+        "firmware",
+        "last_health",
+        "last_look",
+        "next_id",
+        "quality_mean",
+        "rng",
+        "role",
+        "underrun_rate",
+    )
+
+    def __init__(self, role: str, seed: int, t0: float):
+        self.role = role
+        self.rng = random.Random(seed)
+        self.next_id = 1
+        self.quality_mean = self.rng.uniform(0.03, 0.12)
+        self.firmware = self.rng.choices(FIRMWARE, (0.15, 0.6, 0.25))[0]
+        self.underrun_rate = self.rng.choice((0.0, 0.0, 0.05, 0.3))
+        self.last_look = t0
+        self.last_health = -math.inf
+
+
+def _rows(pc: _PC, t_from: float, t_to: float, rows_per_s: float) -> tuple[list[dict], list[dict]]:
+    """The rows this PC committed locally in (t_from, t_to]: a Poisson count, uniform times."""
+    from hostd.fleet.bench import synthetic_row
+
+    lam = rows_per_s * (t_to - t_from)
+    # Poisson by inversion (lam is small: a few rows a look at most)
+    k, p, u = 0, math.exp(-lam), pc.rng.random()
+    s = p
+    while u > s and k < 10_000:
+        k += 1
+        p *= lam / k
+        s += p
+    streams, plays = [], []
+    for t in sorted(pc.rng.uniform(t_from, t_to) for _ in range(k)):
+        i = pc.next_id
+        pc.next_id += 1
+        name = pc.rng.choice(TEXTURES)
+        if pc.rng.random() < 0.5:
+            r = synthetic_row(i, t)
+            r.update(name=name, iobj=max(0.0, pc.rng.gauss(pc.quality_mean, 0.02)), uuid=str(uuid.uuid4()),
+                     id=i)
+            streams.append(r)
+        else:
+            dev = pc.rng.uniform(5, 60)
+            und = sum(pc.rng.random() < pc.underrun_rate for _ in range(3))
+            plays.append({"id": i, "uuid": str(uuid.uuid4()), "name": name, "sha256": f"{i:064x}",
+                          "started_at": t - dev, "ended_at": t, "device_s": dev,
+                          "played_s": dev * (1 - 0.01 * und), "played_fraction": 1 - 0.01 * und,
+                          "underruns": und})
+    return streams, plays
+
+
+def run(pcs: int = 10_000, rows_per_pc_day: float = 10_000.0, interval_s: float = 1.0, seconds: float = 60.0,
+        warmup_s: float = 10.0, workers: int = 4, health_interval_s: float = 300.0, silent_pcs: int = 0,
+        keep: Path | None = None, progress=None) -> dict:
+    import psycopg
+
+    from hostd.fleet import schema
+    from hostd.fleet.config import FleetCfg
+    from hostd.fleet.localpg import LocalPG
+    from hostd.fleet.shipper import Shipper
+
+    pg = LocalPG()
+    stop = threading.Event()
+    try:
+        with psycopg.connect(pg.admin_url, autocommit=True) as c:
+            # a real centre's durability: every commit flushed (localpg turns it off for tests)
+            c.execute("ALTER SYSTEM SET fsync = on")
+            c.execute("ALTER SYSTEM SET full_page_writes = on")
+            c.execute("ALTER SYSTEM SET synchronous_commit = on")
+            c.execute("SELECT pg_reload_conf()")
+            schema.migrate(c)
+            c.execute("CREATE ROLE fleet_sim LOGIN PASSWORD 'sim' NOINHERIT")
+            roles = _roles(c, pcs + silent_pcs, "fleet_sim")
+            c.execute("CREATE ROLE viewer LOGIN PASSWORD 'viewer' IN ROLE hostd_reader")
+        postmaster = pg.pid()
+        t0 = time.time()
+        sim = [_PC(r, k, t0) for k, r in enumerate(roles[:pcs])]
+        rows_per_s = rows_per_pc_day / 86400.0
+        looks = [(t0 + pc.rng.uniform(0, interval_s), k) for k, pc in enumerate(sim)]
+        heapq.heapify(looks)
+        work: queue.Queue = queue.Queue(maxsize=20_000)
+        lock = threading.Lock()
+        delays: list[float] = []
+        counted = [0]
+        measure_from = t0 + warmup_s
+        t_end = measure_from + seconds
+        errors: list[str] = []
+        state_dir = Path(pg.dir) / "sim-state"
+        state_dir.mkdir()
+
+        def worker(w: int):
+            s = Shipper(FleetCfg(url=pg.url(), role="fleet_sim", quality_db="/nonexistent",
+                                 state=str(state_dir / f"w{w}.sqlite"), socket=""))
+            conn = psycopg.connect(pg.url(), user="fleet_sim", password="sim", autocommit=True,
+                                   options="-c TimeZone=UTC")
+            s.conn = conn
+            try:
+                while True:
+                    item = work.get()
+                    if item is None:
+                        return
+                    pc, batch, t_local = item
+                    conn.execute(f"SET ROLE {pc.role}")
+                    s.cfg.role = pc.role
+                    s.clock = time.time
+                    n = s.ship(batch)
+                    done = time.time()
+                    if done >= measure_from and done < t_end:
+                        with lock:
+                            delays.extend(done - t for t in t_local)
+                            counted[0] += n
+            except Exception as e:  # reported, and the run stops
+                errors.append(f"{type(e).__name__}: {e}")
+                stop.set()
+            finally:
+                conn.close()
+                s.state.close()
+
+        threads = [threading.Thread(target=worker, args=(w,), daemon=True) for w in range(workers)]
+        for t in threads:
+            t.start()
+        cpu0 = cpu1 = None
+        while not stop.is_set():
+            t_look, k = looks[0]
+            now = time.time()
+            if t_look > now:
+                time.sleep(min(t_look - now, 0.01))
+                continue
+            if cpu0 is None and now >= measure_from:
+                cpu0 = (_pg_cpu_s(postmaster), now)
+            if now >= t_end:
+                cpu1 = (_pg_cpu_s(postmaster), now)
+                break
+            heapq.heapreplace(looks, (t_look + interval_s, k))
+            pc = sim[k]
+            streams, plays = _rows(pc, pc.last_look, t_look, rows_per_s)
+            pc.last_look = t_look
+            health = []
+            if t_look - pc.last_health >= health_interval_s:
+                pc.last_health = t_look
+                health.append({"id": 0, "uuid": str(uuid.uuid4()), "taken_at": t_look, "serial": f"SN{k:05d}",
+                               "firmware": pc.firmware, "transport": "hid", "device_state": "playing",
+                               "device_underruns": pc.next_id // 50, "played_fraction": 0.99, "stalls": 0,
+                               "recoveries": 0, "waiting_rows": pc.rng.choice((0, 0, 0, 2, 40)),
+                               "waiting_since": t_look - pc.rng.uniform(0, 7200)})
+            if streams or plays or health:
+                work.put((pc, {"streams": streams, "plays": plays, "health": health},
+                          [r["received_at"] for r in streams] + [p["ended_at"] for p in plays]))
+        for _ in threads:
+            work.put(None)
+        for t in threads:
+            t.join(60)
+        if errors:
+            raise HostdError(f"the simulation stopped: {errors[0]}")
+        if cpu0 is None or cpu1 is None:
+            raise HostdError("the simulation ended before its measured span")
+        wall = cpu1[1] - cpu0[1]
+        delays.sort()
+        n = len(delays)
+        with psycopg.connect(pg.admin_url) as c:
+            central = c.execute("SELECT (SELECT count(*) FROM fleet.quality) + (SELECT count(*) FROM "
+                                "fleet.plays)").fetchone()[0]
+        out = {"pcs": pcs, "rows_per_pc_day": rows_per_pc_day, "interval_s": interval_s, "workers": workers,
+               "seconds": round(wall, 1), "offered_rows_per_s": round(pcs * rows_per_s, 1),
+               "rows_per_s": round(counted[0] / wall, 1), "rows_measured": counted[0],
+               "delay_p50_s": round(delays[n // 2], 4) if n else None,
+               "delay_p99_s": round(delays[min(n - 1, math.ceil(0.99 * n) - 1)], 4) if n else None,
+               "delay_max_s": round(delays[-1], 4) if n else None,
+               "pg_cpu_s_per_1000_rows": round((cpu1[0] - cpu0[0]) / max(counted[0], 1) * 1000, 4),
+               "pg_cpu_share": round((cpu1[0] - cpu0[0]) / wall, 3), "rows_central": central,
+               "backlog_at_end": work.qsize()}
+        if keep is not None:
+            keep.mkdir(parents=True, exist_ok=True)
+            _report(pg, keep)
+        return out
+    finally:
+        stop.set()
+        pg.close()
+
+
+def _report(pg, out: Path) -> None:
+    """`hostd fleet report` of the simulated store, as its reader (viewer)."""
+    import psycopg
+
+    from hostd.fleet import report
+
+    with psycopg.connect(pg.url(), user="viewer", password="viewer", autocommit=True,
+                         options="-c TimeZone=UTC") as conn:
+        report.write(conn, out, silent_hours=1.0, bucket="hour")
+
+
+def check(row: dict, level: str = "goal") -> int:
+    from hostd.bench.guards import FLEET_DELAY_P99_S, FLEET_ROWS_PER_S
+    from hostd.bench.guards import check as guard_check
+
+    return guard_check([row], [FLEET_ROWS_PER_S, FLEET_DELAY_P99_S], level, "fleet simulate")
+
+
+def cmd_simulate(args) -> int:
+    import json
+
+    if args.pcs < 1 or args.seconds <= 0 or args.interval_s <= 0 or args.workers < 1:
+        raise HostdError("--pcs, --workers must be >= 1 and --seconds, --interval-s > 0")
+    row = run(pcs=args.pcs, rows_per_pc_day=args.rows_per_pc_day, interval_s=args.interval_s,
+              seconds=args.seconds, warmup_s=args.warmup_s, workers=args.workers,
+              silent_pcs=args.silent_pcs, keep=Path(args.report) if args.report else None)
+    print(json.dumps(row))
+    return check(row) if args.check else 0
+
+
+def add_parser(fsub) -> None:
+    s = fsub.add_parser("simulate", help="measure the central store's scale: many PCs' shippers against a "
+                        "throwaway local PostgreSQL (no daemons)")
+    s.add_argument("--pcs", type=int, default=10_000, help="display PCs simulated (default 10000)")
+    s.add_argument("--rows-per-pc-day", type=float, default=10_000.0,
+                   help="quality rows and plays each PC writes a day (default 10000)")
+    s.add_argument("--interval-s", type=float, default=1.0,
+                   help="how often each PC's shipper looks at its log (fleet.interval_s; default 1)")
+    s.add_argument("--seconds", type=float, default=60.0, help="measured span (default 60)")
+    s.add_argument("--warmup-s", type=float, default=10.0, help="not measured, first (default 10)")
+    s.add_argument("--workers", type=int, default=4, help="pooled connections to the centre (default 4)")
+    s.add_argument("--silent-pcs", type=int, default=0, help="PCs with a role that never ship")
+    s.add_argument("--report", default=None, metavar="DIR", help="write `hostd fleet report` of the run here")
+    s.add_argument("--check", action="store_true", help="exit non-zero when a goal is missed "
+                   "(rows/s and the p99 delay, hostd/bench/guards.py)")
+    s.set_defaults(func=cmd_simulate)
