@@ -121,132 +121,154 @@ def _rows(pc: _PC, t_from: float, t_to: float, rows_per_s: float) -> tuple[list[
     return streams, plays
 
 
+def _client(url: str, state_dir: str, first: int, n: int, t0: float, measure_from: float, t_end: float,
+            rows_per_s: float, interval_s: float, health_interval_s: float, workers: int) -> dict:
+    """One client process: PCs first..first+n-1, their looks in time order, shipped by `workers`
+    threads (each a Shipper on its own pooled connection). Returns the rows committed in the
+    measured span and each one's delay."""
+    import psycopg
+
+    from hostd.fleet.config import FleetCfg
+    from hostd.fleet.shipper import Shipper
+
+    sim = [_PC(f"pc_sim_{k:05d}", k, t0) for k in range(first, first + n)]
+    rng = random.Random(first)
+    looks = [(t0 + rng.uniform(0, interval_s), k) for k in range(n)]
+    heapq.heapify(looks)
+    for pc in sim:  # each PC's health summaries at its own phase, not all at once
+        pc.last_health = t0 - rng.uniform(0, health_interval_s)
+    work: queue.Queue = queue.Queue(maxsize=50_000)
+    lock = threading.Lock()
+    delays: list[float] = []
+    counted = [0]
+    errors: list[str] = []
+    stop = threading.Event()
+
+    def worker(w: int):
+        s = Shipper(FleetCfg(url=url, role="fleet_sim", quality_db="/nonexistent",
+                             state=f"{state_dir}/c{first}w{w}.sqlite", socket=""))
+        conn = psycopg.connect(url, user="fleet_sim", password="sim", autocommit=True,
+                               options="-c TimeZone=UTC")
+        s.conn = conn
+        try:
+            while True:
+                item = work.get()
+                if item is None:
+                    return
+                pc, batch, t_local = item
+                conn.execute(f"SET ROLE {pc.role}")
+                s.cfg.role = pc.role
+                n_new = s.ship(batch)
+                done = time.time()
+                if measure_from <= done < t_end:
+                    with lock:
+                        delays.extend(done - t for t in t_local)
+                        counted[0] += n_new
+        except Exception as e:  # reported, and the run stops
+            errors.append(f"{type(e).__name__}: {e}")
+            stop.set()
+        finally:
+            conn.close()
+            s.state.close()
+
+    threads = [threading.Thread(target=worker, args=(w,), daemon=True) for w in range(workers)]
+    for t in threads:
+        t.start()
+    while not stop.is_set():
+        t_look, k = looks[0]
+        now = time.time()
+        if now >= t_end:
+            break
+        if t_look > now:
+            time.sleep(min(t_look - now, 0.01))
+            continue
+        heapq.heapreplace(looks, (t_look + interval_s, k))
+        pc = sim[k]
+        streams, plays = _rows(pc, pc.last_look, t_look, rows_per_s)
+        pc.last_look = t_look
+        health = []
+        if t_look - pc.last_health >= health_interval_s:
+            pc.last_health = t_look
+            health.append({"id": 0, "uuid": str(uuid.uuid4()), "taken_at": t_look,
+                           "serial": f"SN{first + k:05d}",
+                           "firmware": pc.firmware, "transport": "hid", "device_state": "playing",
+                           "device_underruns": pc.next_id // 50, "played_fraction": 0.99, "stalls": 0,
+                           "recoveries": 0, "waiting_rows": pc.rng.choice((0, 0, 0, 2, 40)),
+                           "waiting_since": t_look - pc.rng.uniform(0, 7200)})
+        if streams or plays or health:
+            work.put((pc, {"streams": streams, "plays": plays, "health": health},
+                      [r["received_at"] for r in streams] + [p["ended_at"] for p in plays]))
+    backlog = work.qsize()
+    for _ in threads:
+        work.put(None)
+    for t in threads:
+        t.join(120)
+    return {"counted": counted[0], "delays": delays, "errors": errors, "backlog": backlog}
+
+
 def run(pcs: int = 10_000, rows_per_pc_day: float = 10_000.0, interval_s: float = 1.0, seconds: float = 60.0,
-        warmup_s: float = 10.0, workers: int = 4, health_interval_s: float = 300.0, silent_pcs: int = 0,
-        keep: Path | None = None, progress=None) -> dict:
+        warmup_s: float = 10.0, workers: int = 4, procs: int = 2, health_interval_s: float = 300.0,
+        silent_pcs: int = 0, keep: Path | None = None) -> dict:
+    import multiprocessing
+
     import psycopg
 
     from hostd.fleet import schema
-    from hostd.fleet.config import FleetCfg
     from hostd.fleet.localpg import LocalPG
-    from hostd.fleet.shipper import Shipper
 
     pg = LocalPG()
-    stop = threading.Event()
     try:
         with psycopg.connect(pg.admin_url, autocommit=True) as c:
-            # a real centre's durability: every commit flushed (localpg turns it off for tests)
-            c.execute("ALTER SYSTEM SET fsync = on")
-            c.execute("ALTER SYSTEM SET full_page_writes = on")
-            c.execute("ALTER SYSTEM SET synchronous_commit = on")
-            c.execute("SELECT pg_reload_conf()")
             schema.migrate(c)
             c.execute("CREATE ROLE fleet_sim LOGIN PASSWORD 'sim' NOINHERIT")
-            roles = _roles(c, pcs + silent_pcs, "fleet_sim")
+            _roles(c, pcs + silent_pcs, "fleet_sim")
             c.execute("CREATE ROLE viewer LOGIN PASSWORD 'viewer' IN ROLE hostd_reader")
+            # then a real centre's durability: every commit flushed (localpg turns it off for tests)
+            c.execute("ALTER SYSTEM SET fsync = on")
+            c.execute("ALTER SYSTEM SET full_page_writes = on")
+            c.execute("SELECT pg_reload_conf()")
         postmaster = pg.pid()
-        t0 = time.time()
-        sim = [_PC(r, k, t0) for k, r in enumerate(roles[:pcs])]
-        rows_per_s = rows_per_pc_day / 86400.0
-        looks = [(t0 + pc.rng.uniform(0, interval_s), k) for k, pc in enumerate(sim)]
-        heapq.heapify(looks)
-        work: queue.Queue = queue.Queue(maxsize=20_000)
-        lock = threading.Lock()
-        delays: list[float] = []
-        counted = [0]
-        measure_from = t0 + warmup_s
-        t_end = measure_from + seconds
-        errors: list[str] = []
         state_dir = Path(pg.dir) / "sim-state"
         state_dir.mkdir()
-
-        def worker(w: int):
-            s = Shipper(FleetCfg(url=pg.url(), role="fleet_sim", quality_db="/nonexistent",
-                                 state=str(state_dir / f"w{w}.sqlite"), socket=""))
-            conn = psycopg.connect(pg.url(), user="fleet_sim", password="sim", autocommit=True,
-                                   options="-c TimeZone=UTC")
-            s.conn = conn
-            try:
-                while True:
-                    item = work.get()
-                    if item is None:
-                        return
-                    pc, batch, t_local = item
-                    conn.execute(f"SET ROLE {pc.role}")
-                    s.cfg.role = pc.role
-                    s.clock = time.time
-                    n = s.ship(batch)
-                    done = time.time()
-                    if done >= measure_from and done < t_end:
-                        with lock:
-                            delays.extend(done - t for t in t_local)
-                            counted[0] += n
-            except Exception as e:  # reported, and the run stops
-                errors.append(f"{type(e).__name__}: {e}")
-                stop.set()
-            finally:
-                conn.close()
-                s.state.close()
-
-        threads = [threading.Thread(target=worker, args=(w,), daemon=True) for w in range(workers)]
-        for t in threads:
-            t.start()
-        cpu0 = cpu1 = None
-        while not stop.is_set():
-            t_look, k = looks[0]
-            now = time.time()
-            if t_look > now:
-                time.sleep(min(t_look - now, 0.01))
-                continue
-            if cpu0 is None and now >= measure_from:
-                cpu0 = (_pg_cpu_s(postmaster), now)
-            if now >= t_end:
-                cpu1 = (_pg_cpu_s(postmaster), now)
-                break
-            heapq.heapreplace(looks, (t_look + interval_s, k))
-            pc = sim[k]
-            streams, plays = _rows(pc, pc.last_look, t_look, rows_per_s)
-            pc.last_look = t_look
-            health = []
-            if t_look - pc.last_health >= health_interval_s:
-                pc.last_health = t_look
-                health.append({"id": 0, "uuid": str(uuid.uuid4()), "taken_at": t_look, "serial": f"SN{k:05d}",
-                               "firmware": pc.firmware, "transport": "hid", "device_state": "playing",
-                               "device_underruns": pc.next_id // 50, "played_fraction": 0.99, "stalls": 0,
-                               "recoveries": 0, "waiting_rows": pc.rng.choice((0, 0, 0, 2, 40)),
-                               "waiting_since": t_look - pc.rng.uniform(0, 7200)})
-            if streams or plays or health:
-                work.put((pc, {"streams": streams, "plays": plays, "health": health},
-                          [r["received_at"] for r in streams] + [p["ended_at"] for p in plays]))
-        for _ in threads:
-            work.put(None)
-        for t in threads:
-            t.join(60)
+        t0 = time.time() + 1.0  # the clients started
+        measure_from, t_end = t0 + warmup_s, t0 + warmup_s + seconds
+        share = [pcs // procs + (i < pcs % procs) for i in range(procs)]
+        firsts = [sum(share[:i]) for i in range(procs)]
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(procs) as pool:
+            pending = [pool.apply_async(_client, (pg.url(), str(state_dir), f, n, t0, measure_from, t_end,
+                                                  rows_per_pc_day / 86400.0, interval_s, health_interval_s,
+                                                  workers)) for f, n in zip(firsts, share, strict=True)]
+            time.sleep(max(0.0, measure_from - time.time()))
+            cpu0 = (_pg_cpu_s(postmaster), time.time())
+            time.sleep(max(0.0, t_end - time.time()))
+            cpu1 = (_pg_cpu_s(postmaster), time.time())
+            results = [p.get(timeout=300) for p in pending]
+        errors = [e for r in results for e in r["errors"]]
         if errors:
             raise HostdError(f"the simulation stopped: {errors[0]}")
-        if cpu0 is None or cpu1 is None:
-            raise HostdError("the simulation ended before its measured span")
         wall = cpu1[1] - cpu0[1]
-        delays.sort()
+        delays = sorted(d for r in results for d in r["delays"])
+        counted = sum(r["counted"] for r in results)
         n = len(delays)
         with psycopg.connect(pg.admin_url) as c:
             central = c.execute("SELECT (SELECT count(*) FROM fleet.quality) + (SELECT count(*) FROM "
                                 "fleet.plays)").fetchone()[0]
-        out = {"pcs": pcs, "rows_per_pc_day": rows_per_pc_day, "interval_s": interval_s, "workers": workers,
-               "seconds": round(wall, 1), "offered_rows_per_s": round(pcs * rows_per_s, 1),
-               "rows_per_s": round(counted[0] / wall, 1), "rows_measured": counted[0],
+        out = {"pcs": pcs, "rows_per_pc_day": rows_per_pc_day, "interval_s": interval_s, "procs": procs,
+               "workers": workers, "seconds": round(wall, 1),
+               "offered_rows_per_s": round(pcs * rows_per_pc_day / 86400.0, 1),
+               "rows_per_s": round(counted / wall, 1), "rows_measured": counted,
                "delay_p50_s": round(delays[n // 2], 4) if n else None,
                "delay_p99_s": round(delays[min(n - 1, math.ceil(0.99 * n) - 1)], 4) if n else None,
                "delay_max_s": round(delays[-1], 4) if n else None,
-               "pg_cpu_s_per_1000_rows": round((cpu1[0] - cpu0[0]) / max(counted[0], 1) * 1000, 4),
+               "pg_cpu_s_per_1000_rows": round((cpu1[0] - cpu0[0]) / max(counted, 1) * 1000, 4),
                "pg_cpu_share": round((cpu1[0] - cpu0[0]) / wall, 3), "rows_central": central,
-               "backlog_at_end": work.qsize()}
+               "backlog_at_end": sum(r["backlog"] for r in results)}
         if keep is not None:
             keep.mkdir(parents=True, exist_ok=True)
             _report(pg, keep)
         return out
     finally:
-        stop.set()
         pg.close()
 
 
@@ -274,7 +296,7 @@ def cmd_simulate(args) -> int:
     if args.pcs < 1 or args.seconds <= 0 or args.interval_s <= 0 or args.workers < 1:
         raise HostdError("--pcs, --workers must be >= 1 and --seconds, --interval-s > 0")
     row = run(pcs=args.pcs, rows_per_pc_day=args.rows_per_pc_day, interval_s=args.interval_s,
-              seconds=args.seconds, warmup_s=args.warmup_s, workers=args.workers,
+              seconds=args.seconds, warmup_s=args.warmup_s, workers=args.workers, procs=args.procs,
               silent_pcs=args.silent_pcs, keep=Path(args.report) if args.report else None)
     print(json.dumps(row))
     return check(row) if args.check else 0
@@ -291,6 +313,8 @@ def add_parser(fsub) -> None:
     s.add_argument("--seconds", type=float, default=60.0, help="measured span (default 60)")
     s.add_argument("--warmup-s", type=float, default=10.0, help="not measured, first (default 10)")
     s.add_argument("--workers", type=int, default=4, help="pooled connections to the centre (default 4)")
+    s.add_argument("--procs", type=int, default=2, help="client processes, each its share of the PCs "
+                   "(default 2)")
     s.add_argument("--silent-pcs", type=int, default=0, help="PCs with a role that never ship")
     s.add_argument("--report", default=None, metavar="DIR", help="write `hostd fleet report` of the run here")
     s.add_argument("--check", action="store_true", help="exit non-zero when a goal is missed "
