@@ -194,3 +194,33 @@ def test_report_refuses_a_display_pcs_role_and_a_wrong_password(fleet, tmp_path,
                  str(fleet.pw["pc_a"]), "-o", str(tmp_path / "r")]) != 0
     err = capsys.readouterr().err
     assert "cannot connect" in err and "password" in err and len(err.strip().splitlines()) == 1
+
+
+def test_fleet_simulate_ships_every_row_once_and_measures_the_centre(tmp_path, capsys):
+    """A small `hostd fleet simulate` (the shipper's own ship() for many PCs, one PostgreSQL):
+    every row generated is central once at the end, the rows/s measured is the offered rate, each
+    delay within the look interval and a commit, PostgreSQL's CPU counted; --check holds the
+    goals (1,000 rows/s is not met by 60 PCs at 1 row/s: exit 1, said on stderr); its report."""
+    import json
+
+    from hostd.cli import main
+
+    if os.environ.get("CI") != "true":
+        from hostd.fleet.localpg import bindir
+
+        if bindir() is None:
+            pytest.skip("PostgreSQL's server is not installed")
+    rc = main(["fleet", "simulate", "--pcs", "60", "--rows-per-pc-day", "86400", "--interval-s", "0.5",
+               "--seconds", "4", "--warmup-s", "1", "--workers", "2", "--procs", "1", "--silent-pcs", "2",
+               "--report", str(tmp_path / "rep"), "--check"])
+    out, err = capsys.readouterr()
+    row = json.loads(out.strip().splitlines()[-1])
+    assert rc == 1 and "FAIL fleet simulate rows_per_s" in err and "ok   fleet simulate delay_p99_s" in err
+    assert row["rows_central"] == row["rows_generated"] > 0  # every row once (uuid keyed, ledger)
+    assert 0.5 * 60 <= row["rows_per_s"] <= 2 * 60  # Poisson at 60 rows/s offered, 4 s
+    # a row waits for its PC's next look (0.5 s) and one commit: the median well within a second more
+    assert 0 < row["delay_p50_s"] <= row["delay_p99_s"] <= row["delay_max_s"] and row["delay_p50_s"] < 1.5
+    assert row["pg_cpu_s_per_1000_rows"] > 0 and row["backlog_at_end"] == 0
+    silent = _read(tmp_path / "rep" / "silent.csv")
+    assert {"pc_sim_00060", "pc_sim_00061"} <= {r["pc_id"] for r in silent}
+    assert sum(int(r["rows"]) for r in _read(tmp_path / "rep" / "quality_by_display.csv")) > 0

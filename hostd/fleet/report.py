@@ -185,7 +185,12 @@ def figure(data: dict, path: Path, silent_hours: float, bucket: str = "hour", to
     axes[1][0].set_title(f"Played fraction per {bucket} (the {len(worst)} displays with most "
                          "underruns)", fontsize=10)
     axes[1][1].set_title("Underruns per bucket (same displays)", fontsize=10)
+    import matplotlib.dates as mdates
+
     for ax in axes[1]:
+        loc = mdates.AutoDateLocator()
+        ax.xaxis.set_major_locator(loc)
+        ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(loc))
         if worst:
             ax.legend(fontsize=6, ncol=2)
         ax.tick_params(axis="x", labelsize=7, rotation=20)
@@ -263,5 +268,5 @@ def add_parser(fsub) -> None:
                    help="a display with nothing received for longer is silent (default 24)")
     r.add_argument("--since-days", type=float, default=30.0, help="the window of quality rows and plays "
                    "(by the server's receive time; default 30)")
-    r.add_argument("--bucket", choices=("hour", "day"), default="hour", help="plays' time bucket")
+    r.add_argument("--bucket", choices=("minute", "hour", "day"), default="hour", help="plays' time bucket")
     r.set_defaults(func=cmd_report)

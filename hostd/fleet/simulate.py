@@ -174,6 +174,7 @@ def _client(url: str, state_dir: str, first: int, n: int, t0: float, measure_fro
     threads = [threading.Thread(target=worker, args=(w,), daemon=True) for w in range(workers)]
     for t in threads:
         t.start()
+    generated = 0
     while not stop.is_set():
         t_look, k = looks[0]
         now = time.time()
@@ -195,6 +196,7 @@ def _client(url: str, state_dir: str, first: int, n: int, t0: float, measure_fro
                            "device_underruns": pc.next_id // 50, "played_fraction": 0.99, "stalls": 0,
                            "recoveries": 0, "waiting_rows": pc.rng.choice((0, 0, 0, 2, 40)),
                            "waiting_since": t_look - pc.rng.uniform(0, 7200)})
+        generated += len(streams) + len(plays)
         if streams or plays or health:
             work.put((pc, {"streams": streams, "plays": plays, "health": health},
                       [r["received_at"] for r in streams] + [p["ended_at"] for p in plays]))
@@ -203,11 +205,12 @@ def _client(url: str, state_dir: str, first: int, n: int, t0: float, measure_fro
         work.put(None)
     for t in threads:
         t.join(120)
-    return {"counted": counted[0], "delays": delays, "errors": errors, "backlog": backlog}
+    return {"counted": counted[0], "delays": delays, "errors": errors, "backlog": backlog,
+            "generated": generated}
 
 
 def run(pcs: int = 10_000, rows_per_pc_day: float = 10_000.0, interval_s: float = 1.0, seconds: float = 60.0,
-        warmup_s: float = 10.0, workers: int = 4, procs: int = 2, health_interval_s: float = 300.0,
+        warmup_s: float = 10.0, workers: int = 12, procs: int = 2, health_interval_s: float = 300.0,
         silent_pcs: int = 0, keep: Path | None = None) -> dict:
     import multiprocessing
 
@@ -263,6 +266,7 @@ def run(pcs: int = 10_000, rows_per_pc_day: float = 10_000.0, interval_s: float 
                "delay_max_s": round(delays[-1], 4) if n else None,
                "pg_cpu_s_per_1000_rows": round((cpu1[0] - cpu0[0]) / max(counted, 1) * 1000, 4),
                "pg_cpu_share": round((cpu1[0] - cpu0[0]) / wall, 3), "rows_central": central,
+               "rows_generated": sum(r["generated"] for r in results),
                "backlog_at_end": sum(r["backlog"] for r in results)}
         if keep is not None:
             keep.mkdir(parents=True, exist_ok=True)
@@ -280,7 +284,7 @@ def _report(pg, out: Path) -> None:
 
     with psycopg.connect(pg.url(), user="viewer", password="viewer", autocommit=True,
                          options="-c TimeZone=UTC") as conn:
-        report.write(conn, out, silent_hours=1.0, bucket="hour")
+        report.write(conn, out, silent_hours=1.0, bucket="minute")
 
 
 def check(row: dict, level: str = "goal") -> int:
@@ -312,7 +316,8 @@ def add_parser(fsub) -> None:
                    help="how often each PC's shipper looks at its log (fleet.interval_s; default 1)")
     s.add_argument("--seconds", type=float, default=60.0, help="measured span (default 60)")
     s.add_argument("--warmup-s", type=float, default=10.0, help="not measured, first (default 10)")
-    s.add_argument("--workers", type=int, default=4, help="pooled connections to the centre (default 4)")
+    s.add_argument("--workers", type=int, default=12, help="pooled connections to the centre per client "
+                   "process (default 12)")
     s.add_argument("--procs", type=int, default=2, help="client processes, each its share of the PCs "
                    "(default 2)")
     s.add_argument("--silent-pcs", type=int, default=0, help="PCs with a role that never ship")
