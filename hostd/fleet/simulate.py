@@ -257,6 +257,11 @@ def run(pcs: int = 10_000, rows_per_pc_day: float = 10_000.0, interval_s: float 
         with psycopg.connect(pg.admin_url) as c:
             central = c.execute("SELECT (SELECT count(*) FROM fleet.quality) + (SELECT count(*) FROM "
                                 "fleet.plays)").fetchone()[0]
+            # the store's bytes per row: tables, indexes and the ledger, over quality rows and plays
+            stored = c.execute("SELECT sum(pg_total_relation_size(c.oid)) FROM pg_class c JOIN "
+                               "pg_namespace n ON n.oid = c.relnamespace WHERE n.nspname = 'fleet' "
+                               "AND c.relkind = 'r'").fetchone()[0]
+            ledger = c.execute("SELECT pg_relation_size('fleet.row_keys_pkey')").fetchone()[0]
         out = {"pcs": pcs, "rows_per_pc_day": rows_per_pc_day, "interval_s": interval_s, "procs": procs,
                "workers": workers, "seconds": round(wall, 1),
                "offered_rows_per_s": round(pcs * rows_per_pc_day / 86400.0, 1),
@@ -267,6 +272,8 @@ def run(pcs: int = 10_000, rows_per_pc_day: float = 10_000.0, interval_s: float 
                "pg_cpu_s_per_1000_rows": round((cpu1[0] - cpu0[0]) / max(counted, 1) * 1000, 4),
                "pg_cpu_share": round((cpu1[0] - cpu0[0]) / wall, 3), "rows_central": central,
                "rows_generated": sum(r["generated"] for r in results),
+               "bytes_per_row": round(stored / max(central, 1)),
+               "ledger_index_bytes_per_row": round(ledger / max(central, 1)),
                "backlog_at_end": sum(r["backlog"] for r in results)}
         if keep is not None:
             keep.mkdir(parents=True, exist_ok=True)
