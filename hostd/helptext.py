@@ -46,6 +46,8 @@ hostd run [--config F]                                          # the daemon (sy
 hostd send FILE.vtx [--name N]; hostd list; hostd select NAME   # client of the control socket
 hostd status [--json]; hostd stop [--daemon]                    # health from the device's own counters
 hostd quality [--since 1h] [--csv|--json]                       # the quality log: Iobj and what was delivered
+hostd fleet ship --config /etc/hostd/fleet.toml [--once]        # this PC's quality log to the central store
+hostd fleet migrate --url URL; hostd fleet add-pc ROLE --url URL  # the central schema; a display PC's role
 hostd sim SCENE [--json] [--plot DIR]                           # delivered quality per effect (scenes)
 hostd doctor [--config F] [--json]                              # device, permissions, real time, config, db
 hostd install-service [--prefix P] [--dry-run] [--enable]       # unit, udev rule, sysusers, tmpfiles, config,

@@ -53,6 +53,12 @@ def _certs(d: Path) -> tuple[Path, Path, Path, Path]:
     (d / "ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
     ssl("x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
         "-days", "2", "-extfile", "ext", "-out", "server.pem")
+    for cn in ("pc_cert", "pc_a"):  # client certificates (CN = the role) signed by the same CA
+        ssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={cn}", "-keyout", f"{cn}.key",
+            "-out", f"{cn}.csr")
+        ssl("x509", "-req", "-in", f"{cn}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+            "-days", "2", "-out", f"{cn}.pem")
+        os.chmod(d / f"{cn}.key", 0o600)
     return d / "ca.pem", d / "other.pem", d / "server.pem", d / "server.key"
 
 
@@ -64,8 +70,8 @@ def pg(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("pgcerts")
     ca, other, cert, key = _certs(d)
-    server = _server_or_fail(ssl=(str(cert), str(key)))
-    server.ca, server.other_ca = ca, other
+    server = _server_or_fail(ssl=(str(cert), str(key)), client_ca=str(ca), cert_roles=("pc_cert",))
+    server.ca, server.other_ca, server.certs = ca, other, d
     server.pw = {}
     try:
         assert main(["fleet", "migrate", "--url", server.admin_url]) == 0
@@ -76,6 +82,7 @@ def pg(tmp_path_factory):
             server.pw[role] = f
             args = ["fleet", "add-pc", role, "--url", server.admin_url, "--password-file", str(f)]
             assert main([*args, "--reader"] if role == "viewer" else args) == 0
+        assert main(["fleet", "add-pc", "pc_cert", "--url", server.admin_url]) == 0  # no password
         yield server
     finally:
         server.close()
@@ -117,7 +124,7 @@ def _write(db: Path, start: int, n: int, t0: float | None = None) -> None:
 
 def _cfg(tmp: Path, pg, role: str, **over) -> Path:
     kv = {"url": pg.url(sslmode="verify-full", sslrootcert=pg.ca).replace("127.0.0.1", "localhost"),
-          "role": role, "password_file": str(pg.pw[role]), "quality_db": str(tmp / "q.sqlite"),
+          "role": role, "password_file": str(pg.pw.get(role, "")), "quality_db": str(tmp / "q.sqlite"),
           "state": str(tmp / "outbox.sqlite"), "socket": "", "interval_s": 0.05, "backoff_min_s": 0.05,
           "backoff_max_s": 0.3, "connect_timeout_s": 2.0, "batch_rows": 7, **over}
     p = tmp / f"fleet-{role}.toml"
@@ -476,3 +483,38 @@ def test_doctor_says_how_many_rows_wait_and_since_when(pg, tmp_path, monkeypatch
     assert _ship(_cfg(tmp_path, pg, "pc_e"), "--once").returncode == 0
     main(["doctor", "--config", str(tmp_path / "hostd.toml")])
     assert "fleet: nothing waits to be shipped" in capsys.readouterr().out
+
+
+def test_the_display_serial_is_read_from_sysfs_as_udev_has_it(tmp_path):
+    from hostd.fleet.shipper import _serial
+
+    hid = tmp_path / "class/hidraw/hidraw3/device"
+    hid.mkdir(parents=True)
+    (hid / "uevent").write_text("DRIVER=hid-generic\nHID_NAME=hostd display\nHID_UNIQ=VT-00042\n")
+    usb = tmp_path / "devices/usb1/1-2"
+    (usb / "1-2:1.0/tty/ttyACM0").mkdir(parents=True)
+    (usb / "serial").write_text("VT-00043\n")
+    (tmp_path / "class/tty/ttyACM0").mkdir(parents=True)
+    (tmp_path / "class/tty/ttyACM0/device").symlink_to(usb / "1-2:1.0")
+    s = str(tmp_path)
+    assert _serial("hid:/dev/hidraw3", s) == "VT-00042"
+    assert _serial("serial:/dev/ttyACM0", s) == "VT-00043"
+    assert _serial("serial:/dev/pts/4", s) is None and _serial("sim", s) is None
+    assert _serial("hid:/dev/hidraw9", s) is None
+
+
+def test_a_pc_logs_in_with_its_tls_client_certificate_and_not_with_anothers(pg, tmp_path):
+    db = tmp_path / "q.sqlite"
+    _write(db, 600, 2)
+    base = pg.url(sslmode="verify-full", sslrootcert=pg.ca).replace("127.0.0.1", "localhost")
+    d = pg.certs
+
+    def with_cert(cn):
+        return _cfg(tmp_path, pg, "pc_cert",
+                    url=f"{base}&sslcert={d / f'{cn}.pem'}&sslkey={d / f'{cn}.key'}")
+
+    # another PC's certificate, presented as this PC's role: refused by the server
+    _one_line(_ship(with_cert("pc_a"), "--once"), "TLS", "client certificate")
+    r = _ship(with_cert("pc_cert"), "--once")
+    assert r.returncode == 0, r.stderr
+    _assert_exactly_once(pg, "pc_cert", db)

@@ -227,8 +227,9 @@ def test_the_service_and_the_codec_never_import_the_fleet_room():
                     if m == "hostd.fleet" or m.startswith(("hostd.fleet.", "psycopg"))]
     assert not bad, bad
     code = ("import sys\nimport hostd.service.daemon, hostd.service.doctor, hostd.service.cli\n"
-            "import hostd.service.outbox\nprint(sorted(m for m in sys.modules if m.startswith(('hostd.fleet', "
-            "'psycopg'))))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(), timeout=120)
+            "import hostd.service.outbox\n"
+            "print(sorted(m for m in sys.modules if m.startswith(('hostd.fleet', 'psycopg'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(),
+                         timeout=120)
     assert out.returncode == 0, out.stderr[-500:]
     assert out.stdout.strip() == "[]", out.stdout

@@ -37,6 +37,9 @@ DEVICE_CPU_SHARE = Guard("cpu_share", 0.0015, 0.0030, unit="of a core")
 # by its read); the switches beyond the runs (2-5 % here) are waits inside the loop's own read and
 # write of the tty, on its locks while the display writes: 10 % allowed for them
 DEVICE_WAKEUPS_PER_RUN = Guard("pump_wakeups_per_run", 1.10, 1.10)
+# the fleet shipper beside it (`hostd fleet ship`, a live PostgreSQL, one row a second; docs/fleet.md)
+FLEET_CPU_SHARE = Guard("fleet_cpu_share", 0.0005, 0.0010, unit="of a core")
+FLEET_PSS_MB = Guard("fleet_pss_mb", 25.0, 27.0, unit="MB")  # (the wheel's own libpq: 28.6 MB)
 # `hostd bench cli`: CPU time of `hostd encode synthetic:wood:3 -o /dev/null --target-iobj 0.05`
 CLI_ENCODE_CPU_S = Guard("cpu_s", 0.4, 0.8, unit="s")
 # `hostd bench scoring`: indices.score, N' = 160, every batch size

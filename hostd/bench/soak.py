@@ -150,8 +150,39 @@ def _pump_pid(daemon_pid: int) -> int | None:
     return None
 
 
+def _start_fleet(fleet: bool | None, seconds: float, db: Path, sock: str, out: dict):
+    """The fleet shipper beside the daemon (hostd.fleet.bench: a live PostgreSQL, one row a second
+    into the daemon's log), in a thread filling `out`; None when not asked (fleet=None: when
+    psycopg and a PostgreSQL server are installed and the run lasts 20 s or more, two of the
+    shipper's looks at the log at least)."""
+    import threading
+
+    if fleet is None and seconds < 20:
+        return None
+    if fleet is None:
+        from importlib.util import find_spec
+
+        from hostd.fleet.localpg import bindir
+
+        fleet = find_spec("psycopg") is not None and bindir() is not None
+    if not fleet:
+        return None
+    from hostd.fleet import bench as fleet_bench
+
+    def measure():
+        try:
+            out.update(fleet_bench.measure(seconds, db=db, socket=sock))
+        except Exception as e:  # reported with the row, not lost in the thread
+            out["error"] = str(e)
+
+    t = threading.Thread(target=measure, daemon=True)
+    t.start()
+    return t
+
+
 def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progress: bool = True,
-        render: str = "host", host_cycle_ms: int = 1, seconds: float | None = None) -> dict:
+        render: str = "host", host_cycle_ms: int = 1, seconds: float | None = None,
+        fleet: bool | None = None) -> dict:
     """One run. render: host | device | auto ([render] where); host_cycle_ms: [device] host_cycle_ms.
     Footprint: the peak PSS and thread count of the daemon and of its pump over the run (sampled
     once a second), and the packages beyond numpy whose libraries each has mapped."""
@@ -204,6 +235,8 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
                     break
                 time.sleep(0.1)
             time.sleep(1.0)  # the upload or the priming is not the steady state
+            fleet_out: dict = {}
+            fleet_thread = _start_fleet(fleet, seconds, d / "q.sqlite", sock, fleet_out)
             pump = _pump_pid(daemon.pid)
             pids = {"pump": pump, "daemon": daemon.pid}
             clocks = {k: CpuClock(v) for k, v in pids.items() if v}
@@ -230,6 +263,8 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
             libs = {k: mapped_libs(pids[k]) for k in cpu0}
             st = request(sock, {"cmd": "status"})
             bar.close()
+            if fleet_thread is not None:
+                fleet_thread.join(seconds + 120)
         finally:
             hp.close()  # the DAC log ends while the texture still plays
             for h in hogs:
@@ -272,6 +307,9 @@ def run(minutes: float = 10.0, load: bool = False, texture: str = "wood", progre
         "stalls": st["stalls"] - st0["stalls"], "longest_stall_ms": round(st["longest_stall_ms"], 1),
         "played_fraction_status": round(st["played_fraction"], 6),  # the daemon's figure, to compare
     }
+    if "error" in fleet_out:
+        raise HostdError(f"the fleet shipper's measurement: {fleet_out['error']}")
+    row.update(fleet_out)  # the shipper beside it (fleet_cpu_share, fleet_pss_mb), when it ran
     if st["render_at"] == "device":
         # the display renders: its DAC log's full-gain flag from the first full-gain tick
         full = (rec["flags"] & hostport.FULL_GAIN) != 0

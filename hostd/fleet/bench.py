@@ -71,7 +71,14 @@ def measure(seconds: float = 30.0, rows_per_s: float = 1.0, db: str | Path | Non
                                        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})  # as the unit
             w = threading.Thread(target=writer, daemon=True)
             w.start()
-            time.sleep(3.0)  # its start-up (imports, the first connection) is not the steady state
+            # its start-up (imports, the first connection and its SCRAM exchange) is not the steady
+            # state: measured from its first central commit on
+            t_first = time.monotonic() + 60
+            while not (Path(d / "outbox.sqlite").exists() and outbox.waiting(db, d / "outbox.sqlite")
+                       ["last_shipped_at"]):
+                if time.monotonic() > t_first or shipper.poll() is not None:
+                    raise HostdError(f"the shipper did not ship: {(d / 'fleet.log').read_text()[-300:]}")
+                time.sleep(0.2)
             clock = CpuClock(shipper.pid)
             peak_pss = peak_threads = 0
             t0 = time.monotonic()

@@ -14,7 +14,9 @@ def _admin(url: str):
     try:
         import psycopg
     except ImportError:
-        raise HostdError("psycopg is not installed: pip install 'hostd[fleet]'") from None
+        from hostd.extras import pip_install
+
+        raise HostdError(f"psycopg is not installed: {pip_install('fleet')}") from None
     try:
         return psycopg.connect(url, autocommit=True, application_name="hostd-fleet-admin",
                                options="-c TimeZone=UTC", connect_timeout=10)
@@ -78,20 +80,44 @@ def _prefer_system_libpq() -> None:
         os.environ.setdefault("PSYCOPG_IMPL", "python")
 
 
+def _lean_exec(args) -> None:
+    """`hostd fleet ship` run as a command (the unit's ExecStart): exec the lean entry
+    (hostd/fleet/__main__.py) in this same process, leaving the full parser's modules behind, and
+    without docstrings (-OO: 0.5 MB of psycopg's; the shipper asserts nothing).
+    Not when called in-process (main([...]) from Python: tests, scripts)."""
+    import os
+    import sys
+
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    if os.path.basename(sys.argv[0]) == "hostd" or (spec is not None and spec.name == "hostd.__main__"):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.execv(sys.executable, [sys.executable, "-OO", "-m", "hostd.fleet", "ship", "--config", args.config,
+                                  *(["--once"] if args.once else [])])
+
+
 def cmd_ship(args) -> int:
+    _lean_exec(args)
+    return run_ship(args.config, args.once)
+
+
+def run_ship(config_path: str, once: bool) -> int:
     _prefer_system_libpq()
     try:
         import psycopg  # noqa: F401
     except ImportError:
-        raise HostdError("psycopg is not installed: pip install 'hostd[fleet]'") from None
+        from hostd.extras import pip_install
+
+        raise HostdError(f"psycopg is not installed: {pip_install('fleet')}") from None
     from hostd.fleet import config, shipper
 
-    return shipper.main(config.load(args.config), once=args.once)
+    return shipper.main(config.load(config_path), once=once)
 
 
 def add_parser(sub) -> None:
     p = sub.add_parser("fleet", help="ship this display PC's quality log to the central PostgreSQL",
-                       description="The fleet's central store (docs/fleet.md): `migrate` and `add-pc` on "
+                       description="The fleet's central store: `migrate` and `add-pc` on "
                        "the central server, `ship` on each display PC (the hostd-fleet unit).")
     fsub = p.add_subparsers(dest="fleet", metavar="WHAT")
     from hostd.cliopts import needs_subcommand
@@ -100,7 +126,7 @@ def add_parser(sub) -> None:
     s = fsub.add_parser("ship", help="ship the quality log's rows, plays and device health (runs until "
                         "stopped; the hostd-fleet unit)")
     s.add_argument("--config", required=True, metavar="FILE", help="the shipper's config "
-                   "(/etc/hostd/fleet.toml; docs/fleet.md)")
+                   "(/etc/hostd/fleet.toml: a [fleet] section with url and role)")
     s.add_argument("--once", action="store_true",
                    help="ship what waits now and exit (non-zero if the centre cannot be reached)")
     s.set_defaults(func=cmd_ship)

@@ -47,16 +47,16 @@ _ROLE = re.compile(r"[a-z_][a-z0-9_]{0,62}")
 def load(path: str | Path) -> FleetCfg:
     from hostd import tomlfile
 
-    doc = tomlfile.read(path, "fleet config", "write one: docs/fleet.md shows it")
+    doc = tomlfile.read(path, "fleet config", "write one: a [fleet] section with url and role")
     unknown = set(doc) - {"fleet"}
     if unknown:
-        raise ConfigError(f"{path}: unknown section [{sorted(unknown)[0]}]: only [fleet] (docs/fleet.md)")
+        raise ConfigError(f"{path}: unknown section [{sorted(unknown)[0]}]: only [fleet]")
     sec = doc.get("fleet", {})
     cfg = FleetCfg(path=str(path))
     names = {f.name: f for f in fields(FleetCfg) if f.name != "path"}
     for key, value in sec.items():
         if key not in names:
-            raise ConfigError(f"{path}: unknown key fleet.{key} (docs/fleet.md lists the keys)")
+            raise ConfigError(f"{path}: unknown key fleet.{key} (the keys: {', '.join(names)})")
         want = type(getattr(cfg, key))
         if want is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)

@@ -36,7 +36,11 @@ def _free_port() -> int:
 
 
 class LocalPG:
-    def __init__(self, ssl: tuple[str, str] | None = None):
+    def __init__(self, ssl: tuple[str, str] | None = None, client_ca: str | None = None,
+                 cert_roles: tuple[str, ...] = ()):
+        """ssl: the server's certificate and key (TLS on, TCP logins only over TLS); client_ca: the
+        CA that signs the PCs' client certificates; cert_roles: roles that log in with one (CN =
+        the role), the others with their password."""
         b = bindir()
         if b is None:
             raise HostdError("PostgreSQL's server is not installed: apt-get install postgresql")
@@ -63,11 +67,16 @@ class LocalPG:
                     shutil.chown(self.dir / name, "nobody")
             conf += ["ssl = on", f"ssl_cert_file = '{self.dir / 'server.pem'}'",
                      f"ssl_key_file = '{self.dir / 'server.key'}'"]
+            if client_ca:
+                shutil.copyfile(client_ca, self.dir / "client-ca.pem")
+                conf.append(f"ssl_ca_file = '{self.dir / 'client-ca.pem'}'")
         with open(self.data / "postgresql.conf", "a") as f:
             f.write("\n".join(conf) + "\n")
         if ssl:  # TCP only with TLS
             hba = self.data / "pg_hba.conf"
-            hba.write_text("local all all trust\nhostssl all all 127.0.0.1/32 scram-sha-256\n")
+            hba.write_text("local all all trust\n"
+                           + "".join(f"hostssl all {r} 127.0.0.1/32 cert\n" for r in cert_roles)
+                           + "hostssl all all 127.0.0.1/32 scram-sha-256\n")
         self.start()
 
     def _run(self, cmd: list[str], timeout: float = 60) -> None:

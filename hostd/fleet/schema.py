@@ -90,7 +90,7 @@ def check_client(conn, known: int = KNOWN) -> int:
     version, min_client = row
     if version is None:
         raise HostdError("the central database has no fleet schema: its owner runs "
-                         "`hostd fleet migrate --url URL` once (docs/fleet.md)")
+                         "`hostd fleet migrate --url URL` once")
     if min_client > known:
         raise HostdError(f"the central schema (version {version}) needs a PC that knows version {min_client} "
                          f"or later; this hostd knows {known}: upgrade hostd on this PC")

@@ -118,17 +118,34 @@ def classify(e: Exception, cfg: FleetCfg) -> Exception:
     return e
 
 
-def _serial(spec: str | None) -> str | None:
-    """The USB serial number of the display on this transport spec (hid:/dev/hidraw0, serial:PORT,
-    usb:BUS/DEV), from the system's device list; None for the simulated display or none found."""
-    if not spec or spec.startswith("sim"):
+def _serial(spec: str | None, sysfs: str = "/sys") -> str | None:
+    """The USB serial number of the display on a transport spec (hid:/dev/hidrawN, serial:/dev/ttyX,
+    usb:BUS/DEV), read from sysfs as udev reads it; None for the simulated display, a pty, or none
+    found. Read here, not through hostd.device's enumeration, which would cost the shipper its
+    imports (and a thread) for a string taken once every health_interval_s."""
+    if not spec or ":" not in spec:
         return None
+    kind, _, where = spec.partition(":")
+    node = os.path.basename(where)
     try:
-        from hostd.device.transport import find_displays
-
-        return next((d.get("serial") or None for d in find_displays() if d.get("spec") == spec), None)
-    except Exception:  # a summary without the serial, never a stopped shipper
-        return None
+        if kind == "hid":
+            for line in Path(f"{sysfs}/class/hidraw/{node}/device/uevent").read_text().splitlines():
+                if line.startswith("HID_UNIQ="):
+                    return line[9:] or None
+        elif kind == "serial" and not where.startswith("/dev/pts/"):
+            dev = Path(f"{sysfs}/class/tty/{node}/device").resolve()
+            for d in (dev, *dev.parents):  # the USB device above the interface
+                if (d / "serial").is_file():
+                    return (d / "serial").read_text().strip() or None
+        elif kind == "usb" and "/" in where:
+            bus, num = (int(x) for x in where.split("/"))
+            for d in Path(f"{sysfs}/bus/usb/devices").iterdir():
+                if (d / "busnum").is_file() and int((d / "busnum").read_text()) == bus \
+                        and int((d / "devnum").read_text()) == num:
+                    return (d / "serial").read_text().strip() if (d / "serial").is_file() else None
+    except (OSError, ValueError):
+        pass
+    return None
 
 
 class Shipper:
