@@ -26,8 +26,9 @@ from pathlib import Path
 
 from hostd.errors import HostdError
 
-# the roles of display PCs, each with its latest row of each kind (an index probe per PC)
-_PCS = "SELECT m.rolname AS pc_id FROM pg_roles m JOIN pg_auth_members a ON a.member = m.oid " \
+# the roles of display PCs, each with its latest row of each kind (an index probe per PC; the role
+# name as text: a `name` compared with the text pc_id would not use the index, a scan per PC)
+_PCS = "SELECT m.rolname::text AS pc_id FROM pg_roles m JOIN pg_auth_members a ON a.member = m.oid " \
        "JOIN pg_roles g ON g.oid = a.roleid WHERE g.rolname = 'hostd_pc'"
 _LATEST_HEALTH = (f"SELECT p.pc_id, h.received_at, h.taken_at, h.pc_clock_offset_s, h.serial, h.firmware, "
                   f"h.device_underruns, h.played_fraction, h.waiting_rows, h.waiting_since "
