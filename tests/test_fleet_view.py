@@ -214,7 +214,7 @@ def test_fleet_simulate_ships_every_row_once_and_measures_the_centre(tmp_path, c
                "--seconds", "4", "--warmup-s", "1", "--workers", "2", "--procs", "1", "--silent-pcs", "2",
                "--report", str(tmp_path / "rep"), "--check"])
     out, err = capsys.readouterr()
-    row = json.loads(out.strip().splitlines()[-1])
+    row = json.loads(out.strip().splitlines()[0])
     assert rc == 1 and "FAIL fleet simulate rows_per_s" in err and "ok   fleet simulate delay_p99_s" in err
     assert row["rows_central"] == row["rows_generated"] > 0  # every row once (uuid keyed, ledger)
     assert 0.5 * 60 <= row["rows_per_s"] <= 2 * 60  # Poisson at 60 rows/s offered, 4 s

@@ -211,7 +211,7 @@ def _client(url: str, state_dir: str, first: int, n: int, t0: float, measure_fro
 
 def run(pcs: int = 10_000, rows_per_pc_day: float = 10_000.0, interval_s: float = 1.0, seconds: float = 60.0,
         warmup_s: float = 10.0, workers: int = 12, procs: int = 2, health_interval_s: float = 300.0,
-        silent_pcs: int = 0, keep: Path | None = None) -> dict:
+        silent_pcs: int = 0, keep: Path | None = None, on_result=None) -> dict:
     import multiprocessing
 
     import psycopg
@@ -275,9 +275,13 @@ def run(pcs: int = 10_000, rows_per_pc_day: float = 10_000.0, interval_s: float 
                "bytes_per_row": round(stored / max(central, 1)),
                "ledger_index_bytes_per_row": round(ledger / max(central, 1)),
                "backlog_at_end": sum(r["backlog"] for r in results)}
+        if on_result is not None:  # before the report: the figures are not lost if it fails
+            on_result(out)
         if keep is not None:
             keep.mkdir(parents=True, exist_ok=True)
+            t = time.monotonic()
             _report(pg, keep)
+            out["report_s"] = round(time.monotonic() - t, 2)
         return out
     finally:
         pg.close()
@@ -308,8 +312,10 @@ def cmd_simulate(args) -> int:
         raise HostdError("--pcs, --workers must be >= 1 and --seconds, --interval-s > 0")
     row = run(pcs=args.pcs, rows_per_pc_day=args.rows_per_pc_day, interval_s=args.interval_s,
               seconds=args.seconds, warmup_s=args.warmup_s, workers=args.workers, procs=args.procs,
-              silent_pcs=args.silent_pcs, keep=Path(args.report) if args.report else None)
-    print(json.dumps(row))
+              silent_pcs=args.silent_pcs, keep=Path(args.report) if args.report else None,
+              on_result=lambda r: print(json.dumps(r), flush=True))
+    if args.report:
+        print(f"fleet report of the run in {args.report} ({row['report_s']} s)")
     return check(row) if args.check else 0
 
 
