@@ -189,7 +189,7 @@ def test_report_refuses_a_display_pcs_role_and_a_wrong_password(fleet, tmp_path,
                  str(fleet.pw["pc_a"]), "-o", str(tmp_path / "r")]) != 0
     err = capsys.readouterr().err
     assert "not the fleet's read-only role" in err and "--reader" in err
-    assert not (tmp_path / "r").exists()
+    assert not (tmp_path / "r" / "report.html").exists()
     assert main(["fleet", "report", "--db", fleet.url(), "--role", "viewer", "--password-file",
                  str(fleet.pw["pc_a"]), "-o", str(tmp_path / "r")]) != 0
     err = capsys.readouterr().err

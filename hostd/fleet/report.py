@@ -245,6 +245,11 @@ def write(conn, out: Path, silent_hours: float = 24.0, since_days: float = 30.0,
 def cmd_report(args) -> int:
     if args.silent_hours <= 0 or args.since_days <= 0:
         raise HostdError("--silent-hours and --since-days must be > 0")
+    try:  # before the connection: a report that cannot be written is said at once
+        Path(args.output).mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise HostdError(f"-o {args.output}: cannot make the report's directory ({e.strerror}): "
+                         "give -o a directory you can write") from None
     conn = connect(args.db, args.role, args.password_file)
     try:
         data = write(conn, Path(args.output), args.silent_hours, args.since_days, args.bucket)
