@@ -98,11 +98,9 @@ def _as(pg, role, **kw):
 
 def _row(i: int, t: float) -> dict:
     """A stream row as the daemon's quality worker writes it (content varies with i)."""
-    return {"sha256": f"{i:064x}", "name": f"tex{i}", "received_at": t, "scored_at": t + 0.25,
-            "bytes": 100 + i, "method": "quant", "levels": 14, "b0_db": None, "n": 512, "n_keep": 300 + i,
-            "length_mm": 120.0, "speed_mm_s": 50.0, "curve_id": "ab" * 8, "ratio_coeffs": 0.5,
-            "ratio_profile": 0.25, "ip": 0.01 * i, "ia": 0.002 * i, "iobj": 0.011 * i, "a": 1.0, "b": 0.5,
-            "calibration": None}
+    from hostd.fleet.bench import synthetic_row
+
+    return synthetic_row(i, t)
 
 
 def _play(i: int, t: float) -> dict:

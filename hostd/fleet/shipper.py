@@ -246,8 +246,14 @@ class Shipper:
             first = outbox.start_id(con, marks.get(table), table)
             cur = con.execute(f"SELECT * FROM {table} WHERE id > ? ORDER BY id LIMIT ?", (first, limit))
             names = [d[0] for d in cur.description]
-            out[table] = [dict(zip(names, r, strict=True)) for r in cur]
-            self._more |= len(out[table]) == limit
+            rows = [dict(zip(names, r, strict=True)) for r in cur]
+            keyless = next((i for i, r in enumerate(rows) if not r["uuid"]), None)
+            if keyless is not None:  # written by an older hostd: keyed at the daemon's next start
+                log.warning("the quality log's %s row %d has no uuid (an older hostd wrote it): rows "
+                            "from it on wait until hostd of this version starts", table, rows[keyless]["id"])
+                rows = rows[:keyless]
+            out[table] = rows
+            self._more |= len(rows) == limit
 
     def _daemon_status(self) -> dict | None:
         if not self.cfg.socket or not os.path.exists(self.cfg.socket):

@@ -97,17 +97,27 @@ def connect(path: str | Path) -> sqlite3.Connection:
 
 def _add_uuids(con: sqlite3.Connection) -> None:
     """A log written before rows had a stable key: add the uuid column to streams and plays and
-    give every existing row one, in one transaction (all rows keyed, or the log as it was)."""
+    give every existing row one (the rows of a table in one transaction: all keyed or none, and
+    those not keyed are keyed at the next connect). Rows an older hostd wrote since (a downgrade)
+    are keyed the same way; a partial index finds them at once."""
     for table in ("streams", "plays"):
-        if "uuid" in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
+        if "uuid" not in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
+            con.execute("BEGIN IMMEDIATE")
+            try:
+                if "uuid" not in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
+                    con.execute(f"ALTER TABLE {table} ADD COLUMN uuid TEXT")
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+        con.execute(f"CREATE INDEX IF NOT EXISTS {table}_keyless ON {table}(id) WHERE uuid IS NULL")
+        if con.execute(f"SELECT 1 FROM {table} WHERE uuid IS NULL LIMIT 1").fetchone() is None:
             continue
         con.execute("BEGIN IMMEDIATE")
         try:
-            if "uuid" not in {r[1] for r in con.execute(f"PRAGMA table_info({table})")}:
-                con.execute(f"ALTER TABLE {table} ADD COLUMN uuid TEXT")
-                ids = [r[0] for r in con.execute(f"SELECT id FROM {table} WHERE uuid IS NULL")]
-                con.executemany(f"UPDATE {table} SET uuid = ? WHERE id = ?",
-                                [(str(uuid.uuid4()), i) for i in ids])
+            ids = [r[0] for r in con.execute(f"SELECT id FROM {table} WHERE uuid IS NULL")]
+            con.executemany(f"UPDATE {table} SET uuid = ? WHERE id = ?",
+                            [(str(uuid.uuid4()), i) for i in ids])
             con.execute("COMMIT")
         except BaseException:
             con.execute("ROLLBACK")
