@@ -54,6 +54,19 @@ def _pg_cpu_s(postmaster: int) -> float:
     return total / tick
 
 
+def _procs_cpu_s(pids: list[int]) -> float:
+    """CPU seconds (utime + stime) of these processes, from /proc (the simulator's clients)."""
+    total = 0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += int(fields[11]) + int(fields[12])
+    return total / os.sysconf("SC_CLK_TCK")
+
+
 def _roles(conn, n: int, owner_role: str) -> list[str]:
     """n display PCs' roles (members of hostd_pc) that the simulator's role may SET ROLE to."""
     conn.execute(
@@ -242,10 +255,11 @@ def run(pcs: int = 10_000, rows_per_pc_day: float = 10_000.0, interval_s: float 
             pending = [pool.apply_async(_client, (pg.url(), str(state_dir), f, n, t0, measure_from, t_end,
                                                   rows_per_pc_day / 86400.0, interval_s, health_interval_s,
                                                   workers)) for f, n in zip(firsts, share, strict=True)]
+            clients = [p.pid for p in pool._pool]  # the pool's processes, for their CPU time
             time.sleep(max(0.0, measure_from - time.time()))
-            cpu0 = (_pg_cpu_s(postmaster), time.time())
+            cpu0 = (_pg_cpu_s(postmaster), time.time(), _procs_cpu_s(clients))
             time.sleep(max(0.0, t_end - time.time()))
-            cpu1 = (_pg_cpu_s(postmaster), time.time())
+            cpu1 = (_pg_cpu_s(postmaster), time.time(), _procs_cpu_s(clients))
             results = [p.get(timeout=300) for p in pending]
         errors = [e for r in results for e in r["errors"]]
         if errors:
@@ -270,7 +284,8 @@ def run(pcs: int = 10_000, rows_per_pc_day: float = 10_000.0, interval_s: float 
                "delay_p99_s": round(delays[min(n - 1, math.ceil(0.99 * n) - 1)], 4) if n else None,
                "delay_max_s": round(delays[-1], 4) if n else None,
                "pg_cpu_s_per_1000_rows": round((cpu1[0] - cpu0[0]) / max(counted, 1) * 1000, 4),
-               "pg_cpu_share": round((cpu1[0] - cpu0[0]) / wall, 3), "rows_central": central,
+               "pg_cpu_share": round((cpu1[0] - cpu0[0]) / wall, 3),
+               "clients_cpu_share": round((cpu1[2] - cpu0[2]) / wall, 3), "rows_central": central,
                "rows_generated": sum(r["generated"] for r in results),
                "bytes_per_row": round(stored / max(central, 1)),
                "ledger_index_bytes_per_row": round(ledger / max(central, 1)),
