@@ -87,7 +87,9 @@ def connect(url: str, role: str | None, password_file: str | None):
     try:
         import psycopg
     except ImportError:
-        raise HostdError("psycopg is not installed: pip install 'hostd[fleet]'") from None
+        from hostd.extras import pip_install
+
+        raise HostdError(f"psycopg is not installed: {pip_install('fleet')}") from None
     from hostd.fleet.config import FleetCfg, password
 
     pw = password(FleetCfg(password_file=password_file or ""))
@@ -245,6 +247,13 @@ def write(conn, out: Path, silent_hours: float = 24.0, since_days: float = 30.0,
 def cmd_report(args) -> int:
     if args.silent_hours <= 0 or args.since_days <= 0:
         raise HostdError("--silent-hours and --since-days must be > 0")
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        from hostd.extras import pip_install
+
+        raise HostdError(f"matplotlib is not installed (the report's figure): {pip_install('plot')}"
+                         ) from None
     try:  # before the connection: a report that cannot be written is said at once
         Path(args.output).mkdir(parents=True, exist_ok=True)
     except OSError as e:

@@ -325,6 +325,12 @@ def cmd_simulate(args) -> int:
 
     if args.pcs < 1 or args.seconds <= 0 or args.interval_s <= 0 or args.workers < 1:
         raise HostdError("--pcs, --workers must be >= 1 and --seconds, --interval-s > 0")
+    try:
+        import psycopg  # noqa: F401
+    except ImportError:
+        from hostd.extras import pip_install
+
+        raise HostdError(f"psycopg is not installed: {pip_install('fleet')}") from None
     row = run(pcs=args.pcs, rows_per_pc_day=args.rows_per_pc_day, interval_s=args.interval_s,
               seconds=args.seconds, warmup_s=args.warmup_s, workers=args.workers, procs=args.procs,
               silent_pcs=args.silent_pcs, keep=Path(args.report) if args.report else None,
