@@ -51,6 +51,8 @@ hostd status [--json]; hostd stop [--daemon]                    # health from th
 hostd quality [--since 1h] [--csv|--json]                       # the quality log: Iobj and what was delivered
 hostd fleet ship --config /etc/hostd/fleet.toml [--once]        # this PC's quality log to the central store
 hostd fleet migrate --url URL; hostd fleet add-pc ROLE --url URL  # the central schema; a display PC's role
+hostd fleet report --db URL --role viewer -o DIR                # the fleet's report (HTML, PNG, CSV)
+hostd fleet simulate --check                                    # the central store's scale, measured
 hostd sim SCENE [--json] [--plot DIR]                           # delivered quality per effect (scenes)
 hostd doctor [--config F] [--json]                              # device, permissions, real time, config, db
 hostd install-service [--prefix P] [--dry-run] [--enable]       # unit, udev rule, sysusers, tmpfiles, config,

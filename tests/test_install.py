@@ -53,6 +53,7 @@ def test_wheel_carries_the_data_the_code_needs(wheel):
               "hostd/systemd/hostd-sysusers.conf", "hostd/systemd/hostd-tmpfiles.conf",
               "hostd/experiment/page.html", "hostd/data/experiment-plan.toml"):
         assert f in names, f
+    assert "hostd/data/prometheus/hostd-alerts.yml" in names  # the fleet's alert rules (docs/fleet-view.md)
     assert not [n for n in names if n.startswith("firmware/")]
     meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith("/METADATA"))).decode()
     import hostd

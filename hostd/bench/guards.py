@@ -77,6 +77,11 @@ LATENCY_PLAYED = Guard("played_fraction", None, 0.99, upper=False)  # median of 
 # thread CPU per second of output (median over the textures and the repeats) within 5 % of a core
 ACCURACY_RMS_PCT = Guard("rms_error_pct", 1.0, 1.0, unit="% RMS")
 ACCURACY_HOST_CPU_MS_PER_S = Guard("cpu_ms_per_s", 50.0, 100.0, unit="ms/s")
+# `hostd fleet simulate`: the central store (one PostgreSQL, fsync on) under many PCs' shippers:
+# the rows a second it commits, and the p99 delay from a row's local commit to its central commit
+# while connected (docs/fleet-view.md); not held in CI (a run of minutes)
+FLEET_ROWS_PER_S = Guard("rows_per_s", 1000.0, None, upper=False, unit="rows/s")
+FLEET_DELAY_P99_S = Guard("delay_p99_s", 2.0, None, unit="s")
 
 
 def check(rows: list[dict], guards: list[Guard], level: str, what: str) -> int:

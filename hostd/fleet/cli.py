@@ -151,3 +151,9 @@ def add_parser(sub) -> None:
     a.add_argument("--reader", action="store_true", help="a read-only role for the views (hostd_reader)")
     a.add_argument("--json", action="store_true", help="the role made, as JSON")
     a.set_defaults(func=cmd_add_pc)
+    from hostd.fleet import report
+
+    report.add_parser(fsub)
+    from hostd.fleet import simulate
+
+    simulate.add_parser(fsub)

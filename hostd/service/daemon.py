@@ -333,7 +333,7 @@ class Daemon:
 
         listen = parse_listen(self.cfg.metrics.listen, f"{self.cfg.path}: metrics.listen")
         if listen is not None:
-            self.metrics = start(listen, self.status, self.latest_quality)
+            self.metrics = start(listen, self.status, self.latest_quality, self.cfg.quality.db)
 
     def serve_socket(self) -> None:
         c = self.cfg.control

@@ -60,9 +60,10 @@ def parse_listen(value: str, where: str) -> tuple[str, int] | None:
 class DaemonCollector:
     """Collects the daemon's figures when Prometheus scrapes."""
 
-    def __init__(self, status, quality_rows) -> None:
+    def __init__(self, status, quality_rows, quality_db=None) -> None:
         self.status = status  # () -> dict, Daemon.status
         self.quality_rows = quality_rows  # () -> list[dict], the latest row per texture
+        self.quality_db = quality_db  # the quality log: its rows waiting for the fleet shipper
 
     def collect(self):
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
@@ -93,9 +94,40 @@ class DaemonCollector:
                 if r.get(col) is not None:
                     fams[k].add_metric([r["name"]], float(r[col]))
         yield from fams.values()
+        yield from self._fleet()
+
+    def _fleet(self):
+        """Rows waiting for the fleet shipper (hostd.service.outbox, as `hostd status` says), when
+        this PC runs one: their count and the oldest one's age (0 when none wait), in this PC's
+        clock, so a scraper's clock does not enter the age."""
+        import sqlite3
+        import time
+
+        from prometheus_client.core import GaugeMetricFamily
+
+        from hostd.errors import HostdError
+        from hostd.service import outbox
+
+        if self.quality_db is None:
+            return
+        try:
+            w = outbox.waiting(self.quality_db)
+        except (sqlite3.Error, OSError, HostdError) as e:
+            log.debug("metrics: cannot read what waits for the fleet shipper: %s", e)
+            return
+        if w is None:  # no shipper on this PC
+            return
+        n = GaugeMetricFamily("hostd_fleet_rows_waiting", "quality-log rows (and health summaries) "
+                              "waiting to be shipped to the fleet's central store")
+        n.add_metric([], float(w["waiting"]))
+        age = GaugeMetricFamily("hostd_fleet_oldest_waiting_age_seconds", "age of the oldest row "
+                                "waiting to be shipped (this PC's clock; 0 when none wait)")
+        age.add_metric([], max(0.0, time.time() - w["since"]) if w["waiting"] and w["since"] else 0.0)
+        yield n
+        yield age
 
 
-def start(listen: tuple[str, int], status, quality_rows):
+def start(listen: tuple[str, int], status, quality_rows, quality_db=None):
     """Serve /metrics on `listen`; returns the server (shutdown() it to stop)."""
     try:
         from prometheus_client import CollectorRegistry, start_http_server
@@ -105,7 +137,7 @@ def start(listen: tuple[str, int], status, quality_rows):
         raise ConfigError("metrics.listen is set but prometheus_client is not installed: "
                           f"{pip_install('metrics')} (or leave metrics.listen empty)") from None
     reg = CollectorRegistry(auto_describe=False)
-    reg.register(DaemonCollector(status, quality_rows))
+    reg.register(DaemonCollector(status, quality_rows, quality_db))
     try:
         server, _thread = start_http_server(listen[1], listen[0], registry=reg)
     except OSError as e:
