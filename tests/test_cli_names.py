@@ -27,6 +27,7 @@ NO_JSON = {
     "install-service": "prints the commands it ran or would run",
     "corpus export": "writes the store to -o FILE and prints nothing",
     "fleet ship": "the shipper service: it logs what it ships (as hostd run)",
+    "fleet simulate": "its results are JSON lines always",
     "experiment threshold": "a live session: the participant's URL, then its files",
     "experiment similarity": "a live session: the participant's URL, then its files",
 }

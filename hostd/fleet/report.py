@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import html
+import json
 import os
 from pathlib import Path
 
@@ -264,6 +265,11 @@ def cmd_report(args) -> int:
         data = write(conn, Path(args.output), args.silent_hours, args.since_days, args.bucket)
     finally:
         conn.close()
+    if args.json:
+        print(json.dumps({"output": str(args.output), "csv_files": len(data),
+                          "displays_with_quality_rows": len(data["quality_by_display"][1]),
+                          "silent_displays": len(data["silent"][1]), "silent_hours": args.silent_hours}))
+        return 0
     print(f"fleet report in {args.output}: report.html, report.png, {len(data)} CSV files; "
           f"{len(data['quality_by_display'][1])} displays with quality rows, {len(data['silent'][1])} silent "
           f"> {args.silent_hours:g} h")
@@ -285,4 +291,5 @@ def add_parser(fsub) -> None:
     r.add_argument("--since-days", type=float, default=30.0, help="the window of quality rows and plays "
                    "(by the server's receive time; default 30)")
     r.add_argument("--bucket", choices=("minute", "hour", "day"), default="hour", help="plays' time bucket")
+    r.add_argument("--json", action="store_true", help="what was written, as JSON")
     r.set_defaults(func=cmd_report)

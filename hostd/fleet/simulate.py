@@ -35,22 +35,28 @@ TEXTURES = tuple(f"{m}{k}" for m in ("wood", "cork", "felt", "denim", "sandpaper
 
 
 def _pg_cpu_s(postmaster: int) -> float:
-    """CPU seconds of the postmaster (with its reaped children) and every live child, from /proc."""
+    """CPU seconds of every live child of the postmaster, then of the postmaster with its reaped
+    children, from /proc. The postmaster is read last: a backend that exits while the children
+    are read is then in its reaped children's time (at worst counted twice), never lost, so the
+    figure only grows (read first, an exiting backend's time vanished: a negative difference)."""
     tick = os.sysconf("SC_CLK_TCK")
     total = 0
     for d in os.listdir("/proc"):
-        if not d.isdigit():
+        if not d.isdigit() or int(d) == postmaster:
             continue
         try:
             with open(f"/proc/{d}/stat") as f:
                 fields = f.read().rsplit(")", 1)[1].split()
         except OSError:
             continue
-        pid, ppid = int(d), int(fields[1])
-        if pid == postmaster:
-            total += sum(int(x) for x in fields[11:15])  # utime stime cutime cstime
-        elif ppid == postmaster:
+        if int(fields[1]) == postmaster:
             total += int(fields[11]) + int(fields[12])
+    try:
+        with open(f"/proc/{postmaster}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        total += sum(int(x) for x in fields[11:15])  # utime stime cutime cstime
+    except OSError:
+        pass
     return total / tick
 
 
