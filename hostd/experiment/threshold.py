@@ -169,7 +169,7 @@ class ThresholdGrid:
     def update(self, rows, x_db, correct) -> None:
         lik = self.likelihood(x_db)
         p = self.post[rows] * np.where(np.asarray(correct)[..., None, None], lik, 1.0 - lik)
-        self.post[rows] = p / p.sum(axis=(-2, -1), keepdims=True)
+        self.post[rows] = psychometric.flush(p / p.sum(axis=(-2, -1), keepdims=True))
         self.n[rows] += 1
 
     def marginal(self) -> np.ndarray:
