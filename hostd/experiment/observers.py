@@ -160,42 +160,24 @@ def simulate_oracle(kind: str, n_afc: int, runs: int, max_trials: int = 30, seed
     return errs
 
 
+def wood_design(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(Ip, Ia) of a design like the paper's wood test: 6 quant + 6 cut levels + the control
+    (quantization raises Ia faster, cut raises Ip), jittered ±10 % with the seed."""
+    rng0 = np.random.default_rng(seed)
+    ip = np.concatenate([np.linspace(0.1, 1.4, 6), np.linspace(0.05, 1.0, 6), [0.0]])
+    ia = np.concatenate([np.linspace(0.2, 1.6, 6), np.linspace(0.1, 0.7, 6), [0.0]])
+    return ip * rng0.uniform(0.9, 1.1, ip.size), ia * rng0.uniform(0.9, 1.1, ia.size)
+
+
 def simulate_fit(a: float, b: float, noise_sd: float, n_sims: int = 50, reps: int = 4,
                  participants: int = 8, seed: int = 0, n_boot: int = 2000) -> dict:
     """Simulated participants whose scores are a Ip + b Ia plus noise (per answer, on the paper's
-    0..3 scale: rounded and clipped like a grade), over the paper's wood design (6 quant + 6 cut
-    levels + the control, `reps` repetitions, `participants` people, mean score per stimulus).
-    Returns the coverage of the 95 % intervals `hostd fit` states (its residual bootstrap-t) and
-    their mean widths, beside those of the t interval of its standard errors."""
+    0..3 scale: rounded and clipped like a grade), over the paper's wood design (wood_design,
+    `reps` repetitions, `participants` people, mean score per stimulus): fit.design_coverage,
+    the coverage of the 95 % intervals `hostd fit` states (its residual bootstrap-t) and their
+    mean widths, beside those of the t interval of its standard errors."""
     from hostd.perception import fit
 
-    rng0 = np.random.default_rng(seed)
-    # (Ip, Ia) of a design like the paper's: quantization raises Ia faster, cut raises Ip
-    ip = np.concatenate([np.linspace(0.1, 1.4, 6), np.linspace(0.05, 1.0, 6), [0.0]])
-    ia = np.concatenate([np.linspace(0.2, 1.6, 6), np.linspace(0.1, 0.7, 6), [0.0]])
-    ip = ip * rng0.uniform(0.9, 1.1, ip.size)
-    ia = ia * rng0.uniform(0.9, 1.1, ia.size)
-    cover_a = cover_b = both = se_cover = 0
-    wa, wb, se_w = [], [], []
-    for s in range(n_sims):
-        rng = np.random.default_rng([seed, s])
-        true = a * ip + b * ia
-        noise = rng.normal(0, noise_sd, (participants * reps, ip.size))
-        grades = np.clip(np.rint(true[None, :] + noise), 0, 3)
-        mean = grades.mean(axis=0)
-        stim = [fit.Stimulus("wood", "none" if k == ip.size - 1 else "m", str(k), float(mean[k]),
-                             float(ip[k]), float(ia[k])) for k in range(ip.size)]
-        res = fit.fit(stim, n_boot=n_boot, scale_max=3.0, scale_min=0.0)
-        cover_a += res.ci_a[0] <= a <= res.ci_a[1]
-        cover_b += res.ci_b[0] <= b <= res.ci_b[1]
-        both += res.ci_a[0] <= a <= res.ci_a[1] and res.ci_b[0] <= b <= res.ci_b[1]
-        wa.append(res.ci_a[1] - res.ci_a[0])
-        wb.append(res.ci_b[1] - res.ci_b[0])
-        ta, tb = res.t_interval_a, res.t_interval_b  # hostd fit's t interval of its standard errors
-        se_cover += ta[0] <= a <= ta[1] and tb[0] <= b <= tb[1]
-        se_w.append(ta[1] - ta[0])
-    return {"coverage_a": cover_a / n_sims, "coverage_b": cover_b / n_sims, "coverage_both": both / n_sims,
-            "mean_width_a": float(np.mean(wa)), "mean_width_b": float(np.mean(wb)), "sims": n_sims,
-            "stimuli": int(ip.size), "answers_per_stimulus": participants * reps, "noise_sd": noise_sd,
-            "se_t_interval_coverage_both": se_cover / n_sims,
-            "se_t_interval_mean_width_a": float(np.mean(se_w))}
+    ip, ia = wood_design(seed)
+    return fit.design_coverage(ip, ia, a, b, noise_sd, participants * reps, sims=n_sims, n_boot=n_boot,
+                               seed=seed)
