@@ -215,11 +215,11 @@ def bootstrap_intervals(X: np.ndarray, y: np.ndarray, nonnegative: bool, n_boot:
 
 
 COVERAGE_WARN = 0.90  # a design whose simulated 95 % intervals cover both weights less often: a warning
-DESIGN_SIMS = 200
+DESIGN_SIMS = 100  # per noise level
 
 
 def design_coverage(ip, ia, a: float, b: float, noise_sd: float, answers: int | None = None, *,
-                    sims: int = DESIGN_SIMS, n_boot: int = 1000, seed: int = 0,
+                    sims: int = DESIGN_SIMS, n_boot: int = 500, seed: int = 0,
                     scale: tuple[float, float] | None = (0.0, 3.0), nonnegative: bool = False) -> dict:
     """The coverage and bias of the intervals fit() states, on this design, by simulation: `sims`
     labs whose scores follow Iobj = a Ip + b Ia exactly, fitted as fit() fits them.
@@ -281,27 +281,37 @@ def design_coverage(ip, ia, a: float, b: float, noise_sd: float, answers: int | 
             "se_t_interval_mean_width_a": float(np.mean(t_width)) if t_width else None}
 
 
+GRADE_NOISE_SDS = (0.15, 0.3, 0.5, 0.8)  # per answer: what mean scores cannot tell apart
+
+
 def _design_check(used: list[Stimulus], X: np.ndarray, y: np.ndarray, a: float, b: float, nonnegative: bool,
                   scale: tuple[float, float] | None, sims: int) -> tuple[dict, str | None]:
-    """design_coverage() at the fitted (a, b) and this fit's noise: with every stimulus' answer
-    count known, the per-answer SD that gives the residuals' spread (sqrt(n) times the scores'),
-    else the scores' residual SD. Returns the figures and a warning below COVERAGE_WARN."""
+    """design_coverage() at the fitted (a, b). With every stimulus' answer count known, grades are
+    simulated, at each per-answer noise of GRADE_NOISE_SDS (mean scores do not tell the per-answer
+    noise from the misfit of the rounded grades, and the rounding's bias depends on it), and the
+    worst case is reported; else the scores themselves, with this fit's residual SD. Returns the
+    figures and a warning below COVERAGE_WARN."""
     n = len(used)
-    res_sd = math.sqrt(float(((y - X @ [a, b]) ** 2).sum()) / max(n - 2, 1))
     counts = [s.n for s in used]
     answers = int(np.median(counts)) if all(c for c in counts) else None
-    noise = res_sd * math.sqrt(answers) if answers else res_sd
-    if not noise > 0:
+    if answers:
+        noises = GRADE_NOISE_SDS
+    else:
+        noises = (math.sqrt(float(((y - X @ [a, b]) ** 2).sum()) / max(n - 2, 1)),)
+        if not noises[0] > 0:
+            return {"sims": 0}, None
+    cases = [design_coverage(X[:, 0], X[:, 1], a, b, sd, answers, sims=sims, scale=scale,
+                             nonnegative=nonnegative) for sd in noises]
+    cases = [d for d in cases if d.get("sims")]
+    if not cases:
         return {"sims": 0}, None
-    d = design_coverage(X[:, 0], X[:, 1], a, b, noise, answers, sims=sims, scale=scale,
-                        nonnegative=nonnegative)
-    if not d.get("sims"):
-        return d, None
+    d = dict(min(cases, key=lambda c: c["coverage_both"]))
+    d["by_noise"] = [{k: c[k] for k in ("noise_sd", "coverage_both", "bias_a", "bias_b")} for c in cases]
     if d["coverage_both"] < COVERAGE_WARN:
         return d, (f"on this design the 95 % intervals of (a, b) held both true weights in only "
                    f"{d['coverage_both']:.0%} of {d['sims']} simulated labs (a {d['coverage_a']:.0%}, "
-                   f"b {d['coverage_b']:.0%}; bias a {d['bias_a']:+.3f}, b {d['bias_b']:+.3f}, at the "
-                   f"fitted weights and noise {noise:.2f}"
+                   f"b {d['coverage_b']:.0%}; bias a {d['bias_a']:+.3f}, b {d['bias_b']:+.3f}; at the "
+                   f"fitted weights and noise {d['noise_sd']:.2f}"
                    + (f" per answer, {answers} answers per stimulus)" if answers else " per score)")
                    + ": trust them less, or add stimuli (levels away from the scale's bottom, both methods)")
     return d, None
