@@ -76,8 +76,9 @@ LAPSE = (0.0, 0.04)
 # by less than 1e-5 of its value.
 PRUNE_EVERY = 8
 PRUNE_LOG = 20.0
-PPC_DRAWS = 400  # posterior draws of the predictive check
-PPC_ALPHA = 0.1  # its p-value below this: the curve does not fit
+OFFSETS_DB = np.arange(-12.0, 12.0 + 1e-9, 0.5)  # the check's own offset per frequency
+PPC_ALPHA = 0.2  # its p-value below this: the curve may not fit, so spend the fallback's trials
+FINAL_ALPHA = 0.05  # the final check's, on every answer: below this the thresholds are per frequency
 JOINT, PER_FREQUENCY, DONE = 0, 1, 2  # a run's phase
 
 
@@ -114,13 +115,17 @@ class JointBatch:
         self.stim_f = np.array(fi)
         self.stim_db = np.array(lv)
         # P(correct | theta, stimulus) and its binary entropy, (n_theta, n_stim)
-        t = self.curve_db_grid()[self.stim_f].T
+        self._curve = self.curve_db_grid()  # (n_freq, n_theta)
+        t = self._curve[self.stim_f].T
         self.p_correct = psychometric.weibull(self.stim_db[None, :], t, self.beta[:, None], 1.0 / c.n_afc,
                                               self.lapse[:, None])
         self.p_correct = np.ascontiguousarray(self.p_correct)
         self.h = psychometric.binary_entropy(self.p_correct)
         self.runs = runs
-        self.log_post = np.repeat((lp - lp.max())[None], runs, axis=0)  # (runs, n_theta)
+        self.log_prior = lp - lp.max()
+        self.log_post = np.repeat(self.log_prior[None], runs, axis=0)  # (runs, n_theta)
+        nb, nd = np.meshgrid(np.array(SLOPES), np.array(LAPSE), indexing="ij")
+        self._nuisance = (nb.ravel(), nd.ravel())
         self.grids = [ThresholdGrid(p, r, c.n_afc, runs) for p, r in zip(c.prior_um, c.reach_um, strict=True)]
         self.budget = c.max_trials * self.n_f
         self.extra = c.misfit_trials * self.n_f
@@ -130,8 +135,10 @@ class JointBatch:
         self.trial_ok = np.zeros((runs, cap), dtype=bool)
         self.trial_s = np.full((runs, cap), -1)  # the joint grid's stimulus (joint phase only)
         self.index = np.zeros(runs, dtype=int)
+        self.count = np.zeros((runs, self.n_f), dtype=int)  # trials per frequency
         self.phase = np.full(runs, JOINT)
         self.misfit_p = np.full(runs, np.nan)
+        self.final_p = np.full(runs, np.nan)
         self.seeds = [c.seed] * runs if seeds is None else list(seeds)
         self._orders = None
         self._act, self._since = None, 0
@@ -171,7 +178,12 @@ class JointBatch:
             self._since += 1
             post = self.posterior(rj)[:, self._act]
             post /= post.sum(axis=-1, keepdims=True)
-            s = np.argmax(psychometric.information_flat(post, self._pa, self._ha), axis=-1)
+            info = psychometric.information_flat(post, self._pa, self._ha)
+            # only at the frequencies tried least so far: every frequency gets its share of the
+            # budget, so that the check can see a bump at any of them
+            cnt = self.count[rj][:, self.stim_f]
+            info = np.where(cnt == cnt.min(axis=1, keepdims=True), info, -np.inf)
+            s = np.argmax(info, axis=-1)
             self.trial_s[rj, self.index[rj]] = s
             fi[j], lv[j] = self.stim_f[s], self.stim_db[s]
         if (~j).any():
@@ -195,10 +207,17 @@ class JointBatch:
             lik = np.where(correct[j][:, None], p, 1.0 - p)
             self.log_post[rj] += np.log(np.clip(lik, 1e-300, None))
             self.log_post[rj] -= self.log_post[rj].max(axis=-1, keepdims=True)
+        if (~j).any():  # the fallback's trials inform the joint posterior too (for the final check)
+            rp = rows[~j]
+            p = psychometric.weibull(level_db[~j][:, None], self._curve[fi[~j]], self.beta,
+                                     1.0 / self.cfg.n_afc, self.lapse)
+            self.log_post[rp] += np.log(np.clip(np.where(correct[~j][:, None], p, 1.0 - p), 1e-300, None))
+            self.log_post[rp] -= self.log_post[rp].max(axis=-1, keepdims=True)
         for i in np.unique(fi):
             sel = fi == i
             self.grids[i].update(rows[sel], level_db[sel], correct[sel])
         self.index[rows] += 1
+        np.add.at(self.count, (rows, fi), 1)
         self._advance(rows)
 
     def _advance(self, rows: np.ndarray) -> None:
@@ -218,30 +237,39 @@ class JointBatch:
             else:
                 self.phase[end] = DONE
         p = rows[self.phase[rows] == PER_FREQUENCY]
-        self.phase[p[self.index[p] >= self.budget + self.extra]] = DONE
+        end = p[self.index[p] >= self.budget + self.extra]
+        if end.size:  # the final check, on every answer: does the curve fit after all?
+            self.final_p[end] = self.ppc(end)
+            self.phase[end] = DONE
 
     # ------------------------------------------------------------------ the check
     def ppc(self, rows: np.ndarray) -> np.ndarray:
-        """The posterior predictive p-value of each run's joint-phase answers (see the module)."""
-        post = self.posterior(rows)
+        """The check's p-value per run (see the module): a likelihood-ratio test of the joint
+        curve against a curve free at each frequency tried (an offset of its own from the joint
+        one), each model with its best slope and lapse; the deviance against χ² with as many
+        degrees of freedom as frequencies tried less the curve's 3."""
+        from scipy.stats import chi2
+
         out = np.empty(rows.size)
         onehot = np.eye(self.n_f)
+        g = 1.0 / self.cfg.n_afc
         for a, r in enumerate(rows):
             n = int(self.index[r])
-            rng = np.random.default_rng([self.seeds[r], 0x50C])
-            theta = np.searchsorted(np.cumsum(post[a]), rng.random(PPC_DRAWS) * post[a].sum())
-            theta = np.minimum(theta, post.shape[1] - 1)
-            s = self.trial_s[r, :n]
-            p = self.p_correct[theta[:, None], s[None, :]]  # (draws, trials)
-            g = onehot[self.stim_f[s]]  # (trials, n_f)
-            tried = g.sum(axis=0) > 0
-            e, v = (p @ g)[:, tried], (p * (1 - p) @ g)[:, tried]
-            v = np.maximum(v, 1e-9)
-            obs = (self.trial_ok[r, :n].astype(np.float64) @ g)[tried]
-            rep = ((rng.random(p.shape) < p).astype(np.float64) @ g)[:, tried]
-            t_obs = np.sum((obs - e) ** 2 / v, axis=1)
-            t_rep = np.sum((rep - e) ** 2 / v, axis=1)
-            out[a] = float(np.mean(t_rep >= t_obs))
+            k = int(np.argmax(self.log_post[r] - self.log_prior))  # the joint's most likely curve
+            f = self.trial_f[r, :n]
+            ok = self.trial_ok[r, :n][:, None, None]
+            t = self.curve_db_grid()[f, k][:, None, None] + OFFSETS_DB  # (trials, 1, offsets)
+            b, d = self._nuisance[0][None, :, None], self._nuisance[1][None, :, None]
+            p = psychometric.weibull(self.trial_db[r, :n][:, None, None], t, b, g, d)  # (trials, βδ, offsets)
+            ll = np.log(np.clip(np.where(ok, p, 1.0 - p), 1e-300, None))
+            per_f = np.einsum("if,ijo->jfo", onehot[f], ll)  # (β δ, n_f, offsets)
+            tried = np.bincount(f, minlength=self.n_f) > 0
+            p0 = psychometric.weibull(self.trial_db[r, :n], self.curve_db_grid()[f, k], self.beta[k], g,
+                                      self.lapse[k])
+            null = float(np.sum(np.log(np.clip(np.where(ok[:, 0, 0], p0, 1.0 - p0), 1e-300, None))))
+            alt = float(np.max(per_f[:, tried].max(axis=2).sum(axis=1)))
+            dof = max(int(tried.sum()) - 3, 1)
+            out[a] = float(chi2.sf(max(2.0 * (alt - null), 0.0), dof))
         return out
 
     # ------------------------------------------------------------------ estimates
@@ -271,7 +299,9 @@ class JointBatch:
         return out
 
     def _fallback(self, rows) -> np.ndarray:
-        return np.atleast_1d(np.isfinite(self.misfit_p[rows]) & (self.misfit_p[rows] < PPC_ALPHA))
+        """Whether each run's thresholds are its frequencies' own posteriors: the first check
+        found a misfit and the final one (on every answer) confirms it."""
+        return np.atleast_1d(np.isfinite(self.final_p[rows]) & (self.final_p[rows] < FINAL_ALPHA))
 
     def trials_per_frequency(self, r: int) -> np.ndarray:
         f = self.trial_f[r, :self.index[r]]
@@ -351,14 +381,21 @@ class JointRun:
         return out
 
     def notes(self) -> list[str]:
-        p = self.batch.misfit_p[0]
+        p, q = self.batch.misfit_p[0], self.batch.final_p[0]
         if not np.isfinite(p):
             return []
-        if p < PPC_ALPHA:
-            return [f"the answers do not fit the joint model's smooth curve (posterior predictive "
-                    f"p = {p:.3f} < {PPC_ALPHA}): {self.batch.extra} more trials were spent per "
-                    "frequency, and each threshold is its own frequency's QUEST+ posterior"]
-        return [f"the answers fit the joint model's smooth curve (posterior predictive p = {p:.3f})"]
+        if p >= PPC_ALPHA:
+            return [f"the answers fit the joint model's smooth curve (check p = {p:.3f})"]
+        extra = self.batch.extra // self.batch.n_f
+        head = (f"the answers may not fit the joint model's smooth curve (check p = {p:.3f} < {PPC_ALPHA}): "
+                f"{extra} more trials per frequency were spent, one QUEST+ per frequency")
+        if not np.isfinite(q):
+            return [head]
+        if q < FINAL_ALPHA:
+            return [f"{head}; on every answer the curve does not fit (p = {q:.3g} < {FINAL_ALPHA}): "
+                    "each threshold is its own frequency's QUEST+ posterior"]
+        return [f"{head}; on every answer the curve fits (p = {q:.3f}): the thresholds are the joint "
+                "curve's, from every answer"]
 
 
 def simulate_joint(kind: str, n_afc: int, runs: int, trials_per_frequency: int = JOINT_TRIALS, seed: int = 0,
@@ -405,4 +442,6 @@ def simulate_joint(kind: str, n_afc: int, runs: int, trials_per_frequency: int =
     est = b.estimates_db()
     iv = b.intervals_db()
     return {"errors_db": est - truth, "covered": (iv[..., 0] <= truth) & (truth <= iv[..., 1]),
-            "trials": b.index.copy(), "misfit": b._fallback(slice(None)), "frequencies": len(freqs)}
+            "trials": b.index.copy(), "misfit": b._fallback(slice(None)), "misfit_p": b.misfit_p.copy(),
+            "spent_more": b.index > b.budget,
+            "frequencies": len(freqs)}
