@@ -269,7 +269,8 @@ def _print(out: dict) -> None:
     for case, r in out.get("joint", {}).items():
         print(f"joint {case}: within ±2 dB {_pct(r['within_2db'])} (worst frequency "
               f"{_pct(r['worst_frequency_within_2db'])}), 95% covers {_pct(r['ci95_covers'])} (worst "
-              f"{_pct(r['worst_frequency_ci95_covers'])}), misfit found in {_pct(r['misfit_found'])} of runs, "
+              f"{_pct(r['worst_frequency_ci95_covers'])}), misfit found in {_pct(r['misfit_found'])} "
+              "of runs, "
               f"confirmed in {_pct(r['per_frequency_thresholds'])} (within: joint thresholds "
               f"{_pct(r['within_2db_when_fit'])}, per frequency "
               f"{_pct(r['within_2db_when_misfit'])}), trials median {r['median_trials']:g} max "
