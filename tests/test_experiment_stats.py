@@ -237,3 +237,17 @@ def test_fit_intervals_hold_the_estimate_with_and_without_nonnegative():
     big = [fit.Stimulus(s.texture, s.method, s.level, s.score * 10, s.Ip, s.Ia) for s in stim]
     r1, r10 = fit.fit(stim, n_boot=400), fit.fit(big, n_boot=400)
     assert np.allclose(np.array(r10.ci_a), 10 * np.array(r1.ci_a))
+
+
+def test_the_similarity_design_step_checks_its_design(capsys):
+    from hostd.experiment.observers import wood_design
+    from hostd.experiment.similarity import design_check
+
+    ip0, ia0 = wood_design(0)
+    ip1, ia1 = wood_design(1)
+    for ip, ia, bad in ((ip0, ia0, False), (np.r_[ip0, ip1] / 2, np.r_[ia0, ia1] / 2, True)):
+        stimuli = [{"Ip": float(p) or None, "Ia": float(a) or None} for p, a in zip(ip, ia, strict=True)]
+        d = design_check(stimuli, 32)  # 8 participants x 4 repetitions
+        assert (d["coverage_both"] < 0.9) == bad and len(d["by_noise"]) == 4
+        err = capsys.readouterr().err
+        assert ("simulated labs" in err and "participants" in err) == bad, err

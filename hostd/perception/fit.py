@@ -284,37 +284,42 @@ def design_coverage(ip, ia, a: float, b: float, noise_sd: float, answers: int | 
 GRADE_NOISE_SDS = (0.15, 0.3, 0.5, 0.8)  # per answer: what mean scores cannot tell apart
 
 
-def _design_check(used: list[Stimulus], X: np.ndarray, y: np.ndarray, a: float, b: float, nonnegative: bool,
-                  scale: tuple[float, float] | None, sims: int) -> tuple[dict, str | None]:
-    """design_coverage() at the fitted (a, b). With every stimulus' answer count known, grades are
-    simulated, at each per-answer noise of GRADE_NOISE_SDS (mean scores do not tell the per-answer
-    noise from the misfit of the rounded grades, and the rounding's bias depends on it), and the
-    worst case is reported; else the scores themselves, with this fit's residual SD. Returns the
-    figures and a warning below COVERAGE_WARN."""
-    n = len(used)
-    counts = [s.n for s in used]
-    answers = int(np.median(counts)) if all(c for c in counts) else None
-    if answers:
-        noises = GRADE_NOISE_SDS
-    else:
-        noises = (math.sqrt(float(((y - X @ [a, b]) ** 2).sum()) / max(n - 2, 1)),)
-        if not noises[0] > 0:
-            return {"sims": 0}, None
-    cases = [design_coverage(X[:, 0], X[:, 1], a, b, sd, answers, sims=sims, scale=scale,
-                             nonnegative=nonnegative) for sd in noises]
+def design_check(ip, ia, a: float, b: float, answers: int | None, noises, *, scale=(0.0, 3.0),
+                 sims: int = DESIGN_SIMS, nonnegative: bool = False) -> tuple[dict, str | None]:
+    """design_coverage() of this design at (a, b) for each noise SD of `noises`: the worst case
+    (with every case under by_noise) and a warning when it covers both weights less often than
+    COVERAGE_WARN."""
+    cases = [design_coverage(ip, ia, a, b, sd, answers, sims=sims, scale=scale, nonnegative=nonnegative)
+             for sd in noises if sd > 0]
     cases = [d for d in cases if d.get("sims")]
     if not cases:
         return {"sims": 0}, None
     d = dict(min(cases, key=lambda c: c["coverage_both"]))
     d["by_noise"] = [{k: c[k] for k in ("noise_sd", "coverage_both", "bias_a", "bias_b")} for c in cases]
-    if d["coverage_both"] < COVERAGE_WARN:
-        return d, (f"on this design the 95 % intervals of (a, b) held both true weights in only "
-                   f"{d['coverage_both']:.0%} of {d['sims']} simulated labs (a {d['coverage_a']:.0%}, "
-                   f"b {d['coverage_b']:.0%}; bias a {d['bias_a']:+.3f}, b {d['bias_b']:+.3f}; at the "
-                   f"fitted weights and noise {d['noise_sd']:.2f}"
-                   + (f" per answer, {answers} answers per stimulus)" if answers else " per score)")
-                   + ": trust them less, or add stimuli (levels away from the scale's bottom, both methods)")
-    return d, None
+    if d["coverage_both"] >= COVERAGE_WARN:
+        return d, None
+    return d, (f"on this design the 95 % intervals of (a, b) held both true weights in only "
+               f"{d['coverage_both']:.0%} of {d['sims']} simulated labs (a {d['coverage_a']:.0%}, "
+               f"b {d['coverage_b']:.0%}; bias a {d['bias_a']:+.3f}, b {d['bias_b']:+.3f}; at (a, b) = "
+               f"({a:.3g}, {b:.3g}) and noise {d['noise_sd']:.2f}"
+               + (f" per answer, {answers} answers per stimulus)" if answers else " per score)")
+               + ": trust them less, or add stimuli (levels away from the scale's bottom, both methods)")
+
+
+def _design_check(used: list[Stimulus], X: np.ndarray, y: np.ndarray, a: float, b: float, nonnegative: bool,
+                  scale: tuple[float, float] | None, sims: int) -> tuple[dict, str | None]:
+    """design_check() at the fitted (a, b). With every stimulus' answer count known, grades are
+    simulated at each per-answer noise of GRADE_NOISE_SDS (mean scores do not tell the per-answer
+    noise from the misfit of the rounded grades, and the rounding's bias depends on it); else the
+    scores themselves, with this fit's residual SD."""
+    counts = [s.n for s in used]
+    answers = int(np.median(counts)) if all(c for c in counts) else None
+    if answers:
+        noises = GRADE_NOISE_SDS
+    else:
+        noises = (math.sqrt(float(((y - X @ [a, b]) ** 2).sum()) / max(len(used) - 2, 1)),)
+    return design_check(X[:, 0], X[:, 1], a, b, answers, noises, scale=scale, sims=sims,
+                        nonnegative=nonnegative)
 
 
 def check_scale(stimuli: list[Stimulus], scale_min: float, scale_max: float) -> None:
