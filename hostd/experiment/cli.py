@@ -197,7 +197,10 @@ def cmd_threshold(args) -> int:
     prov = (f"session {args.token}, {cfg.n_afc}AFC, {cfg.procedure}, {sess.answered()} trials, "
             f"seed {cfg.seed}, "
             f"questplus {_version('questplus')}, {time.strftime('%Y-%m-%d %H:%M:%S %z')}")
-    _write(out / "thresholds.csv", thresholds_csv(res, prov))
+    notes = sess.run.notes()  # the joint mode's check: did the curve fit?
+    _write(out / "thresholds.csv", thresholds_csv(res, "\n".join([prov, *notes])))
+    for note in notes:
+        print(f"hostd experiment: {note}", file=sys.stderr)
     for r in res:
         flag = "" if r.status == "ok" else \
             f"  ABOVE THE DISPLAY'S REACH ({r.reach_um:.3g} µm): not in the curve"
