@@ -15,7 +15,7 @@ import argparse
 
 import numpy as np
 
-from hostd.experiment.observers import make_observer
+from hostd.experiment.observers import observers
 from hostd.experiment.threshold import GRID_STEP_DB, PRIOR_SD_DB, PRIOR_SPAN_DB, db
 
 M = {"slopes": (2.0, 3.5, 6.0), "lapses": (0.0, 0.04)}
@@ -91,16 +91,15 @@ class Copy:
 def simulate(kind: str, n_afc: int, runs: int, seed: int, max_trials: int = 30, centre_um: float = 0.1,
              reach_um: float = 30.0, **variant) -> np.ndarray:
     """observers.simulate_thresholds with the copy in place of the procedure."""
+    obs, seeds = observers(kind, runs, seed, db(centre_um), n_afc)
+    u = np.random.default_rng(seeds).random((runs, max_trials))  # simulate_threshold_runs' numbers
     errs = np.empty(runs)
-    for r in range(runs):
-        rng = np.random.default_rng([seed, r])
-        obs = make_observer(kind, rng, db(centre_um), n_afc)
-        rng.integers(1 << 31)  # the run's seed in simulate_thresholds
+    for r, o in enumerate(obs):
         s = Copy(db(centre_um), db(reach_um), n_afc, **variant)
-        for _ in range(max_trials):
+        for k in range(max_trials):
             x = s.next_db()
-            s.update(x, rng.random() < obs.p_correct(x))
-        errs[r] = s.estimate_db() - obs.threshold_db
+            s.update(x, u[r, k] < o.p_correct(x))
+        errs[r] = s.estimate_db() - o.threshold_db
     return errs
 
 

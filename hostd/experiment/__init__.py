@@ -5,5 +5,6 @@ SQLite answer by answer, giving the thresholds CSV and the scores CSV that `host
 and a calibration file (hostd.perception.calibration) every command uses.
 
 This room uses perception/, codec/, render/ and the daemon's control socket; nothing outside
-it imports it. Its dependency (questplus) is imported only by the threshold procedure.
+it imports it. The procedures are numpy grids (hostd.experiment.psychometric); questplus, its
+extra's dependency, is the reference their posterior is tested against.
 """

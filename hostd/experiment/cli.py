@@ -65,15 +65,20 @@ def add_parser(sub, parents=()) -> None:
                    help="the prior's centre per frequency (default: the shipped b(f))")
     t.add_argument("--afc", type=int, choices=[2, 3], default=3,
                    help="intervals per trial (default 3: within ±2 dB in 30 trials more often than 2)")
-    t.add_argument("--trials", type=int, default=30,
-                   help="trial budget per frequency (default 30; joint: the total is this x the frequencies)")
-    t.add_argument("--procedure", choices=["per-frequency", "joint"], default="per-frequency",
+    t.add_argument("--trials", type=int, default=None,
+                   help="trial budget per frequency (default: per-frequency, stop on the 95%% interval's "
+                   "width within 60; joint, 15: the total is this x the frequencies, as much again on "
+                   "a misfit)")
+    from hostd.experiment.procedure import PROCEDURES
+
+    t.add_argument("--procedure", choices=list(PROCEDURES), default="per-frequency",
                    help="per-frequency: one QUEST+ per frequency, interleaved (default); joint: the whole "
                    "curve at once (prior curve + offset, tilt, curvature over log f)")
     t.add_argument("--joint", dest="procedure", action="store_const", const="joint",
                    help="the same as --procedure joint")
-    t.add_argument("--stop-width-db", type=float, default=0.0,
-                   help="stop a frequency once its 95%% interval is this narrow, dB (default 0: budget only)")
+    t.add_argument("--stop-width-db", type=float, default=None,
+                   help="stop a frequency once its 95%% interval is this narrow, dB (default without "
+                   "--trials: 2AFC 5.25, 3AFC 4.5; with --trials: 0, the budget only)")
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=cmd_threshold)
 
@@ -95,26 +100,9 @@ def add_parser(sub, parents=()) -> None:
     c.add_argument("--json", action="store_true", help="the calibration written (file, label, a, b) as JSON")
     c.set_defaults(func=cmd_calibration)
 
-    b = esub.add_parser("bench", help="simulated observers and participants: the procedures' statistics")
-    b.add_argument("--runs", type=int, default=200,
-                   help="seeded runs per procedure and observer (default 200)")
-    b.add_argument("--trials", type=int, default=30)
-    b.add_argument("--fit-sims", type=int, default=50)
-    b.add_argument("--seed", type=int, default=2026,
-                   help="the runs' seed (default 2026, the docs' figures; another gives independent runs)")
-    b.add_argument("--oracle", action="store_true",
-                   help="also the same runs answered to a grid Bayes that knows each observer's psychometric "
-                   "function and has only its threshold to find: what 30 trials can carry at best")
-    b.add_argument("--joint-runs", type=int, default=0, metavar="N",
-                   help="also N seeded runs per case of --procedure joint over the shipped b(f)'s "
-                   "frequencies (default 0: none; about 1-2 s CPU a run)")
-    b.add_argument("--joint-wiggle-db", type=float, default=0.0, metavar="SD",
-                   help="joint runs: each frequency's true threshold also deviates from a smooth curve by a "
-                   "normal deviate of this SD (default 0: a curve of the model's form)")
-    b.add_argument("--joint-trials", type=int, default=15,
-                   help="joint runs' budget per frequency (default 15: half the per-frequency runs')")
-    b.add_argument("--json", action="store_true")
-    b.set_defaults(func=cmd_bench)
+    from hostd.experiment.bench import add_parser as add_bench
+
+    add_bench(esub)
 
 
 def _display(args):
@@ -309,7 +297,11 @@ def cmd_threshold(args) -> int:
             f"questplus {_version('questplus')}, {time.strftime('%Y-%m-%d %H:%M:%S %z')}")
     if sim:
         prov = _sim_mark(sim)[2:] + prov
-    _results(out / "thresholds.csv", lambda: _write(out / "thresholds.csv", thresholds_csv(res, prov)), store)
+    notes = sess.run.notes()  # the joint mode's check: did the curve fit?
+    text = thresholds_csv(res, "\n".join([prov, *notes]))
+    _results(out / "thresholds.csv", lambda: _write(out / "thresholds.csv", text), store)
+    for note in notes:
+        print(f"hostd experiment: {note}", file=sys.stderr)
     for r in res:
         flag = "" if r.status == "ok" else \
             f"  ABOVE THE DISPLAY'S REACH ({r.reach_um:.3g} µm): not in the curve"
@@ -437,95 +429,6 @@ def cmd_calibration(args) -> int:
         return 0
     print(f"{args.output}: calibration {cal.label}: {curve.freq_hz.size} thresholds, "
           f"a = {a:.4g}, b = {b:.4g}")
-    return 0
-
-
-def cmd_bench(args) -> int:
-    from hostd.extras import need
-
-    need("questplus", "experiment", "hostd experiment bench")
-    import numpy as np
-
-    from hostd.experiment.observers import simulate_fit, simulate_thresholds
-
-    out = {"runs": args.runs, "seed": args.seed, "trials_per_frequency": args.trials, "threshold": {}}
-    for kind in ("weibull", "logistic"):
-        for n in (2, 3):
-            if args.runs <= 0:
-                continue
-            t0 = time.process_time()
-            e = simulate_thresholds(kind, n, args.runs, args.trials, seed=args.seed)
-            r = {"within_2db": float(np.mean(np.abs(e) <= 2.0)), "bias_db": float(np.mean(e)),
-                 "p90_abs_err_db": float(np.percentile(np.abs(e), 90)),
-                 "cpu_s_per_run": (time.process_time() - t0) / args.runs}
-            out["threshold"][f"quest+ {n}AFC, {kind} observer"] = r
-            if not args.json:
-                print(f"QUEST+ {n}AFC {kind:<8} within ±2 dB: {r['within_2db']:.1%}  "
-                      f"bias {r['bias_db']:+.2f} dB  "
-                      f"90th pct |error| {r['p90_abs_err_db']:.2f} dB  ({r['cpu_s_per_run']:.2f} s CPU/run)")
-    if args.oracle and args.runs > 0:
-        from hostd.experiment.observers import simulate_oracle
-
-        out["oracle"] = {}
-        for prior in ("procedure", "true"):
-            for kind in ("weibull", "logistic"):
-                for n in (2, 3):
-                    e = simulate_oracle(kind, n, args.runs, args.trials, seed=args.seed, prior=prior)
-                    r = {"within_2db": float(np.mean(np.abs(e) <= 2.0)), "bias_db": float(np.mean(e)),
-                         "p90_abs_err_db": float(np.percentile(np.abs(e), 90))}
-                    out["oracle"][f"{prior} prior, {n}AFC, {kind} observer"] = r
-                    if not args.json:
-                        what = "the procedure's prior" if prior == "procedure" else "the true ±8 dB draw"
-                        print(f"oracle (knows the observer's function; {what}) {n}AFC {kind:<8} within "
-                              f"±2 dB: {r['within_2db']:.1%}  bias {r['bias_db']:+.2f} dB  "
-                              f"90th pct |error| {r['p90_abs_err_db']:.2f} dB")
-    if args.joint_runs > 0:
-        from hostd.experiment.joint import simulate_joint
-
-        out["joint"] = {}
-        for kind in ("weibull", "logistic"):
-            for n in (2, 3):
-                t0 = time.process_time()
-                e = simulate_joint(kind, n, args.joint_runs, args.joint_trials, seed=args.seed,
-                                   wiggle_db=args.joint_wiggle_db)
-                within = np.abs(e) <= 2.0
-                r = {"within_2db": float(np.mean(within)),
-                     "worst_frequency_within_2db": float(np.min(np.mean(within, axis=0))),
-                     "runs_all_frequencies_within_2db": float(np.mean(np.all(within, axis=1))),
-                     "bias_db": float(np.mean(e)), "p90_abs_err_db": float(np.percentile(np.abs(e), 90)),
-                     "trials": args.joint_trials * e.shape[1], "frequencies": e.shape[1],
-                     "cpu_s_per_run": (time.process_time() - t0) / args.joint_runs}
-                out["joint"][f"joint {n}AFC, {kind} observer"] = r
-                if not args.json:
-                    print(f"joint {n}AFC {kind:<8} ({r['trials']} trials, {r['frequencies']} frequencies) "
-                          f"within ±2 dB: {r['within_2db']:.1%} of thresholds, worst frequency "
-                          f"{r['worst_frequency_within_2db']:.1%}, every frequency in "
-                          f"{r['runs_all_frequencies_within_2db']:.1%} of runs  bias {r['bias_db']:+.2f} dB  "
-                          f"90th pct |error| {r['p90_abs_err_db']:.2f} dB  "
-                          f"({r['cpu_s_per_run']:.2f} s CPU/run)")
-    out["fit"] = []
-    for sd in (0.3, 0.5, 0.8):
-        f = simulate_fit(0.581, 0.464, sd, n_sims=args.fit_sims)
-        out["fit"].append(f)
-        if not args.json:
-            print(f"hostd fit, (a, b) = (0.581, 0.464), grade noise {sd}, {f['sims']} labs of "
-                  f"{f['answers_per_stimulus']} answers x {f['stimuli']} stimuli: its 95% interval (residual "
-                  f"bootstrap-t) covers a {f['coverage_a']:.0%}, b {f['coverage_b']:.0%}, both "
-                  f"{f['coverage_both']:.0%} (width a {f['mean_width_a']:.3f}, b {f['mean_width_b']:.3f}); "
-                  f"t interval of the standard errors covers both {f['se_t_interval_coverage_both']:.0%} "
-                  f"(width a {f['se_t_interval_mean_width_a']:.3f})")
-    out["fit_plan"] = []
-    for people in (2, 4, 8, 16, 32):  # x 4 repetitions, grade noise 0.5: the width a plan buys
-        f = simulate_fit(0.581, 0.464, 0.5, n_sims=args.fit_sims, participants=people)
-        out["fit_plan"].append(f)
-        if not args.json:
-            print(f"plan: {people:2d} participants x 4 repetitions "
-                  f"({f['answers_per_stimulus']:3d} answers per stimulus), grade noise 0.5: "
-                  f"mean 95% width a {f['mean_width_a']:.3f}, "
-                  f"b {f['mean_width_b']:.3f}; covers both {f['coverage_both']:.0%}")
-    if args.json:
-        json.dump(out, sys.stdout, indent=1, default=float)
-        print()
     return 0
 
 

@@ -6,6 +6,7 @@ Design (TOML):
     repetitions = 4         # each stimulus' presentations (the paper: 4)
     length_mm = 10          # the patch of each profile
     seed = 1                # the randomised order
+    participants = 8        # planned (default 8): the design check's answers per stimulus
     [textures]              # name = a profile file (relative to the design) or synthetic:KIND[:SEED]
     wood = "synthetic:wood:1"
     [[methods]]
@@ -20,6 +21,11 @@ Every texture also gets the uncompressed control (method none: the reference twi
 same repetitions. Stimuli are hostd streams encoded into OUT/streams/, scored (Ip, Ia against
 their reference) once at planning; the trial order is randomised once with the seed and kept
 in the session, so a resumed session meets the same order.
+
+The design check: at planning, the (Ip, Ia) of the design's stimuli are simulated as labs of
+`participants` x `repetitions` grades per stimulus at the paper's (a, b) and per-answer noise
+0.15..0.8 (hostd.perception.fit.design_check), and the plan keeps the coverage and bias of the
+intervals `hostd fit` would state; below 90 % it says so on stderr before the session starts.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ from hostd.errors import ExperimentError, HostdError
 
 METHODS = {"quant": "levels", "cut": "b0_db"}
 REFERENCE_LEVELS = 4096
-KEYS = {"seconds", "repetitions", "length_mm", "seed", "textures", "methods", "gap_s"}
+KEYS = {"seconds", "repetitions", "length_mm", "seed", "textures", "methods", "gap_s", "participants"}
 
 
 def read_design(path: str | Path) -> dict:
@@ -80,13 +86,14 @@ def read_design(path: str | Path) -> dict:
                 raise ExperimentError(f"{where}: unknown texture {t!r} (the design's textures: "
                                       f"{', '.join(tex)})")
     for key, lo, hi in (("seconds", 0.5, 60), ("repetitions", 1, 100), ("length_mm", 0.1, 1000),
-                        ("gap_s", 0, 60)):
+                        ("gap_s", 0, 60), ("participants", 1, 1000)):
         v = doc.get(key)
         if v is not None and (not isinstance(v, int | float) or isinstance(v, bool) or not lo <= v <= hi):
             raise ExperimentError(f"{p}: {key} must be a number {lo:g}..{hi:g}")
     return {"path": str(p), "seconds": float(doc.get("seconds", 5.0)),
             "repetitions": int(doc.get("repetitions", 4)), "length_mm": float(doc.get("length_mm", 10.0)),
             "seed": int(doc.get("seed", 1)), "gap_s": float(doc.get("gap_s", 1.0)),
+            "participants": int(doc.get("participants", 8)),
             "textures": dict(tex), "methods": methods}
 
 
@@ -131,10 +138,31 @@ def make_plan(design: dict, out_dir: str | Path, thresholds: str | None = None) 
                 stimuli.append({"texture": name, "method": m["method"], "level": str(v), "stream": str(f),
                                 "stream_rel": f"streams/{f.name}", "reference": str(ref), "profile": spec,
                                 "Ip": float(sc["Ip"]), "Ia": float(sc["Ia"])})
+    check = design_check(stimuli, design["repetitions"] * design.get("participants", 8))
     trials = [dict(s, rep=r) for s in stimuli for r in range(design["repetitions"])]
     order = np.random.default_rng(design["seed"]).permutation(len(trials))
     trials = [dict(trials[int(j)], index=i) for i, j in enumerate(order)]
-    return {"design": design, "seconds": design["seconds"], "gap_s": design["gap_s"], "trials": trials}
+    return {"design": design, "seconds": design["seconds"], "gap_s": design["gap_s"], "trials": trials,
+            "design_check": check}
+
+
+def design_check(stimuli: list[dict], answers: int) -> dict:
+    """The coverage and bias of (a, b)'s intervals on these stimuli (the control at Ip = Ia = 0),
+    at the paper's weights, by simulation (hostd.perception.fit.design_check); a warning on
+    stderr below 90 %."""
+    from hostd.perception import fit
+    from hostd.perception.indices import DEFAULT_AB
+
+    ip = np.array([s["Ip"] or 0.0 for s in stimuli])
+    ia = np.array([s["Ia"] or 0.0 for s in stimuli])
+    if np.linalg.matrix_rank(np.column_stack([ip, ia])) < 2:
+        return {"sims": 0, "why": "Ip and Ia are collinear over the design: (a, b) cannot be fitted"}
+    d, warning = fit.design_check(ip, ia, *DEFAULT_AB, answers, fit.GRADE_NOISE_SDS)
+    if warning:
+        from hostd.cliopts import warn
+
+        warn("experiment similarity", f"{warning} (the design file's participants = N sets the answers)")
+    return d
 
 
 def scores_csv(rows: list[dict]) -> str:

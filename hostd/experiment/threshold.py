@@ -1,8 +1,8 @@
-"""Detection thresholds by QUEST+ (the questplus package), nAFC, frequencies interleaved.
+"""Detection thresholds by QUEST+, nAFC, frequencies interleaved.
 
 Intensities are in dB re 1 µm peak displacement, x = 20 log10(A / 1 µm). The model is
-questplus' Weibull on that scale (slope and lapse per n-AFC: SLOPES, LAPSE),
-P(correct) = 1 - δ - (1 - γ - δ) exp(-10^(β (x - t) / 20)),
+questplus' Weibull on that scale (hostd.experiment.psychometric; slope and lapse per n-AFC:
+SLOPES, LAPSE), P(correct) = 1 - δ - (1 - γ - δ) exp(-10^(β (x - t) / 20)),
 with γ = 1/n (n-AFC), δ the lapse rate and t the threshold: the displacement at which the
 observer detects the stimulus with probability 1 - 1/e (63 %) beyond guessing. Per frequency
 the stimulus grid runs from PRIOR_SPAN_DB below the prior (the shipped b(f), or a curve given)
@@ -11,10 +11,16 @@ anything above); the threshold grid runs PRIOR_SPAN_DB either side of the prior,
 above the reach is estimated as such and reported with status "above_reach", never clipped.
 
 A frequency's next level is the one of least expected entropy of t's marginal posterior (the
-QUEST+ rule with β and δ as nuisance parameters, computed from questplus' posterior and model
-table). The estimate is the posterior mean of t; its interval the central 95 % of t's marginal
-posterior. A frequency stops at its trial budget or when that interval is narrower than
-stop_width_db. Trials of the frequencies still running are interleaved at random (seeded).
+QUEST+ rule with β and δ as nuisance parameters: psychometric.information). The posterior is a
+grid Bayes in numpy (ThresholdGrid: the one questplus.QuestPlus keeps, equal to it to rounding,
+which tests/test_experiment_stats.py checks; in numpy so that the bench runs hundreds of runs
+at once through the same code). The estimate is the posterior mean of t; its interval the
+central 95 % of t's marginal posterior. A frequency stops at its trial budget or, after
+MIN_TRIALS_WIDTH trials, when that interval is narrower than stop_width_db. By default
+(no budget given) the stop is that width, STOP_WIDTH_DB, within at most MAX_TRIALS trials: a
+steep observer's frequency ends in about 20 trials, a shallow one's takes more (2AFC at a fixed
+30 trials put 75 % of a β = 2 observer's thresholds within ±2 dB; `hostd experiment bench`).
+Trials of the frequencies still running are interleaved at random (seeded).
 A run is a pure function of (config, seed, answers): resuming replays the answers recorded.
 """
 
@@ -28,6 +34,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from hostd.errors import ExperimentError
+from hostd.experiment import psychometric
+from hostd.experiment.procedure import PROCEDURES
 
 PRIOR_SPAN_DB = 30.0
 GRID_STEP_DB = 1.0
@@ -39,8 +47,12 @@ GRID_STEP_DB = 1.0
 SLOPES = {2: (2.0, 3.5, 6.0), 3: (2.0, 3.5, 6.0)}
 LAPSE = {2: (0.0, 0.04), 3: (0.0, 0.04)}
 PRIOR_SD_DB = 6.0  # the prior on t: normal about the prior curve, 6 dB (0: flat)
-PROCEDURES = ("per-frequency", "joint")
-_PARAMS = ("threshold", "slope", "lower_asymptote", "lapse_rate")
+# The default stop (no budget given): the 95 % interval this narrow, after at least
+# MIN_TRIALS_WIDTH trials and within MAX_TRIALS (docs/experiments.md: `hostd experiment bench`).
+STOP_WIDTH_DB = {2: 5.25, 3: 4.5}  # per n-AFC: medians of 38 and 33 trials on the bench's observers
+MIN_TRIALS_WIDTH = 12
+MAX_TRIALS = 60
+JOINT_TRIALS = 15  # the joint procedure's default budget per frequency: half of per-frequency's 30
 
 
 def db(um: float) -> float:
@@ -57,16 +69,40 @@ class ThresholdConfig:
     prior_um: list[float]  # the prior's centre per frequency (the shipped b(f) by default)
     reach_um: list[float]  # the display's reach per frequency (hostd.experiment.display.Reach)
     n_afc: int = 2
-    max_trials: int = 30  # per frequency
-    stop_width_db: float = 0.0  # stop a frequency when its 95 % interval is narrower (0: never)
+    # per frequency (joint: the joint phase's budget is this x the frequencies). None: the
+    # procedure's default, per-frequency MAX_TRIALS with the stop width STOP_WIDTH_DB, joint
+    # JOINT_TRIALS (and as many again per frequency when its curve does not fit: joint.py)
+    max_trials: int | None = None
+    # stop a frequency when its 95 % interval is narrower (0: never; None: STOP_WIDTH_DB when
+    # max_trials is None too, else 0)
+    stop_width_db: float | None = None
     seed: int = 0
     duration_s: float = 0.5  # each interval's stimulus
     gap_s: float = 0.4  # silence between the intervals
     procedure: str = "per-frequency"  # or "joint": the whole curve at once (hostd.experiment.joint)
+    # joint: trials per frequency to spend per frequency when the curve does not fit the joint
+    # model (a posterior predictive check; None: max_trials, so the two phases together spend at
+    # most the per-frequency budget; 0: never)
+    misfit_trials: int | None = None
 
     def __post_init__(self) -> None:
+        if self.procedure not in PROCEDURES:
+            raise ExperimentError(f"--procedure {self.procedure}: one of {', '.join(PROCEDURES)}")
         if self.n_afc not in (2, 3):
             raise ExperimentError(f"--afc {self.n_afc}: 2 or 3 intervals")
+        joint = self.procedure == "joint"
+        if self.max_trials is None:
+            self.max_trials = JOINT_TRIALS if joint else MAX_TRIALS
+            if self.stop_width_db is None:
+                self.stop_width_db = 0.0 if joint else STOP_WIDTH_DB.get(self.n_afc, 0.0)
+        if self.stop_width_db is None:
+            self.stop_width_db = 0.0
+        if self.misfit_trials is None:
+            self.misfit_trials = self.max_trials if joint else 0
+        if not (math.isfinite(self.stop_width_db) and self.stop_width_db >= 0):
+            raise ExperimentError(f"--stop-width-db {self.stop_width_db}: a width in dB >= 0")
+        if not 0 <= self.misfit_trials <= 1000:
+            raise ExperimentError("misfit trials: 0..1000 per frequency")
         if not self.frequencies_hz:
             raise ExperimentError("no frequencies to measure")
         if len({len(self.frequencies_hz), len(self.prior_um), len(self.reach_um)}) != 1:
@@ -76,8 +112,6 @@ class ThresholdConfig:
                 raise ExperimentError(f"{f} Hz: frequency, prior and reach must be finite and > 0")
         if not 1 <= self.max_trials <= 1000:
             raise ExperimentError("--trials: 1..1000 per frequency")
-        if self.procedure not in PROCEDURES:
-            raise ExperimentError(f"--procedure {self.procedure}: one of {', '.join(PROCEDURES)}")
         if self.procedure == "joint" and len(self.frequencies_hz) < 3:
             raise ExperimentError("--procedure joint fits a curve over frequency: give at least 3 "
                                   "frequencies")
@@ -97,14 +131,14 @@ class ThresholdResult:
         return asdict(self)
 
 
-class Staircase:
-    """One frequency's QUEST+ (questplus.QuestPlus, Weibull on the dB scale)."""
+class ThresholdGrid:
+    """A batch of per-frequency QUEST+ posteriors over (t, β, δ) on one stimulus grid: one run per
+    row (a live frequency is a batch of one; the bench runs hundreds at once). The model is
+    psychometric.weibull (questplus' Weibull on the dB scale, as questplus computes it: tests
+    check the posterior against questplus'), the rule psychometric.information with β and δ
+    as nuisance parameters."""
 
-    def __init__(self, frequency_hz: float, prior_um: float, reach_um: float, n_afc: int) -> None:
-        import questplus
-
-        self.frequency_hz = frequency_hz
-        self.reach_um = reach_um
+    def __init__(self, prior_um: float, reach_um: float, n_afc: int, runs: int = 1) -> None:
         centre = db(prior_um)
         top = db(reach_um)
         lo = centre - PRIOR_SPAN_DB
@@ -113,55 +147,83 @@ class Staircase:
             stim = np.array([top - GRID_STEP_DB, top])
         self.stim = stim
         self.thresholds = np.arange(lo, max(centre + PRIOR_SPAN_DB, top + 6.0) + 1e-9, GRID_STEP_DB)
-        prior = None
+        b, d = np.meshgrid(np.array(SLOPES[n_afc]), np.array(LAPSE[n_afc]), indexing="ij")
+        self.slope, self.lapse, self.guess = b.ravel(), d.ravel(), 1.0 / n_afc  # (n_nuisance,)
+        self.table = self.likelihood(stim)  # P(correct) per (stimulus, threshold, nuisance)
+        prior = np.ones(self.thresholds.size)
         if PRIOR_SD_DB > 0:
-            prior = {"threshold": np.exp(-0.5 * ((self.thresholds - centre) / PRIOR_SD_DB) ** 2)}
-        self.qp = questplus.QuestPlus(
-            stim_domain={"intensity": stim}, prior=prior,
-            param_domain={"threshold": self.thresholds, "slope": np.array(SLOPES[n_afc]),
-                          "lower_asymptote": np.array([1.0 / n_afc]), "lapse_rate": np.array(LAPSE[n_afc])},
-            outcome_domain={"response": ["Correct", "Incorrect"]},
-            func="weibull", stim_scale="dB", stim_selection_method="min_entropy")
-        # P(correct) per (stimulus, threshold, (slope, guess, lapse)): questplus' own model table
-        lik = self.qp.likelihoods.sel(response="Correct").transpose("intensity", *_PARAMS).values
-        self._p_correct = np.ascontiguousarray(lik.reshape(lik.shape[0], lik.shape[1], -1), dtype=np.float64)
-        self.n = 0
+            prior = np.exp(-0.5 * ((self.thresholds - centre) / PRIOR_SD_DB) ** 2)
+        p0 = np.repeat(prior[:, None], self.slope.size, axis=1)
+        self.post = np.repeat((p0 / p0.sum())[None], runs, axis=0)  # (runs, threshold, nuisance)
+        self.n = np.zeros(runs, dtype=int)
+
+    def likelihood(self, x_db) -> np.ndarray:
+        """P(correct) at the levels x_db (any shape) per (threshold, nuisance): x's shape + 2 axes."""
+        x = np.asarray(x_db, dtype=np.float64)[..., None, None]
+        return psychometric.weibull(x, self.thresholds[:, None], self.slope, self.guess, self.lapse)
+
+    def next_index(self, rows=slice(None)) -> np.ndarray:
+        """Per run of `rows`, the index into stim of the level of most information about t."""
+        return np.argmax(psychometric.information(self.post[rows], self.table), axis=-1)
+
+    def update(self, rows, x_db, correct) -> None:
+        lik = self.likelihood(x_db)
+        p = self.post[rows] * np.where(np.asarray(correct)[..., None, None], lik, 1.0 - lik)
+        self.post[rows] = psychometric.flush(p / p.sum(axis=(-2, -1), keepdims=True))
+        self.n[rows] += 1
+
+    def marginal(self) -> np.ndarray:
+        return self.post.sum(axis=-1)  # (runs, threshold)
+
+    def estimate_db(self) -> np.ndarray:
+        m = self.marginal()
+        return (m @ self.thresholds) / m.sum(axis=-1)
+
+    def interval_db(self, level: float = 0.95, rows=slice(None)) -> np.ndarray:
+        """The central `level` of t's marginal posterior, (runs, 2)."""
+        m = self.post[rows].sum(axis=-1)
+        c = np.cumsum(m, axis=-1) / m.sum(axis=-1, keepdims=True)
+        q = ((1 - level) / 2, (1 + level) / 2)
+        return np.array([np.interp(q, ci, self.thresholds) for ci in c]).reshape(-1, 2)
+
+    def width_db(self, level: float = 0.95, rows=slice(None)) -> np.ndarray:
+        iv = self.interval_db(level, rows)
+        return iv[:, 1] - iv[:, 0]
+
+
+class Staircase:
+    """One frequency's QUEST+: a ThresholdGrid of one run."""
+
+    def __init__(self, frequency_hz: float, prior_um: float, reach_um: float, n_afc: int) -> None:
+        self.frequency_hz = frequency_hz
+        self.reach_um = reach_um
+        self.grid = ThresholdGrid(prior_um, reach_um, n_afc)
+        self.stim = self.grid.stim
+        self.thresholds = self.grid.thresholds
+
+    @property
+    def n(self) -> int:
+        return int(self.grid.n[0])
 
     def next_db(self) -> float:
         """The level that minimises the expected entropy of the threshold's marginal posterior
         (questplus' own rule, `qp.next_stim`, minimises that of the whole (t, β, δ) posterior and
         so spends trials on the slope and lapse, which only the threshold's estimate needs as
         nuisance parameters)."""
-        post = self.qp.posterior.transpose(*_PARAMS).values
-        n_t = post.shape[0]
-        pc = np.einsum("itk,tk->it", self._p_correct, post.reshape(n_t, -1))  # (stimulus, threshold)
-        pi = post.sum(axis=(1, 2, 3))[None, :] - pc
-        eh = np.zeros(pc.shape[0])
-        for m in (pc, pi):  # the joint probability of (answer, t): entropy of t given the answer
-            tot = m.sum(axis=1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                h = -np.sum(np.where(m > 0, m * np.log(m / tot[:, None]), 0.0), axis=1)
-            eh += h  # = P(answer) H(t | answer)
-        return float(self.stim[int(np.argmin(eh))])
+        return float(self.stim[int(self.grid.next_index()[0])])
 
     def update(self, x_db: float, correct: bool) -> None:
-        self.qp.update(stim={"intensity": float(x_db)},
-                       outcome={"response": "Correct" if correct else "Incorrect"})
-        self.n += 1
+        self.grid.update(slice(None), np.array([float(x_db)]), np.array([bool(correct)]))
 
     def marginal(self) -> np.ndarray:
-        return np.asarray(self.qp.marginal_posterior["threshold"], dtype=np.float64)
+        return self.grid.marginal()[0]
 
     def estimate_db(self) -> float:
-        m = self.marginal()
-        return float(np.sum(m * self.thresholds) / np.sum(m))
+        return float(self.grid.estimate_db()[0])
 
     def interval_db(self, level: float = 0.95) -> tuple[float, float]:
-        m = self.marginal()
-        c = np.cumsum(m) / np.sum(m)
-        lo = float(np.interp((1 - level) / 2, c, self.thresholds))
-        hi = float(np.interp((1 + level) / 2, c, self.thresholds))
-        return lo, hi
+        lo, hi = self.grid.interval_db(level)[0]
+        return float(lo), float(hi)
 
     def result(self) -> ThresholdResult:
         t = self.estimate_db()
@@ -217,7 +279,7 @@ class ThresholdRun:
         for i, s in enumerate(self.stairs):
             if s.n >= self.cfg.max_trials:
                 continue
-            if self.cfg.stop_width_db > 0 and s.n >= 5:
+            if self.cfg.stop_width_db > 0 and s.n >= MIN_TRIALS_WIDTH:
                 lo, hi = s.interval_db()
                 if hi - lo <= self.cfg.stop_width_db:
                     continue
@@ -257,6 +319,9 @@ class ThresholdRun:
 
     def results(self) -> list[ThresholdResult]:
         return [s.result() for s in self.stairs]
+
+    def notes(self) -> list[str]:
+        return []
 
 
 def thresholds_csv(results: list[ThresholdResult], provenance: str = "") -> str:

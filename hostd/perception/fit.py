@@ -34,6 +34,7 @@ class Stimulus:
     Ip: float
     Ia: float
     excluded: str = ""
+    n: int | None = None  # answers averaged into the score (the scores CSV's optional n column)
 
 
 @dataclass
@@ -55,6 +56,8 @@ class FitResult:
     # --nonnegative (the se are the unconstrained fit's).
     t_interval_a: tuple[float, float] | None = None
     t_interval_b: tuple[float, float] | None = None
+    # the coverage and bias of these intervals on this design, by simulation (design_coverage)
+    design: dict | None = None
 
     def as_dict(self) -> dict:
         return {
@@ -64,7 +67,7 @@ class FitResult:
             "ci_b": list(self.ci_b) if self.ci_b else None, "ci_level": self.ci_level,
             "t_interval_a": list(self.t_interval_a) if self.t_interval_a else None,
             "t_interval_b": list(self.t_interval_b) if self.t_interval_b else None,
-            "warnings": self.warnings,
+            "warnings": self.warnings, "design": self.design,
             "excluded": self.excluded, "metrics": self.metrics,
             "legend": {
                 "r2_pearson": "squared Pearson correlation of index and scores (the paper's R^2)",
@@ -211,6 +214,114 @@ def bootstrap_intervals(X: np.ndarray, y: np.ndarray, nonnegative: bool, n_boot:
     return (float(lo[0]), float(hi[0])), (float(lo[1]), float(hi[1]))
 
 
+COVERAGE_WARN = 0.90  # a design whose simulated 95 % intervals cover both weights less often: a warning
+DESIGN_SIMS = 100  # per noise level
+
+
+def design_coverage(ip, ia, a: float, b: float, noise_sd: float, answers: int | None = None, *,
+                    sims: int = DESIGN_SIMS, n_boot: int = 500, seed: int = 0,
+                    scale: tuple[float, float] | None = (0.0, 3.0), nonnegative: bool = False) -> dict:
+    """The coverage and bias of the intervals fit() states, on this design, by simulation: `sims`
+    labs whose scores follow Iobj = a Ip + b Ia exactly, fitted as fit() fits them.
+
+    With `answers`, each stimulus' score is the mean of that many grades a Ip + b Ia + N(0,
+    noise_sd), rounded to the scale's integers and clipped to it (the paper's 0..3 grades: near
+    the scale's bottom the mean is pulled up, which biases the weights); without, the score is
+    a Ip + b Ia + N(0, noise_sd), clipped to the scale when one is given. Lab s draws from the
+    generator seeded [seed, s]. Returns the share of labs whose interval held a, b and both,
+    the mean estimates' bias, the intervals' mean widths, and the same coverage for the t
+    interval of the standard errors."""
+    ip = np.asarray(ip, dtype=np.float64)
+    ia = np.asarray(ia, dtype=np.float64)
+    X = np.column_stack([ip, ia])
+    true = a * ip + b * ia
+    n = ip.size
+    cov = np.zeros(3)
+    est, widths = [], []
+    t_both, t_width, done = 0, [], 0
+    import scipy.stats
+
+    for s in range(sims):
+        rng = np.random.default_rng([seed, s])
+        if answers:
+            y = np.rint(true[None, :] + rng.normal(0, noise_sd, (answers, n)))
+            if scale is not None:
+                y = np.clip(y, *scale)
+            y = y.mean(axis=0)
+        else:
+            y = true + rng.normal(0, noise_sd, n)
+            if scale is not None:
+                y = np.clip(y, *scale)
+        if np.ptp(y) == 0:
+            continue
+        w = _solve(X, y, nonnegative)
+        ci = bootstrap_intervals(X, y, nonnegative, n_boot)
+        if ci is None:
+            continue
+        done += 1
+        ca = ci[0][0] <= a <= ci[0][1]
+        cb = ci[1][0] <= b <= ci[1][1]
+        cov += (ca, cb, ca and cb)
+        est.append(w)
+        widths.append((ci[0][1] - ci[0][0], ci[1][1] - ci[1][0]))
+        se = standard_errors(X, y, w)
+        if se and not nonnegative:
+            k = float(scipy.stats.t.ppf(0.975, n - 2))
+            t_both += abs(w[0] - a) <= k * se[0] and abs(w[1] - b) <= k * se[1]
+            t_width.append(2 * k * se[0])
+    if not done:
+        return {"sims": 0}
+    e = np.mean(est, axis=0)
+    wd = np.mean(widths, axis=0)
+    return {"sims": done, "coverage_a": cov[0] / done, "coverage_b": cov[1] / done,
+            "coverage_both": cov[2] / done, "bias_a": float(e[0] - a), "bias_b": float(e[1] - b),
+            "mean_width_a": float(wd[0]), "mean_width_b": float(wd[1]), "stimuli": n,
+            "answers_per_stimulus": answers, "noise_sd": noise_sd,
+            "se_t_interval_coverage_both": t_both / done,
+            "se_t_interval_mean_width_a": float(np.mean(t_width)) if t_width else None}
+
+
+GRADE_NOISE_SDS = (0.15, 0.3, 0.5, 0.8)  # per answer: what mean scores cannot tell apart
+
+
+def design_check(ip, ia, a: float, b: float, answers: int | None, noises, *, scale=(0.0, 3.0),
+                 sims: int = DESIGN_SIMS, nonnegative: bool = False) -> tuple[dict, str | None]:
+    """design_coverage() of this design at (a, b) for each noise SD of `noises`: the worst case
+    (with every case under by_noise) and a warning when it covers both weights less often than
+    COVERAGE_WARN."""
+    cases = [design_coverage(ip, ia, a, b, sd, answers, sims=sims, scale=scale, nonnegative=nonnegative)
+             for sd in noises if sd > 0]
+    cases = [d for d in cases if d.get("sims")]
+    if not cases:
+        return {"sims": 0}, None
+    d = dict(min(cases, key=lambda c: c["coverage_both"]))
+    d["by_noise"] = [{k: c[k] for k in ("noise_sd", "coverage_both", "bias_a", "bias_b")} for c in cases]
+    if d["coverage_both"] >= COVERAGE_WARN:
+        return d, None
+    return d, (f"on this design the 95 % intervals of (a, b) held both true weights in only "
+               f"{d['coverage_both']:.0%} of {d['sims']} simulated labs (a {d['coverage_a']:.0%}, "
+               f"b {d['coverage_b']:.0%}; bias a {d['bias_a']:+.3f}, b {d['bias_b']:+.3f}; at (a, b) = "
+               f"({a:.3g}, {b:.3g}) and noise {d['noise_sd']:.2f}"
+               + (f" per answer, {answers} answers per stimulus)" if answers else " per score)")
+               + ": trust them less, or add stimuli (levels away from the scale's bottom, both methods)")
+
+
+def _design_check(used: list[Stimulus], X: np.ndarray, y: np.ndarray, a: float, b: float, nonnegative: bool,
+                  scale: tuple[float, float] | None, sims: int) -> tuple[dict, str | None]:
+    """design_check() at the fitted (a, b). With every stimulus' answer count known, grades are
+    simulated at each per-answer noise of GRADE_NOISE_SDS (mean scores do not tell the per-answer
+    noise from the misfit of the rounded grades, and the rounding's bias depends on it); else the
+    scores themselves, with this fit's residual SD."""
+    counts = [s.n for s in used]
+    answers = int(np.median(counts)) if all(c for c in counts) else None
+    if answers:
+        noises = GRADE_NOISE_SDS
+    else:
+        noises = (math.sqrt(float(((y - X @ [a, b]) ** 2).sum()) / max(len(used) - 2, 1)),)
+    return design_check(X[:, 0], X[:, 1], a, b, answers, noises, scale=scale, sims=sims,
+                        nonnegative=nonnegative)
+
+
 def check_scale(stimuli: list[Stimulus], scale_min: float, scale_max: float) -> None:
     """Scores must lie on the rating scale [scale_min, scale_max]."""
     for s in stimuli:
@@ -235,7 +346,7 @@ def check_indices(stimuli: list[Stimulus]) -> None:
 
 def fit(stimuli: list[Stimulus], *, nonnegative: bool = False,
         scale_max: float | None = None, exclude_saturated: bool = False,
-        scale_min: float | None = None, n_boot: int = 2000) -> FitResult:
+        scale_min: float | None = None, n_boot: int = 2000, design_sims: int = DESIGN_SIMS) -> FitResult:
     """Fit Iobj = a Ip + b Ia to the scores by least squares without intercept (eq. 13-15).
 
     Stimuli with a mean score at scale_max are excluded when asked (flagged). Scores outside
@@ -245,7 +356,9 @@ def fit(stimuli: list[Stimulus], *, nonnegative: bool = False,
     above COND_WARN is warned about. Returns (a, b), their standard errors (unconstrained fit;
     None when the stimuli have no distinct rows to spare) and residual bootstrap-t intervals
     (2000 resamples, seeded: reproducible; bootstrap_intervals says why this bootstrap), and
-    warnings (fewer than 5 stimuli per fitted weight, ill-conditioning, repeated stimuli).
+    warnings (fewer than 5 stimuli per fitted weight, ill-conditioning, repeated stimuli, and
+    intervals that cover the weights less than COVERAGE_WARN on this design: with intervals,
+    design_sims labs are simulated from the fitted weights on this design, `design`).
     """
     if scale_max is not None:
         check_scale(stimuli, -math.inf if scale_min is None else scale_min, scale_max)
@@ -298,6 +411,12 @@ def fit(stimuli: list[Stimulus], *, nonnegative: bool = False,
     if len(used) < 2 * MIN_PER_PARAMETER:
         warns.append(f"only {len(used)} stimuli for 2 weights (fewer than {MIN_PER_PARAMETER} per "
                      "parameter): (a, b) are poorly determined; see their intervals")
+    design_fig = None
+    if ci and design_sims > 0:
+        scale = (-math.inf if scale_min is None else scale_min, scale_max) if scale_max is not None else None
+        design_fig, w = _design_check(used, X, y, a, b, nonnegative, scale, design_sims)
+        if w:
+            warns.append(w)
     ti = None
     if se and not nonnegative:
         import scipy.stats
@@ -307,7 +426,8 @@ def fit(stimuli: list[Stimulus], *, nonnegative: bool = False,
     return FitResult(a, b, nonnegative, len(used), excluded, metrics,
                      se_a=se[0] if se else None, se_b=se[1] if se else None,
                      ci_a=ci[0] if ci else None, ci_b=ci[1] if ci else None, warnings=warns,
-                     t_interval_a=ti[0] if ti else None, t_interval_b=ti[1] if ti else None)
+                     t_interval_a=ti[0] if ti else None, t_interval_b=ti[1] if ti else None,
+                     design=design_fig)
 
 
 CONTROL = "none"  # the uncompressed control: the reference against itself, Ip = Ia = 0
@@ -390,5 +510,14 @@ def read_scores(path: str | Path, score_one=None) -> list[Stimulus]:
             if prof and not synth.is_spec(prof):
                 prof = str(p.parent / prof)
             idx = score_one(p.parent / stream, prof)
-        out.append(Stimulus(r["texture"], r["method"], r["level"], score, *idx))
+        count = None
+        if (r.get("n") or "").strip():
+            try:
+                count = int(r["n"])
+            except ValueError:
+                raise FitError(f"{where}: n (answers per score) must be a whole number, "
+                               f"not {r['n']!r:.20}") from None
+            if count < 1:
+                raise FitError(f"{where}: n (answers per score) must be >= 1")
+        out.append(Stimulus(r["texture"], r["method"], r["level"], score, *idx, n=count))
     return out
