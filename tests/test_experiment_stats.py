@@ -141,7 +141,7 @@ def test_the_procedures_defaults_and_names():
     from hostd.parser import build_parser
 
     ap = build_parser()
-    ns = ap.parse_args(["experiment", "threshold", "--out", "x", "--token", "t", "--procedure", "joint"])
+    ns = ap.parse_args(["experiment", "threshold", "-o", "x", "--token", "t", "--procedure", "joint"])
     assert ns.procedure == "joint" and ns.trials is None
 
 
