@@ -494,3 +494,18 @@ def test_a_full_disk_stops_with_one_line_and_a_plain_message_and_resume_finishes
         assert th.load_csv(out / "thresholds.csv").freq_hz.size == 1
     finally:
         subprocess.run(["umount", "-l", str(fs)], capture_output=True)
+
+
+def test_a_session_command_gives_the_callers_umask_back(tmp_path):
+    """The session's files are 0600 (umask 077 while it runs); a script or a test that calls
+    hostd.cli.main gets its own umask back (it leaked: later files of the caller were 0600)."""
+    import os
+
+    old = os.umask(0o022)
+    try:
+        assert main(["experiment", "threshold", "-o", str(tmp_path / "t"), "--participant", "u",
+                     "--frequencies", "40", "--trials", "2", "--simulate", "weibull"]) == 0
+        assert os.umask(0o022) == 0o022
+        assert (tmp_path / "t" / "thresholds.csv").stat().st_mode & 0o077 == 0
+    finally:
+        os.umask(old)

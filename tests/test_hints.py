@@ -71,6 +71,8 @@ def test_iobj_prints_aligned_keys_with_sensible_precision(tmp_path, capsys):
     capsys.readouterr()
     assert main(["iobj", s]) == 0
     lines = capsys.readouterr().out.splitlines()
+    assert lines[-1].startswith("Iobj ") and "0 = identical" in lines[-1]  # the legend, last
+    lines = lines[:-1]
     assert len({ln.index(":") for ln in lines}) == 1, lines  # one column of colons
     for ln in lines:
         value = ln.split(": ", 1)[1]
@@ -83,11 +85,15 @@ def test_encode_says_when_the_guard_set_the_size(tmp_path, capsys):
                  "--json"]) == 0
     captured = capsys.readouterr()
     res = json.loads(captured.out)
-    assert res["Iobj"] < 0.025  # far under the target: the guard decided
-    assert "the waveform criterion" in captured.err and "not Iobj, set" in captured.err
+    assert res["Iobj"] < 0.025  # far under the target: the guard decided, and the output leads with it
+    assert list(res)[:2] == ["binding", "size_set_by"]
+    assert res["binding"] == "SPQI >= 0.9" and res["size_set_by"] == "waveform"
+    assert main(["encode", "synthetic:wood:1", "-o", str(tmp_path / "w.vtx"), "--target-iobj", "0.05"]) == 0
+    assert "the smallest stream with SPQI >= 0.9: the constraint that set its size" in \
+        capsys.readouterr().err.splitlines()[0]
     assert main(["encode", "synthetic:wood:1", "-o", str(tmp_path / "w.vtx"), "--target-iobj", "0.05",
-                 "--no-guard"]) == 0
-    assert "waveform criterion" not in capsys.readouterr().err
+                 "--no-guard", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["size_set_by"] == "Iobj"
 
 
 @pytest.mark.parametrize("group", ["bench", "report"])

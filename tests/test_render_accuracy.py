@@ -99,7 +99,8 @@ def test_the_band_limit_uses_the_speed_at_play_time():
         r.on_encoder(a, c % (1 << 32))
     t_play = t[-1] + 0.005 + np.arange(3) / 3000.0
     plan = r.plan(t_play)
-    t_mid = 0.5 * (t_play[0] + t_play[-1]) + r.latency_s
+    t_chain = t_play + r.latency_s  # the instants the samples play at, as the renderer takes them
+    t_mid = 0.5 * (float(t_chain[0]) + float(t_chain[-1]))  # (in its order: (a+L+b+L)/2 is not (a+b)/2+L)
     v_true = v0 + accel * t_mid
     assert abs(plan.speed_mm_s - v_true) < 0.3, (plan.speed_mm_s, v_true)
     assert abs(r.motion.velocity_mm_s - v_true) > 2.0  # the newest reading's speed lags by ~3 mm/s

@@ -119,14 +119,30 @@ def _display(args):
     raise ExperimentError(f"--display {args.display}: sim or daemon")
 
 
+def _private_files(cmd):
+    """Run a session command with umask 077, so that every file it writes (results, streams,
+    SQLite's -wal/-shm) is 0600, and give the caller's umask back after it (the command may run
+    inside another program: hostd.cli.main called by a script or a test)."""
+    import functools
+    import os
+
+    @functools.wraps(cmd)
+    def run(args) -> int:
+        old = os.umask(0o077)
+        try:
+            return cmd(args)
+        finally:
+            os.umask(old)
+
+    return run
+
+
 def _open_session(args, out: Path, kind: str, make_plan):
     """The store (the folder made 0700, files 0600), the session's label and its plan: a new
     session (make_plan() -> plan) or, with --resume, the stored one."""
-    import os
 
     from hostd.experiment.session import Store
 
-    os.umask(0o077)  # every file this command writes (results, streams, SQLite's -wal/-shm): 0600
     if args.participant_token:
         print("hostd experiment: --token is deprecated: it is now only the session's label, the same as "
               "--participant (the page's address carries a secret hostd makes)", file=sys.stderr)
@@ -251,6 +267,7 @@ def _finish_logs(write) -> None:
         pass
 
 
+@_private_files
 def cmd_threshold(args) -> int:
     from hostd.extras import need
 
@@ -338,6 +355,7 @@ def _write_trial_log(sess, path: Path, simulated: str | None = None) -> None:
             fh.write(f"# event {e['at']:.3f} {e['kind']} {e['detail']}\n")
 
 
+@_private_files
 def cmd_similarity(args) -> int:
     from hostd.experiment.plan import read_plan
     from hostd.experiment.runner import SimilaritySession, similarity_scores
