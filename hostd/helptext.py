@@ -25,7 +25,7 @@ hostd fit SCORES.csv [--json] [--nonnegative] [--exclude-saturated] [--bootstrap
 hostd experiment threshold -o thr --participant p01             # detection thresholds b(f) on your display
 hostd experiment similarity DESIGN.toml -o sim --participant p01   # the paper's test: scores for hostd fit
 hostd experiment calibration -o lab.toml --thresholds thr/thresholds.csv --fit fit.json   # your (a, b), b(f)
-hostd experiment bench [--runs 200] [--json]                    # the procedures on simulated observers
+hostd experiment bench [--runs 400] [--check] [--json]          # the procedures on simulated observers
 hostd report rate-quality PROFILE -o DIR [--json]               # CSV, Markdown, PNG: Iobj, Ip, Ia, SPQI, CPU
 hostd render IN.vtx --speed-mm-s 50 --seconds 5 -o OUT.wav      # what a hand at 50 mm/s feels, as a WAV file
 hostd export IN.vtx|PROFILE -o OUT.hjif [--speed-mm-s 80]       # MPEG-I Haptics .hjif (the standard)
