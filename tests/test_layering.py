@@ -171,37 +171,7 @@ def test_no_import_circle_at_all(imports):
 
 def test_no_import_circle_through_module_level_imports(imports):
     top, _ = imports
-    # Tarjan's strongly connected components over the module graph
-    index: dict[str, int] = {}
-    low: dict[str, int] = {}
-    stack: list[str] = []
-    on_stack: set[str] = set()
-    circles: list[list[str]] = []
-
-    def strong(v: str) -> None:
-        index[v] = low[v] = len(index)
-        stack.append(v)
-        on_stack.add(v)
-        for w in top.get(v, ()):
-            if w not in index:
-                strong(w)
-                low[v] = min(low[v], low[w])
-            elif w in on_stack:
-                low[v] = min(low[v], index[w])
-        if low[v] == index[v]:
-            comp = []
-            while True:
-                w = stack.pop()
-                on_stack.discard(w)
-                comp.append(w)
-                if w == v:
-                    break
-            if len(comp) > 1:
-                circles.append(sorted(comp))
-
-    for v in sorted(set(top) | {w for ws in top.values() for w in ws}):
-        if v not in index:
-            strong(v)
+    circles = _circles(top)
     assert not circles, f"import circles through module-level imports: {circles}"
 
 
