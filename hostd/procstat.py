@@ -90,3 +90,21 @@ def pss_kb(pid: int) -> int:
 def threads(pid: int) -> int:
     """Threads of a process (/proc/PID/task)."""
     return len(os.listdir(f"/proc/{pid}/task"))
+
+
+def descendants(pid: int) -> set[int]:
+    """pid and every process below it, children's children included (from /proc/*/stat: a child
+    reparented away, its parent gone, is no longer counted)."""
+    parent = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                parent[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    out, grew = {pid}, True
+    while grew:
+        new = {p for p, pp in parent.items() if pp in out} - out
+        out |= new
+        grew = bool(new)
+    return out

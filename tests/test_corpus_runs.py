@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from hostd.procstat import descendants
+
 ROOT = Path(__file__).resolve().parent.parent
 FIX = "tests.corpus_codec_fixture"
 
@@ -30,22 +32,6 @@ def _alive(pid: int) -> bool:
     except (OSError, IndexError):
         return False
     return state != "Z"
-
-
-def _tree(pid: int) -> set[int]:
-    parent = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                parent[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                pass
-    out, grew = {pid}, True
-    while grew:
-        new = {p for p, pp in parent.items() if pp in out} - out
-        out |= new
-        grew = bool(new)
-    return out
 
 
 def test_a_job_that_no_signal_reaches_ends_as_a_timeout_row_and_the_run_goes_on(tmp_path):
@@ -94,10 +80,10 @@ def test_sigkill_of_the_driver_leaves_no_process_of_its_pool(tmp_path, where):
         tree: set[int] = set()
         while time.monotonic() < deadline and (len(tree) < 4 or not (gate / "pass-0").exists()):
             time.sleep(0.1)  # workers and their helpers started, a job has run
-            tree = _tree(p.pid)
+            tree = descendants(p.pid)
         assert len(tree) >= 4 and (gate / "pass-0").exists(), tree
         time.sleep(0.5)
-        tree = _tree(p.pid) - {p.pid}
+        tree = descendants(p.pid) - {p.pid}
         os.kill(p.pid, signal.SIGKILL)
         p.wait()
         deadline = time.monotonic() + 10

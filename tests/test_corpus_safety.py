@@ -16,6 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from hostd.procstat import descendants
+
 ROOT = Path(__file__).resolve().parent.parent
 FIX = "tests.corpus_codec_fixture"
 
@@ -25,23 +27,6 @@ def _env(**extra) -> dict:
 
 
 # ----------------------------------------------------------------------------- Dask on loopback
-
-
-def _tree(pid: int) -> set[int]:
-    """pid and every descendant (from /proc/*/stat)."""
-    parent = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                parent[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                pass
-    out, grew = {pid}, True
-    while grew:
-        new = {p for p, pp in parent.items() if pp in out} - out
-        out |= new
-        grew = bool(new)
-    return out
 
 
 def _listeners(pids: set[int]) -> list[int]:
@@ -124,7 +109,7 @@ def test_local_dask_cluster_refuses_another_uid_and_keeps_no_http_server(tmp_pat
         while not (gate / "pass-0").exists() and p.poll() is None and time.monotonic() < deadline:
             time.sleep(0.05)  # a job has started: the cluster is up, its HTTP servers closed
         assert p.poll() is None, p.stderr.read()
-        ports = _listeners(_tree(p.pid))
+        ports = _listeners(descendants(p.pid))
         assert len(ports) >= 5, ports  # scheduler, 2 nannies, 2 workers
         out = subprocess.run([*nobody, "-c", _ATTACK, *map(str, ports)], capture_output=True, text=True,
                              env=_env(), timeout=120)
