@@ -297,3 +297,24 @@ def test_every_reader_exception_becomes_its_one_line_error(tmp_path):
         assert "\n" not in msg
     finally:
         formats._registry.pop(".brk")
+
+
+@pytest.mark.parametrize("reader", ["sniff", "npy", "mat", "wav"])
+def test_every_binary_reader_opens_a_profile_the_same_way(tmp_path, reader):
+    """Each reader that opens a profile itself (the kind sniffer, .npy, .mat, .wav) says the
+    same one line for a missing file, a FIFO and a directory: one opener, not four copies."""
+    import os
+
+    from hostd.errors import ProfileNotFound
+    from hostd.texture import formats, load, matfile, wav
+
+    call = {"sniff": formats._head, "npy": load._npy_header, "mat": matfile._load,
+            "wav": wav.read_samples}[reader]
+    with pytest.raises(ProfileNotFound, match=r"^no such profile file: .*absent$"):
+        call(tmp_path / "absent")
+    os.mkfifo(tmp_path / "pipe")
+    with pytest.raises(ProfileError, match=r"pipe is a FIFO \(named pipe\): only regular files are read"):
+        call(tmp_path / "pipe")
+    (tmp_path / "dir").mkdir()
+    with pytest.raises(ProfileError, match=r"dir is a directory: only regular files are read"):
+        call(tmp_path / "dir")

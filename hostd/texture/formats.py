@@ -201,21 +201,26 @@ FIX = {
 }
 
 
-def _head(p: Path) -> bytes:
+def open_profile(p: Path, error: type[ProfileError] = ProfileError):
+    """A profile file opened for reading in binary; every failure one line: a missing file is
+    ProfileNotFound, a FIFO, device, socket or directory is refused without waiting on it, any
+    other OSError says what the system said (`error`: the reader's own ProfileError kind)."""
     from hostd.errors import ProfileNotFound
     from hostd.fileio import NotRegular, open_regular
 
     try:
-        with open_regular(p) as fh:
-            return fh.read(SNIFF_BYTES)
+        return open_regular(p)
     except FileNotFoundError:
         raise ProfileNotFound(f"no such profile file: {p}") from None
     except NotRegular as exc:
-        raise ProfileError(str(exc)) from None
-    except IsADirectoryError:
-        raise ProfileError(f"{p} is a directory: give a profile file") from None
+        raise error(str(exc)) from None
     except OSError as exc:
-        raise ProfileError(f"cannot read {p}: {exc.strerror or exc}") from None
+        raise error(f"cannot read {p}: {exc.strerror or exc}") from None
+
+
+def _head(p: Path) -> bytes:
+    with open_profile(p) as fh:
+        return fh.read(SNIFF_BYTES)
 
 
 def check_kind(p: Path, fmt: Format, head: bytes) -> None:

@@ -280,16 +280,10 @@ def _npy_header(p: Path):
     before anything is allocated; every failure a ProfileError naming what was expected."""
     from numpy.lib import format as npyfmt
 
-    from hostd.fileio import NotRegular, open_regular
+    from hostd.texture.formats import open_profile
 
     expect = "a .npy file written by numpy.save (a numeric array of heights)"
-    try:
-        fh = open_regular(p)
-    except FileNotFoundError:
-        raise ProfileNotFound(f"no such profile file: {p}") from None
-    except (NotRegular, OSError) as exc:
-        raise ProfileError(f"cannot read {p}: {getattr(exc, 'strerror', None) or exc}") from None
-    with fh:
+    with open_profile(p) as fh:
         size = fh.seek(0, 2)
         fh.seek(0)
         try:

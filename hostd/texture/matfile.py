@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostd.errors import ProfileError, ProfileNotFound
+from hostd.errors import ProfileError
 from hostd.texture.formats import Columns
 
 V73_HINT = ("is a MATLAB v7.3 (HDF5) file, which hostd cannot read: save it as v7 in MATLAB "
@@ -213,16 +213,10 @@ def _check_v4(fh, size: int, max_values: int) -> None:
 def _load(p: Path) -> dict[str, np.ndarray]:
     import scipy.io
 
-    from hostd.fileio import NotRegular, open_regular
+    from hostd.texture.formats import open_profile
     from hostd.texture.load import MAX_VALUES
 
-    try:
-        fh = open_regular(p)
-    except FileNotFoundError:
-        raise ProfileNotFound(f"no such profile file: {p}") from None
-    except (NotRegular, OSError) as exc:
-        raise ProfileError(f"cannot read {p}: {getattr(exc, 'strerror', None) or exc}") from None
-    with fh:
+    with open_profile(p) as fh:
         size = fh.seek(0, 2)
         check_structure(fh, size, str(p), MAX_VALUES)
         fh.seek(0)

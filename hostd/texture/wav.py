@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hostd.errors import ProfileError, ProfileNotFound
+from hostd.errors import ProfileError
 from hostd.texture.formats import Columns, LoadOptions
 
 FMT_MAX_BYTES = 1024  # a fmt chunk is 16, 18 or 40 bytes: anything beyond 1 kB is not a WAV's
@@ -81,19 +81,11 @@ def read_samples(path: str | Path) -> tuple[int, np.ndarray]:
     a FIFO or device is refused without waiting on it."""
     import scipy.io.wavfile
 
-    from hostd.fileio import NotRegular, open_regular
+    from hostd.texture.formats import open_profile
     from hostd.texture.load import MAX_VALUES
 
     p = Path(path)
-    try:
-        fh = open_regular(p)
-    except FileNotFoundError:
-        raise ProfileNotFound(f"no such file: {p}") from None
-    except NotRegular as exc:
-        raise WavError(str(exc)) from None
-    except OSError as exc:
-        raise WavError(f"cannot read {p}: {exc.strerror or exc}") from None
-    with fh:
+    with open_profile(p, WavError) as fh:
         size = fh.seek(0, 2)
         fh.seek(0)
         try:
