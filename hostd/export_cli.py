@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from hostd.cliopts import _positive, geometry_parent, index_parent, loader_parent, read_profile
+from hostd.cliopts import _positive, geometry_parent, index_parent, loader_parent, read_profile, renamed
 
 if TYPE_CHECKING:
     import numpy as np
@@ -70,7 +70,7 @@ def texture_export(spec: str, args: argparse.Namespace):
         prov.update(codec="none", setting="", Iobj=0.0, v_ref_mm_s=args.speed, fmax_hz=args.fmax,
                     n_keep=n_keep)
         speed_ref = args.speed
-    speed = args.speed_mm_s if args.speed_mm_s is not None else speed_ref
+    speed = args.stroke_speed_mm_s if args.stroke_speed_mm_s is not None else speed_ref
     cal = getattr(args, "calibration", None)  # --calibration FILE (the index options): NAME@ID
     cal = None if cal is None else cal.label
     # None: hostd's streams and profiles carry no actuator calibration; last, as the first key
@@ -88,7 +88,8 @@ def texture_export(spec: str, args: argparse.Namespace):
         import numpy as np
 
         full_scale = max(full_scale, float(np.max(np.abs(heights))), float(np.max(np.abs(played))))
-    return hjif.Export(heights_um=heights, spacing_um=spacing, played_um=played, speed_mm_s=float(speed),
+    return hjif.Export(heights_um=heights, spacing_um=spacing, coeffs_um=coeffs, n=n, length_mm=length,
+                       played_um=played, speed_mm_s=float(speed),
                        rate_hz=int(args.rate_hz), provenance=prov, full_scale_um=full_scale,
                        perceptions=args.perceptions)
 
@@ -111,7 +112,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     tex, tim = by_id.get(0), by_id.get(1)
     m = hjif._FULL_SCALE.search(doc["perceptions"][0]["description"])
     info = {"output": args.output, "perceptions": [p["perception_modality"] for p in doc["perceptions"]],
-            "spatial_samples": tex and int(ex.heights_um.size), "unit_exponent": tex and tex["unit_exponent"],
+            "spatial_positions": tex and len(tex["channels"][0]["bands"][0]["effects"][0]["keyframes"]) - 2,
+            "unit_exponent": tex and tex["unit_exponent"], "timescale": doc["timescale"],
+            "tick_um": tex and ex.speed_mm_s * 1e3 / doc["timescale"],
             "played_samples": tim and tim["channels"][0]["sample_count"], "rate_hz": ex.rate_hz,
             "speed_mm_s": ex.speed_mm_s, "full_scale_um": float(m.group(1)) if m else None,
             "spacing_um": float(ex.spacing_um)}
@@ -120,7 +123,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     else:
         parts = []
         if tex is not None:
-            parts.append(f"texture {info['spatial_samples']} samples every {info['spacing_um']:g} µm")
+            parts.append(f"texture ({ex.n} samples every {info['spacing_um']:g} µm) along one stroke at "
+                         f"{ex.speed_mm_s:g} mm/s: {info['spatial_positions']} positions every "
+                         f"{info['tick_um']:.5g} µm (1/{doc['timescale']} s)")
         if tim is not None:
             parts.append(f"played at {ex.speed_mm_s:g} mm/s: {info['played_samples']} samples at "
                          f"{ex.rate_hz} Hz")
@@ -134,12 +139,14 @@ def add_parser(sub) -> None:
                        help="a texture (profile or .vtx stream) as MPEG-I Haptics .hjif",
                        description="Write a texture as MPEG-I Haptics (ISO/IEC 23090-31) .hjif: a "
                        "'Vibrotactile Texture' perception (the heights over space) and a 'Vibrotactile' "
-                       "perception (the texture as played at --speed-mm-s), with hostd's provenance.")
+                       "perception (the texture as played at --stroke-speed-mm-s), with hostd's provenance.")
     p.add_argument("source", help="a profile (csv/txt/npy/hjif, synthetic:wood[:SEED]) or a .vtx stream")
     p.add_argument("-o", "--output", required=True, help="output .hjif file")
-    p.add_argument("--speed-mm-s", type=_positive, default=None,
-                   help="stroke speed of the time-domain perception, mm/s (default: the stream's v_ref, "
-                   "or --ref-speed-mm-s)")
+    p.add_argument("--stroke-speed-mm-s", type=_positive, default=None,
+                   help="the stroke speed both perceptions play at in the reference Synthesizer, mm/s: the "
+                   "time-domain one is the texture as played at it, the spatial one's positions are "
+                   "ticks of the timescale at it (default: the stream's v_ref, or --ref-speed-mm-s)")
+    renamed(p, "--stroke-speed-mm-s", "--speed-mm-s")
     p.add_argument("--rate-hz", type=_positive, default=8000.0,
                    help="sample rate of the time-domain perception, Hz (default 8000, the reference "
                    "Synthesizer's; at most 48000)")

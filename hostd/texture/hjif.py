@@ -97,6 +97,14 @@ def rm_end_position(last: int, timescale: int) -> int:
     """The first position after `last` that is a whole number of samples at every RM_RATES_HZ."""
     m = math.lcm(*(timescale // math.gcd(timescale, f) for f in RM_RATES_HZ))
     return (last // m + 1) * m
+# The body part mask's bits as the reference software defines them (Tools/include/OHMData.h,
+# OHMData::Body, the OHM format's body table): RIGHT_HAND_FINGERS 0x00100000, LEFT_HAND_FINGERS
+# 0x00200000. hostd's display is under a fingertip of either hand (body_part_target "Index")
+BODY_PART_MASK = 0x00100000 | 0x00200000
+# terms of the series in a spatial perception hostd reads back by a least-squares fit of the stroke
+# (hostd.render.series.Projector: a (K+1)^2 Gram matrix, 33 MB and ~1 s at this K); 93 mm of texture
+# at 400 Hz and 50 mm/s is 1,490
+MAX_TERMS = 2048
 MAX_DESCRIPTION_BYTES = 255  # .hmpg stores a description's length in 8 bits
 VERSION = "2023"
 TEXTURE = "Vibrotactile Texture"
@@ -125,6 +133,8 @@ _FULL_SCALE = re.compile(r"full_scale_um=([0-9.eE+-]+)")
 _SPEED = re.compile(r"speed_mm_s=([0-9.eE+-]+)")
 _SPACING = re.compile(r"spacing_um=([0-9.eE+-]+)")
 _SAMPLES = re.compile(r"samples=([0-9]+)")
+_TICK = re.compile(r"tick_um=([0-9.eE+-]+)")
+_TERMS = re.compile(r"terms=([0-9]+)")
 
 
 # ============================================================================ the reference software
@@ -250,6 +260,11 @@ class Export:
 
     heights_um: np.ndarray  # the texture over space, uniform spacing
     spacing_um: float
+    # hostd's representation of it: the series C'_1..C'_K of the N-sample patch (hostd.codec.transform);
+    # the spatial perception is this series along one stroke at speed_mm_s, a keyframe per tick
+    coeffs_um: np.ndarray
+    n: int
+    length_mm: float
     played_um: np.ndarray  # the texture in time at speed_mm_s, rate_hz
     speed_mm_s: float
     rate_hz: int
@@ -261,41 +276,19 @@ class Export:
     perceptions: str = "both"
 
 
-def spatial_positions(spacing_um: float, count: int,
-                      limit: int = RM_MAX_POSITION) -> tuple[int, np.ndarray, float]:
-    """(unit_exponent e, the keyframe positions of samples 0..count-1 in units of 10^e m, the
-    largest position error in µm), within what the reference player plays (RM_MAX_POSITION).
+def timescale_for(rate_hz: int, spatial: bool) -> int:
+    """The experience's timescale (ticks per second): with a spatial perception the largest
+    multiple of rate_hz within the Main profile's MAX_TIMESCALE (48000 at 8, 16, 24 or 48 kHz,
+    44100 at 22.05 or 44.1 kHz), so that a tick is one output sample at the RM's highest rate;
+    without one, rate_hz (a time-domain perception alone then plays longest: RM_MAX_POSITION)."""
+    return int(rate_hz) * (MAX_TIMESCALE // int(rate_hz)) if spatial else int(rate_hz)
 
-    The coarsest power of ten (e in -3..-12) that states the spacing as a whole number of units
-    (to 1e-9 relative), when its last position fits; else the finest unit in which the positions
-    fit with at least one unit per sample, each position rounded to the unit (error <= half a
-    unit: hostd's reader takes the spacing from the description, a foreign reader is off by at
-    most that); else a one-line refusal."""
-    if not (SPACING_UM_RANGE[0] <= spacing_um <= SPACING_UM_RANGE[1]):
-        raise ProfileError(f"spacing {spacing_um:g} µm is outside {SPACING_UM_RANGE[0]:g}.."
-                           f"{SPACING_UM_RANGE[1]:g} µm")
-    i = np.arange(count, dtype=np.float64)
-    for e in range(-3, -13, -1):
-        units = spacing_um * 10.0 ** (-6 - e)
-        r = round(units)
-        if r >= 1 and abs(units - r) <= 1e-9 * units:
-            if r * count <= limit:
-                return e, np.arange(count, dtype=np.int64) * r, 0.0
-            break
-    for e in range(-12, -2):
-        units = spacing_um * 10.0 ** (-6 - e)
-        if units >= 1 and round(units * count) + 1 <= limit:  # + 1: the 0 after the last may round up
-            pos = np.round(i * units).astype(np.int64)
-            err_um = float(np.max(np.abs(pos * 10.0 ** (e + 6) - i * spacing_um)))
-            return e, pos, err_um
-    exact = [round(spacing_um * 10.0 ** (-6 - e)) for e in range(-3, -13, -1)
-             if abs(spacing_um * 10.0 ** (-6 - e) - round(spacing_um * 10.0 ** (-6 - e)))
-             <= 1e-9 * spacing_um * 10.0 ** (-6 - e) and round(spacing_um * 10.0 ** (-6 - e)) >= 1]
-    most_mm = (limit // (exact[0] if exact else 1)) * spacing_um / 1000.0
-    raise ProfileError(f"{count} samples over space are more keyframe positions than the reference "
-                       f"player plays ({limit}: it computes position x rate in 32 bits, up to "
-                       f"48 kHz): export at most {most_mm:.3g} mm (a profile: --length-mm; a stream: encode "
-                       "a patch that long) or only the texture as played (--perceptions time)")
+
+def tick_unit_exponent(tick_um: float) -> int:
+    """The power of ten nearest (in log) to the spatial tick: the perception's unit_exponent. The
+    standard's unit is a power of ten; a stroke speed over a timescale of <= 48000 is seldom one
+    (50 mm/s / 48000 = 1.0417 µm), so the exact tick is stated in the description (`tick_um=`)."""
+    return int(round(math.log10(tick_um * 1e-6)))
 
 
 def _curve_channel(desc: str, positions: np.ndarray, amps: np.ndarray, upper_hz: int,
@@ -303,7 +296,7 @@ def _curve_channel(desc: str, positions: np.ndarray, amps: np.ndarray, upper_hz:
     kfs = [{"relative_position": int(p), "amplitude_modulation": float(a)}
            for p, a in zip(positions.tolist(), amps.tolist(), strict=True)]
     ch = {"id": 0, "description": desc, "gain": 1.0, "mixing_coefficient": 1.0,
-          "body_part_mask": 0, **(extra or {}),
+          "body_part_mask": BODY_PART_MASK, **(extra or {}),
           "bands": [{"band_type": "Curve", "curve_type": "Cubic", "lower_frequency_limit": 0,
                      "upper_frequency_limit": int(upper_hz),
                      "effects": [{"effect_type": "Basis", "position": 0, "keyframes": kfs}]}]}
@@ -324,43 +317,68 @@ def build(ex: Export, date: str | None = None) -> dict:
         raise ProfileError(f"--rate-hz must be a whole number of Hz in 1..{MAX_TIMESCALE} (the Main "
                            f"profile's timescale), got {ex.rate_hz}")
     want_tex, want_time = ex.perceptions in ("both", "texture"), ex.perceptions in ("both", "time")
-    ts = int(ex.rate_hz)
+    rate = int(ex.rate_hz)
+    ts = timescale_for(rate, want_tex)
     m = rm_end_position(0, ts)
     limit = (RM_MAX_POSITION // m) * m - 1  # the last 0 keyframe; the end is then <= RM_MAX_POSITION
-    if want_time and p.size > limit:
+    step_t = ts // rate  # ticks per sample of the time-domain perception
+    if want_time and p.size * step_t > limit:
         raise ProfileError(f"the texture as played is {p.size} samples at {ex.rate_hz} Hz "
-                           f"({p.size / ex.rate_hz:.3g} s), more keyframe positions than the reference "
-                           f"player plays ({limit}: it computes position x rate in 32 bits, up to "
-                           "48 kHz): lower --rate-hz, raise --speed-mm-s or export a shorter patch "
+                           f"({p.size / ex.rate_hz:.3g} s), more than the reference player plays ("
+                           f"{limit // step_t} samples: it computes position x rate in 32 bits, up to "
+                           "48 kHz): lower --rate-hz, raise --stroke-speed-mm-s or export a shorter patch "
                            "(--length-mm)")
-    peak = max(float(np.max(np.abs(h))), float(np.max(np.abs(p))))
+    stroke = recon = None
+    if want_tex:
+        from hostd.codec import transform
+        from hostd.render.stroke import at_constant_speed, crossing_count
+
+        tick_um = ex.speed_mm_s * 1e3 / ts
+        count = crossing_count(ex.length_mm, ex.speed_mm_s, ts, minimum=3)
+        if count + 1 > limit:
+            raise ProfileError(f"one stroke over the {ex.length_mm:.4g}-mm patch at {ex.speed_mm_s:g} mm/s is "
+                               f"{count} positions of 1/{ts} s, more than the reference player plays ({limit}: "
+                               f"it computes position x rate in 32 bits, up to 48 kHz): export at most "
+                               f"{limit * tick_um / 1000:.4g} mm (--length-mm), raise --stroke-speed-mm-s, or "
+                               "only the texture as played (--perceptions time)")
+        k = np.asarray(ex.coeffs_um, dtype=np.float64).size
+        top_hz = k * ex.speed_mm_s / (2 * ex.length_mm)  # the series' highest component at this speed
+        if not 1 <= k <= MAX_TERMS or top_hz >= ts / 2 or k + 2 > count:
+            raise ProfileError(f"the texture's {k} components reach {top_hz:.4g} Hz at {ex.speed_mm_s:g} mm/s: "
+                               f"the spatial perception holds at most {MAX_TERMS} below {ts / 2:g} Hz (half "
+                               "its timescale): lower --stroke-speed-mm-s or --fmax-hz, or export a shorter "
+                               "patch (--length-mm)")
+        stroke = at_constant_speed(ex.coeffs_um, ex.n, ex.length_mm, ex.speed_mm_s, ts, count,
+                                   band_limited=False)
+        recon = transform.synthesize(ex.coeffs_um, ex.n)  # what hostd's reader makes of it
+    written = [a for a, on in ((stroke, want_tex), (recon, want_tex), (p, want_time)) if on]
+    peak = max(float(np.max(np.abs(a))) for a in written)
     fs_um = ex.full_scale_um if ex.full_scale_um is not None else (peak if peak > 0 else 1.0)
     if not (math.isfinite(fs_um) and fs_um > 0):
         raise ProfileError(f"full scale must be a finite number > 0 µm, got {fs_um}")
-    clipped = int(np.count_nonzero(np.abs(h) > fs_um) + np.count_nonzero(np.abs(p) > fs_um))
+    clipped = sum(int(np.count_nonzero(np.abs(a) > fs_um)) for a in written)
     if clipped:
         raise ProfileError(f"{clipped} samples exceed the full scale {fs_um:g} µm (peak {peak:.4g} µm): "
                            "raise --full-scale-um")
     scale = f"full_scale_um={fs_um!r}"
-    device = {"id": 0, "name": "hostd vibrotactile texture display", "body_part_mask": 0,
-              "maximum_displacement": fs_um * 1e-6}  # metres: the displacement of amplitude 1.0
+    # the displacement of amplitude 1.0, in metres; body_part_mask: the index finger (BODY_PART_MASK)
+    device = {"id": 0, "name": "hostd vibrotactile texture display", "body_part_mask": BODY_PART_MASK,
+              "maximum_displacement": fs_um * 1e-6}
+    target = {"reference_device_id": 0, "body_part_target": ["Index"]}
     tex = tim = None
     if want_tex:
-        e, pos, err_um = spatial_positions(ex.spacing_um, h.size, limit)
-        # the spatial band's frequency limit: the samples' Nyquist over space, cycles per metre
-        upper_tex = max(1, min(2**31 - 1, round(1e6 / (2 * ex.spacing_um))))
-        # what the reference player, which takes positions for ticks, makes of it
-        rm_speed_mm_s = 10.0 ** (e + 3) * ex.rate_hz
+        e = tick_unit_exponent(tick_um)
+        # the spatial band's frequency limit: the series' highest component, cycles per metre
+        upper_tex = max(1, min(2**31 - 1, math.ceil(k / (2 * ex.length_mm * 1e-3))))
         tex = {"id": 0, "avatar_id": 0,
-               "description": (f"hostd texture over space: samples={h.size} spacing_um={ex.spacing_um!r} "
-                               f"(positions in 1e{e} m{f', within {err_um:.2g} um' if err_um else ''}); "
-                               f"{scale}; a player taking positions for time plays it at "
-                               f"{rm_speed_mm_s:.3g} mm/s"),
+               "description": (f"hostd texture over space: one stroke at speed_mm_s={ex.speed_mm_s!r}, a "
+                               f"position per tick_um={tick_um!r} (1/{ts} s), of the series of terms={k} of "
+                               f"samples={ex.n} spacing_um={ex.spacing_um!r}; {scale}"),
                "perception_modality": TEXTURE, "unit_exponent": e, "perception_unit_exponent": 0,
                "reference_devices": [device], "effect_library": [],
-               "channels": [_curve_channel("height profile (normalized to full scale)", pos, h / fs_um,
-                                           upper_tex, {"reference_device_id": 0,
-                                                       "body_part_target": ["Index"]})]}
+               "channels": [_curve_channel("height profile along the stroke (normalized to full scale)",
+                                           np.arange(count, dtype=np.int64), stroke / fs_um, upper_tex,
+                                           target)]}
     if want_time:
         tim = {"id": 1, "avatar_id": 0,
                "description": (f"hostd texture as played at speed_mm_s={ex.speed_mm_s!r}: one crossing of "
@@ -368,10 +386,10 @@ def build(ex: Export, date: str | None = None) -> dict:
                "perception_modality": TIME, "perception_unit_exponent": 0,
                "reference_devices": [{**device, "maximum_frequency": ex.rate_hz / 2}], "effect_library": [],
                "channels": [_curve_channel("displacement at the fingertip (normalized to full scale)",
-                                           np.arange(p.size, dtype=np.int64), p / fs_um, ex.rate_hz // 2,
-                                           {"frequency_sampling": int(ex.rate_hz),
-                                            "sample_count": int(p.size), "reference_device_id": 0,
-                                            "body_part_target": ["Index"]})]}
+                                           np.arange(p.size, dtype=np.int64) * step_t, p / fs_um,
+                                           ex.rate_hz // 2,
+                                           {"frequency_sampling": rate, "sample_count": int(p.size),
+                                            **target})]}
     chosen = [q for q in (tex, tim) if q is not None]
     # each effect ends with 0 one step after its signal and 0 at a common end (RM_RATES_HZ)
     ends = []
@@ -391,7 +409,7 @@ def build(ex: Export, date: str | None = None) -> dict:
     return {"version": VERSION, "profile": "Main", "level": 1,
             "date": date or _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d"),
             "description": provenance_text(ex.provenance),
-            "timescale": int(ex.rate_hz), "avatars": [],
+            "timescale": ts, "avatars": [],
             "perceptions": chosen,
             "syncs": []}
 
@@ -724,6 +742,24 @@ def _band_ticks(d: _Doc, band: dict, where: str, timescale: int) -> float:
     return float(pos + rel) + extra
 
 
+def _series_from_stroke(d: _Doc, where: str, y: np.ndarray, tick_um: float, spacing_um: float, n: int,
+                        k: int) -> np.ndarray:
+    """hostd's N samples of a texture from the spatial perception it wrote: the stroke y_j at
+    x = j tick_um holds the series sum_k C'_k cos(k theta(x)) of the N-sample patch (k <= K, below
+    the ticks' Nyquist: build checks it), so a least-squares fit of C'_0..C'_K at the stroke's
+    phases gives the coefficients back (to rounding) and the DCT-III the N samples."""
+    from hostd.codec import transform
+    from hostd.render import series
+
+    if not (2 <= n <= MAX_SAMPLES and 1 <= k <= MAX_TERMS and k + 2 <= y.size and k < n):
+        raise d.err(f"{where}.bands[0]", f"{y.size} positions holding {k} terms of {n} samples: hostd's "
+                    f"layout needs 1 <= terms <= min({MAX_TERMS}, positions - 2, samples - 1)")
+    length_mm = n * spacing_um * 1e-3
+    theta = series.phase_rad(np.arange(y.size) * (tick_um * 1e-3), n, length_mm)
+    c = series.Projector(theta, k).fit(y)
+    return transform.synthesize(c[1:], n) + c[0]
+
+
 def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
     """The samples of channel ci of perception pi, as the reference Synthesizer plays them."""
     d = _Doc(path)
@@ -782,21 +818,20 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
     note = ""
     stated_spacing = _stated(_SPACING, desc, SPACING_UM_RANGE[1])
     stated_n = _stated(_SAMPLES, desc, MAX_SAMPLES)
+    stated_tick = _stated(_TICK, desc, SPACING_UM_RANGE[1])
+    stated_k = _stated(_TERMS, desc, MAX_SAMPLES)
     own = None
-    if (spatial and stated_spacing is not None and stated_n is not None and len(bands) == 1
+    if (spatial and None not in (stated_spacing, stated_n, stated_tick, stated_k) and len(bands) == 1
             and is_native(bands[0])):
-        # hostd's own layout: one effect, a keyframe per sample, positions within half a unit
-        # of i x the stated spacing (spatial_positions); anything else is read as a foreign file
+        # hostd's own layout (build): one effect at 0, a keyframe per tick along one stroke, then a
+        # 0 one tick later and a 0 at the file's common end; anything else is read as a foreign file
         effs = _effects(d, bands[0], f"{cw}.bands[0]")
-        n_own = int(stated_n)
-        # N samples, then a 0 after them and a 0 at the file's common end (build)
-        if len(effs) == 1 and effs[0][0] == 0 and effs[0][1].size in (n_own, n_own + 2) and n_own >= 2:
-            i = np.arange(n_own, dtype=np.float64)
-            unit_um = 10.0 ** (ue + 6)
-            off = np.abs(effs[0][1][:n_own] * unit_um - i * stated_spacing)
-            tail = effs[0][2][n_own:]
-            if np.all(off <= 0.5 * unit_um + 1e-9 * stated_spacing * (i + 1)) and not np.any(tail):
-                own = effs[0][2][:n_own]
+        if len(effs) == 1 and effs[0][0] == 0 and effs[0][1].size >= 5:
+            rel, amp = effs[0][1], effs[0][2]
+            m = rel.size - 2
+            if np.array_equal(rel[:m], np.arange(m)) and not np.any(amp[m:]):
+                own = _series_from_stroke(d, cw, amp[:m], stated_tick, stated_spacing, int(stated_n),
+                                          int(stated_k))
     if own is not None:
         y = np.clip(own, -1.0, 1.0)
         step_m, rate = stated_spacing * 1e-6, None
