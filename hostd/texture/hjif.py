@@ -322,12 +322,6 @@ def build(ex: Export, date: str | None = None) -> dict:
     m = rm_end_position(0, ts)
     limit = (RM_MAX_POSITION // m) * m - 1  # the last 0 keyframe; the end is then <= RM_MAX_POSITION
     step_t = ts // rate  # ticks per sample of the time-domain perception
-    if want_time and p.size * step_t > limit:
-        raise ProfileError(f"the texture as played is {p.size} samples at {ex.rate_hz} Hz "
-                           f"({p.size / ex.rate_hz:.3g} s), more than the reference player plays ("
-                           f"{limit // step_t} samples: it computes position x rate in 32 bits, up to "
-                           "48 kHz): lower --rate-hz, raise --stroke-speed-mm-s or export a shorter patch "
-                           "(--length-mm)")
     stroke = recon = None
     if want_tex:
         from hostd.codec import transform
@@ -351,6 +345,12 @@ def build(ex: Export, date: str | None = None) -> dict:
         stroke = at_constant_speed(ex.coeffs_um, ex.n, ex.length_mm, ex.speed_mm_s, ts, count,
                                    band_limited=False)
         recon = transform.synthesize(ex.coeffs_um, ex.n)  # what hostd's reader makes of it
+    if want_time and p.size * step_t > limit:
+        raise ProfileError(f"the texture as played is {p.size} samples at {ex.rate_hz} Hz "
+                           f"({p.size / ex.rate_hz:.3g} s), more than the reference player plays ("
+                           f"{limit // step_t} samples: it computes position x rate in 32 bits, up to "
+                           "48 kHz): lower --rate-hz, raise --stroke-speed-mm-s or export a shorter patch "
+                           "(--length-mm)")
     written = [a for a, on in ((stroke, want_tex), (recon, want_tex), (p, want_time)) if on]
     peak = max(float(np.max(np.abs(a))) for a in written)
     fs_um = ex.full_scale_um if ex.full_scale_um is not None else (peak if peak > 0 else 1.0)
