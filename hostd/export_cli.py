@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from hostd.cliopts import _positive, geometry_parent, index_parent, loader_parent, read_profile, renamed
+from hostd.cliopts import _positive, geometry_parent, index_parent, loader_parent, read_profile
 
 if TYPE_CHECKING:
     import numpy as np
@@ -70,7 +70,7 @@ def texture_export(spec: str, args: argparse.Namespace):
         prov.update(codec="none", setting="", Iobj=0.0, v_ref_mm_s=args.speed, fmax_hz=args.fmax,
                     n_keep=n_keep)
         speed_ref = args.speed
-    speed = args.stroke_speed_mm_s if args.stroke_speed_mm_s is not None else speed_ref
+    speed = args.speed_mm_s if args.speed_mm_s is not None else speed_ref
     cal = getattr(args, "calibration", None)  # --calibration FILE (the index options): NAME@ID
     cal = None if cal is None else cal.label
     # None: hostd's streams and profiles carry no actuator calibration; last, as the first key
@@ -139,14 +139,13 @@ def add_parser(sub) -> None:
                        help="a texture (profile or .vtx stream) as MPEG-I Haptics .hjif",
                        description="Write a texture as MPEG-I Haptics (ISO/IEC 23090-31) .hjif: a "
                        "'Vibrotactile Texture' perception (the heights over space) and a 'Vibrotactile' "
-                       "perception (the texture as played at --stroke-speed-mm-s), with hostd's provenance.")
+                       "perception (the texture as played at --speed-mm-s), with hostd's provenance.")
     p.add_argument("source", help="a profile (csv/txt/npy/hjif, synthetic:wood[:SEED]) or a .vtx stream")
     p.add_argument("-o", "--output", required=True, help="output .hjif file")
-    p.add_argument("--stroke-speed-mm-s", type=_positive, default=None,
+    p.add_argument("--speed-mm-s", type=_positive, default=None,
                    help="the stroke speed both perceptions play at in the reference Synthesizer, mm/s: the "
                    "time-domain one is the texture as played at it, the spatial one's positions are "
                    "ticks of the timescale at it (default: the stream's v_ref, or --ref-speed-mm-s)")
-    renamed(p, "--stroke-speed-mm-s", "--speed-mm-s")
     p.add_argument("--rate-hz", type=_positive, default=8000.0,
                    help="sample rate of the time-domain perception, Hz (default 8000, the reference "
                    "Synthesizer's; at most 48000)")

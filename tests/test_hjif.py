@@ -26,7 +26,7 @@ def files(tmp_path_factory):
     stream = d / "wood.vtx"
     assert main(["encode", "synthetic:wood:3", "--length-mm", "5", "--method", "shaped", "--g-db", "0",
                  "-o", str(stream)]) == 0
-    assert main(["export", str(stream), "-o", str(d / "wood.hjif"), "--stroke-speed-mm-s", "80"]) == 0
+    assert main(["export", str(stream), "-o", str(d / "wood.hjif"), "--speed-mm-s", "80"]) == 0
     assert main(["export", "synthetic:wood:3", "--length-mm", "5", "-o", str(d / "prof.hjif")]) == 0
     return d
 

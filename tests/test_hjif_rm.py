@@ -156,7 +156,7 @@ def test_synthesizer_plays_what_hostd_writes(rm, wood, speed_mm_s):
     0.8 mm/s). hostd reads the spatial perception back as the decoded patch."""
     d, s = wood
     out = d / f"w{speed_mm_s:g}.hjif"
-    assert main(["export", str(d / "wood.vtx"), "-o", str(out), "--stroke-speed-mm-s", f"{speed_mm_s}"]) == 0
+    assert main(["export", str(d / "wood.vtx"), "-o", str(out), "--speed-mm-s", f"{speed_mm_s}"]) == 0
     doc = json.loads(out.read_bytes())
     assert doc["timescale"] == 48000
     fs = hjif.read_channel(out, "0").full_scale_um
@@ -376,7 +376,7 @@ EXPORTS = {  # name: hostd export arguments
     "chirp-texture-22k": ["synthetic:sandpaper:2", "--length-mm", "3", "--perceptions", "texture",
                           "--rate-hz", "22050"],
     # 1.8 s at 48 kHz: past the 1.86-s overflow of a timescale of 48000 without the common end
-    "time-1.8s-48k": ["synthetic:wood:3", "--length-mm", "9", "--stroke-speed-mm-s", "5", "--rate-hz", "48000",
+    "time-1.8s-48k": ["synthetic:wood:3", "--length-mm", "9", "--speed-mm-s", "5", "--rate-hz", "48000",
                       "--perceptions", "time"],
 }
 
@@ -407,26 +407,27 @@ def test_every_export_plays_completely_at_the_rms_rates(rm, tmp_path, name):
             if np.all(at % ts == 0) and np.unique(at // ts).size == at.size:
                 amp = np.array([k["amplitude_modulation"] for k in kfs])
                 np.testing.assert_allclose(want[at // ts, j], _wav_range(amp), rtol=0, atol=1e-6)
-                np.testing.assert_allclose(x[at // ts, j], _wav_range(amp), rtol=0, atol=(0.5 + FLOAT32_LSB) * LSB)
+                np.testing.assert_allclose(x[at // ts, j], _wav_range(amp), rtol=0,
+                                           atol=(0.5 + FLOAT32_LSB) * LSB)
 
 
 def test_an_export_past_the_rms_arithmetic_is_refused_in_one_line(tmp_path, capsys):
     """One stroke over 100 mm at 50 mm/s is 96,000 ticks of 1/48000 s: more than the RM plays at
-    48 kHz (89,279 ticks before the common end): 93 mm is the most. A series whose top component at the stroke speed lies
-    above half the timescale cannot be held by the ticks."""
+    48 kHz (89,279 ticks before the common end): 93 mm is the most. A series whose top component
+    at the stroke speed lies above half the timescale cannot be held by the ticks."""
     np.savetxt(tmp_path / "long.txt", np.random.default_rng(1).normal(size=20_000))
     assert main(["export", str(tmp_path / "long.txt"), "--spacing", "5", "--length-mm", "100", "-o",
                  str(tmp_path / "w.hjif")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "reference player plays" in err and "at most 93 mm" in err
     assert "--perceptions time" in err and not (tmp_path / "w.hjif").exists()
-    assert main(["export", "synthetic:wood:3", "--perceptions", "time", "--stroke-speed-mm-s", "1", "--rate-hz",
+    assert main(["export", "synthetic:wood:3", "--perceptions", "time", "--speed-mm-s", "1", "--rate-hz",
                  "48000", "-o", str(tmp_path / "t.hjif")]) == 2
     assert "lower --rate-hz" in capsys.readouterr().err
-    assert main(["export", "synthetic:wood:3", "--length-mm", "2", "--fmax-hz", "20000", "--stroke-speed-mm-s",
+    assert main(["export", "synthetic:wood:3", "--length-mm", "2", "--fmax-hz", "20000", "--speed-mm-s",
                  "200", "-o", str(tmp_path / "f.hjif")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "below 24000 Hz" in err and "lower --stroke-speed-mm-s" in err
+    assert err.count("\n") == 1 and "below 24000 Hz" in err and "lower --speed-mm-s" in err
 
 
 AHAP = {"Version": 1.0, "Pattern": [

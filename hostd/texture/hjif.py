@@ -288,7 +288,7 @@ def tick_unit_exponent(tick_um: float) -> int:
     """The power of ten nearest (in log) to the spatial tick: the perception's unit_exponent. The
     standard's unit is a power of ten; a stroke speed over a timescale of <= 48000 is seldom one
     (50 mm/s / 48000 = 1.0417 µm), so the exact tick is stated in the description (`tick_um=`)."""
-    return int(round(math.log10(tick_um * 1e-6)))
+    return round(math.log10(tick_um * 1e-6))
 
 
 def _curve_channel(desc: str, positions: np.ndarray, amps: np.ndarray, upper_hz: int,
@@ -330,17 +330,17 @@ def build(ex: Export, date: str | None = None) -> dict:
         tick_um = ex.speed_mm_s * 1e3 / ts
         count = crossing_count(ex.length_mm, ex.speed_mm_s, ts, minimum=3)
         if count + 1 > limit:
-            raise ProfileError(f"one stroke over the {ex.length_mm:.4g}-mm patch at {ex.speed_mm_s:g} mm/s is "
-                               f"{count} positions of 1/{ts} s, more than the reference player plays ({limit}: "
-                               f"it computes position x rate in 32 bits, up to 48 kHz): export at most "
-                               f"{limit * tick_um / 1000:.4g} mm (--length-mm), raise --stroke-speed-mm-s, or "
+            raise ProfileError(f"one stroke over the {ex.length_mm:.4g}-mm patch at {ex.speed_mm_s:g} mm/s "
+                               f"is {count} positions of 1/{ts} s, more than the reference player plays "
+                               f"({limit}: it computes position x rate in 32 bits, up to 48 kHz): export at most "
+                               f"{limit * tick_um / 1000:.4g} mm (--length-mm), raise --speed-mm-s, or "
                                "only the texture as played (--perceptions time)")
         k = np.asarray(ex.coeffs_um, dtype=np.float64).size
         top_hz = k * ex.speed_mm_s / (2 * ex.length_mm)  # the series' highest component at this speed
         if not 1 <= k <= MAX_TERMS or top_hz >= ts / 2 or k + 2 > count:
-            raise ProfileError(f"the texture's {k} components reach {top_hz:.4g} Hz at {ex.speed_mm_s:g} mm/s: "
-                               f"the spatial perception holds at most {MAX_TERMS} below {ts / 2:g} Hz (half "
-                               "its timescale): lower --stroke-speed-mm-s or --fmax-hz, or export a shorter "
+            raise ProfileError(f"the texture's {k} components reach {top_hz:.4g} Hz at {ex.speed_mm_s:g} "
+                               f"mm/s: the spatial perception holds at most {MAX_TERMS} below {ts / 2:g} Hz (half "
+                               "its timescale): lower --speed-mm-s or --fmax-hz, or export a shorter "
                                "patch (--length-mm)")
         stroke = at_constant_speed(ex.coeffs_um, ex.n, ex.length_mm, ex.speed_mm_s, ts, count,
                                    band_limited=False)
@@ -349,7 +349,7 @@ def build(ex: Export, date: str | None = None) -> dict:
         raise ProfileError(f"the texture as played is {p.size} samples at {ex.rate_hz} Hz "
                            f"({p.size / ex.rate_hz:.3g} s), more than the reference player plays ("
                            f"{limit // step_t} samples: it computes position x rate in 32 bits, up to "
-                           "48 kHz): lower --rate-hz, raise --stroke-speed-mm-s or export a shorter patch "
+                           "48 kHz): lower --rate-hz, raise --speed-mm-s or export a shorter patch "
                            "(--length-mm)")
     written = [a for a, on in ((stroke, want_tex), (recon, want_tex), (p, want_time)) if on]
     peak = max(float(np.max(np.abs(a))) for a in written)
