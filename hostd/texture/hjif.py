@@ -332,15 +332,15 @@ def build(ex: Export, date: str | None = None) -> dict:
         if count + 1 > limit:
             raise ProfileError(f"one stroke over the {ex.length_mm:.4g}-mm patch at {ex.speed_mm_s:g} mm/s "
                                f"is {count} positions of 1/{ts} s, more than the reference player plays "
-                               f"({limit}: it computes position x rate in 32 bits, up to 48 kHz): export at most "
-                               f"{limit * tick_um / 1000:.4g} mm (--length-mm), raise --speed-mm-s, or "
+                               f"({limit}: it computes position x rate in 32 bits, up to 48 kHz): export "
+                               f"at most {limit * tick_um / 1000:.4g} mm (--length-mm), raise --speed-mm-s, or "
                                "only the texture as played (--perceptions time)")
         k = np.asarray(ex.coeffs_um, dtype=np.float64).size
         top_hz = k * ex.speed_mm_s / (2 * ex.length_mm)  # the series' highest component at this speed
         if not 1 <= k <= MAX_TERMS or top_hz >= ts / 2 or k + 2 > count:
             raise ProfileError(f"the texture's {k} components reach {top_hz:.4g} Hz at {ex.speed_mm_s:g} "
-                               f"mm/s: the spatial perception holds at most {MAX_TERMS} below {ts / 2:g} Hz (half "
-                               "its timescale): lower --speed-mm-s or --fmax-hz, or export a shorter "
+                               f"mm/s: the spatial perception holds at most {MAX_TERMS} below {ts / 2:g} Hz "
+                               "(half its timescale): lower --speed-mm-s or --fmax-hz, or export a shorter "
                                "patch (--length-mm)")
         stroke = at_constant_speed(ex.coeffs_um, ex.n, ex.length_mm, ex.speed_mm_s, ts, count,
                                    band_limited=False)
