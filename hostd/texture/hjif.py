@@ -333,8 +333,8 @@ def build(ex: Export, date: str | None = None) -> dict:
             raise ProfileError(f"one stroke over the {ex.length_mm:.4g}-mm patch at {ex.speed_mm_s:g} mm/s "
                                f"is {count} positions of 1/{ts} s, more than the reference player plays "
                                f"({limit}: it computes position x rate in 32 bits, up to 48 kHz): export "
-                               f"at most {limit * tick_um / 1000:.4g} mm (--length-mm), raise --speed-mm-s, or "
-                               "only the texture as played (--perceptions time)")
+                               f"at most {limit * tick_um / 1000:.4g} mm (--length-mm), raise --speed-mm-s, "
+                               "or only the texture as played (--perceptions time)")
         k = np.asarray(ex.coeffs_um, dtype=np.float64).size
         top_hz = k * ex.speed_mm_s / (2 * ex.length_mm)  # the series' highest component at this speed
         if not 1 <= k <= MAX_TERMS or top_hz >= ts / 2 or k + 2 > count:
