@@ -539,3 +539,34 @@ def test_a_round_trip_through_the_rm_keeps_the_amplitude(rm, wood, tmp_path, cap
     rms = float(np.sqrt(np.mean(back.heights_um[:n] ** 2)) / np.sqrt(np.mean(orig.heights_um ** 2)))
     print(f"hostd's 40-µm rendering through the RM's WAV codec: RMS ratio {rms:.4f}")
     assert rms == pytest.approx(1.0, abs=0.05)
+
+
+def _rm_body_bits() -> dict[str, int]:
+    """OHMData::Body, the body part mask's bits, from the reference software's own header."""
+    import re
+    import tarfile
+
+    tars = sorted(_rm_sources().glob("src/HapticReferenceSoftware-*.tar.gz"))
+    if not tars:
+        _unavailable(f"no HapticReferenceSoftware tarball in {_rm_sources() / 'src'}")
+    with tarfile.open(tars[0]) as tf:
+        member = next(m for m in tf.getmembers() if m.name.endswith("source/Tools/include/OHMData.h"))
+        text = tf.extractfile(member).read().decode()
+    body = text[text.index("enum class Body"):]
+    body = body[: body.index("};")]
+    return {k: int(v, 16) for k, v in re.findall(r"(\w+) = (0x[0-9A-Fa-f]+)", body)}
+
+
+def test_the_body_part_mask_is_the_rms_fingers_and_survives_its_binary_format(rm, tmp_path):
+    """body_part_mask (reference device and channel) holds the bits the reference software defines
+    for the fingers of either hand (Tools/include/OHMData.h, read from its source at test time: the
+    display is under a fingertip, hand unknown); the RM's Encoder (.hmpg) and Decoder carry it."""
+    bits = _rm_body_bits()
+    assert hjif.BODY_PART_MASK == bits["RIGHT_HAND_FINGERS"] | bits["LEFT_HAND_FINGERS"] == 0x300000
+    assert main(["export", "synthetic:wood:3", "--length-mm", "2", "--perceptions", "time",
+                 "-o", str(tmp_path / "t.hjif")]) == 0
+    _run(rm, "Encoder", "-f", "t.hjif", "-o", "t.hmpg", "-b", cwd=tmp_path)
+    _run(rm, "Decoder", "-f", "t.hmpg", "-o", "d.hjif", cwd=tmp_path)
+    (p,) = json.loads((tmp_path / "d.hjif").read_bytes())["perceptions"]
+    assert p["channels"][0]["body_part_mask"] == hjif.BODY_PART_MASK
+    assert [dev["body_part_mask"] for dev in p["reference_devices"]] == [hjif.BODY_PART_MASK]
