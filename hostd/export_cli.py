@@ -91,12 +91,13 @@ def texture_export(spec: str, args: argparse.Namespace):
     return hjif.Export(heights_um=heights, spacing_um=spacing, coeffs_um=coeffs, n=n, length_mm=length,
                        played_um=played, speed_mm_s=float(speed),
                        rate_hz=int(args.rate_hz), provenance=prov, full_scale_um=full_scale,
-                       perceptions=args.perceptions)
+                       perceptions=args.perceptions, compact=args.compact)
 
 
 def cmd_export(args: argparse.Namespace) -> int:
     from hostd.errors import ConfigError
     from hostd.fileio import write_output
+    from hostd.render.stroke import crossing_count
     from hostd.texture import hjif
 
     if not str(args.output).lower().endswith(".hjif"):
@@ -112,7 +113,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     tex, tim = by_id.get(0), by_id.get(1)
     m = hjif._FULL_SCALE.search(doc["perceptions"][0]["description"])
     info = {"output": args.output, "perceptions": [p["perception_modality"] for p in doc["perceptions"]],
-            "spatial_positions": tex and len(tex["channels"][0]["bands"][0]["effects"][0]["keyframes"]) - 2,
+            "spatial_positions": tex and crossing_count(ex.length_mm, ex.speed_mm_s, doc["timescale"],
+                                                        minimum=3),
             "unit_exponent": tex and tex["unit_exponent"], "timescale": doc["timescale"],
             "tick_um": tex and ex.speed_mm_s * 1e3 / doc["timescale"],
             "played_samples": tim and tim["channels"][0]["sample_count"], "rate_hz": ex.rate_hz,
@@ -152,5 +154,9 @@ def add_parser(sub) -> None:
     p.add_argument("--perceptions", choices=["both", "texture", "time"], default="both",
                    help="both (default), the texture over space only, or the texture as played only "
                    "(the reference Encoder/Decoder at 2de9ff1 carry only this one through .hmpg)")
+    p.add_argument("--compact", action="store_true",
+                   help="each perception as one VectorialWave band, a sinusoid per non-zero term of the "
+                   "texture's series, instead of a keyframe per sample (needs the terms' frequencies at "
+                   "--speed-mm-s to be whole numbers of Hz: docs/interchange.md)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_export)

@@ -570,3 +570,42 @@ def test_the_body_part_mask_is_the_rms_fingers_and_survives_its_binary_format(rm
     (p,) = json.loads((tmp_path / "d.hjif").read_bytes())["perceptions"]
     assert p["channels"][0]["body_part_mask"] == hjif.BODY_PART_MASK
     assert [dev["body_part_mask"] for dev in p["reference_devices"]] == [hjif.BODY_PART_MASK]
+
+
+def test_a_compact_export_is_vectorial_and_plays_as_hostd_renders(rm, wood, tmp_path, capsys):
+    """`hostd export S.vtx --compact`: each perception is one VectorialWave band, a sine effect per
+    non-zero term of the stream (frequency k v / 2L, a whole number of Hz for 5 mm at 50 mm/s;
+    amplitude and phase from the term). The Synthesizer plays the spatial one at 48 kHz as hostd's
+    stroke at 50 mm/s and the time-domain one at 8 kHz as hostd's rendering, within 0.51 LSB;
+    hostd reads the texture back (float32 amplitudes: within 1e-5 µm); the file is a fraction of
+    the keyframe-per-sample one. Where a term's frequency is no whole number of Hz, one line says
+    why and which speeds work."""
+    d, s = wood
+    compact, full = tmp_path / "c.hjif", tmp_path / "k.hjif"
+    assert main(["export", str(d / "wood.vtx"), "--compact", "-o", str(compact)]) == 0
+    assert main(["export", str(d / "wood.vtx"), "-o", str(full)]) == 0
+    doc = json.loads(compact.read_bytes())
+    nonzero = int(np.count_nonzero(s.coefficients))
+    for p in doc["perceptions"]:
+        (band,) = p["channels"][0]["bands"]
+        assert band["band_type"] == "VectorialWave" and len(band["effects"]) <= nonzero
+    fs = hjif.read_channel(compact, "0").full_scale_um
+    m = crossing_count(s.length_mm, 50.0, 48000, minimum=3)
+    stroke = at_constant_speed(s.coefficients, s.n, s.length_mm, 50.0, 48000, m, band_limited=False)
+    played = at_constant_speed(s.coefficients, s.n, s.length_mm, 50.0, 8000,
+                               crossing_count(s.length_mm, 50.0, 8000, minimum=3))
+    err_space = np.max(np.abs(_synth(rm, compact, 48000)[:m, 0] - _wav_range(stroke / fs)))
+    err_time = np.max(np.abs(_synth(rm, compact, 8000)[: played.size, 1] - _wav_range(played / fs)))
+    sizes = (compact.stat().st_size, full.stat().st_size, (d / "wood.vtx").stat().st_size)
+    print(f"compact: space {err_space / LSB:.3f} LSB, time {err_time / LSB:.3f} LSB; {sizes[0]} B against "
+          f"{sizes[1]} B a keyframe per sample and {sizes[2]} B .vtx")
+    assert err_space <= (0.5 + FLOAT32_LSB) * LSB and err_time <= (0.5 + FLOAT32_LSB) * LSB
+    assert sizes[0] * 10 < sizes[1]
+    back = hjif.read_channel(compact, "0")
+    np.testing.assert_allclose(back.samples * fs, s.reconstruct(), rtol=0, atol=1e-5)
+    capsys.readouterr()
+    assert main(["export", "synthetic:wood:3", "--compact", "-o", str(tmp_path / "x.hjif")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "k x 2.5 Hz" in err and "multiple of 20 mm/s" in err
+    assert main(["export", "synthetic:wood:3", "--compact", "--speed-mm-s", "40",
+                 "-o", str(tmp_path / "x.hjif")]) == 0

@@ -274,6 +274,8 @@ class Export:
     # software at 2de9ff1 writes an .hmpg of a spatial perception its own Decoder cannot read
     # (it aborts: map::at), so an .hmpg for that software is made from "time"
     perceptions: str = "both"
+    # each perception as one VectorialWave band, a sinusoid effect per non-zero term (vectorial_band)
+    compact: bool = False
 
 
 def timescale_for(rate_hz: int, spatial: bool) -> int:
@@ -289,6 +291,38 @@ def tick_unit_exponent(tick_um: float) -> int:
     standard's unit is a power of ten; a stroke speed over a timescale of <= 48000 is seldom one
     (50 mm/s / 48000 = 1.0417 µm), so the exact tick is stated in the description (`tick_um=`)."""
     return round(math.log10(tick_um * 1e-6))
+
+
+def vectorial_band(coeffs: np.ndarray, n: int, length_mm: float, speed_mm_s: float, end: int) -> dict:
+    """One VectorialWave band of the series sum_k c_k cos(k theta(v t)) along a stroke from x = 0
+    (c_k normalized to full scale): an effect at 0 per non-zero term, a sine of the term's
+    frequency f_k = k v / 2L and amplitude |c_k| with the effect's phase k pi / 2N + pi/2 (+ pi when
+    c_k < 0), and one keyframe, at `end` ticks (the RM's Synthesizer holds the first amplitude and
+    frequency keyframe from 0, and its phase bookkeeping, which takes ticks for milliseconds, adds
+    nothing before the first keyframe). The RM reads frequency_modulation as an integer number of
+    Hz: every f_k must be one, else a one-line refusal saying why and which speeds allow it."""
+    c = np.asarray(coeffs, dtype=np.float64)
+    k = np.flatnonzero(c) + 1
+    step_hz = speed_mm_s / (2 * length_mm)
+    f = k * step_hz
+    if k.size == 0:
+        raise ProfileError("--compact: the texture has no non-zero component to write")
+    off = np.abs(f - np.round(f))
+    if np.any(off > 1e-9 * np.maximum(f, 1.0)):
+        bad = int(k[np.argmax(off)])
+        raise ProfileError(f"--compact: at {speed_mm_s:g} mm/s over {length_mm:.6g} mm the texture's "
+                           f"components lie at k x {step_hz:.6g} Hz (k = {bad}: {bad * step_hz:.6g} Hz), and "
+                           "the standard's vectorial effects take a whole number of Hz (frequency_modulation "
+                           "is an integer), so they would drift out of phase: export at a --speed-mm-s that "
+                           f"is a multiple of {2 * length_mm:.6g} mm/s (2 x the patch length x 1 Hz), or "
+                           "without --compact")
+    phase = (k * np.pi / (2 * n) + np.pi / 2 + np.where(c[k - 1] < 0, np.pi, 0.0)) % (2 * np.pi)
+    effects = [{"effect_type": "Basis", "position": 0, "phase": float(ph), "base_signal": "Sine",
+                "keyframes": [{"relative_position": int(end), "amplitude_modulation": float(abs(a)),
+                               "frequency_modulation": round(fk)}]}
+               for ph, a, fk in zip(phase.tolist(), c[k - 1].tolist(), f.tolist(), strict=True)]
+    return {"band_type": "VectorialWave", "lower_frequency_limit": 0,
+            "upper_frequency_limit": round(float(f.max())), "effects": effects}
 
 
 def _curve_channel(desc: str, positions: np.ndarray, amps: np.ndarray, upper_hz: int,
@@ -390,16 +424,27 @@ def build(ex: Export, date: str | None = None) -> dict:
                                            ex.rate_hz // 2,
                                            {"frequency_sampling": rate, "sample_count": int(p.size),
                                             **target})]}
+    if ex.compact:
+        from hostd.render.stroke import with_band_gains
+
+        if tex is not None:
+            tex["channels"][0]["bands"] = [vectorial_band(np.asarray(ex.coeffs_um) / fs_um, ex.n,
+                                                          ex.length_mm, ex.speed_mm_s, count - 1)]
+        if tim is not None:
+            gained = with_band_gains(ex.coeffs_um, ex.length_mm, ex.speed_mm_s, rate) / fs_um
+            tim["channels"][0]["bands"] = [vectorial_band(gained, ex.n, ex.length_mm, ex.speed_mm_s,
+                                                          (p.size - 1) * step_t)]
     chosen = [q for q in (tex, tim) if q is not None]
-    # each effect ends with 0 one step after its signal and 0 at a common end (RM_RATES_HZ)
+    # each Curve effect ends with 0 one step after its signal and 0 at a common end (RM_RATES_HZ)
+    curves = [q for q in chosen if q["channels"][0]["bands"][0]["band_type"] == "Curve"]
     ends = []
-    for q in chosen:
+    for q in curves:
         kfs = q["channels"][0]["bands"][0]["effects"][0]["keyframes"]
         step = kfs[-1]["relative_position"] - kfs[-2]["relative_position"]
         kfs.append({"relative_position": kfs[-1]["relative_position"] + step, "amplitude_modulation": 0.0})
         ends.append(kfs[-1]["relative_position"])
-    end = rm_end_position(max(ends), ts)
-    for q in chosen:
+    end = rm_end_position(max(ends, default=0), ts)
+    for q in curves:
         q["channels"][0]["bands"][0]["effects"][0]["keyframes"].append(
             {"relative_position": end, "amplitude_modulation": 0.0})
     for q in chosen:
@@ -821,8 +866,21 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
     stated_tick = _stated(_TICK, desc, SPACING_UM_RANGE[1])
     stated_k = _stated(_TERMS, desc, MAX_SAMPLES)
     own = None
-    if (spatial and None not in (stated_spacing, stated_n, stated_tick, stated_k) and len(bands) == 1
-            and is_native(bands[0])):
+    mine = spatial and None not in (stated_spacing, stated_n, stated_tick, stated_k) and len(bands) == 1
+    if mine and bands[0].get("band_type") == "VectorialWave":
+        # hostd's compact layout (vectorial_band): sinusoids along the stroke, a tick per sample
+        from hostd.texture import hjif_vectorial
+
+        if hjif_vectorial.covers(bands[0]):
+            ends = [e["position"] + e["keyframes"][-1]["relative_position"] for e in bands[0]["effects"]
+                    if e["keyframes"]]
+            count = max(ends, default=0) + 1
+            if not 3 <= count <= MAX_SAMPLES:
+                raise d.err(f"{cw}.bands[0]", f"a stroke of {count} positions: absurd (3..{MAX_SAMPLES})")
+            y = hjif_vectorial.render_band(bands[0], timescale, timescale, count, f"{cw}.bands[0]", path)
+            own = _series_from_stroke(d, cw, np.clip(y, -1.0, 1.0), stated_tick, stated_spacing,
+                                      int(stated_n), int(stated_k))
+    elif mine and is_native(bands[0]):
         # hostd's own layout (build): one effect at 0, a keyframe per tick along one stroke, then a
         # 0 one tick later and a 0 at the file's common end; anything else is read as a foreign file
         effs = _effects(d, bands[0], f"{cw}.bands[0]")
