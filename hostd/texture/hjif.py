@@ -317,8 +317,11 @@ def vectorial_band(coeffs: np.ndarray, n: int, length_mm: float, speed_mm_s: flo
                            f"is a multiple of {2 * length_mm:.6g} mm/s (2 x the patch length x 1 Hz), or "
                            "without --compact")
     phase = (k * np.pi / (2 * n) + np.pi / 2 + np.where(c[k - 1] < 0, np.pi, 0.0)) % (2 * np.pi)
-    effects = [{"effect_type": "Basis", "position": 0, "phase": float(ph), "base_signal": "Sine",
-                "keyframes": [{"relative_position": int(end), "amplitude_modulation": float(abs(a)),
+    def f32(x: float) -> float:  # what the RM reads (float32), in its shortest decimal form
+        return float(str(np.float32(x)))
+
+    effects = [{"effect_type": "Basis", "position": 0, "phase": f32(ph), "base_signal": "Sine",
+                "keyframes": [{"relative_position": int(end), "amplitude_modulation": f32(abs(a)),
                                "frequency_modulation": round(fk)}]}
                for ph, a, fk in zip(phase.tolist(), c[k - 1].tolist(), f.tolist(), strict=True)]
     return {"band_type": "VectorialWave", "lower_frequency_limit": 0,
