@@ -49,7 +49,7 @@ def main(png: Path) -> None:
     a.set_xlim(0, x_um[-1] + 100)
     a.set_xlabel("position, µm (the whole 4-mm patch)")
     a.set_ylabel("height, µm")
-    a.set_title(f"'Vibrotactile Texture' (over space): the RM plays it at {speed_mm_s:g} mm/s, "
+    a.set_title(f"'Vibrotactile Texture' (over space): played at {speed_mm_s:g} mm/s, "
                 f"a position every {speed_mm_s * 1e3 / ts:.4g} µm")
     a.legend(fontsize=8, loc="lower right")
     t_ms = np.arange(tim.samples.size) / tim.rate_hz * 1e3
