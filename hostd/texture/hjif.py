@@ -13,14 +13,18 @@ Synthesizer's cubic interpolation passes through every sample and plays them exa
 one step later and a last 0 at a common end (the RM never plays an effect's last keyframe: its
 sample must lie past the WAV; RM_RATES_HZ). Every position stays within RM_MAX_POSITION (the
 RM's 32-bit position x rate at 48 kHz), or the export is refused in one line:
-- perception 0, "Vibrotactile Texture": the height profile over space. Keyframe positions are
-  spatial, in units of 10^unit_exponent metres (the perception's `unit_exponent`; hostd picks the
-  coarsest power of ten that states the sample spacing as a whole number, e.g. -7 = 0.1 µm for a
-  0.5 µm spacing, else rounds positions to the finest unit that fits: spatial_positions; the
-  exact spacing is in the description, `spacing_um=`).
-- perception 1, "Vibrotactile": the texture as a hand at one stroke speed feels it (one crossing
-  of the patch, hostd's own rendering `hostd render` at that speed), in time: one keyframe per
-  sample at `rate_hz`, the experience's timescale being rate_hz ticks per second.
+- perception 0, "Vibrotactile Texture": the texture over space as hostd models it (its series
+  C'_1..C'_K) along one stroke from x = 0 at the stated speed v, a keyframe per tick: the
+  timescale is the largest multiple of rate_hz <= 48000 (timescale_for), a tick v / timescale
+  long, so the reference Synthesizer, which takes positions for ticks, plays it at v. The tick
+  is seldom a power of ten (unit_exponent: the nearest, tick_unit_exponent); the description
+  states it and the series' geometry (`speed_mm_s= tick_um= terms= samples= spacing_um=`), and
+  hostd's reader fits the terms back onto the N samples (_series_from_stroke).
+- perception 1, "Vibrotactile": the texture as a hand at v feels it (one crossing of the patch,
+  hostd's own rendering `hostd render` at that speed), in time: one keyframe per sample at
+  `rate_hz`, timescale / rate_hz ticks apart.
+With `compact`, each perception is one VectorialWave band instead, a sine effect per non-zero
+term (vectorial_band), where the terms' frequencies at v are whole numbers of Hz.
 Amplitudes are normalized: keyframe amplitude = height / full scale, |amplitude| <= 1, the
 channel gain 1 and `perception_unit_exponent` 0, so the reference Synthesizer's WAV (full scale
 = 1.0) holds the samples. The full scale in µm is written in each perception's description
