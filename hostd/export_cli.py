@@ -157,6 +157,6 @@ def add_parser(sub) -> None:
     p.add_argument("--compact", action="store_true",
                    help="each perception as one VectorialWave band, a sinusoid per non-zero term of the "
                    "texture's series, instead of a keyframe per sample (needs the terms' frequencies at "
-                   "--speed-mm-s to be whole numbers of Hz: docs/interchange.md)")
+                   "--speed-mm-s, k v / 2L, to be whole numbers of Hz; hostd says which speeds work)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_export)
