@@ -585,6 +585,22 @@ def test_an_instrument_profile_round_trip_can_be_scored(tmp_path, capsys):
     np.testing.assert_allclose(back.heights_um, modelled, rtol=0, atol=1e-6)
 
 
+def test_a_file_written_by_the_previous_release_still_reads_back_exactly(capsys):
+    """A file the previous exporter wrote (a keyframe per sample, positions in 0.1-µm units, the
+    spacing stated in the description; tests/data/hjif-previous) is still hostd's own: read at
+    its stated spacing, every sample as written, and scored against its source at Iobj 0."""
+    here = Path(__file__).resolve().parent / "data" / "hjif-previous"
+    ref = load_profile(here / "profile.csv", LoadOptions())
+    back = load_profile(here / "profile.hjif", LoadOptions())
+    assert back.n == ref.n == 400 and back.spacing_um == pytest.approx(0.156245, rel=1e-12)
+    # written as height / full scale in float32-exact decimals: the samples, to the file's digits
+    np.testing.assert_allclose(back.heights_um - back.heights_um.mean(), ref.heights_um - ref.heights_um.mean(),
+                               rtol=0, atol=1e-4)
+    capsys.readouterr()
+    assert main(["iobj", str(here / "profile.csv"), str(here / "profile.hjif"), "--json"]) == 0
+    assert abs(json.loads(capsys.readouterr().out)["Iobj"]) <= 1e-9
+
+
 def test_an_opdx_in_the_wrong_unit_is_refused_in_one_line(tmp_path, capsys):
     """A profile whose patch holds no component below fmax (read in metres as µm) says what to
     check, not "N' must be in 1..N-1, got 0"."""

@@ -897,6 +897,20 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
             if np.array_equal(rel[:m], np.arange(m)) and not np.any(amp[m:]):
                 own = _series_from_stroke(d, cw, amp[:m], stated_tick, stated_spacing, int(stated_n),
                                           int(stated_k))
+    elif (spatial and stated_tick is None and None not in (stated_spacing, stated_n) and len(bands) == 1
+          and is_native(bands[0])):
+        # the layout hostd wrote before the stroke (files from earlier releases): one effect, a
+        # keyframe per sample within half a unit of i x the stated spacing, then a 0 after them and
+        # a 0 at the file's common end
+        effs = _effects(d, bands[0], f"{cw}.bands[0]")
+        n_own = int(stated_n)
+        if len(effs) == 1 and effs[0][0] == 0 and effs[0][1].size in (n_own, n_own + 2) and n_own >= 2:
+            i = np.arange(n_own, dtype=np.float64)
+            unit_um = 10.0 ** (ue + 6)
+            off = np.abs(effs[0][1][:n_own] * unit_um - i * stated_spacing)
+            near = np.all(off <= 0.5 * unit_um + 1e-9 * stated_spacing * (i + 1))
+            if near and not np.any(effs[0][2][n_own:]):
+                own = effs[0][2][:n_own]
     if own is not None:
         y = np.clip(own, -1.0, 1.0)
         step_m, rate = stated_spacing * 1e-6, None
