@@ -594,8 +594,8 @@ def test_a_file_written_by_the_previous_release_still_reads_back_exactly(capsys)
     back = load_profile(here / "profile.hjif", LoadOptions())
     assert back.n == ref.n == 400 and back.spacing_um == pytest.approx(0.156245, rel=1e-12)
     # written as height / full scale in float32-exact decimals: the samples, to the file's digits
-    np.testing.assert_allclose(back.heights_um - back.heights_um.mean(), ref.heights_um - ref.heights_um.mean(),
-                               rtol=0, atol=1e-4)
+    centred = [p.heights_um - p.heights_um.mean() for p in (back, ref)]
+    np.testing.assert_allclose(*centred, rtol=0, atol=1e-4)
     capsys.readouterr()
     assert main(["iobj", str(here / "profile.csv"), str(here / "profile.hjif"), "--json"]) == 0
     assert abs(json.loads(capsys.readouterr().out)["Iobj"]) <= 1e-9
