@@ -88,14 +88,16 @@ def texture_export(spec: str, args: argparse.Namespace):
         import numpy as np
 
         full_scale = max(full_scale, float(np.max(np.abs(heights))), float(np.max(np.abs(played))))
-    return hjif.Export(heights_um=heights, spacing_um=spacing, played_um=played, speed_mm_s=float(speed),
+    return hjif.Export(heights_um=heights, spacing_um=spacing, coeffs_um=coeffs, n=n, length_mm=length,
+                       played_um=played, speed_mm_s=float(speed),
                        rate_hz=int(args.rate_hz), provenance=prov, full_scale_um=full_scale,
-                       perceptions=args.perceptions)
+                       perceptions=args.perceptions, compact=args.compact)
 
 
 def cmd_export(args: argparse.Namespace) -> int:
     from hostd.errors import ConfigError
     from hostd.fileio import write_output
+    from hostd.render.stroke import crossing_count
     from hostd.texture import hjif
 
     if not str(args.output).lower().endswith(".hjif"):
@@ -111,7 +113,10 @@ def cmd_export(args: argparse.Namespace) -> int:
     tex, tim = by_id.get(0), by_id.get(1)
     m = hjif._FULL_SCALE.search(doc["perceptions"][0]["description"])
     info = {"output": args.output, "perceptions": [p["perception_modality"] for p in doc["perceptions"]],
-            "spatial_samples": tex and int(ex.heights_um.size), "unit_exponent": tex and tex["unit_exponent"],
+            "spatial_positions": tex and crossing_count(ex.length_mm, ex.speed_mm_s, doc["timescale"],
+                                                        minimum=3),
+            "unit_exponent": tex and tex["unit_exponent"], "timescale": doc["timescale"],
+            "tick_um": tex and ex.speed_mm_s * 1e3 / doc["timescale"],
             "played_samples": tim and tim["channels"][0]["sample_count"], "rate_hz": ex.rate_hz,
             "speed_mm_s": ex.speed_mm_s, "full_scale_um": float(m.group(1)) if m else None,
             "spacing_um": float(ex.spacing_um)}
@@ -120,7 +125,9 @@ def cmd_export(args: argparse.Namespace) -> int:
     else:
         parts = []
         if tex is not None:
-            parts.append(f"texture {info['spatial_samples']} samples every {info['spacing_um']:g} µm")
+            parts.append(f"texture ({ex.n} samples every {info['spacing_um']:g} µm) along one stroke at "
+                         f"{ex.speed_mm_s:g} mm/s: {info['spatial_positions']} positions every "
+                         f"{info['tick_um']:.5g} µm (1/{doc['timescale']} s)")
         if tim is not None:
             parts.append(f"played at {ex.speed_mm_s:g} mm/s: {info['played_samples']} samples at "
                          f"{ex.rate_hz} Hz")
@@ -138,13 +145,18 @@ def add_parser(sub) -> None:
     p.add_argument("source", help="a profile (csv/txt/npy/hjif, synthetic:wood[:SEED]) or a .vtx stream")
     p.add_argument("-o", "--output", required=True, help="output .hjif file")
     p.add_argument("--speed-mm-s", type=_positive, default=None,
-                   help="stroke speed of the time-domain perception, mm/s (default: the stream's v_ref, "
-                   "or --ref-speed-mm-s)")
+                   help="the stroke speed both perceptions play at in the reference Synthesizer, mm/s: the "
+                   "time-domain one is the texture as played at it, the spatial one's positions are "
+                   "ticks of the timescale at it (default: the stream's v_ref, or --ref-speed-mm-s)")
     p.add_argument("--rate-hz", type=_positive, default=8000.0,
                    help="sample rate of the time-domain perception, Hz (default 8000, the reference "
                    "Synthesizer's; at most 48000)")
     p.add_argument("--perceptions", choices=["both", "texture", "time"], default="both",
                    help="both (default), the texture over space only, or the texture as played only "
                    "(the reference Encoder/Decoder at 2de9ff1 carry only this one through .hmpg)")
+    p.add_argument("--compact", action="store_true",
+                   help="each perception as one VectorialWave band, a sinusoid per non-zero term of the "
+                   "texture's series, instead of a keyframe per sample (needs the terms' frequencies at "
+                   "--speed-mm-s, k v / 2L, to be whole numbers of Hz; hostd says which speeds work)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_export)

@@ -31,6 +31,7 @@ from hostd import api
 from hostd.cli import main
 from hostd.codec import transform
 from hostd.perception import indices, thresholds
+from hostd.render.stroke import at_constant_speed, crossing_count
 from hostd.texture import hjif
 from hostd.texture.load import LoadOptions, load_profile
 
@@ -148,30 +149,36 @@ def wood(tmp_path_factory):
 
 @pytest.mark.parametrize("speed_mm_s", [50.0, 137.0])
 def test_synthesizer_plays_what_hostd_writes(rm, wood, speed_mm_s):
-    """Both perceptions of a stream's export: the time-domain one is hostd's rendering at the speed,
-    the spatial one the decoded patch (one sample every `step` ticks, read as time by the RM)."""
+    """Both perceptions of a stream's export play at the stated stroke speed: the time-domain one
+    (at its 8 kHz) is hostd's rendering at that speed; the spatial one, played at 48 kHz, is hostd's
+    own unfiltered rendering of the same stroke (the series along x = v t) at 48 kHz: its positions
+    are ticks of 1/48000 s = v/48000 of the patch (before: 0.1-µm positions the RM played at
+    0.8 mm/s). hostd reads the spatial perception back as the decoded patch."""
     d, s = wood
     out = d / f"w{speed_mm_s:g}.hjif"
     assert main(["export", str(d / "wood.vtx"), "-o", str(out), "--speed-mm-s", f"{speed_mm_s}"]) == 0
     doc = json.loads(out.read_bytes())
+    assert doc["timescale"] == 48000
     fs = hjif.read_channel(out, "0").full_scale_um
     x = _synth(rm, out)
     assert x.shape[1] == 2  # one WAV channel per perception channel
-    assert fs == pytest.approx(max(np.max(np.abs(s.reconstruct())), np.max(np.abs(
-        hjif.read_channel(out, "1").samples * fs))))  # the default full scale: the peak
     played = api.render_stroke(s, speed_mm_s=speed_mm_s, seconds=s.length_mm / speed_mm_s,
                                rate_hz=8000)["height_um"]
+    assert fs == pytest.approx(max(np.max(np.abs(s.reconstruct())), np.max(np.abs(played)), np.max(np.abs(
+        hjif.read_channel(out, "1").samples * fs))), rel=1e-3)  # the default full scale: the peak
     err_time = np.max(np.abs(x[: played.size, 1] - _wav_range(played / fs)))
     assert err_time <= (0.5 + FLOAT32_LSB) * LSB
-    step = doc["perceptions"][0]["channels"][0]["bands"][0]["effects"][0]["keyframes"][1]["relative_position"]
-    h = s.reconstruct() / fs
-    # the RM never plays an effect's last keyframe (cubicInterpolation2 stops one short): N - 1
-    got = x[: (h.size - 1) * step : step, 0]
-    assert got.size == h.size - 1
-    err_space = np.max(np.abs(got - _wav_range(h[:-1])))
-    print(f"Synthesizer vs hostd at {speed_mm_s:g} mm/s: time {err_time / LSB:.3f} LSB, space "
-          f"{err_space / LSB:.3f} LSB")
+    x48 = _synth(rm, out, 48000)
+    m = crossing_count(s.length_mm, speed_mm_s, 48000, minimum=3)
+    stroke = at_constant_speed(s.coefficients, s.n, s.length_mm, speed_mm_s, 48000, m, band_limited=False)
+    err_space = np.max(np.abs(x48[:m, 0] - _wav_range(stroke / fs)))
+    assert not np.any(x48[m:, 0])  # then silence: the 0 after the stroke and the common end
+    print(f"Synthesizer vs hostd at {speed_mm_s:g} mm/s: time (8 kHz) {err_time / LSB:.3f} LSB, space "
+          f"(48 kHz, {m} samples = {m / 48000 * 1e3:.2f} ms) {err_space / LSB:.3f} LSB")
     assert err_space <= (0.5 + FLOAT32_LSB) * LSB
+    tex = hjif.read_channel(out, "0")
+    assert tex.step_m * 1e6 == pytest.approx(s.spacing_um, rel=1e-12)
+    np.testing.assert_allclose(tex.samples * fs, s.reconstruct(), rtol=0, atol=1e-6)
 
 
 def test_synthesizer_reads_every_kind_of_export(rm, wood):
@@ -182,7 +189,8 @@ def test_synthesizer_reads_every_kind_of_export(rm, wood):
         out = d / "k.hjif"
         assert main(["export", *extra, "-o", str(out)]) == 0
         doc = json.loads(out.read_bytes())
-        x = _synth(rm, out, doc["timescale"])
+        tim = next((p for p in doc["perceptions"] if p["id"] == 1), None)
+        x = _synth(rm, out, tim["channels"][0]["frequency_sampling"] if tim else doc["timescale"])
         assert x.shape[1] == len(doc["perceptions"])
         i = next((i for i, p in enumerate(doc["perceptions"]) if p["id"] == 1), None)
         if i is not None:  # the time-domain perception plays as hostd reads it
@@ -361,7 +369,8 @@ def test_a_hostile_hmpg_is_one_line_and_the_decoder_is_bounded(rm, tmp_path, cap
 DEKTAK = ROOT / "config" / "profiles" / "dektak-1.csv"  # 0.156245 µm: positions rounded to 0.1 µm
 EXPORTS = {  # name: hostd export arguments
     "wood-4mm": ["synthetic:wood:3", "--length-mm", "4"],
-    "wood-48k": ["synthetic:wood:3", "--length-mm", "4", "--rate-hz", "48000"],
+    # the issue's case: 10 mm at 0.5 µm (played 2,104 of 20,000 samples, then refused: 100,000 positions)
+    "wood-10mm-48k": ["synthetic:wood:3", "--rate-hz", "48000"],
     "dektak": [str(DEKTAK)],
     "dektak-1mm-48k": [str(DEKTAK), "--length-mm", "1", "--rate-hz", "48000"],
     "chirp-texture-22k": ["synthetic:sandpaper:2", "--length-mm", "3", "--perceptions", "texture",
@@ -390,23 +399,35 @@ def test_every_export_plays_completely_at_the_rms_rates(rm, tmp_path, name):
         err = np.max(np.abs(x - want))
         print(f"{name} at {rate} Hz: {x.shape[0]} samples x {x.shape[1]}, max error {err / LSB:.3f} LSB")
         assert err <= (0.5 + FLOAT32_LSB) * LSB
-        if rate == ts or (rate == 48000 and ts == 48000):
-            for j, p in enumerate(doc["perceptions"]):
-                ch = hjif.read_channel(out, str(j))
-                kfs = p["channels"][0]["bands"][0]["effects"][0]["keyframes"][: ch.samples.size]
-                at = np.array([k["relative_position"] for k in kfs]) * rate // ts
-                np.testing.assert_allclose(want[at, j], _wav_range(ch.samples), rtol=0, atol=1e-6)
+        for j, p in enumerate(doc["perceptions"]):
+            # where a keyframe falls on a sample of its own, the WAV holds its amplitude: every one at
+            # the timescale's rate, the time-domain perception's at its own
+            kfs = p["channels"][0]["bands"][0]["effects"][0]["keyframes"][:-2]
+            at = np.array([k["relative_position"] for k in kfs]) * rate
+            if np.all(at % ts == 0) and np.unique(at // ts).size == at.size:
+                amp = np.array([k["amplitude_modulation"] for k in kfs])
+                np.testing.assert_allclose(want[at // ts, j], _wav_range(amp), rtol=0, atol=1e-6)
+                np.testing.assert_allclose(x[at // ts, j], _wav_range(amp), rtol=0,
+                                           atol=(0.5 + FLOAT32_LSB) * LSB)
 
 
 def test_an_export_past_the_rms_arithmetic_is_refused_in_one_line(tmp_path, capsys):
-    """10 mm of wood at 0.5 µm needs 100,000 positions of 0.1 µm: more than the RM plays at 48 kHz."""
-    assert main(["export", "synthetic:wood:3", "-o", str(tmp_path / "w.hjif")]) == 2
+    """One stroke over 100 mm at 50 mm/s is 96,000 ticks of 1/48000 s: more than the RM plays at
+    48 kHz (89,279 ticks before the common end): 93 mm is the most. A series whose top component
+    at the stroke speed lies above half the timescale cannot be held by the ticks."""
+    np.savetxt(tmp_path / "long.txt", np.random.default_rng(1).normal(size=20_000))
+    assert main(["export", str(tmp_path / "long.txt"), "--spacing", "5", "--length-mm", "100", "-o",
+                 str(tmp_path / "w.hjif")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "reference player plays" in err and "--length-mm" in err
+    assert err.count("\n") == 1 and "reference player plays" in err and "at most 93 mm" in err
     assert "--perceptions time" in err and not (tmp_path / "w.hjif").exists()
     assert main(["export", "synthetic:wood:3", "--perceptions", "time", "--speed-mm-s", "1", "--rate-hz",
                  "48000", "-o", str(tmp_path / "t.hjif")]) == 2
     assert "lower --rate-hz" in capsys.readouterr().err
+    assert main(["export", "synthetic:wood:3", "--length-mm", "2", "--fmax-hz", "20000", "--speed-mm-s",
+                 "200", "-o", str(tmp_path / "f.hjif")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "below 24000 Hz" in err and "lower --speed-mm-s" in err
 
 
 AHAP = {"Version": 1.0, "Pattern": [
@@ -493,10 +514,16 @@ def test_a_round_trip_through_the_rm_keeps_the_amplitude(rm, wood, tmp_path, cap
     before = _synth(rm, enc)[:, 0]
     out = tmp_path / "back.hjif"
     assert main(["export", str(enc), "--spacing", "6.25", "--length-mm", "50", "--perceptions", "texture",
-                 "-o", str(out)]) == 0
-    after = _synth(rm, out)[:, 0]
-    print(f"peak through the RM: {np.max(np.abs(before)):.5f}, after hostd: {np.max(np.abs(after)):.5f}")
-    assert np.max(np.abs(after)) == pytest.approx(np.max(np.abs(before)), abs=1.01 * LSB)
+                 "--rate-hz", "48000", "-o", str(out)]) == 0
+    # the spatial perception is the texture's series (its components up to 400 Hz at 50 mm/s) along a
+    # stroke at 50 mm/s: at 48 kHz every 6th sample lies on the 6.25-µm grid of the RM's first WAV
+    after = _synth(rm, out, 48000)[: before.size * 6 : 6, 0]
+    n_keep = transform.n_keep_for(50.0, 50.0, 400.0)
+    read = hjif.read_channel(enc).samples  # what hostd read of the RM's file: the WAV within 0.5 LSB
+    model = transform.synthesize(transform.analyze(read, n_keep), read.size)
+    print(f"peak through the RM: {np.max(np.abs(before)):.5f} ({np.max(np.abs(model)):.5f} up to 400 Hz), "
+          f"after hostd: {np.max(np.abs(after)):.5f}")
+    assert np.max(np.abs(after - _wav_range(model))) <= (0.5 + FLOAT32_LSB) * LSB
     dev = json.loads(out.read_bytes())["perceptions"][0]["reference_devices"][0]
     assert dev["maximum_displacement"] == 1e-6
     # hostd's rendering at a 40-µm full scale, as a 16-bit WAV, coded by the RM, read back with the scale
@@ -512,3 +539,73 @@ def test_a_round_trip_through_the_rm_keeps_the_amplitude(rm, wood, tmp_path, cap
     rms = float(np.sqrt(np.mean(back.heights_um[:n] ** 2)) / np.sqrt(np.mean(orig.heights_um ** 2)))
     print(f"hostd's 40-µm rendering through the RM's WAV codec: RMS ratio {rms:.4f}")
     assert rms == pytest.approx(1.0, abs=0.05)
+
+
+def _rm_body_bits() -> dict[str, int]:
+    """OHMData::Body, the body part mask's bits, from the reference software's own header."""
+    import re
+    import tarfile
+
+    tars = sorted(_rm_sources().glob("src/HapticReferenceSoftware-*.tar.gz"))
+    if not tars:
+        _unavailable(f"no HapticReferenceSoftware tarball in {_rm_sources() / 'src'}")
+    with tarfile.open(tars[0]) as tf:
+        member = next(m for m in tf.getmembers() if m.name.endswith("source/Tools/include/OHMData.h"))
+        text = tf.extractfile(member).read().decode()
+    body = text[text.index("enum class Body"):]
+    body = body[: body.index("};")]
+    return {k: int(v, 16) for k, v in re.findall(r"(\w+) = (0x[0-9A-Fa-f]+)", body)}
+
+
+def test_the_body_part_mask_is_the_rms_fingers_and_survives_its_binary_format(rm, tmp_path):
+    """body_part_mask (reference device and channel) holds the bits the reference software defines
+    for the fingers of either hand (Tools/include/OHMData.h, read from its source at test time: the
+    display is under a fingertip, hand unknown); the RM's Encoder (.hmpg) and Decoder carry it."""
+    bits = _rm_body_bits()
+    assert hjif.BODY_PART_MASK == bits["RIGHT_HAND_FINGERS"] | bits["LEFT_HAND_FINGERS"] == 0x300000
+    assert main(["export", "synthetic:wood:3", "--length-mm", "2", "--perceptions", "time",
+                 "-o", str(tmp_path / "t.hjif")]) == 0
+    _run(rm, "Encoder", "-f", "t.hjif", "-o", "t.hmpg", "-b", cwd=tmp_path)
+    _run(rm, "Decoder", "-f", "t.hmpg", "-o", "d.hjif", cwd=tmp_path)
+    (p,) = json.loads((tmp_path / "d.hjif").read_bytes())["perceptions"]
+    assert p["channels"][0]["body_part_mask"] == hjif.BODY_PART_MASK
+    assert [dev["body_part_mask"] for dev in p["reference_devices"]] == [hjif.BODY_PART_MASK]
+
+
+def test_a_compact_export_is_vectorial_and_plays_as_hostd_renders(rm, wood, tmp_path, capsys):
+    """`hostd export S.vtx --compact`: each perception is one VectorialWave band, a sine effect per
+    non-zero term of the stream (frequency k v / 2L, a whole number of Hz for 5 mm at 50 mm/s;
+    amplitude and phase from the term). The Synthesizer plays the spatial one at 48 kHz as hostd's
+    stroke at 50 mm/s and the time-domain one at 8 kHz as hostd's rendering, within 0.51 LSB;
+    hostd reads the texture back (float32 amplitudes: within 1e-5 µm); the file is a fraction of
+    the keyframe-per-sample one. Where a term's frequency is no whole number of Hz, one line says
+    why and which speeds work."""
+    d, s = wood
+    compact, full = tmp_path / "c.hjif", tmp_path / "k.hjif"
+    assert main(["export", str(d / "wood.vtx"), "--compact", "-o", str(compact)]) == 0
+    assert main(["export", str(d / "wood.vtx"), "-o", str(full)]) == 0
+    doc = json.loads(compact.read_bytes())
+    nonzero = int(np.count_nonzero(s.coefficients))
+    for p in doc["perceptions"]:
+        (band,) = p["channels"][0]["bands"]
+        assert band["band_type"] == "VectorialWave" and len(band["effects"]) <= nonzero
+    fs = hjif.read_channel(compact, "0").full_scale_um
+    m = crossing_count(s.length_mm, 50.0, 48000, minimum=3)
+    stroke = at_constant_speed(s.coefficients, s.n, s.length_mm, 50.0, 48000, m, band_limited=False)
+    played = at_constant_speed(s.coefficients, s.n, s.length_mm, 50.0, 8000,
+                               crossing_count(s.length_mm, 50.0, 8000, minimum=3))
+    err_space = np.max(np.abs(_synth(rm, compact, 48000)[:m, 0] - _wav_range(stroke / fs)))
+    err_time = np.max(np.abs(_synth(rm, compact, 8000)[: played.size, 1] - _wav_range(played / fs)))
+    sizes = (compact.stat().st_size, full.stat().st_size, (d / "wood.vtx").stat().st_size)
+    print(f"compact: space {err_space / LSB:.3f} LSB, time {err_time / LSB:.3f} LSB; {sizes[0]} B against "
+          f"{sizes[1]} B a keyframe per sample and {sizes[2]} B .vtx")
+    assert err_space <= (0.5 + FLOAT32_LSB) * LSB and err_time <= (0.5 + FLOAT32_LSB) * LSB
+    assert sizes[0] * 10 < sizes[1]
+    back = hjif.read_channel(compact, "0")
+    np.testing.assert_allclose(back.samples * fs, s.reconstruct(), rtol=0, atol=1e-5)
+    capsys.readouterr()
+    assert main(["export", "synthetic:wood:3", "--compact", "-o", str(tmp_path / "x.hjif")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "k x 2.5 Hz" in err and "multiple of 20 mm/s" in err
+    assert main(["export", "synthetic:wood:3", "--compact", "--speed-mm-s", "40",
+                 "-o", str(tmp_path / "x.hjif")]) == 0

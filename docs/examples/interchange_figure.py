@@ -37,18 +37,20 @@ def main(png: Path) -> None:
         tex, tim = hjif.read_channel(f, "0"), hjif.read_channel(f, "1")
     ts = doc["timescale"]
     fig, (a, b) = plt.subplots(2, 1, figsize=(8, 6))
-    # over space: the RM takes positions (0.1 µm each) for ticks of 1/timescale s
+    # over space: the RM takes a position for a tick of 1/timescale s, and hostd's ticks are
+    # v / timescale long, so the WAV's time x v is the position along the stroke
     x_um = np.arange(tex.samples.size) * tex.step_m * 1e6
     t_wav = np.arange(wav.shape[0]) / RATE_HZ
-    unit_um = 10.0 ** (doc["perceptions"][0]["unit_exponent"] + 6)
-    a.plot(t_wav * ts * unit_um, wav[:, 0] * tex.full_scale_um, lw=2.5, color="0.75",
-           label=f"reference Synthesizer at {RATE_HZ // 1000} kHz (its time x timescale x 0.1 µm)")
-    a.plot(x_um, tex.samples * tex.full_scale_um, lw=0.8, color="C0", label="hostd's heights")
+    speed_mm_s = tim.speed_mm_s
+    a.plot(t_wav * speed_mm_s * 1e3, wav[:, 0] * tex.full_scale_um, lw=2.5, color="0.75",
+           label=f"reference Synthesizer at {RATE_HZ // 1000} kHz (its time x {speed_mm_s:g} mm/s)")
+    a.plot(x_um, tex.samples * tex.full_scale_um, lw=0.8, color="C0",
+           label="hostd's texture (as read back: the series on its 0.5-µm grid)")
     a.set_xlim(0, x_um[-1] + 100)
-    a.set_xlabel("position, µm (the whole 4-mm patch, to its last sample)")
+    a.set_xlabel("position, µm (the whole 4-mm patch)")
     a.set_ylabel("height, µm")
-    a.set_title(f"'Vibrotactile Texture' (over space): the RM plays it at "
-                f"{unit_um * 1e-3 * ts:.2g} mm/s, all {tex.samples.size} samples")
+    a.set_title(f"'Vibrotactile Texture' (over space): played at {speed_mm_s:g} mm/s, "
+                f"a position every {speed_mm_s * 1e3 / ts:.4g} µm")
     a.legend(fontsize=8, loc="lower right")
     t_ms = np.arange(tim.samples.size) / tim.rate_hz * 1e3
     b.plot(t_wav * 1e3, wav[:, 1] * tim.full_scale_um, lw=2.5, color="0.75",

@@ -22,13 +22,19 @@ def at_constant_speed(coeffs_um: np.ndarray, n: int, length_mm: float, speed_mm_
     backwards) from `x0_mm`, over a patch of n samples and length_mm (C'_1..C'_N' given)."""
     c = np.asarray(coeffs_um, dtype=np.float64)
     if band_limited:
-        from hostd.render.height import BandLimitConfig, band_gains
-
-        k = np.arange(1, c.size + 1, dtype=np.float64)
-        c = c * band_gains(k, speed_mm_s, length_mm, BandLimitConfig(sample_rate_hz=rate_hz))
+        c = with_band_gains(c, length_mm, speed_mm_s, rate_hz)
     theta0 = float(series.phase_rad(x0_mm, n, length_mm))
     dtheta = np.pi * speed_mm_s / (length_mm / n * n * rate_hz)  # phase per sample: v / (N dx rate)
     return series.evaluate_uniform(c, theta0, dtheta, int(count))
+
+
+def with_band_gains(coeffs_um: np.ndarray, length_mm: float, speed_mm_s: float, rate_hz: float) -> np.ndarray:
+    """g_k C'_k: the series as the renderer plays it at speed_mm_s and rate_hz (hostd.render.height)."""
+    from hostd.render.height import BandLimitConfig, band_gains
+
+    c = np.asarray(coeffs_um, dtype=np.float64)
+    k = np.arange(1, c.size + 1, dtype=np.float64)
+    return c * band_gains(k, speed_mm_s, length_mm, BandLimitConfig(sample_rate_hz=rate_hz))
 
 
 def crossing_count(length_mm: float, speed_mm_s: float, rate_hz: float, minimum: int = 2) -> int:

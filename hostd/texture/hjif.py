@@ -13,14 +13,18 @@ Synthesizer's cubic interpolation passes through every sample and plays them exa
 one step later and a last 0 at a common end (the RM never plays an effect's last keyframe: its
 sample must lie past the WAV; RM_RATES_HZ). Every position stays within RM_MAX_POSITION (the
 RM's 32-bit position x rate at 48 kHz), or the export is refused in one line:
-- perception 0, "Vibrotactile Texture": the height profile over space. Keyframe positions are
-  spatial, in units of 10^unit_exponent metres (the perception's `unit_exponent`; hostd picks the
-  coarsest power of ten that states the sample spacing as a whole number, e.g. -7 = 0.1 µm for a
-  0.5 µm spacing, else rounds positions to the finest unit that fits: spatial_positions; the
-  exact spacing is in the description, `spacing_um=`).
-- perception 1, "Vibrotactile": the texture as a hand at one stroke speed feels it (one crossing
-  of the patch, hostd's own rendering `hostd render` at that speed), in time: one keyframe per
-  sample at `rate_hz`, the experience's timescale being rate_hz ticks per second.
+- perception 0, "Vibrotactile Texture": the texture over space as hostd models it (its series
+  C'_1..C'_K) along one stroke from x = 0 at the stated speed v, a keyframe per tick: the
+  timescale is the largest multiple of rate_hz <= 48000 (timescale_for), a tick v / timescale
+  long, so the reference Synthesizer, which takes positions for ticks, plays it at v. The tick
+  is seldom a power of ten (unit_exponent: the nearest, tick_unit_exponent); the description
+  states it and the series' geometry (`speed_mm_s= tick_um= terms= samples= spacing_um=`), and
+  hostd's reader fits the terms back onto the N samples (_series_from_stroke).
+- perception 1, "Vibrotactile": the texture as a hand at v feels it (one crossing of the patch,
+  hostd's own rendering `hostd render` at that speed), in time: one keyframe per sample at
+  `rate_hz`, timescale / rate_hz ticks apart.
+With `compact`, each perception is one VectorialWave band instead, a sine effect per non-zero
+term (vectorial_band), where the terms' frequencies at v are whole numbers of Hz.
 Amplitudes are normalized: keyframe amplitude = height / full scale, |amplitude| <= 1, the
 channel gain 1 and `perception_unit_exponent` 0, so the reference Synthesizer's WAV (full scale
 = 1.0) holds the samples. The full scale in µm is written in each perception's description
@@ -97,6 +101,14 @@ def rm_end_position(last: int, timescale: int) -> int:
     """The first position after `last` that is a whole number of samples at every RM_RATES_HZ."""
     m = math.lcm(*(timescale // math.gcd(timescale, f) for f in RM_RATES_HZ))
     return (last // m + 1) * m
+# The body part mask's bits as the reference software defines them (Tools/include/OHMData.h,
+# OHMData::Body, the OHM format's body table): RIGHT_HAND_FINGERS 0x00100000, LEFT_HAND_FINGERS
+# 0x00200000. hostd's display is under a fingertip of either hand (body_part_target "Index")
+BODY_PART_MASK = 0x00100000 | 0x00200000
+# terms of the series in a spatial perception hostd reads back by a least-squares fit of the stroke
+# (hostd.render.series.Projector: a (K+1)^2 Gram matrix, 33 MB and ~1 s at this K); 93 mm of texture
+# at 400 Hz and 50 mm/s is 1,490
+MAX_TERMS = 2048
 MAX_DESCRIPTION_BYTES = 255  # .hmpg stores a description's length in 8 bits
 VERSION = "2023"
 TEXTURE = "Vibrotactile Texture"
@@ -125,6 +137,8 @@ _FULL_SCALE = re.compile(r"full_scale_um=([0-9.eE+-]+)")
 _SPEED = re.compile(r"speed_mm_s=([0-9.eE+-]+)")
 _SPACING = re.compile(r"spacing_um=([0-9.eE+-]+)")
 _SAMPLES = re.compile(r"samples=([0-9]+)")
+_TICK = re.compile(r"tick_um=([0-9.eE+-]+)")
+_TERMS = re.compile(r"terms=([0-9]+)")
 
 
 # ============================================================================ the reference software
@@ -250,6 +264,11 @@ class Export:
 
     heights_um: np.ndarray  # the texture over space, uniform spacing
     spacing_um: float
+    # hostd's representation of it: the series C'_1..C'_K of the N-sample patch (hostd.codec.transform);
+    # the spatial perception is this series along one stroke at speed_mm_s, a keyframe per tick
+    coeffs_um: np.ndarray
+    n: int
+    length_mm: float
     played_um: np.ndarray  # the texture in time at speed_mm_s, rate_hz
     speed_mm_s: float
     rate_hz: int
@@ -259,43 +278,58 @@ class Export:
     # software at 2de9ff1 writes an .hmpg of a spatial perception its own Decoder cannot read
     # (it aborts: map::at), so an .hmpg for that software is made from "time"
     perceptions: str = "both"
+    # each perception as one VectorialWave band, a sinusoid effect per non-zero term (vectorial_band)
+    compact: bool = False
 
 
-def spatial_positions(spacing_um: float, count: int,
-                      limit: int = RM_MAX_POSITION) -> tuple[int, np.ndarray, float]:
-    """(unit_exponent e, the keyframe positions of samples 0..count-1 in units of 10^e m, the
-    largest position error in µm), within what the reference player plays (RM_MAX_POSITION).
+def timescale_for(rate_hz: int, spatial: bool) -> int:
+    """The experience's timescale (ticks per second): with a spatial perception the largest
+    multiple of rate_hz within the Main profile's MAX_TIMESCALE (48000 at 8, 16, 24 or 48 kHz,
+    44100 at 22.05 or 44.1 kHz), so that a tick is one output sample at the RM's highest rate;
+    without one, rate_hz (a time-domain perception alone then plays longest: RM_MAX_POSITION)."""
+    return int(rate_hz) * (MAX_TIMESCALE // int(rate_hz)) if spatial else int(rate_hz)
 
-    The coarsest power of ten (e in -3..-12) that states the spacing as a whole number of units
-    (to 1e-9 relative), when its last position fits; else the finest unit in which the positions
-    fit with at least one unit per sample, each position rounded to the unit (error <= half a
-    unit: hostd's reader takes the spacing from the description, a foreign reader is off by at
-    most that); else a one-line refusal."""
-    if not (SPACING_UM_RANGE[0] <= spacing_um <= SPACING_UM_RANGE[1]):
-        raise ProfileError(f"spacing {spacing_um:g} µm is outside {SPACING_UM_RANGE[0]:g}.."
-                           f"{SPACING_UM_RANGE[1]:g} µm")
-    i = np.arange(count, dtype=np.float64)
-    for e in range(-3, -13, -1):
-        units = spacing_um * 10.0 ** (-6 - e)
-        r = round(units)
-        if r >= 1 and abs(units - r) <= 1e-9 * units:
-            if r * count <= limit:
-                return e, np.arange(count, dtype=np.int64) * r, 0.0
-            break
-    for e in range(-12, -2):
-        units = spacing_um * 10.0 ** (-6 - e)
-        if units >= 1 and round(units * count) + 1 <= limit:  # + 1: the 0 after the last may round up
-            pos = np.round(i * units).astype(np.int64)
-            err_um = float(np.max(np.abs(pos * 10.0 ** (e + 6) - i * spacing_um)))
-            return e, pos, err_um
-    exact = [round(spacing_um * 10.0 ** (-6 - e)) for e in range(-3, -13, -1)
-             if abs(spacing_um * 10.0 ** (-6 - e) - round(spacing_um * 10.0 ** (-6 - e)))
-             <= 1e-9 * spacing_um * 10.0 ** (-6 - e) and round(spacing_um * 10.0 ** (-6 - e)) >= 1]
-    most_mm = (limit // (exact[0] if exact else 1)) * spacing_um / 1000.0
-    raise ProfileError(f"{count} samples over space are more keyframe positions than the reference "
-                       f"player plays ({limit}: it computes position x rate in 32 bits, up to "
-                       f"48 kHz): export at most {most_mm:.3g} mm (a profile: --length-mm; a stream: encode "
-                       "a patch that long) or only the texture as played (--perceptions time)")
+
+def tick_unit_exponent(tick_um: float) -> int:
+    """The power of ten nearest (in log) to the spatial tick: the perception's unit_exponent. The
+    standard's unit is a power of ten; a stroke speed over a timescale of <= 48000 is seldom one
+    (50 mm/s / 48000 = 1.0417 µm), so the exact tick is stated in the description (`tick_um=`)."""
+    return round(math.log10(tick_um * 1e-6))
+
+
+def vectorial_band(coeffs: np.ndarray, n: int, length_mm: float, speed_mm_s: float, end: int) -> dict:
+    """One VectorialWave band of the series sum_k c_k cos(k theta(v t)) along a stroke from x = 0
+    (c_k normalized to full scale): an effect at 0 per non-zero term, a sine of the term's
+    frequency f_k = k v / 2L and amplitude |c_k| with the effect's phase k pi / 2N + pi/2 (+ pi when
+    c_k < 0), and one keyframe, at `end` ticks (the RM's Synthesizer holds the first amplitude and
+    frequency keyframe from 0, and its phase bookkeeping, which takes ticks for milliseconds, adds
+    nothing before the first keyframe). The RM reads frequency_modulation as an integer number of
+    Hz: every f_k must be one, else a one-line refusal saying why and which speeds allow it."""
+    c = np.asarray(coeffs, dtype=np.float64)
+    k = np.flatnonzero(c) + 1
+    step_hz = speed_mm_s / (2 * length_mm)
+    f = k * step_hz
+    if k.size == 0:
+        raise ProfileError("--compact: the texture has no non-zero component to write")
+    off = np.abs(f - np.round(f))
+    if np.any(off > 1e-9 * np.maximum(f, 1.0)):
+        bad = int(k[np.argmax(off)])
+        raise ProfileError(f"--compact: at {speed_mm_s:g} mm/s over {length_mm:.6g} mm the texture's "
+                           f"components lie at k x {step_hz:.6g} Hz (k = {bad}: {bad * step_hz:.6g} Hz), and "
+                           "the standard's vectorial effects take a whole number of Hz (frequency_modulation "
+                           "is an integer), so they would drift out of phase: export at a --speed-mm-s that "
+                           f"is a multiple of {2 * length_mm:.6g} mm/s (2 x the patch length x 1 Hz), or "
+                           "without --compact")
+    phase = (k * np.pi / (2 * n) + np.pi / 2 + np.where(c[k - 1] < 0, np.pi, 0.0)) % (2 * np.pi)
+    def f32(x: float) -> float:  # what the RM reads (float32), in its shortest decimal form
+        return float(str(np.float32(x)))
+
+    effects = [{"effect_type": "Basis", "position": 0, "phase": f32(ph), "base_signal": "Sine",
+                "keyframes": [{"relative_position": int(end), "amplitude_modulation": f32(abs(a)),
+                               "frequency_modulation": round(fk)}]}
+               for ph, a, fk in zip(phase.tolist(), c[k - 1].tolist(), f.tolist(), strict=True)]
+    return {"band_type": "VectorialWave", "lower_frequency_limit": 0,
+            "upper_frequency_limit": round(float(f.max())), "effects": effects}
 
 
 def _curve_channel(desc: str, positions: np.ndarray, amps: np.ndarray, upper_hz: int,
@@ -303,7 +337,7 @@ def _curve_channel(desc: str, positions: np.ndarray, amps: np.ndarray, upper_hz:
     kfs = [{"relative_position": int(p), "amplitude_modulation": float(a)}
            for p, a in zip(positions.tolist(), amps.tolist(), strict=True)]
     ch = {"id": 0, "description": desc, "gain": 1.0, "mixing_coefficient": 1.0,
-          "body_part_mask": 0, **(extra or {}),
+          "body_part_mask": BODY_PART_MASK, **(extra or {}),
           "bands": [{"band_type": "Curve", "curve_type": "Cubic", "lower_frequency_limit": 0,
                      "upper_frequency_limit": int(upper_hz),
                      "effects": [{"effect_type": "Basis", "position": 0, "keyframes": kfs}]}]}
@@ -324,43 +358,68 @@ def build(ex: Export, date: str | None = None) -> dict:
         raise ProfileError(f"--rate-hz must be a whole number of Hz in 1..{MAX_TIMESCALE} (the Main "
                            f"profile's timescale), got {ex.rate_hz}")
     want_tex, want_time = ex.perceptions in ("both", "texture"), ex.perceptions in ("both", "time")
-    ts = int(ex.rate_hz)
+    rate = int(ex.rate_hz)
+    ts = timescale_for(rate, want_tex)
     m = rm_end_position(0, ts)
     limit = (RM_MAX_POSITION // m) * m - 1  # the last 0 keyframe; the end is then <= RM_MAX_POSITION
-    if want_time and p.size > limit:
+    step_t = ts // rate  # ticks per sample of the time-domain perception
+    stroke = recon = None
+    if want_tex:
+        from hostd.codec import transform
+        from hostd.render.stroke import at_constant_speed, crossing_count
+
+        tick_um = ex.speed_mm_s * 1e3 / ts
+        count = crossing_count(ex.length_mm, ex.speed_mm_s, ts, minimum=3)
+        if count + 1 > limit:
+            raise ProfileError(f"one stroke over the {ex.length_mm:.4g}-mm patch at {ex.speed_mm_s:g} mm/s "
+                               f"is {count} positions of 1/{ts} s, more than the reference player plays "
+                               f"({limit}: it computes position x rate in 32 bits, up to 48 kHz): export "
+                               f"at most {limit * tick_um / 1000:.4g} mm (--length-mm), raise --speed-mm-s, "
+                               "or only the texture as played (--perceptions time)")
+        k = np.asarray(ex.coeffs_um, dtype=np.float64).size
+        top_hz = k * ex.speed_mm_s / (2 * ex.length_mm)  # the series' highest component at this speed
+        if not 1 <= k <= MAX_TERMS or top_hz >= ts / 2 or k + 2 > count:
+            raise ProfileError(f"the texture's {k} components reach {top_hz:.4g} Hz at {ex.speed_mm_s:g} "
+                               f"mm/s: the spatial perception holds at most {MAX_TERMS} below {ts / 2:g} Hz "
+                               "(half its timescale): lower --speed-mm-s or --fmax-hz, or export a shorter "
+                               "patch (--length-mm)")
+        stroke = at_constant_speed(ex.coeffs_um, ex.n, ex.length_mm, ex.speed_mm_s, ts, count,
+                                   band_limited=False)
+        recon = transform.synthesize(ex.coeffs_um, ex.n)  # what hostd's reader makes of it
+    if want_time and p.size * step_t > limit:
         raise ProfileError(f"the texture as played is {p.size} samples at {ex.rate_hz} Hz "
-                           f"({p.size / ex.rate_hz:.3g} s), more keyframe positions than the reference "
-                           f"player plays ({limit}: it computes position x rate in 32 bits, up to "
+                           f"({p.size / ex.rate_hz:.3g} s), more than the reference player plays ("
+                           f"{limit // step_t} samples: it computes position x rate in 32 bits, up to "
                            "48 kHz): lower --rate-hz, raise --speed-mm-s or export a shorter patch "
                            "(--length-mm)")
-    peak = max(float(np.max(np.abs(h))), float(np.max(np.abs(p))))
+    written = [a for a, on in ((stroke, want_tex), (recon, want_tex), (p, want_time)) if on]
+    peak = max(float(np.max(np.abs(a))) for a in written)
     fs_um = ex.full_scale_um if ex.full_scale_um is not None else (peak if peak > 0 else 1.0)
     if not (math.isfinite(fs_um) and fs_um > 0):
         raise ProfileError(f"full scale must be a finite number > 0 µm, got {fs_um}")
-    clipped = int(np.count_nonzero(np.abs(h) > fs_um) + np.count_nonzero(np.abs(p) > fs_um))
+    clipped = sum(int(np.count_nonzero(np.abs(a) > fs_um)) for a in written)
     if clipped:
         raise ProfileError(f"{clipped} samples exceed the full scale {fs_um:g} µm (peak {peak:.4g} µm): "
                            "raise --full-scale-um")
     scale = f"full_scale_um={fs_um!r}"
-    device = {"id": 0, "name": "hostd vibrotactile texture display", "body_part_mask": 0,
-              "maximum_displacement": fs_um * 1e-6}  # metres: the displacement of amplitude 1.0
+    # the displacement of amplitude 1.0, in metres; body_part_mask: the index finger (BODY_PART_MASK)
+    device = {"id": 0, "name": "hostd vibrotactile texture display", "body_part_mask": BODY_PART_MASK,
+              "maximum_displacement": fs_um * 1e-6}
+    target = {"reference_device_id": 0, "body_part_target": ["Index"]}
     tex = tim = None
     if want_tex:
-        e, pos, err_um = spatial_positions(ex.spacing_um, h.size, limit)
-        # the spatial band's frequency limit: the samples' Nyquist over space, cycles per metre
-        upper_tex = max(1, min(2**31 - 1, round(1e6 / (2 * ex.spacing_um))))
-        # what the reference player, which takes positions for ticks, makes of it
-        rm_speed_mm_s = 10.0 ** (e + 3) * ex.rate_hz
+        e = tick_unit_exponent(tick_um)
+        # the spatial band's frequency limit: the series' highest component, cycles per metre
+        upper_tex = max(1, min(2**31 - 1, math.ceil(k / (2 * ex.length_mm * 1e-3))))
         tex = {"id": 0, "avatar_id": 0,
-               "description": (f"hostd texture over space: samples={h.size} spacing_um={ex.spacing_um!r} "
-                               f"(positions in 1e{e} m{f', within {err_um:.2g} um' if err_um else ''}); "
-                               f"{scale}; a player taking positions for time plays it at "
-                               f"{rm_speed_mm_s:.3g} mm/s"),
+               "description": (f"hostd texture over space: one stroke at speed_mm_s={ex.speed_mm_s!r}, a "
+                               f"position per tick_um={tick_um!r} (1/{ts} s), of the series of terms={k} of "
+                               f"samples={ex.n} spacing_um={ex.spacing_um!r}; {scale}"),
                "perception_modality": TEXTURE, "unit_exponent": e, "perception_unit_exponent": 0,
                "reference_devices": [device], "effect_library": [],
-               "channels": [_curve_channel("height profile (normalized to full scale)", pos, h / fs_um,
-                                           upper_tex, {"reference_device_id": 0,
-                                                       "body_part_target": ["Index"]})]}
+               "channels": [_curve_channel("height profile along the stroke (normalized to full scale)",
+                                           np.arange(count, dtype=np.int64), stroke / fs_um, upper_tex,
+                                           target)]}
     if want_time:
         tim = {"id": 1, "avatar_id": 0,
                "description": (f"hostd texture as played at speed_mm_s={ex.speed_mm_s!r}: one crossing of "
@@ -368,20 +427,31 @@ def build(ex: Export, date: str | None = None) -> dict:
                "perception_modality": TIME, "perception_unit_exponent": 0,
                "reference_devices": [{**device, "maximum_frequency": ex.rate_hz / 2}], "effect_library": [],
                "channels": [_curve_channel("displacement at the fingertip (normalized to full scale)",
-                                           np.arange(p.size, dtype=np.int64), p / fs_um, ex.rate_hz // 2,
-                                           {"frequency_sampling": int(ex.rate_hz),
-                                            "sample_count": int(p.size), "reference_device_id": 0,
-                                            "body_part_target": ["Index"]})]}
+                                           np.arange(p.size, dtype=np.int64) * step_t, p / fs_um,
+                                           ex.rate_hz // 2,
+                                           {"frequency_sampling": rate, "sample_count": int(p.size),
+                                            **target})]}
+    if ex.compact:
+        from hostd.render.stroke import with_band_gains
+
+        if tex is not None:
+            tex["channels"][0]["bands"] = [vectorial_band(np.asarray(ex.coeffs_um) / fs_um, ex.n,
+                                                          ex.length_mm, ex.speed_mm_s, count - 1)]
+        if tim is not None:
+            gained = with_band_gains(ex.coeffs_um, ex.length_mm, ex.speed_mm_s, rate) / fs_um
+            tim["channels"][0]["bands"] = [vectorial_band(gained, ex.n, ex.length_mm, ex.speed_mm_s,
+                                                          (p.size - 1) * step_t)]
     chosen = [q for q in (tex, tim) if q is not None]
-    # each effect ends with 0 one step after its signal and 0 at a common end (RM_RATES_HZ)
+    # each Curve effect ends with 0 one step after its signal and 0 at a common end (RM_RATES_HZ)
+    curves = [q for q in chosen if q["channels"][0]["bands"][0]["band_type"] == "Curve"]
     ends = []
-    for q in chosen:
+    for q in curves:
         kfs = q["channels"][0]["bands"][0]["effects"][0]["keyframes"]
         step = kfs[-1]["relative_position"] - kfs[-2]["relative_position"]
         kfs.append({"relative_position": kfs[-1]["relative_position"] + step, "amplitude_modulation": 0.0})
         ends.append(kfs[-1]["relative_position"])
-    end = rm_end_position(max(ends), ts)
-    for q in chosen:
+    end = rm_end_position(max(ends, default=0), ts)
+    for q in curves:
         q["channels"][0]["bands"][0]["effects"][0]["keyframes"].append(
             {"relative_position": end, "amplitude_modulation": 0.0})
     for q in chosen:
@@ -391,7 +461,7 @@ def build(ex: Export, date: str | None = None) -> dict:
     return {"version": VERSION, "profile": "Main", "level": 1,
             "date": date or _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d"),
             "description": provenance_text(ex.provenance),
-            "timescale": int(ex.rate_hz), "avatars": [],
+            "timescale": ts, "avatars": [],
             "perceptions": chosen,
             "syncs": []}
 
@@ -724,6 +794,24 @@ def _band_ticks(d: _Doc, band: dict, where: str, timescale: int) -> float:
     return float(pos + rel) + extra
 
 
+def _series_from_stroke(d: _Doc, where: str, y: np.ndarray, tick_um: float, spacing_um: float, n: int,
+                        k: int) -> np.ndarray:
+    """hostd's N samples of a texture from the spatial perception it wrote: the stroke y_j at
+    x = j tick_um holds the series sum_k C'_k cos(k theta(x)) of the N-sample patch (k <= K, below
+    the ticks' Nyquist: build checks it), so a least-squares fit of C'_0..C'_K at the stroke's
+    phases gives the coefficients back (to rounding) and the DCT-III the N samples."""
+    from hostd.codec import transform
+    from hostd.render import series
+
+    if not (2 <= n <= MAX_SAMPLES and 1 <= k <= MAX_TERMS and k + 2 <= y.size and k < n):
+        raise d.err(f"{where}.bands[0]", f"{y.size} positions holding {k} terms of {n} samples: hostd's "
+                    f"layout needs 1 <= terms <= min({MAX_TERMS}, positions - 2, samples - 1)")
+    length_mm = n * spacing_um * 1e-3
+    theta = series.phase_rad(np.arange(y.size) * (tick_um * 1e-3), n, length_mm)
+    c = series.Projector(theta, k).fit(y)
+    return transform.synthesize(c[1:], n) + c[0]
+
+
 def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
     """The samples of channel ci of perception pi, as the reference Synthesizer plays them."""
     d = _Doc(path)
@@ -782,20 +870,46 @@ def evaluate(doc: dict, path: Path, pi: int, ci: int) -> Channel:
     note = ""
     stated_spacing = _stated(_SPACING, desc, SPACING_UM_RANGE[1])
     stated_n = _stated(_SAMPLES, desc, MAX_SAMPLES)
+    stated_tick = _stated(_TICK, desc, SPACING_UM_RANGE[1])
+    stated_k = _stated(_TERMS, desc, MAX_SAMPLES)
     own = None
-    if (spatial and stated_spacing is not None and stated_n is not None and len(bands) == 1
-            and is_native(bands[0])):
-        # hostd's own layout: one effect, a keyframe per sample, positions within half a unit
-        # of i x the stated spacing (spatial_positions); anything else is read as a foreign file
+    mine = spatial and None not in (stated_spacing, stated_n, stated_tick, stated_k) and len(bands) == 1
+    if mine and bands[0].get("band_type") == "VectorialWave":
+        # hostd's compact layout (vectorial_band): sinusoids along the stroke, a tick per sample
+        from hostd.texture import hjif_vectorial
+
+        if hjif_vectorial.covers(bands[0]):
+            ends = [e["position"] + e["keyframes"][-1]["relative_position"] for e in bands[0]["effects"]
+                    if e["keyframes"]]
+            count = max(ends, default=0) + 1
+            if not 3 <= count <= MAX_SAMPLES:
+                raise d.err(f"{cw}.bands[0]", f"a stroke of {count} positions: absurd (3..{MAX_SAMPLES})")
+            y = hjif_vectorial.render_band(bands[0], timescale, timescale, count, f"{cw}.bands[0]", path)
+            own = _series_from_stroke(d, cw, np.clip(y, -1.0, 1.0), stated_tick, stated_spacing,
+                                      int(stated_n), int(stated_k))
+    elif mine and is_native(bands[0]):
+        # hostd's own layout (build): one effect at 0, a keyframe per tick along one stroke, then a
+        # 0 one tick later and a 0 at the file's common end; anything else is read as a foreign file
+        effs = _effects(d, bands[0], f"{cw}.bands[0]")
+        if len(effs) == 1 and effs[0][0] == 0 and effs[0][1].size >= 5:
+            rel, amp = effs[0][1], effs[0][2]
+            m = rel.size - 2
+            if np.array_equal(rel[:m], np.arange(m)) and not np.any(amp[m:]):
+                own = _series_from_stroke(d, cw, amp[:m], stated_tick, stated_spacing, int(stated_n),
+                                          int(stated_k))
+    elif (spatial and stated_tick is None and None not in (stated_spacing, stated_n) and len(bands) == 1
+          and is_native(bands[0])):
+        # the layout hostd wrote before the stroke (files from earlier releases): one effect, a
+        # keyframe per sample within half a unit of i x the stated spacing, then a 0 after them and
+        # a 0 at the file's common end
         effs = _effects(d, bands[0], f"{cw}.bands[0]")
         n_own = int(stated_n)
-        # N samples, then a 0 after them and a 0 at the file's common end (build)
         if len(effs) == 1 and effs[0][0] == 0 and effs[0][1].size in (n_own, n_own + 2) and n_own >= 2:
             i = np.arange(n_own, dtype=np.float64)
             unit_um = 10.0 ** (ue + 6)
             off = np.abs(effs[0][1][:n_own] * unit_um - i * stated_spacing)
-            tail = effs[0][2][n_own:]
-            if np.all(off <= 0.5 * unit_um + 1e-9 * stated_spacing * (i + 1)) and not np.any(tail):
+            near = np.all(off <= 0.5 * unit_um + 1e-9 * stated_spacing * (i + 1))
+            if near and not np.any(effs[0][2][n_own:]):
                 own = effs[0][2][:n_own]
     if own is not None:
         y = np.clip(own, -1.0, 1.0)
