@@ -167,26 +167,155 @@ class EqualizerConfig:
 
 
 def design(model: ActuatorModel, cfg: EqualizerConfig) -> np.ndarray:
-    """SOS of the regularized inverse of the zero-order-held actuator at cfg.sample_rate_hz."""
+    """SOS of the regularized inverse of the zero-order-held actuator at cfg.sample_rate_hz.
+
+    The same bytes on every CPU: the zeros, poles and gain are known in closed form (the
+    actuator's exact zero-order-hold discretization, _zoh_second_order; the digital Butterworth,
+    _butter_zpk) and paired into sections by scipy.signal.zpk2sos's rule (_zpk2sos_nearest), all
+    in Python float/complex arithmetic. scipy's path (cont2discrete: expm; tf2sos: np.roots, an
+    eigen-solve; np.polymul: np.convolve, a BLAS dot) rounds differently under each OpenBLAS
+    kernel (FMA or not, AVX-512 or not), so two CPUs would upload different sections."""
     fs = cfg.sample_rate_hz
     if not (0 < model.corner_hz < cfg.reg_hz < fs / 2):
         raise ValueError("equalizer: need 0 < actuator corner < reg_hz < sample_rate/2")
     if not 2 <= cfg.reg_order <= 8:
         raise ValueError("equalizer.reg_order must be 2..8")
-    b_act, a_act = model.analog_ba()
-    bd, ad, _dt = _signal().cont2discrete((b_act, a_act), 1.0 / fs, method="zoh")
-    bd = np.ravel(bd)
-    if bd[0] != 0.0 and abs(bd[0]) > 1e-12 * np.abs(bd).max():
-        raise ValueError("equalizer: the sampled actuator has no sample of delay; unsupported model")
-    zero_poly = np.trim_zeros(bd[1:], "b")  # B(z): G(z) = z^-1 B(z) / A(z)
-    zeros = np.roots(zero_poly)
-    if zeros.size and np.abs(zeros).max() >= 0.98:
+    b1, b2, act_poles = _zoh_second_order(model, fs)
+    # G(z) = z^-1 B(z) / A(z), B(z) = b1 z + b2: the second-order model always has its sample of
+    # delay (b0 = 0) and one sampling zero
+    zero = -b2 / b1
+    if abs(zero) >= 0.98:
         raise ValueError("equalizer: the sampled actuator's zero lies on or outside the unit circle "
-                         f"(|z| = {np.abs(zeros).max():.3f}); raise the output rate or lower reg_hz")
-    b_reg, a_reg = _signal().butter(cfg.reg_order, cfg.reg_hz, fs=fs)
-    num = np.polymul(np.ravel(ad), b_reg)
-    den = np.polymul(zero_poly, a_reg)
-    return _signal().tf2sos(num / den[0], den / den[0])
+                         f"(|z| = {abs(zero):.3f}); raise the output rate or lower reg_hz")
+    reg_poles, k_reg = _butter_zpk(cfg.reg_order, cfg.reg_hz, fs)
+    # equalizer A(z) R(z) / B(z): zeros = the actuator's poles and R's zeros (all at -1), poles =
+    # the sampling zero and R's poles, gain = R's over b1 (what tf2sos(A·R / B) made of it)
+    zeros = [*act_poles, *[complex(-1.0, 0.0)] * cfg.reg_order]
+    poles = [complex(zero, 0.0), *reg_poles]
+    return np.array(_zpk2sos_nearest(zeros, poles, k_reg / b1), dtype=np.float64)
+
+
+def _zoh_second_order(model: ActuatorModel, fs: float) -> tuple[float, float, list[complex]]:
+    """The actuator model (ActuatorModel.analog_ba: g w0^2 / (s^2 + 2 zeta w0 s + w0^2)) behind a
+    zero-order hold at fs, exactly: G(z) = (b1 z + b2) / ((z - z1)(z - z2)), z1,2 = exp(p1,2 T).
+    b1 is the step response at T, b1 + b2 = g (1 - (z1 + z2) + z1 z2) keeps the DC gain. With
+    sigma = zeta w0:  C = cos(wd T), S = sin(wd T) / wd  (under-damped, wd = w0 sqrt(1 - zeta^2)),
+    C = cosh(beta T), S = sinh(beta T) / beta (over-damped, beta = w0 sqrt(zeta^2 - 1)),
+    C = 1, S = T (critically damped);  b1 = g (1 - e^(-sigma T) (C + sigma S)),
+    b2 = g (e^(-2 sigma T) - e^(-sigma T) (C - sigma S)). Returns (b1, b2, [z1, z2])."""
+    t = 1.0 / fs
+    w0 = 2 * math.pi * model.corner_hz
+    zeta, g = model.damping, model.dc_gain
+    sigma = zeta * w0
+    decay = math.exp(-sigma * t)
+    if zeta < 1.0:
+        wd = w0 * math.sqrt((1.0 - zeta) * (1.0 + zeta))
+        c, s = math.cos(wd * t), math.sin(wd * t) / wd
+        poles = [complex(decay * math.cos(wd * t), decay * math.sin(wd * t))]
+        poles.append(poles[0].conjugate())
+    elif zeta > 1.0:
+        beta = w0 * math.sqrt((zeta - 1.0) * (zeta + 1.0))
+        c, s = math.cosh(beta * t), math.sinh(beta * t) / beta
+        slow = w0 / (zeta + math.sqrt((zeta - 1.0) * (zeta + 1.0)))  # sigma - beta, no cancellation
+        poles = [complex(math.exp(-slow * t), 0.0), complex(math.exp(-(sigma + beta) * t), 0.0)]
+    else:
+        c, s = 1.0, t
+        poles = [complex(decay, 0.0), complex(decay, 0.0)]
+    b1 = g * (1.0 - decay * (c + sigma * s))
+    b2 = g * (decay * decay - decay * (c - sigma * s))
+    return b1, b2, poles
+
+
+def _butter_zpk(order: int, hz: float, fs: float) -> tuple[list[complex], float]:
+    """Poles and gain of the digital Butterworth low-pass (its zeros: `order` at z = -1), as
+    scipy.signal.butter(order, hz, fs=fs, output="zpk") makes them (analog prototype, prewarped
+    corner, bilinear transform) in Python arithmetic: numpy's vectorized exp/tan may take a
+    different (AVX-512) code path on another CPU."""
+    warped = 4.0 * math.tan(math.pi * hz / fs)  # scipy: 2 fs' tan(pi Wn / fs') with fs' = 2, Wn = 2 hz / fs
+    poles = []
+    for m in range(-order + 1, order, 2):
+        if 2 * m > 0:  # the conjugate of the pole already made for -m: exactly conjugate
+            poles.append(poles[(order - 1 - m) // 2].conjugate())
+            continue
+        ang = math.pi * m / (2 * order)
+        p = complex(-math.cos(ang), -math.sin(ang)) * warped if m else complex(-warped, 0.0)
+        poles.append(p)
+    den = complex(1.0, 0.0)
+    for p in poles:
+        den *= 4.0 - p
+    gain = warped ** order / den.real
+    return [(4.0 + p) / (4.0 - p) for p in poles], gain
+
+
+def _zpk2sos_nearest(zeros: list[complex], poles: list[complex], k: float) -> list[list[float]]:
+    """scipy.signal.zpk2sos(z, p, k, pairing="nearest") for conjugate-symmetric zeros and poles,
+    in Python float/complex arithmetic (scipy multiplies out each pair with np.poly, a BLAS dot
+    whose rounding depends on the CPU). The same rule: pad with zeros at the origin to equal, even
+    counts; from the pole closest to the unit circle outwards, fill the sections from the last,
+    pairing each pole (with its conjugate, or the next-closest real pole) with the nearest zeros;
+    the gain goes into the first section."""
+    p = [complex(v) for v in poles] + [0j] * max(len(zeros) - len(poles), 0)
+    z = [complex(v) for v in zeros] + [0j] * max(len(poles) - len(zeros), 0)
+    n_sections = (len(p) + 1) // 2
+    if len(p) % 2:
+        p.append(0j)
+        z.append(0j)
+    p, z = _cplxreal(p), _cplxreal(z)
+
+    def worst(vals: list[complex], among=None) -> int:
+        idx = range(len(vals)) if among is None else among
+        return min(idx, key=lambda i: abs(1.0 - abs(vals[i])))
+
+    def nearest(to: complex, which: str) -> int:
+        order = sorted(range(len(z)), key=lambda i: abs(z[i] - to))
+        return next(i for i in order if which == "any" or (z[i].imag == 0) == (which == "real"))
+
+    def section(zs: list[complex], ps: list[complex]) -> list[float]:
+        return [*_pair_poly(zs), *_pair_poly(ps)]
+
+    sos: list[list[float]] = [[]] * n_sections
+    for si in range(n_sections - 1, -1, -1):
+        p1 = p.pop(worst(p))
+        n_real_p = sum(v.imag == 0 for v in p)
+        if p1.imag == 0 and n_real_p == 0:  # the last real pole: with the nearest real zero
+            z1 = z.pop(nearest(p1, "real"))
+            sos[si] = section([z1, 0j], [p1, 0j])
+        elif (len(p) + 1 == len(z) and p1.imag != 0 and n_real_p == 1
+              and sum(v.imag == 0 for v in z) == 1):  # must take a complex zero pair
+            z1 = z.pop(nearest(p1, "complex"))
+            sos[si] = section([z1, z1.conjugate()], [p1, p1.conjugate()])
+        else:
+            if p1.imag == 0:
+                p2 = p.pop(worst(p, [i for i, v in enumerate(p) if v.imag == 0]))
+            else:
+                p2 = p1.conjugate()
+            z1 = z.pop(nearest(p1, "any"))
+            if z1.imag != 0:
+                sos[si] = section([z1, z1.conjugate()], [p1, p2])
+            else:
+                z2 = z.pop(nearest(p1, "real"))
+                sos[si] = section([z1, z2], [p1, p2])
+    if p or z:
+        raise AssertionError("equalizer: zeros and poles left over after pairing")
+    sos[0] = [v * k for v in sos[0][:3]] + sos[0][3:]
+    return sos
+
+
+def _cplxreal(vals: list[complex]) -> list[complex]:
+    """One element (imag > 0) of each conjugate pair, sorted by real part, then the real values
+    sorted (scipy.signal's _cplxreal order, which decides between equally good candidates)."""
+    tol = 100 * np.finfo(np.float64).eps
+    real = [complex(r, 0.0) for r in sorted(v.real for v in vals if abs(v.imag) <= tol * abs(v))]
+    upper = sorted((v for v in vals if v.imag > tol * abs(v)), key=lambda v: (v.real, abs(v.imag)))
+    return [*upper, *real]
+
+
+def _pair_poly(roots: list[complex]) -> list[float]:
+    """(z - r1)(z - r2) for a conjugate pair or two real roots: [1, -(r1 + r2), r1 r2]."""
+    r1, r2 = roots
+    if r1.imag != 0:  # a conjugate pair
+        return [1.0, -2.0 * r1.real, r1.real * r1.real + r1.imag * r1.imag]
+    return [1.0, -(r1.real + r2.real), r1.real * r2.real + 0.0]  # + 0.0: no -0.0 for a root at 0
 
 
 class Equalizer:
