@@ -79,9 +79,8 @@ class ActuatorModel:
     def response(self, f_hz: np.ndarray) -> np.ndarray:
         """The model's complex response (displacement per command), delay included."""
         f = np.asarray(f_hz, dtype=np.float64)
-        b, a = self.analog_ba()
-        h = _signal().freqs(b, a, worN=2 * np.pi * f)[1]
-        return h * np.exp(-2j * np.pi * f * self.delay_s)
+        h = _model_response(self.corner_hz, self.damping, self.dc_gain, self.delay_s, f.ravel().tolist())
+        return np.array(h, dtype=np.complex128).reshape(f.shape)
 
     def measured(self, f_hz: np.ndarray) -> np.ndarray:
         """The measured table interpolated at f_hz (the model where there is no table)."""
@@ -103,23 +102,124 @@ class ActuatorModel:
             raise ValueError("actuator response table has a non-finite value")
         if np.any(f <= 0) or np.any(np.diff(f) <= 0):
             raise ValueError("actuator response table: frequencies must be > 0 and increasing")
-        target = 10 ** (db / 20) * np.exp(1j * np.deg2rad(np.unwrap(np.deg2rad(deg)) * 180 / np.pi))
+        p = _fit_second_order(f.tolist(), db.tolist(), deg.tolist())
+        return cls(corner_hz=math.exp(p[0]), damping=math.exp(p[1]), dc_gain=math.exp(p[2]),
+                   delay_s=p[3] * 1e-3, name=name, table_hz=f, table_db=db, table_deg=deg)
 
-        def resid(p):
-            m = cls(corner_hz=math.exp(p[0]), damping=math.exp(p[1]), dc_gain=math.exp(p[2]),
-                    delay_s=max(p[3], 0.0) * 1e-3)
-            d = m.response(f) / target - 1.0
-            return np.concatenate([d.real, d.imag])
 
-        guess_fc = float(np.interp(-3.0 + db[0], db[::-1], f[::-1])) if db.min() < db[0] - 3 else f[-1]
-        p0 = [math.log(max(guess_fc, 1.0)), math.log(0.7), math.log(10 ** (db[0] / 20)), 0.0]
-        import scipy.optimize
+# bounds of the fit's parameters (log corner, log damping, log dc gain, delay in ms)
+_FIT_LO = (-math.inf, math.log(0.05), -math.inf, 0.0)
+_FIT_HI = (math.inf, math.log(5.0), math.inf, 10.0)
 
-        sol = scipy.optimize.least_squares(resid, p0, bounds=([-np.inf, math.log(0.05), -np.inf, 0.0],
-                                                              [np.inf, math.log(5.0), np.inf, 10.0]))
-        return cls(corner_hz=math.exp(sol.x[0]), damping=math.exp(sol.x[1]), dc_gain=math.exp(sol.x[2]),
-                   delay_s=float(sol.x[3]) * 1e-3, name=name, table_hz=f, table_db=db,
-                   table_deg=deg)
+
+def _model_response(corner_hz: float, damping: float, dc_gain: float, delay_s: float,
+                    f_hz: list[float]) -> list[complex]:
+    """g w0^2 / (w0^2 - w^2 + 2j zeta w0 w) · exp(-j w tau) at each f (the model of analog_ba, with
+    its delay), in Python complex arithmetic: the same bits on every CPU."""
+    w0 = 2 * math.pi * corner_hz
+    out = []
+    for f in f_hz:
+        w = 2 * math.pi * f
+        h = dc_gain * w0 * w0 / complex(w0 * w0 - w * w, 2 * damping * w0 * w)
+        out.append(h * complex(math.cos(w * delay_s), -math.sin(w * delay_s)) if delay_s else h)
+    return out
+
+
+def _fit_second_order(f_hz: list[float], gain_db: list[float], phase_deg: list[float]) -> list[float]:
+    """Least-squares fit of the model to a response table: p = [log corner_hz, log damping,
+    log dc_gain, delay_ms] minimizing sum |model / table - 1|^2, by Levenberg-Marquardt with an
+    analytic Jacobian, bounds by projection, sums by math.fsum, a 4x4 solve by elimination.
+    Hand-written, not scipy.optimize.least_squares: its steps come from LAPACK (QR/SVD), whose
+    rounding differs under each OpenBLAS kernel, so the fitted model, hence the equalizer the
+    display gets, would differ in the last bits between CPUs; this loop is pure float arithmetic."""
+    turn = 0.0
+    target = []
+    prev = None
+    for g_db, ph_deg in zip(gain_db, phase_deg, strict=True):
+        ph = math.radians(ph_deg)
+        if prev is not None:  # unwrap: remove jumps of more than half a turn
+            while ph + turn - prev > math.pi:
+                turn -= 2 * math.pi
+            while ph + turn - prev < -math.pi:
+                turn += 2 * math.pi
+        prev = ph + turn
+        mag = 10.0 ** (g_db / 20.0)
+        target.append(complex(mag * math.cos(prev), mag * math.sin(prev)))
+
+    def evaluate(p: list[float]) -> tuple[list[float], list[list[float]]]:
+        corner, zeta, delay_s = math.exp(p[0]), math.exp(p[1]), p[3] * 1e-3
+        w0 = 2 * math.pi * corner
+        model = _model_response(corner, zeta, math.exp(p[2]), delay_s, f_hz)
+        re, im, jre, jim = [], [], [], []
+        for f, m, t in zip(f_hz, model, target, strict=True):
+            w = 2 * math.pi * f
+            den = complex(w0 * w0 - w * w, 2 * zeta * w0 * w)
+            q = m / t
+            re.append(q.real - 1.0)
+            im.append(q.imag)
+            # d(m/t)/dp = (m/t) · d(log m)/dp
+            dlog = (2.0 - complex(2 * w0 * w0, 2 * zeta * w0 * w) / den,
+                    -complex(0.0, 2 * zeta * w0 * w) / den, 1.0 + 0j, complex(0.0, -w * 1e-3))
+            row = [q * d for d in dlog]
+            jre.append([v.real for v in row])
+            jim.append([v.imag for v in row])
+        return re + im, jre + jim
+
+    db0 = gain_db[0]
+    if min(gain_db) < db0 - 3:  # the -3 dB frequency, linearly interpolated on the table
+        guess_fc = f_hz[-1]
+        for i in range(len(f_hz) - 1):
+            f1, g1, f2, g2 = f_hz[i], gain_db[i], f_hz[i + 1], gain_db[i + 1]
+            if g2 <= db0 - 3.0 < g1:
+                guess_fc = f1 + (db0 - 3.0 - g1) * (f2 - f1) / (g2 - g1)
+                break
+    else:
+        guess_fc = f_hz[-1]
+    p = [math.log(max(guess_fc, 1.0)), math.log(0.7), db0 / 20.0 * math.log(10.0), 0.0]
+    r, jac = evaluate(p)
+    cost = math.fsum(v * v for v in r)
+    lam = 1e-3
+    for _ in range(500):
+        jtj = [[math.fsum(row[i] * row[j] for row in jac) for j in range(4)] for i in range(4)]
+        grad = [math.fsum(row[i] * v for row, v in zip(jac, r, strict=True)) for i in range(4)]
+        a = [[jtj[i][j] + (lam * max(jtj[i][i], 1e-30) if i == j else 0.0) for j in range(4)] + [-grad[i]]
+             for i in range(4)]
+        step = _solve(a)
+        trial = [min(max(v + d, lo), hi) for v, d, lo, hi in zip(p, step, _FIT_LO, _FIT_HI, strict=True)]
+        r_new, jac_new = evaluate(trial)
+        cost_new = math.fsum(v * v for v in r_new)
+        if cost_new <= cost:
+            moved = max(abs(t - v) / (1.0 + abs(v)) for t, v in zip(trial, p, strict=True))
+            p, r, jac, cost = trial, r_new, jac_new, cost_new
+            lam = max(lam / 3.0, 1e-12)
+            if moved <= 1e-13:
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e12:
+                break
+    if not all(math.isfinite(v) for v in p):
+        raise ValueError("actuator response table: the model fit did not converge")
+    return p
+
+
+def _solve(a: list[list[float]]) -> list[float]:
+    """x with A x = b for the augmented n x (n+1) matrix [A | b] (Gauss with partial pivoting)."""
+    n = len(a)
+    a = [row[:] for row in a]
+    for c in range(n):
+        piv = max(range(c, n), key=lambda i: abs(a[i][c]))
+        a[c], a[piv] = a[piv], a[c]
+        if a[c][c] == 0.0:
+            return [0.0] * n
+        for i in range(c + 1, n):
+            k = a[i][c] / a[c][c]
+            for j in range(c, n + 1):
+                a[i][j] -= k * a[c][j]
+    x = [0.0] * n
+    for i in range(n - 1, -1, -1):
+        x[i] = (a[i][n] - math.fsum(a[i][j] * x[j] for j in range(i + 1, n))) / a[i][i]
+    return x
 
 
 def load_actuator(path: str | Path) -> ActuatorModel:
