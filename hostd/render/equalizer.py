@@ -3,11 +3,11 @@
 The actuator is modelled as  H(s) = g w0^2 / (s^2 + 2 zeta w0 s + w0^2) · exp(-s tau):
 the paper's display (flat to 400 Hz without resonance, -3 dB at 270 Hz) is the default,
 zeta = 1/sqrt(2) (Butterworth) at 270 Hz. A measured response table (Hz, gain dB, phase deg)
-can replace it: the model is then fitted to the table by least squares (scipy.optimize),
+can replace it: the model is then fitted to the table by least squares (_fit_second_order),
 and the table itself is kept so flatness is reported against the measurement.
 
 The equalizer inverts the actuator as the DAC drives it: the actuator behind a zero-order
-hold, discretized exactly at the output rate (scipy.signal.cont2discrete, "zoh"), is
+hold, discretized exactly at the output rate (in closed form, _zoh_second_order), is
 G(z) = z^-1 B(z) / A(z) with B of first order (the sampling zero) for the second-order model.
 The equalizer is  z G(z)^-1 · R(z) = A(z) / B(z) · R(z), with R a digital Butterworth low-pass
 at `reg_hz` of order `reg_order` (>= 2). At the sample instants the chain DAC → actuator →
@@ -132,19 +132,10 @@ def _fit_second_order(f_hz: list[float], gain_db: list[float], phase_deg: list[f
     Hand-written, not scipy.optimize.least_squares: its steps come from LAPACK (QR/SVD), whose
     rounding differs under each OpenBLAS kernel, so the fitted model, hence the equalizer the
     display gets, would differ in the last bits between CPUs; this loop is pure float arithmetic."""
-    turn = 0.0
     target = []
-    prev = None
     for g_db, ph_deg in zip(gain_db, phase_deg, strict=True):
-        ph = math.radians(ph_deg)
-        if prev is not None:  # unwrap: remove jumps of more than half a turn
-            while ph + turn - prev > math.pi:
-                turn -= 2 * math.pi
-            while ph + turn - prev < -math.pi:
-                turn += 2 * math.pi
-        prev = ph + turn
-        mag = 10.0 ** (g_db / 20.0)
-        target.append(complex(mag * math.cos(prev), mag * math.sin(prev)))
+        mag, ph = 10.0 ** (g_db / 20.0), math.radians(ph_deg)
+        target.append(complex(mag * math.cos(ph), mag * math.sin(ph)))
 
     def evaluate(p: list[float]) -> tuple[list[float], list[list[float]]]:
         corner, zeta, delay_s = math.exp(p[0]), math.exp(p[1]), p[3] * 1e-3
