@@ -409,6 +409,23 @@ def _pair_poly(roots: list[complex]) -> list[float]:
     return [1.0, -(r1.real + r2.real), r1.real * r2.real + 0.0]  # + 0.0: no -0.0 for a root at 0
 
 
+def sos_response(sos: np.ndarray, f_hz: list[float], fs: float) -> list[complex]:
+    """The sections' complex response at each f (scipy.signal.sosfreqz's numbers), in Python
+    complex arithmetic: what device_params needs (the chain's delay) without loading
+    scipy.signal, and the same bits on every CPU."""
+    rows = [tuple(float(v) for v in r) for r in sos]
+    out = []
+    for f in f_hz:
+        ang = 2 * math.pi * f / fs
+        z1 = complex(math.cos(ang), -math.sin(ang))  # z^-1 on the unit circle
+        z2 = z1 * z1
+        h = complex(1.0, 0.0)
+        for b0, b1, b2, a0, a1, a2 in rows:
+            h *= (b0 + b1 * z1 + b2 * z2) / (a0 + a1 * z1 + a2 * z2)
+        out.append(h)
+    return out
+
+
 class Equalizer:
     """Stateful SOS filter; a no-op passthrough when disabled."""
 
@@ -454,8 +471,8 @@ class Equalizer:
         f = np.asarray(f_hz, dtype=np.float64)
         fs = self.cfg.sample_rate_hz
         zoh = np.sinc(f / fs) * np.exp(-1j * np.pi * f / fs)
-        eq = (_signal().sosfreqz(self.sos, worN=f, fs=fs)[1] if self.sos is not None
-              else np.ones_like(f, dtype=complex))
+        eq = (np.array(sos_response(self.sos, f.ravel().tolist(), fs)).reshape(f.shape)
+              if self.sos is not None else np.ones_like(f, dtype=complex))
         act = self.model.measured(f) if measured else self.model.response(f)
         act = act * np.exp(2j * np.pi * f * self.model.delay_s)
         return act * eq * zoh
