@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hostd.render import exactmath as xm
+
 SMALL_BATCH = 32  # at or below this many samples, filter in scalar Python
 DENORMAL_GUARD = 1e-30  # µm: filter state below this is flushed to zero
 
@@ -103,13 +105,13 @@ class ActuatorModel:
         if np.any(f <= 0) or np.any(np.diff(f) <= 0):
             raise ValueError("actuator response table: frequencies must be > 0 and increasing")
         p = _fit_second_order(f.tolist(), db.tolist(), deg.tolist())
-        return cls(corner_hz=math.exp(p[0]), damping=math.exp(p[1]), dc_gain=math.exp(p[2]),
+        return cls(corner_hz=xm.exp(p[0]), damping=xm.exp(p[1]), dc_gain=xm.exp(p[2]),
                    delay_s=p[3] * 1e-3, name=name, table_hz=f, table_db=db, table_deg=deg)
 
 
 # bounds of the fit's parameters (log corner, log damping, log dc gain, delay in ms)
-_FIT_LO = (-math.inf, math.log(0.05), -math.inf, 0.0)
-_FIT_HI = (math.inf, math.log(5.0), math.inf, 10.0)
+_FIT_LO = (-math.inf, xm.log(0.05), -math.inf, 0.0)
+_FIT_HI = (math.inf, xm.log(5.0), math.inf, 10.0)
 
 
 def _model_response(corner_hz: float, damping: float, dc_gain: float, delay_s: float,
@@ -121,7 +123,10 @@ def _model_response(corner_hz: float, damping: float, dc_gain: float, delay_s: f
     for f in f_hz:
         w = 2 * math.pi * f
         h = dc_gain * w0 * w0 / complex(w0 * w0 - w * w, 2 * damping * w0 * w)
-        out.append(h * complex(math.cos(w * delay_s), -math.sin(w * delay_s)) if delay_s else h)
+        if delay_s:
+            sin, cos = xm.sin_cos(w * delay_s)
+            h *= complex(cos, -sin)
+        out.append(h)
     return out
 
 
@@ -134,13 +139,13 @@ def _fit_second_order(f_hz: list[float], gain_db: list[float], phase_deg: list[f
     display gets, would differ in the last bits between CPUs; this loop is pure float arithmetic."""
     target = []
     for g_db, ph_deg in zip(gain_db, phase_deg, strict=True):
-        mag, ph = 10.0 ** (g_db / 20.0), math.radians(ph_deg)
-        target.append(complex(mag * math.cos(ph), mag * math.sin(ph)))
+        mag, (sin, cos) = xm.db_ratio(g_db), xm.sin_cos(math.radians(ph_deg))
+        target.append(complex(mag * cos, mag * sin))
 
     def evaluate(p: list[float]) -> tuple[list[float], list[list[float]]]:
-        corner, zeta, delay_s = math.exp(p[0]), math.exp(p[1]), p[3] * 1e-3
+        corner, zeta, delay_s = xm.exp(p[0]), xm.exp(p[1]), p[3] * 1e-3
         w0 = 2 * math.pi * corner
-        model = _model_response(corner, zeta, math.exp(p[2]), delay_s, f_hz)
+        model = _model_response(corner, zeta, xm.exp(p[2]), delay_s, f_hz)
         re, im, jre, jim = [], [], [], []
         for f, m, t in zip(f_hz, model, target, strict=True):
             w = 2 * math.pi * f
@@ -166,7 +171,7 @@ def _fit_second_order(f_hz: list[float], gain_db: list[float], phase_deg: list[f
                 break
     else:
         guess_fc = f_hz[-1]
-    p = [math.log(max(guess_fc, 1.0)), math.log(0.7), db0 / 20.0 * math.log(10.0), 0.0]
+    p = [xm.log(max(guess_fc, 1.0)), xm.log(0.7), db0 / 20.0 * xm.log(10.0), 0.0]
     r, jac = evaluate(p)
     cost = math.fsum(v * v for v in r)
     lam = 1e-3
@@ -298,22 +303,29 @@ def _zoh_second_order(model: ActuatorModel, fs: float) -> tuple[float, float, li
     w0 = 2 * math.pi * model.corner_hz
     zeta, g = model.damping, model.dc_gain
     sigma = zeta * w0
-    decay = math.exp(-sigma * t)
+    decay = xm.exp(-sigma * t)
+    # dc = e^(-sigma T) C, ds = e^(-sigma T) S
     if zeta < 1.0:
         wd = w0 * math.sqrt((1.0 - zeta) * (1.0 + zeta))
-        c, s = math.cos(wd * t), math.sin(wd * t) / wd
-        poles = [complex(decay * math.cos(wd * t), decay * math.sin(wd * t))]
-        poles.append(poles[0].conjugate())
+        sin, cos = xm.sin_cos(wd * t)
+        dc, ds = decay * cos, decay * sin / wd
+        poles = [complex(dc, decay * sin), complex(dc, -decay * sin)]
     elif zeta > 1.0:
-        beta = w0 * math.sqrt((zeta - 1.0) * (zeta + 1.0))
-        c, s = math.cosh(beta * t), math.sinh(beta * t) / beta
-        slow = w0 / (zeta + math.sqrt((zeta - 1.0) * (zeta + 1.0)))  # sigma - beta, no cancellation
-        poles = [complex(math.exp(-slow * t), 0.0), complex(math.exp(-(sigma + beta) * t), 0.0)]
+        root = math.sqrt((zeta - 1.0) * (zeta + 1.0))
+        beta = w0 * root
+        slow = w0 / (zeta + root)  # sigma - beta, without the cancellation
+        z1, z2 = xm.exp(-slow * t), xm.exp(-(sigma + beta) * t)
+        if beta * t < 1.0:  # near critical damping: z1 - z2 would cancel
+            cosh, sinh = xm.cosh_sinh(beta * t)
+            dc, ds = decay * cosh, decay * sinh / beta
+        else:  # cosh(beta T) could overflow: e^(-sigma T) cosh(beta T) = (z1 + z2) / 2
+            dc, ds = (z1 + z2) / 2, (z1 - z2) / (2 * beta)
+        poles = [complex(z1, 0.0), complex(z2, 0.0)]
     else:
-        c, s = 1.0, t
+        dc, ds = decay, decay * t
         poles = [complex(decay, 0.0), complex(decay, 0.0)]
-    b1 = g * (1.0 - decay * (c + sigma * s))
-    b2 = g * (decay * decay - decay * (c - sigma * s))
+    b1 = g * (1.0 - (dc + sigma * ds))
+    b2 = g * (decay * decay - (dc - sigma * ds))
     return b1, b2, poles
 
 
@@ -322,14 +334,15 @@ def _butter_zpk(order: int, hz: float, fs: float) -> tuple[list[complex], float]
     scipy.signal.butter(order, hz, fs=fs, output="zpk") makes them (analog prototype, prewarped
     corner, bilinear transform) in Python arithmetic: numpy's vectorized exp/tan may take a
     different (AVX-512) code path on another CPU."""
-    warped = 4.0 * math.tan(math.pi * hz / fs)  # scipy: 2 fs' tan(pi Wn / fs') with fs' = 2, Wn = 2 hz / fs
+    warped = 4.0 * xm.tan(math.pi * hz / fs)  # scipy: 2 fs' tan(pi Wn / fs') with fs' = 2, Wn = 2 hz / fs
     poles = []
     for m in range(-order + 1, order, 2):
         if 2 * m > 0:  # the conjugate of the pole already made for -m: exactly conjugate
             poles.append(poles[(order - 1 - m) // 2].conjugate())
             continue
         ang = math.pi * m / (2 * order)
-        p = complex(-math.cos(ang), -math.sin(ang)) * warped if m else complex(-warped, 0.0)
+        sin, cos = xm.sin_cos(ang)
+        p = complex(-cos, -sin) * warped if m else complex(-warped, 0.0)
         poles.append(p)
     den = complex(1.0, 0.0)
     for p in poles:
@@ -417,7 +430,8 @@ def sos_response(sos: np.ndarray, f_hz: list[float], fs: float) -> list[complex]
     out = []
     for f in f_hz:
         ang = 2 * math.pi * f / fs
-        z1 = complex(math.cos(ang), -math.sin(ang))  # z^-1 on the unit circle
+        sin, cos = xm.sin_cos(ang)
+        z1 = complex(cos, -sin)  # z^-1 on the unit circle
         z2 = z1 * z1
         h = complex(1.0, 0.0)
         for b0, b1, b2, a0, a1, a2 in rows:
