@@ -347,7 +347,10 @@ def _butter_zpk(order: int, hz: float, fs: float) -> tuple[list[complex], float]
     den = complex(1.0, 0.0)
     for p in poles:
         den *= 4.0 - p
-    gain = warped ** order / den.real
+    gain = 1.0
+    for _ in range(order):  # warped^order by multiplication: float ** int is libm's pow
+        gain *= warped
+    gain /= den.real
     return [(4.0 + p) / (4.0 - p) for p in poles], gain
 
 
