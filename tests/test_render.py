@@ -5,7 +5,7 @@ import pytest
 
 from hostd.codec import transform
 from hostd.render import RenderConfig, Renderer, frames
-from hostd.render.equalizer import Equalizer, EqualizerConfig
+from hostd.render.equalizer import ActuatorModel, Equalizer, EqualizerConfig
 from hostd.render.height import METHODS, BandLimitConfig, HeightEvaluator, band_edges_hz
 from hostd.render.motion import MotionConfig, MotionEstimator
 from hostd.render.output import OutputConfig, OutputStage
@@ -227,6 +227,30 @@ def test_equalizer_inverts_the_zero_order_held_actuator_exactly():
     # so the band the renderer plays is flat: within 0.05 dB up to 600 Hz with the default corner
     band = f <= 600.0
     assert np.max(np.abs(20 * np.log10(np.abs(chain[band])))) < 0.05
+
+
+
+@pytest.mark.parametrize("corner_hz, damping", [(150.0, 0.3), (270.0, 2 ** -0.5), (270.0, 1.0),
+                                                (400.0, 1.0 + 1e-9), (600.0, 2.5)])
+def test_equalizer_design_is_exact_for_every_damping_and_order(corner_hz, damping):
+    """The closed-form design (under-, critically, over-damped; reg_order 2..8) against scipy's
+    zero-order-hold discretization and Butterworth zpk: the chain is z^-1 R(z) to rounding.
+    scipy's own tf2sos path is off by up to 1e-7 here at order 8 (np.roots spreads R's multiple
+    zero at -1)."""
+    import scipy.signal
+
+    fs = 3000.0
+    model = ActuatorModel(corner_hz=corner_hz, damping=damping)
+    b, a = model.analog_ba()
+    bd, ad, _ = scipy.signal.cont2discrete((b, a), 1.0 / fs, method="zoh")
+    f = np.linspace(5.0, 1450.0, 300)
+    held = scipy.signal.freqz(np.ravel(bd), ad, worN=f, fs=fs)[1]
+    for order in range(2, 9):
+        cfg = EqualizerConfig(reg_order=order, sample_rate_hz=fs)
+        chain = held * scipy.signal.sosfreqz(Equalizer(model, cfg).sos, worN=f, fs=fs)[1]
+        z, p, k = scipy.signal.butter(order, cfg.reg_hz, fs=fs, output="zpk")
+        want = np.exp(-2j * np.pi * f / fs) * scipy.signal.freqz_zpk(z, p, k, worN=f, fs=fs)[1]
+        assert np.max(np.abs(chain - want)) < 1e-12, order
 
 
 # ---------------------------------------------------------------- the real-time batch's series

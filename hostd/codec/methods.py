@@ -6,7 +6,6 @@ Threshold-cut (eq. 7):           T_k = 0 if |C_k| < b(f_k) 10^(b0/20) else C_k
 
 from __future__ import annotations
 
-import decimal
 import functools
 import math
 from dataclasses import dataclass
@@ -14,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hostd.errors import CodecError
+from hostd.render import exactmath
 
 MAX_LEVELS = 65535
 # |q| beyond 2^53 would no longer be an exact integer in float64.
@@ -85,10 +85,7 @@ def db_to_ratio(db: float) -> float:
     """
     if not math.isfinite(db):
         raise CodecError(f"a level in dB must be finite, got {db}")
-    ctx = decimal.Context(prec=40)
-    # 10^e with e = db / 20 rounded to float64 first, as `10.0 ** (db / 20.0)` would.
-    x = ctx.multiply(decimal.Decimal(db / 20.0), ctx.ln(decimal.Decimal(10)))
-    r = float(ctx.exp(x))
+    r = exactmath.db_ratio(db)
     if not (r > 0 and math.isfinite(r)):
         raise CodecError(f"{db} dB is out of range (10^(dB/20) must be a finite number > 0)")
     return r

@@ -3,11 +3,11 @@
 The actuator is modelled as  H(s) = g w0^2 / (s^2 + 2 zeta w0 s + w0^2) · exp(-s tau):
 the paper's display (flat to 400 Hz without resonance, -3 dB at 270 Hz) is the default,
 zeta = 1/sqrt(2) (Butterworth) at 270 Hz. A measured response table (Hz, gain dB, phase deg)
-can replace it: the model is then fitted to the table by least squares (scipy.optimize),
+can replace it: the model is then fitted to the table by least squares (_fit_second_order),
 and the table itself is kept so flatness is reported against the measurement.
 
 The equalizer inverts the actuator as the DAC drives it: the actuator behind a zero-order
-hold, discretized exactly at the output rate (scipy.signal.cont2discrete, "zoh"), is
+hold, discretized exactly at the output rate (in closed form, _zoh_second_order), is
 G(z) = z^-1 B(z) / A(z) with B of first order (the sampling zero) for the second-order model.
 The equalizer is  z G(z)^-1 · R(z) = A(z) / B(z) · R(z), with R a digital Butterworth low-pass
 at `reg_hz` of order `reg_order` (>= 2). At the sample instants the chain DAC → actuator →
@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from hostd.render import exactmath as xm
 
 SMALL_BATCH = 32  # at or below this many samples, filter in scalar Python
 DENORMAL_GUARD = 1e-30  # µm: filter state below this is flushed to zero
@@ -79,9 +81,8 @@ class ActuatorModel:
     def response(self, f_hz: np.ndarray) -> np.ndarray:
         """The model's complex response (displacement per command), delay included."""
         f = np.asarray(f_hz, dtype=np.float64)
-        b, a = self.analog_ba()
-        h = _signal().freqs(b, a, worN=2 * np.pi * f)[1]
-        return h * np.exp(-2j * np.pi * f * self.delay_s)
+        h = _model_response(self.corner_hz, self.damping, self.dc_gain, self.delay_s, f.ravel().tolist())
+        return np.array(h, dtype=np.complex128).reshape(f.shape)
 
     def measured(self, f_hz: np.ndarray) -> np.ndarray:
         """The measured table interpolated at f_hz (the model where there is no table)."""
@@ -103,23 +104,118 @@ class ActuatorModel:
             raise ValueError("actuator response table has a non-finite value")
         if np.any(f <= 0) or np.any(np.diff(f) <= 0):
             raise ValueError("actuator response table: frequencies must be > 0 and increasing")
-        target = 10 ** (db / 20) * np.exp(1j * np.deg2rad(np.unwrap(np.deg2rad(deg)) * 180 / np.pi))
+        p = _fit_second_order(f.tolist(), db.tolist(), deg.tolist())
+        return cls(corner_hz=xm.exp(p[0]), damping=xm.exp(p[1]), dc_gain=xm.exp(p[2]),
+                   delay_s=p[3] * 1e-3, name=name, table_hz=f, table_db=db, table_deg=deg)
 
-        def resid(p):
-            m = cls(corner_hz=math.exp(p[0]), damping=math.exp(p[1]), dc_gain=math.exp(p[2]),
-                    delay_s=max(p[3], 0.0) * 1e-3)
-            d = m.response(f) / target - 1.0
-            return np.concatenate([d.real, d.imag])
 
-        guess_fc = float(np.interp(-3.0 + db[0], db[::-1], f[::-1])) if db.min() < db[0] - 3 else f[-1]
-        p0 = [math.log(max(guess_fc, 1.0)), math.log(0.7), math.log(10 ** (db[0] / 20)), 0.0]
-        import scipy.optimize
+# bounds of the fit's parameters (log corner, log damping, log dc gain, delay in ms)
+_FIT_LO = (-math.inf, xm.log(0.05), -math.inf, 0.0)
+_FIT_HI = (math.inf, xm.log(5.0), math.inf, 10.0)
 
-        sol = scipy.optimize.least_squares(resid, p0, bounds=([-np.inf, math.log(0.05), -np.inf, 0.0],
-                                                              [np.inf, math.log(5.0), np.inf, 10.0]))
-        return cls(corner_hz=math.exp(sol.x[0]), damping=math.exp(sol.x[1]), dc_gain=math.exp(sol.x[2]),
-                   delay_s=float(sol.x[3]) * 1e-3, name=name, table_hz=f, table_db=db,
-                   table_deg=deg)
+
+def _model_response(corner_hz: float, damping: float, dc_gain: float, delay_s: float,
+                    f_hz: list[float]) -> list[complex]:
+    """g w0^2 / (w0^2 - w^2 + 2j zeta w0 w) · exp(-j w tau) at each f (the model of analog_ba, with
+    its delay), in Python complex arithmetic: the same bits on every CPU."""
+    w0 = 2 * math.pi * corner_hz
+    out = []
+    for f in f_hz:
+        w = 2 * math.pi * f
+        h = dc_gain * w0 * w0 / complex(w0 * w0 - w * w, 2 * damping * w0 * w)
+        if delay_s:
+            sin, cos = xm.sin_cos(w * delay_s)
+            h *= complex(cos, -sin)
+        out.append(h)
+    return out
+
+
+def _fit_second_order(f_hz: list[float], gain_db: list[float], phase_deg: list[float]) -> list[float]:
+    """Least-squares fit of the model to a response table: p = [log corner_hz, log damping,
+    log dc_gain, delay_ms] minimizing sum |model / table - 1|^2, by Levenberg-Marquardt with an
+    analytic Jacobian, bounds by projection, sums by math.fsum, a 4x4 solve by elimination.
+    Hand-written, not scipy.optimize.least_squares: its steps come from LAPACK (QR/SVD), whose
+    rounding differs under each OpenBLAS kernel, so the fitted model, hence the equalizer the
+    display gets, would differ in the last bits between CPUs; this loop is pure float arithmetic."""
+    target = []
+    for g_db, ph_deg in zip(gain_db, phase_deg, strict=True):
+        mag, (sin, cos) = xm.db_ratio(g_db), xm.sin_cos(math.radians(ph_deg))
+        target.append(complex(mag * cos, mag * sin))
+
+    def evaluate(p: list[float]) -> tuple[list[float], list[list[float]]]:
+        corner, zeta, delay_s = xm.exp(p[0]), xm.exp(p[1]), p[3] * 1e-3
+        w0 = 2 * math.pi * corner
+        model = _model_response(corner, zeta, xm.exp(p[2]), delay_s, f_hz)
+        re, im, jre, jim = [], [], [], []
+        for f, m, t in zip(f_hz, model, target, strict=True):
+            w = 2 * math.pi * f
+            den = complex(w0 * w0 - w * w, 2 * zeta * w0 * w)
+            q = m / t
+            re.append(q.real - 1.0)
+            im.append(q.imag)
+            # d(m/t)/dp = (m/t) · d(log m)/dp
+            dlog = (2.0 - complex(2 * w0 * w0, 2 * zeta * w0 * w) / den,
+                    -complex(0.0, 2 * zeta * w0 * w) / den, 1.0 + 0j, complex(0.0, -w * 1e-3))
+            row = [q * d for d in dlog]
+            jre.append([v.real for v in row])
+            jim.append([v.imag for v in row])
+        return re + im, jre + jim
+
+    db0 = gain_db[0]
+    if min(gain_db) < db0 - 3:  # the -3 dB frequency, linearly interpolated on the table
+        guess_fc = f_hz[-1]
+        for i in range(len(f_hz) - 1):
+            f1, g1, f2, g2 = f_hz[i], gain_db[i], f_hz[i + 1], gain_db[i + 1]
+            if g2 <= db0 - 3.0 < g1:
+                guess_fc = f1 + (db0 - 3.0 - g1) * (f2 - f1) / (g2 - g1)
+                break
+    else:
+        guess_fc = f_hz[-1]
+    p = [xm.log(max(guess_fc, 1.0)), xm.log(0.7), db0 / 20.0 * xm.log(10.0), 0.0]
+    r, jac = evaluate(p)
+    cost = math.fsum(v * v for v in r)
+    lam = 1e-3
+    for _ in range(500):
+        jtj = [[math.fsum(row[i] * row[j] for row in jac) for j in range(4)] for i in range(4)]
+        grad = [math.fsum(row[i] * v for row, v in zip(jac, r, strict=True)) for i in range(4)]
+        a = [[jtj[i][j] + (lam * max(jtj[i][i], 1e-30) if i == j else 0.0) for j in range(4)] + [-grad[i]]
+             for i in range(4)]
+        step = _solve(a)
+        trial = [min(max(v + d, lo), hi) for v, d, lo, hi in zip(p, step, _FIT_LO, _FIT_HI, strict=True)]
+        r_new, jac_new = evaluate(trial)
+        cost_new = math.fsum(v * v for v in r_new)
+        if cost_new <= cost:
+            moved = max(abs(t - v) / (1.0 + abs(v)) for t, v in zip(trial, p, strict=True))
+            p, r, jac, cost = trial, r_new, jac_new, cost_new
+            lam = max(lam / 3.0, 1e-12)
+            if moved <= 1e-13:
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e12:
+                break
+    if not all(math.isfinite(v) for v in p):
+        raise ValueError("actuator response table: the model fit did not converge")
+    return p
+
+
+def _solve(a: list[list[float]]) -> list[float]:
+    """x with A x = b for the augmented n x (n+1) matrix [A | b] (Gauss with partial pivoting)."""
+    n = len(a)
+    a = [row[:] for row in a]
+    for c in range(n):
+        piv = max(range(c, n), key=lambda i: abs(a[i][c]))
+        a[c], a[piv] = a[piv], a[c]
+        if a[c][c] == 0.0:
+            return [0.0] * n
+        for i in range(c + 1, n):
+            k = a[i][c] / a[c][c]
+            for j in range(c, n + 1):
+                a[i][j] -= k * a[c][j]
+    x = [0.0] * n
+    for i in range(n - 1, -1, -1):
+        x[i] = (a[i][n] - math.fsum(a[i][j] * x[j] for j in range(i + 1, n))) / a[i][i]
+    return x
 
 
 def load_actuator(path: str | Path) -> ActuatorModel:
@@ -167,26 +263,184 @@ class EqualizerConfig:
 
 
 def design(model: ActuatorModel, cfg: EqualizerConfig) -> np.ndarray:
-    """SOS of the regularized inverse of the zero-order-held actuator at cfg.sample_rate_hz."""
+    """SOS of the regularized inverse of the zero-order-held actuator at cfg.sample_rate_hz.
+
+    The same bytes on every CPU: the zeros, poles and gain are known in closed form (the
+    actuator's exact zero-order-hold discretization, _zoh_second_order; the digital Butterworth,
+    _butter_zpk) and paired into sections by scipy.signal.zpk2sos's rule (_zpk2sos_nearest), all
+    in Python float/complex arithmetic. scipy's path (cont2discrete: expm; tf2sos: np.roots, an
+    eigen-solve; np.polymul: np.convolve, a BLAS dot) rounds differently under each OpenBLAS
+    kernel (FMA or not, AVX-512 or not), so two CPUs would upload different sections."""
     fs = cfg.sample_rate_hz
     if not (0 < model.corner_hz < cfg.reg_hz < fs / 2):
         raise ValueError("equalizer: need 0 < actuator corner < reg_hz < sample_rate/2")
     if not 2 <= cfg.reg_order <= 8:
         raise ValueError("equalizer.reg_order must be 2..8")
-    b_act, a_act = model.analog_ba()
-    bd, ad, _dt = _signal().cont2discrete((b_act, a_act), 1.0 / fs, method="zoh")
-    bd = np.ravel(bd)
-    if bd[0] != 0.0 and abs(bd[0]) > 1e-12 * np.abs(bd).max():
-        raise ValueError("equalizer: the sampled actuator has no sample of delay; unsupported model")
-    zero_poly = np.trim_zeros(bd[1:], "b")  # B(z): G(z) = z^-1 B(z) / A(z)
-    zeros = np.roots(zero_poly)
-    if zeros.size and np.abs(zeros).max() >= 0.98:
+    b1, b2, act_poles = _zoh_second_order(model, fs)
+    # G(z) = z^-1 B(z) / A(z), B(z) = b1 z + b2: the second-order model always has its sample of
+    # delay (b0 = 0) and one sampling zero
+    zero = -b2 / b1
+    if abs(zero) >= 0.98:
         raise ValueError("equalizer: the sampled actuator's zero lies on or outside the unit circle "
-                         f"(|z| = {np.abs(zeros).max():.3f}); raise the output rate or lower reg_hz")
-    b_reg, a_reg = _signal().butter(cfg.reg_order, cfg.reg_hz, fs=fs)
-    num = np.polymul(np.ravel(ad), b_reg)
-    den = np.polymul(zero_poly, a_reg)
-    return _signal().tf2sos(num / den[0], den / den[0])
+                         f"(|z| = {abs(zero):.3f}); raise the output rate or lower reg_hz")
+    reg_poles, k_reg = _butter_zpk(cfg.reg_order, cfg.reg_hz, fs)
+    # equalizer A(z) R(z) / B(z): zeros = the actuator's poles and R's zeros (all at -1), poles =
+    # the sampling zero and R's poles, gain = R's over b1 (what tf2sos(A·R / B) made of it)
+    zeros = [*act_poles, *[complex(-1.0, 0.0)] * cfg.reg_order]
+    poles = [complex(zero, 0.0), *reg_poles]
+    return np.array(_zpk2sos_nearest(zeros, poles, k_reg / b1), dtype=np.float64)
+
+
+def _zoh_second_order(model: ActuatorModel, fs: float) -> tuple[float, float, list[complex]]:
+    """The actuator model (ActuatorModel.analog_ba: g w0^2 / (s^2 + 2 zeta w0 s + w0^2)) behind a
+    zero-order hold at fs, exactly: G(z) = (b1 z + b2) / ((z - z1)(z - z2)), z1,2 = exp(p1,2 T).
+    b1 is the step response at T, b1 + b2 = g (1 - (z1 + z2) + z1 z2) keeps the DC gain. With
+    sigma = zeta w0:  C = cos(wd T), S = sin(wd T) / wd  (under-damped, wd = w0 sqrt(1 - zeta^2)),
+    C = cosh(beta T), S = sinh(beta T) / beta (over-damped, beta = w0 sqrt(zeta^2 - 1)),
+    C = 1, S = T (critically damped);  b1 = g (1 - e^(-sigma T) (C + sigma S)),
+    b2 = g (e^(-2 sigma T) - e^(-sigma T) (C - sigma S)). Returns (b1, b2, [z1, z2])."""
+    t = 1.0 / fs
+    w0 = 2 * math.pi * model.corner_hz
+    zeta, g = model.damping, model.dc_gain
+    sigma = zeta * w0
+    decay = xm.exp(-sigma * t)
+    # dc = e^(-sigma T) C, ds = e^(-sigma T) S
+    if zeta < 1.0:
+        wd = w0 * math.sqrt((1.0 - zeta) * (1.0 + zeta))
+        sin, cos = xm.sin_cos(wd * t)
+        dc, ds = decay * cos, decay * sin / wd
+        poles = [complex(dc, decay * sin), complex(dc, -decay * sin)]
+    elif zeta > 1.0:
+        root = math.sqrt((zeta - 1.0) * (zeta + 1.0))
+        beta = w0 * root
+        slow = w0 / (zeta + root)  # sigma - beta, without the cancellation
+        z1, z2 = xm.exp(-slow * t), xm.exp(-(sigma + beta) * t)
+        if beta * t < 1.0:  # near critical damping: z1 - z2 would cancel
+            cosh, sinh = xm.cosh_sinh(beta * t)
+            dc, ds = decay * cosh, decay * sinh / beta
+        else:  # cosh(beta T) could overflow: e^(-sigma T) cosh(beta T) = (z1 + z2) / 2
+            dc, ds = (z1 + z2) / 2, (z1 - z2) / (2 * beta)
+        poles = [complex(z1, 0.0), complex(z2, 0.0)]
+    else:
+        dc, ds = decay, decay * t
+        poles = [complex(decay, 0.0), complex(decay, 0.0)]
+    b1 = g * (1.0 - (dc + sigma * ds))
+    b2 = g * (decay * decay - (dc - sigma * ds))
+    return b1, b2, poles
+
+
+def _butter_zpk(order: int, hz: float, fs: float) -> tuple[list[complex], float]:
+    """Poles and gain of the digital Butterworth low-pass (its zeros: `order` at z = -1), as
+    scipy.signal.butter(order, hz, fs=fs, output="zpk") makes them (analog prototype, prewarped
+    corner, bilinear transform) in Python arithmetic: numpy's vectorized exp/tan may take a
+    different (AVX-512) code path on another CPU."""
+    warped = 4.0 * xm.tan(math.pi * hz / fs)  # scipy: 2 fs' tan(pi Wn / fs') with fs' = 2, Wn = 2 hz / fs
+    poles = []
+    for m in range(-order + 1, order, 2):
+        if 2 * m > 0:  # the conjugate of the pole already made for -m: exactly conjugate
+            poles.append(poles[(order - 1 - m) // 2].conjugate())
+            continue
+        ang = math.pi * m / (2 * order)
+        sin, cos = xm.sin_cos(ang)
+        p = complex(-cos, -sin) * warped if m else complex(-warped, 0.0)
+        poles.append(p)
+    den = complex(1.0, 0.0)
+    for p in poles:
+        den *= 4.0 - p
+    gain = 1.0
+    for _ in range(order):  # warped^order by multiplication: float ** int is libm's pow
+        gain *= warped
+    gain /= den.real
+    return [(4.0 + p) / (4.0 - p) for p in poles], gain
+
+
+def _zpk2sos_nearest(zeros: list[complex], poles: list[complex], k: float) -> list[list[float]]:
+    """scipy.signal.zpk2sos(z, p, k, pairing="nearest") for conjugate-symmetric zeros and poles,
+    in Python float/complex arithmetic (scipy multiplies out each pair with np.poly, a BLAS dot
+    whose rounding depends on the CPU). The same rule: pad with zeros at the origin to equal, even
+    counts; from the pole closest to the unit circle outwards, fill the sections from the last,
+    pairing each pole (with its conjugate, or the next-closest real pole) with the nearest zeros;
+    the gain goes into the first section."""
+    p = [complex(v) for v in poles] + [0j] * max(len(zeros) - len(poles), 0)
+    z = [complex(v) for v in zeros] + [0j] * max(len(poles) - len(zeros), 0)
+    n_sections = (len(p) + 1) // 2
+    if len(p) % 2:
+        p.append(0j)
+        z.append(0j)
+    p, z = _cplxreal(p), _cplxreal(z)
+
+    def worst(vals: list[complex], among=None) -> int:
+        idx = range(len(vals)) if among is None else among
+        return min(idx, key=lambda i: abs(1.0 - abs(vals[i])))
+
+    def nearest(to: complex, which: str) -> int:
+        order = sorted(range(len(z)), key=lambda i: abs(z[i] - to))
+        return next(i for i in order if which == "any" or (z[i].imag == 0) == (which == "real"))
+
+    def section(zs: list[complex], ps: list[complex]) -> list[float]:
+        return [*_pair_poly(zs), *_pair_poly(ps)]
+
+    sos: list[list[float]] = [[]] * n_sections
+    for si in range(n_sections - 1, -1, -1):
+        p1 = p.pop(worst(p))
+        n_real_p = sum(v.imag == 0 for v in p)
+        if p1.imag == 0 and n_real_p == 0:  # the last real pole: with the nearest real zero
+            z1 = z.pop(nearest(p1, "real"))
+            sos[si] = section([z1, 0j], [p1, 0j])
+        elif (len(p) + 1 == len(z) and p1.imag != 0 and n_real_p == 1
+              and sum(v.imag == 0 for v in z) == 1):  # must take a complex zero pair
+            z1 = z.pop(nearest(p1, "complex"))
+            sos[si] = section([z1, z1.conjugate()], [p1, p1.conjugate()])
+        else:
+            if p1.imag == 0:
+                p2 = p.pop(worst(p, [i for i, v in enumerate(p) if v.imag == 0]))
+            else:
+                p2 = p1.conjugate()
+            z1 = z.pop(nearest(p1, "any"))
+            if z1.imag != 0:
+                sos[si] = section([z1, z1.conjugate()], [p1, p2])
+            else:
+                z2 = z.pop(nearest(p1, "real"))
+                sos[si] = section([z1, z2], [p1, p2])
+    if p or z:
+        raise AssertionError("equalizer: zeros and poles left over after pairing")
+    sos[0] = [v * k for v in sos[0][:3]] + sos[0][3:]
+    return sos
+
+
+def _cplxreal(vals: list[complex]) -> list[complex]:
+    """One element (imag > 0) of each conjugate pair, sorted by real part, then the real values
+    sorted (scipy.signal's _cplxreal order, which decides between equally good candidates)."""
+    tol = 100 * np.finfo(np.float64).eps
+    real = [complex(r, 0.0) for r in sorted(v.real for v in vals if abs(v.imag) <= tol * abs(v))]
+    upper = sorted((v for v in vals if v.imag > tol * abs(v)), key=lambda v: (v.real, abs(v.imag)))
+    return [*upper, *real]
+
+
+def _pair_poly(roots: list[complex]) -> list[float]:
+    """(z - r1)(z - r2) for a conjugate pair or two real roots: [1, -(r1 + r2), r1 r2]."""
+    r1, r2 = roots
+    if r1.imag != 0:  # a conjugate pair
+        return [1.0, -2.0 * r1.real, r1.real * r1.real + r1.imag * r1.imag]
+    return [1.0, -(r1.real + r2.real), r1.real * r2.real + 0.0]  # + 0.0: no -0.0 for a root at 0
+
+
+def sos_response(sos: np.ndarray, f_hz: list[float], fs: float) -> list[complex]:
+    """The sections' complex response at each f (scipy.signal.sosfreqz's numbers), in Python
+    complex arithmetic: what device_params needs (the chain's delay) without loading
+    scipy.signal, and the same bits on every CPU."""
+    rows = [tuple(float(v) for v in r) for r in sos]
+    out = []
+    for f in f_hz:
+        ang = 2 * math.pi * f / fs
+        sin, cos = xm.sin_cos(ang)
+        z1 = complex(cos, -sin)  # z^-1 on the unit circle
+        z2 = z1 * z1
+        h = complex(1.0, 0.0)
+        for b0, b1, b2, a0, a1, a2 in rows:
+            h *= (b0 + b1 * z1 + b2 * z2) / (a0 + a1 * z1 + a2 * z2)
+        out.append(h)
+    return out
 
 
 class Equalizer:
@@ -234,8 +488,8 @@ class Equalizer:
         f = np.asarray(f_hz, dtype=np.float64)
         fs = self.cfg.sample_rate_hz
         zoh = np.sinc(f / fs) * np.exp(-1j * np.pi * f / fs)
-        eq = (_signal().sosfreqz(self.sos, worN=f, fs=fs)[1] if self.sos is not None
-              else np.ones_like(f, dtype=complex))
+        eq = (np.array(sos_response(self.sos, f.ravel().tolist(), fs)).reshape(f.shape)
+              if self.sos is not None else np.ones_like(f, dtype=complex))
         act = self.model.measured(f) if measured else self.model.response(f)
         act = act * np.exp(2j * np.pi * f * self.model.delay_s)
         return act * eq * zoh
