@@ -3,8 +3,8 @@
 Counts and structure, not time: the BLAS pool has one thread in `hostd run` and in the pump
 it starts whatever OPENBLAS_NUM_THREADS the user's environment says; `hostd encode` does not
 load what it never uses; the control pool holds one handler at rest; and the replacements that
-keep scipy.signal out (the chirp-z transform, the equalizer designed in a child) give the same
-numbers. The footprint of a running daemon in device mode is asserted in test_device_mode.py;
+keep scipy.signal out (the chirp-z transform, the equalizer designed in Python arithmetic) give
+the same numbers. The footprint of a running daemon in device mode is asserted in test_device_mode.py;
 its figures (PSS, threads, CPU, wake-ups) are `hostd bench soak --check` (DEVELOPMENT.md).
 """
 
@@ -113,15 +113,15 @@ def test_chirp_z_is_scipy_signal_czt_bit_for_bit(n, m, dtheta):
     assert np.array_equal(series._czt(n, m, dtheta)(x), want)
 
 
-def test_device_params_designed_apart_are_the_same_numbers():
+def test_device_params_designed_in_the_pump_are_the_same_numbers():
     from hostd.device import devrender
     from hostd.render.pipeline import RenderConfig
 
     cfg = RenderConfig()
     here = devrender.device_params(cfg)
-    # in a fresh process without scipy.signal, as in the pump: designed in a forked child
+    # in a fresh process that loads no scipy.signal, as the pump
     code = ("import pickle, sys\nfrom hostd.device import devrender\nfrom hostd.render.pipeline import "
-            "RenderConfig\np = devrender.device_params_apart(RenderConfig())\n"
+            "RenderConfig\np = devrender.device_params(RenderConfig())\n"
             "assert 'scipy.signal' not in sys.modules\nsys.stdout.buffer.write(pickle.dumps(p))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, env=_env(), timeout=120)
     assert out.returncode == 0, out.stderr[-800:]

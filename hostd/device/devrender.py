@@ -46,14 +46,6 @@ def device_params(cfg: RenderConfig | None = None) -> dict:
     }
 
 
-def device_params_apart(cfg: RenderConfig | None = None) -> dict:
-    """device_params(cfg) for the pump, which loads no scipy.signal: designing the equalizer and
-    its delay no longer needs it (Python arithmetic, hostd.render.equalizer.design and
-    sos_response: 0.5 ms of CPU), so this designs in the calling process; it used to fork a child
-    that imported scipy.signal (~0.6 s of CPU, ~70 MB) to keep it out of the pump."""
-    return device_params(cfg)
-
-
 def setup_messages(coeffs, n: int, length_mm: float, cfg: RenderConfig | None = None,
                    slot: int = 1, params: dict | None = None) -> list[bytes]:
     """Limits, equalizer, band, scale, delay, then the texture (LOAD_TEXTURE ... LOAD_END). Each

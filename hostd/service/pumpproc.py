@@ -227,8 +227,8 @@ class PumpProcess:
             link.await_caps()  # a v2 display sends CAPS right after IDENT
             why = pr.render_refusal(link.ident, link.caps, 1, 0, who=transport.describe())
             if why is None:
-                if self.dev_params is None:  # designed once per process, scipy kept out of it
-                    self.dev_params = devrender.device_params_apart(self.rcfg)
+                if self.dev_params is None:  # designed once per process (no scipy.signal)
+                    self.dev_params = devrender.device_params(self.rcfg)
                 self.dev = dev = DeviceMode(link, self.rcfg, self.log, host_lost_ms=cfg.render.host_lost_ms,
                                             timeout_ms=cfg.device.host_timeout_ms, params=self.dev_params)
                 dev.abort = lambda: self.stopping  # a stop does not wait out an upload's answers

@@ -87,16 +87,16 @@ def poll_of(fd: int | None):
 
 def prepare_rendering(where: str, rcfg, stats):
     """Before the first connection (PumpProcess.start): where = "host", the host renderer loaded (a
-    selection plays at once) and None; else the display's equalizer designed now (in a child, ~1 s
-    of scipy), not between a display's arrival and playing: devrender.device_params_apart's, or
-    None for a setting the display cannot render (said when one connects, as before)."""
+    selection plays at once) and None; else the display's parameters designed now, not between a
+    display's arrival and playing (devrender.device_params: Python arithmetic, no scipy.signal),
+    or None for a setting the display cannot render (said when one connects, as before)."""
     if where == "host":
         preload_host_rendering(stats)
         return None
     from hostd.device import devrender
 
     try:
-        return devrender.device_params_apart(rcfg)
+        return devrender.device_params(rcfg)
     except ValueError:
         return None
 
