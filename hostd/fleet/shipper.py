@@ -155,6 +155,19 @@ def _serial(spec: str | None, sysfs: str = "/sys") -> str | None:
     return None
 
 
+def release_free_heap() -> None:
+    """Give the C heap's free pages back to the system (glibc's malloc_trim): what the start-up
+    freed (imports, modules compiled where no cached bytecode could be written, the first
+    connection's TLS and SCRAM exchange) is otherwise held for the process's life, about 1 MB of
+    the shipper's PSS. Nothing elsewhere than glibc."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 class Shipper:
     def __init__(self, cfg: FleetCfg, clock=time.time, status=None):
         self.cfg = cfg
@@ -171,6 +184,7 @@ class Shipper:
         self._more = False
         self.state = self._open_state(Path(cfg.state))
         self.shipped = 0  # rows committed centrally by this process (each counted once)
+        self.trim_after_start = False  # release_free_heap() after the first step that went through
 
     # ------------------------------------------------------------ local files
     @staticmethod
@@ -386,6 +400,9 @@ class Shipper:
                     self.failing_since = None
                     self._set_info(last_error=None)
                 self.backoff_s = self.cfg.backoff_min_s
+                if self.trim_after_start:
+                    self.trim_after_start = False
+                    release_free_heap()
                 if once:
                     return 0
                 self.stop_event.wait(self.cfg.interval_s)
@@ -422,6 +439,7 @@ class Shipper:
 def main(cfg: FleetCfg, once: bool = False) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     s = Shipper(cfg)
+    s.trim_after_start = True  # its own long-lived process: the start-up's garbage given back
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: s.stop_event.set())
     return s.run(once=once)
