@@ -32,6 +32,8 @@ def _lighter_psycopg() -> None:
             return typing.TypeVar(name, *constraints, **kw)
 
         def real_attr(name):  # any other name: the real module, from then on
+            if name.startswith("__"):  # the import system's looks (__path__ on `from ... import`)
+                raise AttributeError(name)
             real = sys.modules.get("typing_extensions")
             if real is stub:
                 del sys.modules["typing_extensions"]
