@@ -594,3 +594,26 @@ def test_the_shipper_short_run_measures_its_pss_and_cpu_per_commit():
     assert out["fleet_commits"] >= 2 and out["fleet_rows_central"] == out["fleet_rows"] >= 4
     assert "fleet_cpu_share" not in out and out["fleet_cpu_ms_per_commit"] > 0
     assert out["fleet_pss_mb"] <= FLEET_PSS_MB.goal and out["fleet_threads"] == 1
+
+
+def test_install_service_installs_the_shippers_unit_and_user_when_asked(tmp_path, capsys):
+    """`hostd install-service --fleet` stages hostd-fleet.service (pointed at this hostd, the
+    password still a systemd credential) and its sysusers file beside the daemon's; without
+    --fleet, neither."""
+    from hostd.cli import main
+
+    exe = "/opt/lab/bin/hostd"
+    assert main(["install-service", "--prefix", str(tmp_path / "plain"), "--exec", exe]) == 0
+    assert not (tmp_path / "plain/etc/systemd/system/hostd-fleet.service").exists()
+    assert not (tmp_path / "plain/etc/sysusers.d/hostd-fleet.conf").exists()
+    root = tmp_path / "fleet"
+    assert main(["install-service", "--prefix", str(root), "--exec", exe, "--fleet"]) == 0
+    out = capsys.readouterr().out
+    unit = (root / "etc/systemd/system/hostd-fleet.service").read_text()
+    assert f"ExecStart={exe} fleet ship --config /etc/hostd/fleet.toml" in unit
+    assert "/opt/hostd/bin/hostd" not in unit
+    assert "LoadCredential=hostd-fleet-password:/etc/hostd/fleet.password" in unit
+    assert oct((root / "etc/systemd/system/hostd-fleet.service").stat().st_mode & 0o777) == "0o644"
+    assert "u hostd-fleet " in (root / "etc/sysusers.d/hostd-fleet.conf").read_text()
+    assert (root / "etc/systemd/system/hostd.service").exists()  # the daemon's unit as before
+    assert "systemctl enable --now hostd-fleet" in out and "fleet.toml" in out
