@@ -22,7 +22,7 @@ from hostd.service import outbox, qualitylog
 psycopg = pytest.importorskip("psycopg") if os.environ.get("CI") != "true" else __import__("psycopg")
 
 ROOT = Path(__file__).resolve().parents[1]
-PCS = ("pc_a", "pc_b", "pc_c", "pc_d", "pc_e")  # one per test that compares a PC's whole store
+PCS = ("pc_a", "pc_b", "pc_c", "pc_d", "pc_e", "pc_f")  # one per test that compares a PC's whole store
 
 
 def _server_or_fail(**kw):
@@ -516,3 +516,104 @@ def test_a_pc_logs_in_with_its_tls_client_certificate_and_not_with_anothers(pg, 
     r = _ship(with_cert("pc_cert"), "--once")
     assert r.returncode == 0, r.stderr
     _assert_exactly_once(pg, "pc_cert", db)
+
+
+def test_a_batch_sends_only_its_own_kinds_and_each_ships_exactly_once(pg, tmp_path):
+    """The batch's statement names only the kinds it carries (the server analyses and plans a third
+    of the usual three-kind statement for a lone stream row: on a pooled connection that changes
+    role, every batch); batches of one kind, of two, and of health alone all commit exactly once."""
+    from hostd.fleet import config
+    from hostd.fleet.shipper import Shipper, ship_sql
+
+    for kinds, table in ((("quality",), "quality"), (("play",), "plays"), (("health",), "health")):
+        sql = ship_sql(kinds)
+        others = {"quality", "plays", "health"} - {table}
+        assert f"fleet.{table} " in sql and not any(f"fleet.{t} " in sql for t in others), sql[:200]
+    db = tmp_path / "q.sqlite"
+    con = qualitylog.connect(db)
+    t0 = time.time()
+    qualitylog.insert_batch(con, [_row(i, t0 + i) for i in range(4)])  # stream rows alone
+    s = Shipper(config.load(_cfg(tmp_path, pg, "pc_f")), status=lambda: {"firmware": "0.6.0"})
+    s.connect()
+    assert s.ship(s.pending(100)) == 4
+    qualitylog.insert_play(con, _play(10, t0))  # a play alone
+    assert s.ship(s.pending(100)) == 1
+    s.take_health()  # health alone, then all three kinds in one batch
+    assert s.ship(s.pending(100)) == 1
+    qualitylog.insert_batch(con, [_row(20, t0)])
+    qualitylog.insert_play(con, _play(21, t0))
+    s.take_health()
+    batch = s.pending(100)
+    assert [len(batch[k]) for k in ("streams", "plays", "health")] == [1, 1, 1]
+    assert s.ship(batch) == 3 and s.ship(batch) == 0  # sent again: no-ops
+    assert s.ship({"streams": [], "plays": [], "health": []}) == 0  # nothing: no statement
+    con.close()
+    s._close()
+    assert _assert_exactly_once(pg, "pc_f", db) == 7
+    with _admin(pg) as c:
+        assert c.execute("SELECT count(*), count(DISTINCT uuid) FROM fleet.health WHERE pc_id = 'pc_f'"
+                         ).fetchone() == (2, 2)
+
+
+def test_the_shipper_process_leaves_out_what_psycopg_imports_for_nothing():
+    """The lean entry's stand-ins (as `hostd fleet ship` runs: on the system's libpq): psycopg works
+    and knows its own version without importlib.metadata, TypeVar(default=) without
+    typing_extensions; any other use of typing_extensions gets the real module."""
+    import importlib.metadata
+
+    code = ("import json, sys; from hostd.fleet.__main__ import _lighter_psycopg; _lighter_psycopg(); "
+            "from hostd.fleet.cli import _prefer_system_libpq; _prefer_system_libpq(); "
+            "import psycopg; from hostd.fleet import shipper; "
+            "out = {'metadata': 'importlib.metadata' in sys.modules, "
+            "'te_real': hasattr(sys.modules['typing_extensions'], '__file__'), "
+            "'version': psycopg.__version__}; "
+            "from typing_extensions import Literal; import typing_extensions; "
+            "out['te_after'] = hasattr(sys.modules['typing_extensions'], '__file__') and "
+            "typing_extensions.Literal is Literal; print(json.dumps(out))")
+    r = subprocess.run([sys.executable, "-OO", "-c", code], capture_output=True, text=True, cwd=ROOT,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=60)
+    assert r.returncode == 0, r.stderr
+    import json
+
+    out = json.loads(r.stdout)
+    assert out == {"metadata": False, "te_real": False, "version": importlib.metadata.version("psycopg"),
+                   "te_after": True}
+
+
+def test_the_shipper_short_run_measures_its_pss_and_cpu_per_commit():
+    """What CI's short soak holds: the shipper (its own process, a live server, a row a second,
+    looking every second here) commits several times in 4 s, every row arrives, its PSS is within
+    the budget, and its CPU is given per central commit, not as a share of the default look's."""
+    from hostd.bench.guards import FLEET_PSS_MB
+    from hostd.fleet.bench import measure
+    from hostd.fleet.localpg import bindir
+
+    if bindir() is None:
+        _server_or_fail()
+    out = measure(4.0, interval_s=1.0)
+    assert out["fleet_commits"] >= 2 and out["fleet_rows_central"] == out["fleet_rows"] >= 4
+    assert "fleet_cpu_share" not in out and out["fleet_cpu_ms_per_commit"] > 0
+    assert out["fleet_pss_mb"] <= FLEET_PSS_MB.goal and out["fleet_threads"] == 1
+
+
+def test_install_service_installs_the_shippers_unit_and_user_when_asked(tmp_path, capsys):
+    """`hostd install-service --fleet` stages hostd-fleet.service (pointed at this hostd, the
+    password still a systemd credential) and its sysusers file beside the daemon's; without
+    --fleet, neither."""
+    from hostd.cli import main
+
+    exe = "/opt/lab/bin/hostd"
+    assert main(["install-service", "--prefix", str(tmp_path / "plain"), "--exec", exe]) == 0
+    assert not (tmp_path / "plain/etc/systemd/system/hostd-fleet.service").exists()
+    assert not (tmp_path / "plain/etc/sysusers.d/hostd-fleet.conf").exists()
+    root = tmp_path / "fleet"
+    assert main(["install-service", "--prefix", str(root), "--exec", exe, "--fleet"]) == 0
+    out = capsys.readouterr().out
+    unit = (root / "etc/systemd/system/hostd-fleet.service").read_text()
+    assert f"ExecStart={exe} fleet ship --config /etc/hostd/fleet.toml" in unit
+    assert "/opt/hostd/bin/hostd" not in unit
+    assert "LoadCredential=hostd-fleet-password:/etc/hostd/fleet.password" in unit
+    assert oct((root / "etc/systemd/system/hostd-fleet.service").stat().st_mode & 0o777) == "0o644"
+    assert "u hostd-fleet " in (root / "etc/sysusers.d/hostd-fleet.conf").read_text()
+    assert (root / "etc/systemd/system/hostd.service").exists()  # the daemon's unit as before
+    assert "systemctl enable --now hostd-fleet" in out and "fleet.toml" in out

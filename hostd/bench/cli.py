@@ -359,7 +359,8 @@ def _check(what: str, rows: list[dict], level: str) -> int:
                   "device (or auto on a v2 display)", file=sys.stderr)
             return 1
         return g.check(rows, [g.DEVICE_PSS_MB, g.DEVICE_THREADS, g.DEVICE_CPU_SHARE,
-                              g.DEVICE_WAKEUPS_PER_RUN, g.FLEET_CPU_SHARE, g.FLEET_PSS_MB], level, "soak")
+                              g.DEVICE_WAKEUPS_PER_RUN, g.FLEET_CPU_SHARE, g.FLEET_PSS_MB,
+                              g.FLEET_CPU_MS_PER_COMMIT], level, "soak")
     if what == "cycle":
         compiled = [r for r in rows if r.get("cycle") == "compiled"]
         if not compiled:

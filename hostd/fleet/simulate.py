@@ -6,7 +6,10 @@ plays, with its own textures, Iobj and underruns) and looks at its log every `in
 own phase, as the shipper does; a look that finds rows ships them through the shipper's own code
 (Shipper.ship: the one statement, the local marks after the central commit), as that PC's role
 (SET ROLE on one of `workers` pooled connections, as a pooler in front of the centre would do:
-row-level security holds each row to its PC). A health summary every `health_interval_s`.
+row-level security holds each row to its PC). A health summary every `health_interval_s`, in a
+batch of its own. Only the looks that find rows are simulated (an empty look costs the centre
+nothing): the next row's commit time is drawn (the Poisson process's exponential gaps) and the
+PC's first look after it ships it.
 
 Measured over the run (after a warm-up): the rows per second committed centrally, the delay from
 each row's local commit to the return of its central commit (p50, p99, max), and the CPU time of
@@ -88,9 +91,8 @@ def _lit(s: str) -> str:
 class _PC:
     __slots__ = (
         "firmware",
-        "last_health",
-        "last_look",
         "next_id",
+        "next_row",
         "quality_mean",
         "rng",
         "role",
@@ -104,24 +106,30 @@ class _PC:
         self.quality_mean = self.rng.uniform(0.03, 0.12)
         self.firmware = self.rng.choices(FIRMWARE, (0.15, 0.6, 0.25))[0]
         self.underrun_rate = self.rng.choice((0.0, 0.0, 0.05, 0.3))
-        self.last_look = t0
-        self.last_health = -math.inf
+        self.next_row = t0  # the local commit time of its next row (drawn by _arrivals)
 
 
-def _rows(pc: _PC, t_from: float, t_to: float, rows_per_s: float) -> tuple[list[dict], list[dict]]:
-    """The rows this PC committed locally in (t_from, t_to]: a Poisson count, uniform times."""
+def _arrivals(pc: _PC, t_to: float, rows_per_s: float) -> list[float]:
+    """The local commit times of this PC's rows up to t_to: a Poisson process, drawn as its
+    exponential gaps (pc.next_row is then the first one after t_to)."""
+    out = []
+    while pc.next_row <= t_to:
+        out.append(pc.next_row)
+        pc.next_row += pc.rng.expovariate(rows_per_s)
+    return out
+
+
+def _next_look(first_look: float, interval_s: float, t: float) -> float:
+    """The first look of the grid first_look + k * interval_s (k >= 0) at or after t."""
+    return first_look + max(0, math.ceil((t - first_look) / interval_s)) * interval_s
+
+
+def _rows(pc: _PC, times: list[float]) -> tuple[list[dict], list[dict]]:
+    """The rows this PC committed locally at these times: half stream rows, half plays."""
     from hostd.fleet.bench import synthetic_row
 
-    lam = rows_per_s * (t_to - t_from)
-    # Poisson by inversion (lam is small: a few rows a look at most)
-    k, p, u = 0, math.exp(-lam), pc.rng.random()
-    s = p
-    while u > s and k < 10_000:
-        k += 1
-        p *= lam / k
-        s += p
     streams, plays = [], []
-    for t in sorted(pc.rng.uniform(t_from, t_to) for _ in range(k)):
+    for t in times:
         i = pc.next_id
         pc.next_id += 1
         name = pc.rng.choice(TEXTURES)
@@ -152,10 +160,19 @@ def _client(url: str, state_dir: str, first: int, n: int, t0: float, measure_fro
 
     sim = [_PC(f"pc_sim_{k:05d}", k, t0) for k in range(first, first + n)]
     rng = random.Random(first)
-    looks = [(t0 + rng.uniform(0, interval_s), k) for k in range(n)]
-    heapq.heapify(looks)
-    for pc in sim:  # each PC's health summaries at its own phase, not all at once
-        pc.last_health = t0 - rng.uniform(0, health_interval_s)
+    # each PC looks at its log every interval_s from its own phase; a look that finds nothing costs
+    # the centre nothing, so only the looks that find rows are events here: for each PC the look
+    # after its next row's commit (ROWS), and its health summary every health_interval_s (HEALTH).
+    # The same process as looking at every look (the rows of a Poisson process, the looks on the
+    # same grid), without the simulator spending a core on the empty ones
+    rows_ev, health_ev = 0, 1
+    first_look = [t0 + rng.uniform(0, interval_s) for _ in range(n)]
+    events = []
+    for k, pc in enumerate(sim):
+        pc.next_row = t0 + pc.rng.expovariate(rows_per_s)
+        events.append((_next_look(first_look[k], interval_s, pc.next_row), rows_ev, k))
+        events.append((t0 + rng.uniform(0, health_interval_s), health_ev, k))  # its own phase
+    heapq.heapify(events)
     work: queue.Queue = queue.Queue(maxsize=50_000)
     lock = threading.Lock()
     delays: list[float] = []
@@ -195,30 +212,29 @@ def _client(url: str, state_dir: str, first: int, n: int, t0: float, measure_fro
         t.start()
     generated = 0
     while not stop.is_set():
-        t_look, k = looks[0]
+        t_ev, what, k = events[0]
         now = time.time()
         if now >= t_end:
             break
-        if t_look > now:
-            time.sleep(min(t_look - now, 0.01))
+        if t_ev > now:
+            time.sleep(min(t_ev - now, 0.01))
             continue
-        heapq.heapreplace(looks, (t_look + interval_s, k))
         pc = sim[k]
-        streams, plays = _rows(pc, pc.last_look, t_look, rows_per_s)
-        pc.last_look = t_look
-        health = []
-        if t_look - pc.last_health >= health_interval_s:
-            pc.last_health = t_look
-            health.append({"id": 0, "uuid": str(uuid.uuid4()), "taken_at": t_look,
+        streams, plays, health = [], [], []
+        if what == rows_ev:
+            streams, plays = _rows(pc, _arrivals(pc, t_ev, rows_per_s))
+            heapq.heapreplace(events, (_next_look(first_look[k], interval_s, pc.next_row), rows_ev, k))
+        else:
+            heapq.heapreplace(events, (t_ev + health_interval_s, health_ev, k))
+            health.append({"id": 0, "uuid": str(uuid.uuid4()), "taken_at": t_ev,
                            "serial": f"SN{first + k:05d}",
                            "firmware": pc.firmware, "transport": "hid", "device_state": "playing",
                            "device_underruns": pc.next_id // 50, "played_fraction": 0.99, "stalls": 0,
                            "recoveries": 0, "waiting_rows": pc.rng.choice((0, 0, 0, 2, 40)),
-                           "waiting_since": t_look - pc.rng.uniform(0, 7200)})
+                           "waiting_since": t_ev - pc.rng.uniform(0, 7200)})
         generated += len(streams) + len(plays)
-        if streams or plays or health:
-            work.put((pc, {"streams": streams, "plays": plays, "health": health},
-                      [r["received_at"] for r in streams] + [p["ended_at"] for p in plays]))
+        work.put((pc, {"streams": streams, "plays": plays, "health": health},
+                  [r["received_at"] for r in streams] + [p["ended_at"] for p in plays]))
     backlog = work.qsize()
     for _ in threads:
         work.put(None)

@@ -236,7 +236,7 @@ def cmd_install_service(args) -> int:
     from hostd.service.install import install
 
     return install(args.root_parser, args.prefix, dry_run=args.dry_run, enable=args.enable,
-                   exec_path=args.exec_path)
+                   exec_path=args.exec_path, fleet=args.fleet)
 
 
 def add_parsers(sub) -> None:
@@ -290,6 +290,8 @@ def add_parsers(sub) -> None:
     p.add_argument("--exec", dest="exec_path", default=None, metavar="PATH",
                    help="the hostd the unit runs (default: this installation's; for package builds "
                    "staged with --prefix, e.g. /opt/hostd/bin/hostd)")
+    p.add_argument("--fleet", action="store_true", help="also the fleet shipper's unit (hostd-fleet.service) "
+                   "and its user, for a PC that ships its quality log to a central PostgreSQL")
     p.set_defaults(func=cmd_install_service)
     p = sub.add_parser("doctor", help="check device, permissions, real-time capability, config, database")
     p.add_argument("--config", default=None, metavar="FILE",

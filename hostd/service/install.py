@@ -33,6 +33,11 @@ FILES = (
     ("hostd-sysusers.conf", "etc/sysusers.d/hostd.conf", 0o644),
     ("hostd-tmpfiles.conf", "etc/tmpfiles.d/hostd.conf", 0o644),
 )
+# --fleet: the fleet shipper's unit and user too (hostd fleet ship: docs/fleet.md)
+FLEET_FILES = (
+    ("hostd-fleet.service", "etc/systemd/system/hostd-fleet.service", 0o644),
+    ("hostd-fleet-sysusers.conf", "etc/sysusers.d/hostd-fleet.conf", 0o644),
+)
 CONFIG_DEST = "etc/hostd/hostd.toml"
 SHIPPED_EXEC = "/opt/hostd/bin/hostd"
 # hidden from the service by the unit's sandbox (ProtectHome=yes, PrivateTmp=yes)
@@ -76,22 +81,23 @@ def hostd_executable() -> Path:
     raise HostdError(f"cannot find this installation's `hostd` script: {fix()}")
 
 
-def unit_text(exe: Path) -> str:
-    text = (paths.systemd_dir() / "hostd.service").read_text()
+def unit_text(exe: Path, unit: str = "hostd.service") -> str:
+    text = (paths.systemd_dir() / unit).read_text()
     if SHIPPED_EXEC not in text:
         raise HostdError(f"the shipped unit does not run {SHIPPED_EXEC}; cannot point it at {exe}")
     return text.replace(SHIPPED_EXEC, str(exe))
 
 
-def plan(prefix: Path, exe: Path, parser) -> list[tuple[Path, bytes, int, bool]]:
-    """(destination, content, mode, overwrite) for every file: the unit and its companions, the man
-    page the unit's Documentation= names and the shell completions (generated from `parser`, hostd's
-    whole command line: hostd.parser.build_parser())."""
+def plan(prefix: Path, exe: Path, parser, fleet: bool = False) -> list[tuple[Path, bytes, int, bool]]:
+    """(destination, content, mode, overwrite) for every file: the unit and its companions (fleet:
+    the shipper's unit and user too), the man page the units' Documentation= names and the shell
+    completions (generated from `parser`, hostd's whole command line: hostd.parser.build_parser())."""
     from hostd import docgen
 
     out = []
-    for src, dest, mode in FILES:
-        data = unit_text(exe).encode() if src == "hostd.service" else (paths.systemd_dir() / src).read_bytes()
+    for src, dest, mode in FILES + (FLEET_FILES if fleet else ()):
+        data = unit_text(exe, src).encode() if src.endswith(".service") \
+            else (paths.systemd_dir() / src).read_bytes()
         out.append((prefix / dest, data, mode, True))
     out.append((prefix / docgen.MAN_DEST, docgen.man_page(parser).encode(), 0o644, True))
     for shell, dest in docgen.COMPLETION_DEST.items():
@@ -138,9 +144,10 @@ def commands(enable: bool, syspaths: list[str] | None = None) -> list[list[str]]
 
 
 def install(parser, prefix: str = "/", dry_run: bool = False, run_commands: bool | None = None,
-            enable: bool = False, exec_path: str | None = None) -> int:
+            enable: bool = False, exec_path: str | None = None, fleet: bool = False) -> int:
     """parser: hostd's whole command line (hostd.parser.build_parser()), for the man page and the
-    completions."""
+    completions. fleet: the shipper's unit (hostd-fleet.service) and its user too; it is not
+    enabled here: it needs /etc/hostd/fleet.toml and the PC's password or certificate first."""
     root = Path(prefix)
     live = root.resolve() == Path("/") if run_commands is None else run_commands
     if exec_path is not None:  # a package build names where hostd will be (it need not exist yet)
@@ -153,7 +160,7 @@ def install(parser, prefix: str = "/", dry_run: bool = False, run_commands: bool
         why = exec_problem(exe, Path(sys.executable).resolve())
     if why:
         raise HostdError(f"refusing to install a unit that cannot start: {why}; {fix()}")
-    steps = plan(root, exe, parser)
+    steps = plan(root, exe, parser, fleet)
     say = "would install" if dry_run else "installed"
     for dest, data, mode, overwrite in steps:
         if dest.exists() and not overwrite:
@@ -168,6 +175,10 @@ def install(parser, prefix: str = "/", dry_run: bool = False, run_commands: bool
             write_output(dest, data, mode=mode)
         print(f"{say:<9} {dest}")
     print(f"the unit runs {exe} run --config /etc/hostd/hostd.toml")
+    if fleet:
+        print(f"the fleet unit runs {exe} fleet ship --config /etc/hostd/fleet.toml: write that file "
+              "([fleet] url, role) and /etc/hostd/fleet.password (0600), then systemctl enable --now "
+              "hostd-fleet (docs/fleet.md)")
     if not live:  # a staging tree: the commands are for whoever installs it
         print(f"{'would print' if dry_run else 'printed'}, not run ({root} is not /); run them on the "
               "target:")
