@@ -28,7 +28,7 @@
  * -ffp-contract=off; Python's float semantics are spelled out where C differs (floored %, max()
  * and min() that keep the first of equals, round() half to even = rint()).
  *
- *   init(rate, ..., decode, codes_from_bytes)   the protocol's ids and sizes, the cycle's constants
+ *   init(max_gap_us, ..., decode, codes_from_bytes)   the cycle's constants (the protocol's: hostd_proto.h)
  *   step(parts, now_s, mode) -> (sent, hand, writes) | None    one pump.step(); now_s: the host
  *        clock (None: CLOCK_MONOTONIC); None: not ordinary (the reference's cycle)
  *   run(parts, start_s, k, duration_s, budget_s, fds, mode, top_done)
@@ -50,38 +50,39 @@
 #include <unistd.h>
 
 #include "../render/render_core.h"
-#include "framing.h" /* crc16, cobs_decode */
+#include "fw_framing.h" /* the firmware's framing (firmware/src/framing.c) and protocol header */
 
 #define STALL_MARGIN_CYCLES 2 /* pump.STALL_MARGIN_CYCLES */
-#define REVISION 8 /* fastpump.C_REVISION must equal this */
+#define REVISION 9 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
+/* the protocol's constants: hostd_proto.h, generated from protocol.toml (as is protocol.py) */
+#define C_RATE HP_SAMPLE_RATE_HZ
+#define C_MAX_SAMPLES HP_MAX_SAMPLES
 #define MAX_MSGS 64
 #define MAX_UNACKED 64
 #define MAX_WIN 64
 #define READ_SIZE 4096   /* SerialTransport.READ_SIZE */
 #define MAX_PENDING 4096 /* SerialTransport.MAX_PENDING */
-#define STATUS_LEN 26
 #define REST_BUCKET (-(1LL << 30))
 #define MODE_SERIAL 0
 #define MODE_HID 1
-#define REPORT_SIZE 64 /* protocol.REPORT_SIZE (checked at init) */
-#define HS_COUNT(kind) +1
+#define HS_COUNT(...) +1
 #define HS_NREC (0 HS_RECORDS(HS_COUNT)) /* the records a cycle holds at most */
 
 /* ------------------------------------------------------------------ constants (init) */
-static int C_STATUS_ID = -1, C_SAMPLES_ID = -1, C_MAX_SAMPLES = 0, C_RUNNING = 1, C_SMALL_BATCH = 32,
-           C_CUBIC_MIN = 24; /* motion.CUBIC_MIN_READINGS (init) */
-static long long C_RATE = 3000, C_CAP = 0, C_MAX_FRAME = 0, C_MAX_GAP_US = 600000000LL;
+static int C_SMALL_BATCH = 32, C_CUBIC_MIN = 24; /* motion.CUBIC_MIN_READINGS (init) */
+static long long C_MAX_GAP_US = 600000000LL;
 static PyObject *decode_fn = NULL; /* hostd.device.fastlink.decode: builds last_status dicts */
 static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the reference renders (init) */
 
 
 /* ------------------------------------------------------------------ the state */
-typedef struct {
-    unsigned char b[STATUS_LEN];
-    int state;
-    long long flags, us, enc, played, fill, last_seq, under;
+#define STATUS_FIELD(name, off, size, kind) long long name;
+typedef struct { /* a STATUS: its bytes and its fields (protocol.toml's layout, all unsigned) */
+    unsigned char b[HP_STATUS_SIZE];
+    HP_STATUS_FIELDS(STATUS_FIELD)
 } status_t;
+_Static_assert(HP_STATUS_SIZE == 26, "STATUS changed shape: take_status's wrap arithmetic is for this one");
 
 typedef struct {
     /* objects (new references) */
@@ -258,8 +259,13 @@ static int load(S *s, PyObject *parts, int mode) {
             goto fail;
     }
     /* the latest STATUS's fields (fastpump._parts: the link's and the health's, one dict) */
-    TRY(PyArg_ParseTuple(PART(P_LAST_STATUS), "iLLLLLLL", &s->ls.state, &s->ls.flags, &s->ls.us, &s->ls.enc,
-                         &s->ls.played, &s->ls.fill, &s->ls.last_seq, &s->ls.under) ? 0 : -1);
+    o = PART(P_LAST_STATUS); /* its fields, in protocol.toml's order */
+    NO(!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != 0 HP_STATUS_FIELDS(HS_COUNT));
+    Py_ssize_t fi = 0;
+#define STATUS_GET(name, off, size, kind) s->ls.name = PyLong_AsLongLong(PyTuple_GET_ITEM(o, fi++));
+    HP_STATUS_FIELDS(STATUS_GET)
+    if (PyErr_Occurred())
+        goto fail;
     /* transport */
     {
         long long fd = PyLong_AsLongLong(PART(P_FD));
@@ -346,7 +352,7 @@ static PyObject *writes(S *s) {
     for (int i = 0; un && i < s->n_un; i++)
         PyList_SET_ITEM(un, i, Py_BuildValue("(LL)", s->un_seq[i], s->un_cnt[i]));
     if (s->ls_new) { /* the latest STATUS as the reference decodes it */
-        PyObject *msg = PyBytes_FromStringAndSize((const char *)s->ls.b, STATUS_LEN);
+        PyObject *msg = PyBytes_FromStringAndSize((const char *)s->ls.b, HP_STATUS_SIZE);
         PyObject *res = msg ? PyObject_CallOneArg(decode_fn, msg) : NULL;
         Py_XDECREF(msg);
         if (res && PyTuple_Check(res) && PyTuple_GET_SIZE(res) == 2)
@@ -368,29 +374,7 @@ static PyObject *writes(S *s) {
     return ret;
 }
 
-/* ------------------------------------------------------------------ serial framing
- * (decoding: framing.h, shared by both compiled modules) */
-
-static Py_ssize_t cobs_encode(const unsigned char *in, Py_ssize_t n, unsigned char *out) {
-    Py_ssize_t code_at = 0, k = 1;
-    unsigned char code = 1;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        if (in[i] == 0) {
-            out[code_at] = code;
-            code_at = k++;
-            code = 1;
-        } else {
-            out[k++] = in[i];
-            if (++code == 0xFF) {
-                out[code_at] = code;
-                code_at = k++;
-                code = 1;
-            }
-        }
-    }
-    out[code_at] = code;
-    return k;
-}
+/* ------------------------------------------------------------------ serial framing (fw_framing.h) */
 
 typedef struct {
     unsigned char b[2 * READ_SIZE]; /* a frame body is at most 4 x MAX_FRAME + one read long */
@@ -437,7 +421,7 @@ static int deframe(S *s, const unsigned char *data, Py_ssize_t n, msg_t *msgs, i
         if (!z) {
             memmove(s->dbuf, s->dbuf + at, (size_t)(s->dlen - at));
             s->dlen -= at;
-            if (s->dlen > 4 * C_MAX_FRAME) { /* no delimiter in sight: resync */
+            if (s->dlen > 4 * FW_FRAME_MAX) { /* no delimiter in sight: resync */
                 s->dlen = 0;
                 s->bad_frames++;
             }
@@ -448,18 +432,11 @@ static int deframe(S *s, const unsigned char *data, Py_ssize_t n, msg_t *msgs, i
         at = i + 1;
         if (len == 0)
             continue;
-        /* COBS never lengthens: the body's length suffices */
         unsigned char *raw = *nm < MAX_MSGS ? msgs[*nm].b : spare;
-        Py_ssize_t m = len <= (Py_ssize_t)sizeof msgs[0].b ? cobs_decode(body, len, raw) : -1;
-        if (m < 3) {
+        const int m = fw_unframe(body, (size_t)len, raw, sizeof spare); /* COBS, length, CRC */
+        if (m < 0)
             s->bad_frames++;
-            continue;
-        }
-        if (crc16(raw, m - 2) != (uint16_t)(raw[m - 2] | (raw[m - 1] << 8))) {
-            s->bad_frames++;
-            continue;
-        }
-        if (keep_msg(s, msgs, nm, raw, m - 2) < 0)
+        else if (keep_msg(s, msgs, nm, raw, m) < 0)
             return -1;
     }
 }
@@ -477,6 +454,12 @@ static double py_mod(double v, double w) { /* Python's float %: floored */
 static inline double py_max(double a, double b) { return b > a ? b : a; } /* max(a, b) */
 static inline double py_min(double a, double b) { return b < a ? b : a; } /* min(a, b) */
 static inline long long u32(long long v) { return v & 0xFFFFFFFFLL; }
+static inline uint32_t le(const unsigned char *p, int n) { /* an unsigned little-endian field */
+    uint32_t v = 0;
+    while (n-- > 0)
+        v = (v << 8) | p[n];
+    return v;
+}
 
 static double mono_now(void) {
     struct timespec ts;
@@ -548,38 +531,30 @@ static double dot(const double *w, const double *x, int n) { /* motion._dot */
 /* ------------------------------------------------------------------ one STATUS */
 /* 1 taken; 0 not ordinary (nothing changed); -1 error */
 static int take_status(S *s, const msg_t *m, double now) {
-    if (m->n < STATUS_LEN || m->b[0] != C_STATUS_ID)
+    if (m->n < HP_STATUS_SIZE || m->b[0] != HP_ID_STATUS)
         return HAND(H_MESSAGE, 0);
-    for (Py_ssize_t i = STATUS_LEN; i < m->n; i++)
+    for (Py_ssize_t i = HP_STATUS_SIZE; i < m->n; i++)
         if (m->b[i] != 0)
             return HAND(H_MESSAGE, 0); /* not padding: the reference says what it is */
-    const unsigned char *p = m->b;
     status_t f;
-    memcpy(f.b, p, STATUS_LEN);
-    f.state = p[1];
-    f.flags = p[2] | (p[3] << 8);
-    f.us = (long long)((uint32_t)p[4] | ((uint32_t)p[5] << 8) | ((uint32_t)p[6] << 16) | ((uint32_t)p[7] << 24));
-    f.enc = (long long)((uint32_t)p[8] | ((uint32_t)p[9] << 8) | ((uint32_t)p[10] << 16) | ((uint32_t)p[11] << 24));
-    f.played = (long long)((uint32_t)p[12] | ((uint32_t)p[13] << 8) | ((uint32_t)p[14] << 16) |
-                           ((uint32_t)p[15] << 24));
-    f.fill = p[16] | (p[17] << 8);
-    f.last_seq = p[18] | (p[19] << 8);
-    f.under = p[20] | (p[21] << 8);
-    if (f.flags != 0)
+    memcpy(f.b, m->b, HP_STATUS_SIZE);
+#define STATUS_READ(name, off, size, kind) f.name = (long long)le(m->b + off, size);
+    HP_STATUS_FIELDS(STATUS_READ)
+    if (f.fault_flags != 0)
         return HAND(H_FAULT, 0); /* a fault: the reference records it and supervises */
     /* health.update's checks */
-    const long long dt_us = u32(f.us - s->ls.us);
-    const long long d_played = u32(f.played - s->ls.played);
-    const long long d_under = (f.under - s->ls.under) & 0xFFFF;
+    const long long dt_us = u32(f.device_time_us - s->ls.device_time_us);
+    const long long d_played = u32(f.samples_played - s->ls.samples_played);
+    const long long d_under = (f.underruns - s->ls.underruns) & 0xFFFF;
     if (dt_us > C_MAX_GAP_US || d_played > dt_us * C_RATE / 1000000 + 3)
         return HAND(H_RESET, 0); /* a reset */
     /* link._status: the device's clock */
     long long time_hi = s->L->_time_hi;
-    if (f.us < s->L->_last_us && s->L->_last_us - f.us > (1LL << 31))
+    if (f.device_time_us < s->L->_last_us && s->L->_last_us - f.device_time_us > (1LL << 31))
         time_hi += 1LL << 32;
-    const double device_time_s = (double)(time_hi + f.us) * 1e-6;
+    const double device_time_s = (double)(time_hi + f.device_time_us) * 1e-6;
     /* position.update */
-    const long long raw = f.enc;
+    const long long raw = f.encoder_count;
     long long d = u32(raw - s->Z->_last);
     if (d >= (1LL << 31))
         d -= 1LL << 32;
@@ -668,7 +643,7 @@ static int take_status(S *s, const msg_t *m, double now) {
     }
     /* ---- commit. link._status */
     s->L->_time_hi = time_hi;
-    s->L->_last_us = f.us;
+    s->L->_last_us = f.device_time_us;
     s->L->device_time_s = device_time_s;
     s->L->status_host_time = now;
     const double off = device_time_s - now;
@@ -694,7 +669,7 @@ static int take_status(S *s, const msg_t *m, double now) {
     s->H->samples_played += d_played;
     s->H->underruns += d_under;
     if (s->H->_sel_active && !s->H->_sel_device) {
-        if (!s->H->_sel_started && f.state == C_RUNNING)
+        if (!s->H->_sel_started && f.state == HP_STATE_RUNNING)
             s->H->_sel_started = 1;
         if (s->H->_sel_started) {
             s->H->_sel_due += (double)dt_us * 1e-6 * (double)C_RATE;
@@ -702,14 +677,14 @@ static int take_status(S *s, const msg_t *m, double now) {
         }
     }
     /* pump._on_status */
-    s->P->_flags_seen |= f.flags;
-    if (f.played != s->P->_last_samples_played && f.state == C_RUNNING) {
+    s->P->_flags_seen |= f.fault_flags;
+    if (f.samples_played != s->P->_last_samples_played && f.state == HP_STATE_RUNNING) {
         s->P->_last_played_dev_s = device_time_s;
         s->P->_last_played_dev_s_set = 1;
     }
-    if (s->P->_fill > s->P->_base_fill && f.state == C_RUNNING && f.fill < s->P->_low_fill)
-        s->P->_low_fill = f.fill; /* the evidence a raised target comes down on (no episode here) */
-    s->P->_last_samples_played = f.played;
+    if (s->P->_fill > s->P->_base_fill && f.state == HP_STATE_RUNNING && f.buffer_fill < s->P->_low_fill)
+        s->P->_low_fill = f.buffer_fill; /* the evidence a raised target comes down on (no episode here) */
+    s->P->_last_samples_played = f.samples_played;
     s->ls = f;
     s->ls_new = 1;
     /* renderer.on_encoder */
@@ -743,25 +718,19 @@ static double device_now(const S *s, double now) { return py_max(s->L->device_ti
  * changed (a write error; on HID also a busy or short write): the reference sends it. */
 static int send_msg(S *s, const unsigned char *msg, Py_ssize_t ml) {
     if (s->mode == MODE_HID) { /* HidrawTransport.send: report id 0, the message padded */
-        unsigned char rep[1 + REPORT_SIZE];
-        if (ml > REPORT_SIZE)
+        unsigned char rep[1 + HP_REPORT_SIZE];
+        if (ml > HP_REPORT_SIZE)
             return 1;
         rep[0] = 0;
         memcpy(rep + 1, msg, (size_t)ml);
-        memset(rep + 1 + ml, 0, (size_t)(REPORT_SIZE - ml));
+        memset(rep + 1 + ml, 0, (size_t)(HP_REPORT_SIZE - ml));
         ssize_t w = write(s->fd, rep, sizeof rep);
         return w == (ssize_t)sizeof rep ? 0 : 1;
     }
-    unsigned char fr[2 * (REPORT_SIZE + 8)], buf[MAX_PENDING + 256];
-    unsigned char framed[REPORT_SIZE + 8];
-    if (ml + 2 > (Py_ssize_t)sizeof framed)
+    unsigned char fr[2 * FW_FRAME_MAX], buf[MAX_PENDING + 256];
+    const Py_ssize_t n = (Py_ssize_t)fw_frame(msg, (size_t)ml, fr, sizeof fr);
+    if (n == 0)
         return 1;
-    memcpy(framed, msg, (size_t)ml);
-    const uint16_t crc = crc16(msg, ml);
-    framed[ml] = (unsigned char)(crc & 0xFF);
-    framed[ml + 1] = (unsigned char)(crc >> 8);
-    Py_ssize_t n = cobs_encode(framed, ml + 2, fr);
-    fr[n++] = 0;
     Py_ssize_t len = s->plen;
     memcpy(buf, s->pend, (size_t)len);
     memcpy(buf + len, fr, (size_t)n);
@@ -869,7 +838,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         }
     }
     /* after_poll: _supervise (ordinary: nothing to act on) */
-    if (s->P->_flags_seen != 0 || s->H->underruns != s->P->_under_seen || s->ls.state != C_RUNNING)
+    if (s->P->_flags_seen != 0 || s->H->underruns != s->P->_under_seen || s->ls.state != HP_STATE_RUNNING)
         return HAND(H_SUPERVISE, HAND_AFTER);
     /* _decay: at base, the quiet period starts now (committed below); a raised target after its
      * quiet period comes down by the reference's rule (Pump._decay), handed over when it is due */
@@ -879,8 +848,8 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
     long long in_flight = 0;
     for (int i = 0; i < s->n_un; i++)
         in_flight += s->un_cnt[i];
-    double dfill = (double)s->ls.fill;
-    if (s->ls.state == C_RUNNING)
+    double dfill = (double)s->ls.buffer_fill;
+    if (s->ls.state == HP_STATE_RUNNING)
         dfill -= (device_now(s, now) - s->L->device_time_s) * (double)C_RATE;
     dfill = py_max(0.0, dfill);
     const double fill = dfill + (double)in_flight;
@@ -896,7 +865,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         if (n > C_SMALL_BATCH || s->n_un + (n + C_MAX_SAMPLES - 1) / C_MAX_SAMPLES > MAX_UNACKED)
             return HAND(H_BIG_BATCH, HAND_AFTER); /* the reference's numpy path; or more in flight than held here */
         /* next_play_time_s */
-        const double queued = s->L->device_time_s + (double)(s->ls.fill + in_flight + 1) / (double)C_RATE;
+        const double queued = s->L->device_time_s + (double)(s->ls.buffer_fill + in_flight + 1) / (double)C_RATE;
         const double t0 = py_max(queued, device_now(s, now) + (double)(in_flight + 1) / (double)C_RATE);
         /* plan: predict; heights: phase, weights of the speed's bucket, the series */
         const double m = s->M->_max_predict_s;
@@ -959,7 +928,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         const long long cnt = n - i < C_MAX_SAMPLES ? n - i : C_MAX_SAMPLES;
         const long long seq = (s->L->_seq + 1) & 0xFFFF;
         unsigned char msg[8 + 2 * 64];
-        msg[0] = (unsigned char)C_SAMPLES_ID;
+        msg[0] = (unsigned char)HP_ID_SAMPLES;
         msg[1] = 0;
         msg[2] = (unsigned char)(seq & 0xFF);
         msg[3] = (unsigned char)(seq >> 8);
@@ -1164,7 +1133,7 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
         return ret;
     }
     const double t_run0 = mono_now();
-    const long long lim_fill = C_CAP - C_MAX_SAMPLES;
+    const long long lim_fill = HP_BUFFER_CAPACITY - C_MAX_SAMPLES;
     int skip_top = top_done && s->P->_last_cycle_start_set; /* the caller's loop did this iteration's top */
     while (1) {
         double now = mono_now();
@@ -1242,14 +1211,10 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
 
 static PyObject *fp_init(PyObject *self, PyObject *args) {
     PyObject *dec, *cf;
-    int report_size;
-    if (!PyArg_ParseTuple(args, "LLLLiiiiiiiOO", &C_RATE, &C_CAP, &C_MAX_FRAME, &C_MAX_GAP_US, &C_STATUS_ID,
-                          &C_SAMPLES_ID, &C_MAX_SAMPLES, &C_RUNNING, &C_SMALL_BATCH, &C_CUBIC_MIN, &report_size,
-                          &dec, &cf))
+    if (!PyArg_ParseTuple(args, "LiiOO", &C_MAX_GAP_US, &C_SMALL_BATCH, &C_CUBIC_MIN, &dec, &cf))
         return NULL;
-    if (report_size != REPORT_SIZE || C_MAX_SAMPLES < 1 || 5 + 2 * C_MAX_SAMPLES > REPORT_SIZE ||
-        C_SMALL_BATCH > RC_MAX_N || C_RATE <= 0 || C_CUBIC_MIN < 4) {
-        PyErr_SetString(PyExc_ValueError, "init: constants out of range (a report of 64 bytes expected)");
+    if (C_SMALL_BATCH > RC_MAX_N || C_CUBIC_MIN < 4) {
+        PyErr_SetString(PyExc_ValueError, "init: constants out of range");
         return NULL;
     }
     Py_XSETREF(decode_fn, Py_NewRef(dec));
@@ -1258,22 +1223,12 @@ static PyObject *fp_init(PyObject *self, PyObject *args) {
 }
 
 static PyObject *fp_handovers(PyObject *self, PyObject *noargs) {
-    PyObject *d = PyDict_New();
-    PyObject *c = d ? PyLong_FromLongLong(compiled_count) : NULL;
-    if (!c || PyDict_SetItemString(d, "compiled", c) < 0) {
-        Py_XDECREF(c);
-        Py_XDECREF(d);
-        return NULL;
-    }
-    Py_DECREF(c);
+    PyObject *d = Py_BuildValue("{sL}", "compiled", compiled_count);
     for (int i = 0; d && i < H_N; i++) {
         PyObject *v = PyLong_FromLongLong(hand_count[i]);
-        if (!v || PyDict_SetItemString(d, H_NAMES[i], v) < 0) {
-            Py_XDECREF(v);
+        if (!v || PyDict_SetItemString(d, H_NAMES[i], v) < 0)
             Py_CLEAR(d);
-            break;
-        }
-        Py_DECREF(v);
+        Py_XDECREF(v);
     }
     return d;
 }
@@ -1282,8 +1237,7 @@ static PyMethodDef methods[] = {
     {"handovers", fp_handovers, METH_NOARGS,
      "handovers() -> {cause: cycles handed to the reference, 'compiled': cycles done compiled}"},
     {"init", fp_init, METH_VARARGS,
-     "init(rate, capacity, max_frame, max_gap_us, status_id, samples_id, max_samples, running, small_batch, "
-     "cubic_min_readings, report_size, decode, codes_from_bytes)"},
+     "init(max_gap_us, small_batch, cubic_min_readings, decode, codes_from_bytes)"},
     {"step", fp_step, METH_VARARGS,
      "step(parts, now_s | None, mode) -> (sent, hand, writes) | None: pump.step() (fastpump.step)"},
     {"run", fp_run, METH_VARARGS,
