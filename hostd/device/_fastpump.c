@@ -9,8 +9,8 @@
  * hostd/device/cycle_state.toml: each stage (pump and its stats, link and its stats, health,
  * renderer, position, motion, height, output stage) holds its fields in a record, a struct this
  * file reads and writes in place through the buffer protocol (hs_<kind>_t, cycle_state.h,
- * generated at build). What is not a record (the motion window, the unacknowledged messages,
- * the latest STATUS dict, the weight caches and arrays, the transport's descriptor and buffers)
+ * generated at build), the motion window and the unacknowledged messages included. What is not
+ * a record (the latest STATUS dict, the weight caches and arrays, the transport's descriptor and buffers)
  * comes positionally from fastpump._parts and goes back through fastpump._put; no attribute is
  * read or written by name. A cycle is done here only while everything is ordinary: a serial
  * port with nothing queued or a hidraw node (mode), STATUS messages only (at most FRESH per
@@ -59,7 +59,7 @@
 #define C_RATE HP_SAMPLE_RATE_HZ
 #define C_MAX_SAMPLES HP_MAX_SAMPLES
 #define MAX_MSGS 64
-#define MAX_UNACKED 64
+#define MAX_UNACKED ((long long)(sizeof ((hs_link_t *)0)->_un_seq / sizeof(int64_t)))
 #define MAX_WIN 64
 #define READ_SIZE 4096   /* SerialTransport.READ_SIZE */
 #define MAX_PENDING 4096 /* SerialTransport.MAX_PENDING */
@@ -111,8 +111,6 @@ typedef struct {
     hs_motion_t *M;
     hs_height_t *E;
     /* link */
-    int n_un;
-    long long un_seq[MAX_UNACKED], un_cnt[MAX_UNACKED];
     status_t ls; /* the latest STATUS (link.stats.last_status, health._last) */
     int ls_new;  /* it came in this C run: its dict is built at store */
     /* pump */
@@ -193,7 +191,7 @@ static int set_weights(S *s, PyObject *w) { /* the height weights array in force
  * the transport's descriptor and buffers). Nothing is looked up by name. */
 enum {
     P_PUMP, P_PSTATS, P_LINK, P_LSTATS, P_HEALTH, P_RENDERER, P_POSITION, P_MOTION, P_HEIGHT, P_OUT,
-    P_MOTION_BASE, P_STEP_US, P_UNACKED, P_LAST_STATUS, P_MCACHE, P_W, P_WCACHE, P_SOS, P_ZI,
+    P_MOTION_BASE, P_STEP_US, P_LAST_STATUS, P_MCACHE, P_W, P_WCACHE, P_SOS, P_ZI,
     P_APPEND, P_FD, P_EMPTY_READS, P_DBUF, P_BAD_FRAMES, P_N
 };
 
@@ -237,27 +235,7 @@ static int load(S *s, PyObject *parts, int mode) {
     NO(s->ringbuf.itemsize != 8 || strcmp(s->ringbuf.format, "d") || s->ringbuf.len < 8);
     /* link */
     NO(s->L->_fill_from_seq_set || !s->L->_last_us_set || !s->L->_offset_s_set);
-    {
-        PyObject *it = PyObject_GetIter(PART(P_UNACKED)), *x;
-        if (!it)
-            goto fail;
-        while ((x = PyIter_Next(it))) {
-            int ok = PyTuple_Check(x) && PyTuple_GET_SIZE(x) == 2 && s->n_un < MAX_UNACKED;
-            if (ok) {
-                s->un_seq[s->n_un] = PyLong_AsLongLong(PyTuple_GET_ITEM(x, 0));
-                s->un_cnt[s->n_un] = PyLong_AsLongLong(PyTuple_GET_ITEM(x, 1));
-                s->n_un++;
-            }
-            Py_DECREF(x);
-            if (!ok) {
-                Py_DECREF(it);
-                goto no;
-            }
-        }
-        Py_DECREF(it);
-        if (PyErr_Occurred())
-            goto fail;
-    }
+    NO(s->L->_un_n < 0 || s->L->_un_n > MAX_UNACKED);
     /* the latest STATUS's fields (fastpump._parts: the link's and the health's, one dict) */
     o = PART(P_LAST_STATUS); /* its fields, in protocol.toml's order */
     NO(!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != 0 HP_STATUS_FIELDS(HS_COUNT));
@@ -345,12 +323,9 @@ fail:
 }
 
 /* What the cycle changed that is not a record, for fastpump.py to put back (its _put): the
- * motion window, the unacknowledged messages, the latest STATUS (decoded), the height weights in
- * force, the transport's count or buffers. NULL on error. Releases s. */
+ * latest STATUS (decoded), the height weights in force, the transport's count or buffers. NULL on error. Releases s. */
 static PyObject *writes(S *s) {
-    PyObject *un = PyList_New(s->n_un), *st = NULL, *tr = NULL;
-    for (int i = 0; un && i < s->n_un; i++)
-        PyList_SET_ITEM(un, i, Py_BuildValue("(LL)", s->un_seq[i], s->un_cnt[i]));
+    PyObject *st = NULL, *tr = NULL;
     if (s->ls_new) { /* the latest STATUS as the reference decodes it */
         PyObject *msg = PyBytes_FromStringAndSize((const char *)s->ls.b, HP_STATUS_SIZE);
         PyObject *res = msg ? PyObject_CallOneArg(decode_fn, msg) : NULL;
@@ -365,9 +340,8 @@ static PyObject *writes(S *s) {
     else
         tr = Py_BuildValue("(Ly#y#)", s->bad_frames, (const char *)s->dbuf, s->dlen, (const char *)s->pend, s->plen);
     PyObject *ret = NULL;
-    if (un && st && tr && !PyErr_Occurred())
-        ret = PyTuple_Pack(4, un, st, s->w, tr);
-    Py_XDECREF(un);
+    if (st && tr && !PyErr_Occurred())
+        ret = PyTuple_Pack(3, st, s->w, tr);
     Py_XDECREF(st);
     Py_XDECREF(tr);
     release(s);
@@ -655,12 +629,12 @@ static int take_status(S *s, const msg_t *m, double now) {
     }
     s->L->_offset_host_t = now;
     int drop = 0;
-    while (drop < s->n_un && ((f.last_seq - s->un_seq[drop]) & 0xFFFF) < 0x8000)
+    while (drop < s->L->_un_n && ((f.last_seq - s->L->_un_seq[drop]) & 0xFFFF) < 0x8000)
         drop++;
-    if (drop) {
-        memmove(s->un_seq, s->un_seq + drop, sizeof(long long) * (size_t)(s->n_un - drop));
-        memmove(s->un_cnt, s->un_cnt + drop, sizeof(long long) * (size_t)(s->n_un - drop));
-        s->n_un -= drop;
+    if (drop) { /* link._drop_unacked */
+        memmove(s->L->_un_seq, s->L->_un_seq + drop, sizeof(int64_t) * (size_t)(s->L->_un_n - drop));
+        memmove(s->L->_un_cnt, s->L->_un_cnt + drop, sizeof(int64_t) * (size_t)(s->L->_un_n - drop));
+        s->L->_un_n -= drop;
     }
     s->LS->statuses++;
     /* health.update */
@@ -846,8 +820,8 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         return HAND(H_DECAY, HAND_AFTER);
     /* fill_estimate, wanted */
     long long in_flight = 0;
-    for (int i = 0; i < s->n_un; i++)
-        in_flight += s->un_cnt[i];
+    for (int i = 0; i < s->L->_un_n; i++)
+        in_flight += s->L->_un_cnt[i];
     double dfill = (double)s->ls.buffer_fill;
     if (s->ls.state == HP_STATE_RUNNING)
         dfill -= (device_now(s, now) - s->L->device_time_s) * (double)C_RATE;
@@ -862,7 +836,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
     int16_t codes[RC_MAX_N];
     int new_w = 0;
     if (n > 0) {
-        if (n > C_SMALL_BATCH || s->n_un + (n + C_MAX_SAMPLES - 1) / C_MAX_SAMPLES > MAX_UNACKED)
+        if (n > C_SMALL_BATCH || s->L->_un_n + (n + C_MAX_SAMPLES - 1) / C_MAX_SAMPLES > MAX_UNACKED)
             return HAND(H_BIG_BATCH, HAND_AFTER); /* the reference's numpy path; or more in flight than held here */
         /* next_play_time_s */
         const double queued = s->L->device_time_s + (double)(s->ls.buffer_fill + in_flight + 1) / (double)C_RATE;
@@ -946,9 +920,9 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         }
         s->LS->messages_sent++;
         s->L->_seq = seq;
-        s->un_seq[s->n_un] = seq;
-        s->un_cnt[s->n_un] = cnt;
-        s->n_un++;
+        s->L->_un_seq[s->L->_un_n] = seq;
+        s->L->_un_cnt[s->L->_un_n] = cnt;
+        s->L->_un_n++;
         s->LS->samples_sent += cnt;
         done += cnt;
     }
@@ -1015,6 +989,22 @@ static int do_cycle(S *s, double now, long long *sent, PyObject **hand) {
     return *hand ? r : -1;
 }
 
+/* A cycle's state loaded from parts, or NULL with *res None (not ordinary: the reference's
+ * cycle) or NULL (an error). */
+static S *loaded(PyObject *parts, int mode, int clock_live, PyObject **res) {
+    S *s = PyMem_Calloc(1, sizeof(S));
+    const int r = s ? load(s, parts, mode) : (PyErr_NoMemory(), -1);
+    if (r > 0) {
+        s->clock_live = clock_live;
+        return s;
+    }
+    if (r == 0)
+        hand_count[H_LOAD]++;
+    *res = r == 0 ? Py_NewRef(Py_None) : NULL;
+    PyMem_Free(s);
+    return NULL;
+}
+
 static PyObject *fp_step(PyObject *self, PyObject *args) {
     PyObject *parts, *o_now;
     int mode;
@@ -1028,23 +1018,12 @@ static PyObject *fp_step(PyObject *self, PyObject *args) {
         if (now == -1.0 && PyErr_Occurred())
             return NULL;
     }
-    S *s = PyMem_Calloc(1, sizeof(S));
+    PyObject *res = NULL, *hand = NULL;
+    S *s = loaded(parts, mode, o_now == Py_None, &res);
     if (!s)
-        return PyErr_NoMemory();
-    PyObject *res = NULL;
-    int r = load(s, parts, mode);
-    s->clock_live = o_now == Py_None;
-    if (r <= 0) {
-        if (r == 0) {
-            hand_count[H_LOAD]++;
-            res = Py_NewRef(Py_None); /* not ordinary: the reference's cycle */
-        }
-        PyMem_Free(s);
         return res;
-    }
     long long sent = 0;
-    PyObject *hand = NULL;
-    r = do_cycle(s, now, &sent, &hand);
+    const int r = do_cycle(s, now, &sent, &hand);
     PyObject *w = writes(s);
     if (r >= 0 && w)
         res = Py_BuildValue("(LOO)", sent, hand ? hand : Py_None, w);
@@ -1093,45 +1072,26 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
     double start, budget;
     long long k;
     int mode, top_done;
-    if (!PyArg_ParseTuple(args, "OdLOdOip", &parts, &start, &k, &o_dur, &budget, &o_fds, &mode, &top_done))
+    if (!PyArg_ParseTuple(args, "OdLOdO!ip", &parts, &start, &k, &o_dur, &budget, &PyTuple_Type, &o_fds, &mode,
+                          &top_done))
         return NULL;
     int has_dur = o_dur != Py_None;
     double duration = has_dur ? PyFloat_AsDouble(o_dur) : 0.0;
     if (has_dur && duration == -1.0 && PyErr_Occurred())
         return NULL;
     struct pollfd pfd[8];
-    int nfd = 0;
-    PyObject *seq = PySequence_Fast(o_fds, "fds: a sequence of descriptors");
-    if (!seq)
+    const int nfd = PyTuple_GET_SIZE(o_fds) < 8 ? (int)PyTuple_GET_SIZE(o_fds) : 8;
+    for (int i = 0; i < nfd; i++)
+        pfd[i] = (struct pollfd){(int)PyLong_AsLong(PyTuple_GET_ITEM(o_fds, i)), POLLIN, 0};
+    if (PyErr_Occurred())
         return NULL;
-    for (Py_ssize_t i = 0; i < PySequence_Fast_GET_SIZE(seq) && nfd < 8; i++) {
-        long fd = PyLong_AsLong(PySequence_Fast_GET_ITEM(seq, i));
-        if (fd == -1 && PyErr_Occurred()) {
-            Py_DECREF(seq);
-            return NULL;
-        }
-        pfd[nfd].fd = (int)fd;
-        pfd[nfd].events = POLLIN;
-        pfd[nfd].revents = 0;
-        nfd++;
-    }
-    Py_DECREF(seq);
-    S *s = PyMem_Calloc(1, sizeof(S));
-    if (!s)
-        return PyErr_NoMemory();
     const char *why = "reference";
     double due_out = 0.0, c0 = 0.0;
     PyObject *ret = NULL, *hand = NULL;
-    int r = load(s, parts, mode);
-    s->clock_live = 1;
-    if (r <= 0) {
-        if (r == 0) {
-            hand_count[H_LOAD]++;
-            ret = Py_NewRef(Py_None); /* not ordinary: the reference's cycle */
-        }
-        PyMem_Free(s);
+    S *s = loaded(parts, mode, 1, &ret);
+    if (!s)
         return ret;
-    }
+    int r;
     const double t_run0 = mono_now();
     const long long lim_fill = HP_BUFFER_CAPACITY - C_MAX_SAMPLES;
     int skip_top = top_done && s->P->_last_cycle_start_set; /* the caller's loop did this iteration's top */

@@ -144,17 +144,15 @@ def _parts(pump, mode: int) -> tuple | None:
     else:
         tr = (t.ser.fd, 0, t.deframer._buf, t.deframer.bad_frames)
     return (pump, pump.stats, link, link.stats, pump.health, r, r.position, m, h, r.out,
-            pump._motion_base, pump.stats.step_us, link._unacked, tuple(map(status.get, _PREVIOUS)),
+            pump._motion_base, pump.stats.step_us, tuple(map(status.get, _PREVIOUS)),
             m._cache, h._w, h._w_cache, r.eq.sos, r.eq.zi,
             pump.sent_codes.append if pump.record else None, *tr)
 
 
 def _put(pump, w) -> None:
     """Put back what the compiled cycle changed that is not a record (_fastpump.c's writes())."""
-    unacked, status, weights, tr = w
+    status, weights, tr = w
     link, r = pump.link, pump.renderer
-    link._unacked.clear()
-    link._unacked.extend(unacked)
     if status is not None:  # the latest STATUS: one dict for the link and the health
         link.stats.last_status = pump.health._last = status
     r.height._w = weights
@@ -212,7 +210,7 @@ def run(pump, start_s: float, k: int, duration_s: float | None, fds=(), top_done
     mode = _mode(pump.link.t)
     if mode is None or pump.renderer is None or not _ordinary(pump):
         return k, "reference", 0.0
-    res = _C.run(_parts(pump, mode), start_s, k, duration_s, BUDGET_S, list(fds), mode, top_done)
+    res = _C.run(_parts(pump, mode), start_s, k, duration_s, BUDGET_S, tuple(fds), mode, top_done)
     if res is None:
         return k, "reference", 0.0
     k, why, due, hand, c0, w = res

@@ -174,7 +174,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
         check(M._n >= 1 && M._n <= M._window, "the motion window out of 1..win");
         check(isfinite(M._c0) && isfinite(M._c1) && isfinite(M._c2) && isfinite(M._c3), "a fit that is not finite");
         check(fabs(M._c1) <= M._max_speed_mm_s, "a speed past max_speed");
-        check(s.n_un >= 0 && s.n_un <= MAX_UNACKED, "the unacknowledged batches out of their array");
+        check(L._un_n >= 0 && L._un_n <= MAX_UNACKED, "the unacknowledged batches out of their array");
         check(isfinite(L.device_time_s), "a device time that is not finite");
     }
     return 0;
