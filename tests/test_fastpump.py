@@ -576,7 +576,7 @@ def test_the_snapshot_covers_the_cycle_s_state(textures):
                "motion": "renderer.motion.", "height": "renderer.height.", "output": "renderer.out."}
     assert set(records) == set(cyclestate.SCHEMA)
     want = {p + f for kind, p in records.items() for f in cyclestate.SCHEMA[kind]} - EXCLUDE | {
-        "_episode", "_started", "_motion_base", "_retries_base", "stats.recoveries", "stats.io_dropped",
+        "_episode", "_started", "_retries_base", "stats.recoveries", "stats.io_dropped",
         "link.stats.bad_messages_received", "link.stats.last_status", "link.render_status",
         "link.ident", "health._last", "health._recent_flags", "renderer.motion._outliers",
         "renderer.motion.previous_fit", "renderer.height._w", "renderer.eq.zi",

@@ -90,7 +90,6 @@ typedef struct {
     PyObject *mcache, *wcache, *w; /* motion weight cache, height weight cache, current weights */
     PyObject *overflow;             /* messages of one poll beyond MAX_MSGS (a backlog), or NULL */
     Py_buffer wbuf, sosbuf, zibuf, ringbuf;
-    int have_w, have_sos, have_zi, have_ring;
     int fd, mode; /* mode: MODE_SERIAL (COBS frames on a byte stream) or MODE_HID (a report per read/write) */
     int clock_live; /* the cycle's clock is CLOCK_MONOTONIC (not a test's now_s): read it again after the read */
     long long empty_reads;
@@ -114,7 +113,6 @@ typedef struct {
     status_t ls; /* the latest STATUS (link.stats.last_status, health._last) */
     int ls_new;  /* it came in this C run: its dict is built at store */
     /* pump */
-    long long motion_base0, motion_base1;
     PyObject *append; /* pump.sent_codes.append while it records, else None (borrowed) */
     /* motion: the least-squares rows in use */
     long long wkey_n, wkey_dt, wkey_order; /* the motion weights in mw (-1: none) */
@@ -147,16 +145,11 @@ static void *get_rec(S *s, PyObject *o, Py_ssize_t size) {
 }
 
 /* ------------------------------------------------------------------ load, writes */
-static void release(S *s) {
-    if (s->have_w)
-        PyBuffer_Release(&s->wbuf);
-    if (s->have_sos)
-        PyBuffer_Release(&s->sosbuf);
-    if (s->have_zi)
-        PyBuffer_Release(&s->zibuf);
-    if (s->have_ring)
-        PyBuffer_Release(&s->ringbuf);
-    s->have_w = s->have_sos = s->have_zi = s->have_ring = 0;
+static void release(S *s) { /* (a buffer not taken has obj NULL: PyBuffer_Release leaves it) */
+    PyBuffer_Release(&s->wbuf);
+    PyBuffer_Release(&s->sosbuf);
+    PyBuffer_Release(&s->zibuf);
+    PyBuffer_Release(&s->ringbuf);
     while (s->nrec > 0)
         PyBuffer_Release(&s->recbuf[--s->nrec]);
     Py_CLEAR(s->pump);
@@ -177,10 +170,8 @@ static int set_weights(S *s, PyObject *w) { /* the height weights array in force
         PyBuffer_Release(&b);
         return 0; /* not float64: not ordinary */
     }
-    if (s->have_w)
-        PyBuffer_Release(&s->wbuf);
+    PyBuffer_Release(&s->wbuf);
     s->wbuf = b;
-    s->have_w = 1;
     Py_INCREF(w);
     Py_XSETREF(s->w, w);
     return 1;
@@ -191,7 +182,7 @@ static int set_weights(S *s, PyObject *w) { /* the height weights array in force
  * the transport's descriptor and buffers). Nothing is looked up by name. */
 enum {
     P_PUMP, P_PSTATS, P_LINK, P_LSTATS, P_HEALTH, P_RENDERER, P_POSITION, P_MOTION, P_HEIGHT, P_OUT,
-    P_MOTION_BASE, P_STEP_US, P_LAST_STATUS, P_MCACHE, P_W, P_WCACHE, P_SOS, P_ZI,
+    P_STEP_US, P_LAST_STATUS, P_MCACHE, P_W, P_WCACHE, P_SOS, P_ZI,
     P_APPEND, P_FD, P_EMPTY_READS, P_DBUF, P_BAD_FRAMES, P_N
 };
 
@@ -224,14 +215,8 @@ static int load(S *s, PyObject *parts, int mode) {
         goto fail;
     /* pump */
     NO(s->P->_guard_seq_set || s->P->_flags_seen != 0 || !s->P->_last_samples_played_set);
-    PyObject *o = PART(P_MOTION_BASE);
-    NO(!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != 2);
-    s->motion_base0 = PyLong_AsLongLong(PyTuple_GET_ITEM(o, 0));
-    s->motion_base1 = PyLong_AsLongLong(PyTuple_GET_ITEM(o, 1));
-    if (PyErr_Occurred())
-        goto fail;
+    PyObject *o;
     TRY(PyObject_GetBuffer(PART(P_STEP_US), &s->ringbuf, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT));
-    s->have_ring = 1;
     NO(s->ringbuf.itemsize != 8 || strcmp(s->ringbuf.format, "d") || s->ringbuf.len < 8);
     /* link */
     NO(s->L->_fill_from_seq_set || !s->L->_last_us_set || !s->L->_offset_s_set);
@@ -288,7 +273,6 @@ static int load(S *s, PyObject *parts, int mode) {
     o = PART(P_SOS);
     if (o != Py_None) {
         TRY(PyObject_GetBuffer(o, &s->sosbuf, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT));
-        s->have_sos = 1;
         NO(s->sosbuf.itemsize != 8 || strcmp(s->sosbuf.format, "d") || s->sosbuf.len % 48);
         s->ns = s->sosbuf.len / 48;
         o = PART(P_ZI);
@@ -297,7 +281,6 @@ static int load(S *s, PyObject *parts, int mode) {
             PyErr_Clear(); /* not writable or not contiguous: the reference copes */
             goto no;
         }
-        s->have_zi = 1;
         NO(s->zibuf.itemsize != 8 || strcmp(s->zibuf.format, "d") || s->zibuf.len != s->ns * 16);
     } else
         s->ns = 0;
@@ -435,16 +418,13 @@ static inline uint32_t le(const unsigned char *p, int n) { /* an unsigned little
     return v;
 }
 
-static double mono_now(void) {
+static double clock_s(clockid_t clock) {
     struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
+    clock_gettime(clock, &ts);
     return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
 }
-static double thread_now(void) {
-    struct timespec ts;
-    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
-    return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
-}
+#define mono_now() clock_s(CLOCK_MONOTONIC)
+#define thread_now() clock_s(CLOCK_THREAD_CPUTIME_ID)
 
 /* ------------------------------------------------------------------ why cycles were handed over */
 enum {
@@ -894,7 +874,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         return DONE;
     if (fill < (double)s->R->_samples_per_batch)
         s->PS->late_batches++;
-    rc_tail(s->have_sos ? (const double *)s->sosbuf.buf : NULL, s->ns, s->have_zi ? (double *)s->zibuf.buf : NULL, h,
+    rc_tail(s->sosbuf.obj ? (const double *)s->sosbuf.buf : NULL, s->ns, s->zibuf.obj ? (double *)s->zibuf.buf : NULL, h,
             n, codes, s->o);
     /* send_samples */
     long long done = 0;
@@ -938,8 +918,8 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
     }
     s->PS->samples += done;
     /* Pump._motion_stats */
-    s->PS->relocks = s->motion_base0 + s->M->relocks;
-    s->PS->implausible_speed = s->motion_base1 + s->M->implausible;
+    s->PS->relocks = s->P->_relocks_base + s->M->relocks;
+    s->PS->implausible_speed = s->P->_implausible_base + s->M->implausible;
     *sent = done;
     return DONE;
 }

@@ -144,7 +144,7 @@ def _parts(pump, mode: int) -> tuple | None:
     else:
         tr = (t.ser.fd, 0, t.deframer._buf, t.deframer.bad_frames)
     return (pump, pump.stats, link, link.stats, pump.health, r, r.position, m, h, r.out,
-            pump._motion_base, pump.stats.step_us, tuple(map(status.get, _PREVIOUS)),
+            pump.stats.step_us, tuple(map(status.get, _PREVIOUS)),
             m._cache, h._w, h._w_cache, r.eq.sos, r.eq.zi,
             pump.sent_codes.append if pump.record else None, *tr)
 
