@@ -516,59 +516,55 @@ static int take_status(S *s, const msg_t *m, double now) {
     if (total > (1LL << 52) || total < -(1LL << 52))
         return HAND(H_RESET, 0);
     const double x_mm = (double)total * s->Z->um_per_count * 1e-3;
-    /* motion.update, on a copy of the window */
+    /* motion.update, on a copy of its record (committed below, once nothing is handed over) */
     const double t_s = device_time_s;
     if (!isfinite(t_s) || !isfinite(x_mm))
         return HAND(H_GLITCH, 0);
-    double mt[MAX_WIN], mx[MAX_WIN];
-    int mn = (int)s->M->_n;
-    long long since = s->M->_since_restart, mdt = s->M->_dt_us, uni = s->M->_uniform;
-    double c0 = s->M->_c0, c1 = s->M->_c1, c2 = s->M->_c2, c3 = s->M->_c3, t_ref = s->M->_t_ref, rest_x = s->M->_rest_x;
-    int has_rest = s->M->_rest_x_set;
-    const int stale = t_s <= s->M->_tw[mn - 1];
+    hs_motion_t mo;
+    const int stale = t_s <= s->M->_tw[s->M->_n - 1];
     if (!stale) {
-        if (t_s - s->M->_tw[mn - 1] > s->M->_max_gap_s)
+        mo = *s->M;
+        double *mt = mo._tw, *mx = mo._xw;
+        if (t_s - mt[mo._n - 1] > mo._max_gap_s)
             return HAND(H_GAP, 0); /* a gap: the fit restarts (reference) */
-        if (mn >= s->M->_order + 2) {
+        if (mo._n >= mo._order + 2) {
             const double pred = predict_one(s, t_s);
-            if (fabs(x_mm - pred) * 1000.0 > s->M->_glitch_um)
+            if (fabs(x_mm - pred) * 1000.0 > mo._glitch_um)
                 return HAND(H_GLITCH, 0); /* a glitch or a real move (reference) */
         }
-        memcpy(mt, s->M->_tw, sizeof(double) * (size_t)mn);
-        memcpy(mx, s->M->_xw, sizeof(double) * (size_t)mn);
-        since += 1;
-        const long long dtu = (long long)rint((t_s - mt[mn - 1]) * 1e6); /* round() */
-        uni = dtu == mdt ? uni + 1 : 1;
-        mdt = dtu;
-        if (mn == s->M->_window) {
-            memmove(mt, mt + 1, sizeof(double) * (size_t)(mn - 1));
-            memmove(mx, mx + 1, sizeof(double) * (size_t)(mn - 1));
-            mn--;
+        mo._since_restart += 1;
+        const long long dtu = (long long)rint((t_s - mt[mo._n - 1]) * 1e6); /* round() */
+        mo._uniform = dtu == mo._dt_us ? mo._uniform + 1 : 1;
+        mo._dt_us = dtu;
+        if (mo._n == mo._window) {
+            memmove(mt, mt + 1, sizeof(double) * (size_t)(mo._n - 1));
+            memmove(mx, mx + 1, sizeof(double) * (size_t)(mo._n - 1));
+            mo._n--;
         }
-        mt[mn] = t_s;
-        mx[mn] = x_mm;
-        mn++;
+        mt[mo._n] = t_s;
+        mx[mo._n] = x_mm;
+        const int mn = (int)++mo._n;
         /* _fit */
-        t_ref = mt[mn - 1];
-        long long order = s->M->_order < mn - 1 ? s->M->_order : mn - 1;
-        if (since < 2 * (s->M->_order + 1) && order > 1)
+        mo._t_ref = mt[mn - 1];
+        long long order = mo._order < mn - 1 ? mo._order : mn - 1;
+        if (mo._since_restart < 2 * (mo._order + 1) && order > 1)
             order = 1;
         if (order == 3 && mn < C_CUBIC_MIN)
             order = 2; /* a short window: motion.CUBIC_MIN_READINGS */
         if (order == 0) {
-            c0 = mx[mn - 1];
-            c1 = c2 = c3 = 0.0;
-            has_rest = 0;
+            mo._c0 = mx[mn - 1];
+            mo._c1 = mo._c2 = mo._c3 = 0.0;
+            mo._rest_x_set = 0;
         } else {
-            if (uni < mn - 1)
+            if (mo._uniform < mn - 1)
                 return HAND(H_IRREGULAR, 0); /* irregular spacing: solved afresh (reference) */
-            int r = motion_weights(s, mn, mdt, order);
+            int r = motion_weights(s, mn, mo._dt_us, order);
             if (r <= 0)
                 return r < 0 ? -1 : HAND(H_FIT_UNCACHED, 0);
-            c0 = dot(s->mw[0], mx, mn);
-            c1 = dot(s->mw[1], mx, mn) * 1e3;
-            c2 = order >= 2 ? dot(s->mw[2], mx, mn) * 1e6 : 0.0;
-            c3 = order == 3 ? dot(s->mw[3], mx, mn) * 1e9 : 0.0;
+            mo._c0 = dot(s->mw[0], mx, mn);
+            mo._c1 = dot(s->mw[1], mx, mn) * 1e3;
+            mo._c2 = order >= 2 ? dot(s->mw[2], mx, mn) * 1e6 : 0.0;
+            mo._c3 = order == 3 ? dot(s->mw[3], mx, mn) * 1e9 : 0.0;
             /* at rest: slow, and the readings within what that speed covers over the window
              * (max(x) - min(x) as Python's max and min: the first of equals) */
             double lo = mx[0], hi = mx[0];
@@ -578,21 +574,22 @@ static int take_status(S *s, const msg_t *m, double now) {
                 if (mx[i] < lo)
                     lo = mx[i];
             }
-            if (fabs(c1) < s->M->_rest_speed_mm_s && hi - lo <= s->M->_rest_speed_mm_s * (mt[mn - 1] - mt[0]) + s->M->_rest_hold_um * 1e-3) {
+            if (fabs(mo._c1) < mo._rest_speed_mm_s &&
+                hi - lo <= mo._rest_speed_mm_s * (mt[mn - 1] - mt[0]) + mo._rest_hold_um * 1e-3) {
                 double acc = 0.0;
                 for (int i = 0; i < mn; i++)
                     acc += 1.0 * mx[i];
                 const double mean = acc / (double)mn;
-                if (!has_rest || fabs(mean - rest_x) * 1000.0 > s->M->_rest_hold_um) {
-                    rest_x = mean;
-                    has_rest = 1;
+                if (!mo._rest_x_set || fabs(mean - mo._rest_x) * 1000.0 > mo._rest_hold_um) {
+                    mo._rest_x = mean;
+                    mo._rest_x_set = 1;
                 }
-                c0 = rest_x;
-                c1 = c2 = c3 = 0.0;
+                mo._c0 = mo._rest_x;
+                mo._c1 = mo._c2 = mo._c3 = 0.0;
             } else
-                has_rest = 0;
+                mo._rest_x_set = 0;
         }
-        if (fabs(c1) > s->M->_max_speed_mm_s)
+        if (fabs(mo._c1) > mo._max_speed_mm_s)
             return HAND(H_IMPLAUSIBLE, 0); /* implausible (reference) */
     }
     /* ---- commit. link._status */
@@ -644,21 +641,8 @@ static int take_status(S *s, const msg_t *m, double now) {
     /* renderer.on_encoder */
     s->Z->_last = raw;
     s->Z->_total = total;
-    if (!stale) {
-        memcpy(s->M->_tw, mt, sizeof(double) * (size_t)mn);
-        memcpy(s->M->_xw, mx, sizeof(double) * (size_t)mn);
-        s->M->_n = mn;
-        s->M->_since_restart = since;
-        s->M->_dt_us = mdt;
-        s->M->_uniform = uni;
-        s->M->_c0 = c0;
-        s->M->_c1 = c1;
-        s->M->_c2 = c2;
-        s->M->_c3 = c3;
-        s->M->_t_ref = t_ref;
-        s->M->_rest_x = rest_x;
-        s->M->_rest_x_set = has_rest;
-    }
+    if (!stale)
+        *s->M = mo;
     return 1;
 }
 
