@@ -85,8 +85,7 @@ typedef struct { /* a STATUS: its bytes and its fields (protocol.toml's layout, 
 _Static_assert(HP_STATUS_SIZE == 26, "STATUS changed shape: take_status's wrap arithmetic is for this one");
 
 typedef struct {
-    /* objects (new references) */
-    PyObject *pump; /* (held while loaded) */
+    /* objects: the caches borrowed (the parts outlive a call), the rest new references */
     PyObject *mcache, *wcache, *w; /* motion weight cache, height weight cache, current weights */
     PyObject *overflow;             /* messages of one poll beyond MAX_MSGS (a backlog), or NULL */
     Py_buffer wbuf, sosbuf, zibuf, ringbuf;
@@ -152,9 +151,6 @@ static void release(S *s) { /* (a buffer not taken has obj NULL: PyBuffer_Releas
     PyBuffer_Release(&s->ringbuf);
     while (s->nrec > 0)
         PyBuffer_Release(&s->recbuf[--s->nrec]);
-    Py_CLEAR(s->pump);
-    Py_CLEAR(s->mcache);
-    Py_CLEAR(s->wcache);
     Py_CLEAR(s->w);
     Py_CLEAR(s->overflow);
     PyMem_Free(s->dbuf);
@@ -205,8 +201,6 @@ static int load(S *s, PyObject *parts, int mode) {
 #define PART(i) PyTuple_GET_ITEM(parts, i)
     if (!PyTuple_Check(parts) || PyTuple_GET_SIZE(parts) != P_N)
         return 0; /* (None: fastpump found the cycle not ordinary) */
-    Py_INCREF(PART(P_PUMP));
-    s->pump = PART(P_PUMP);
     if (!(s->P = REC(s, PART(P_PUMP), pump)) || !(s->PS = REC(s, PART(P_PSTATS), pump_stats)) ||
         !(s->L = REC(s, PART(P_LINK), link)) || !(s->LS = REC(s, PART(P_LSTATS), link_stats)) ||
         !(s->H = REC(s, PART(P_HEALTH), health)) || !(s->R = REC(s, PART(P_RENDERER), renderer)) ||
@@ -260,11 +254,11 @@ static int load(S *s, PyObject *parts, int mode) {
     NO(s->M->_window < 2 || s->M->_window > MAX_WIN || s->M->_order < 0 || s->M->_order > 3);
     NO(s->M->_n < 1 || s->M->_n > s->M->_window);
     s->append = PART(P_APPEND); /* (borrowed: the parts outlive the call) */
-    s->mcache = Py_NewRef(PART(P_MCACHE));
+    s->mcache = PART(P_MCACHE);
     NO(!PyDict_Check(s->mcache));
     /* height: the series on float64 weights (checked by the wrapper: method, dtype) */
     NO(s->E->n <= 0);
-    s->wcache = Py_NewRef(PART(P_WCACHE));
+    s->wcache = PART(P_WCACHE);
     NO(!PyDict_Check(s->wcache));
     r = set_weights(s, PART(P_W));
     TRY(r);
