@@ -28,7 +28,7 @@
  * -ffp-contract=off; Python's float semantics are spelled out where C differs (floored %, max()
  * and min() that keep the first of equals, round() half to even = rint()).
  *
- *   init(max_gap_us, ..., decode, codes_from_bytes)   the cycle's constants (the protocol's: hostd_proto.h)
+ *   init(max_gap_us, ..., codes_from_bytes)   the cycle's constants (the protocol's: hostd_proto.h)
  *   step(parts, now_s, mode) -> (sent, hand, writes) | None    one pump.step(); now_s: the host
  *        clock (None: CLOCK_MONOTONIC); None: not ordinary (the reference's cycle)
  *   run(parts, start_s, k, duration_s, budget_s, fds, mode, top_done)
@@ -53,7 +53,7 @@
 #include "fw_framing.h" /* the firmware's framing (firmware/src/framing.c) and protocol header */
 
 #define STALL_MARGIN_CYCLES 2 /* pump.STALL_MARGIN_CYCLES */
-#define REVISION 9 /* fastpump.C_REVISION must equal this */
+#define REVISION 10 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
 /* the protocol's constants: hostd_proto.h, generated from protocol.toml (as is protocol.py) */
 #define C_RATE HP_SAMPLE_RATE_HZ
@@ -72,7 +72,6 @@
 /* ------------------------------------------------------------------ constants (init) */
 static int C_SMALL_BATCH = 32, C_CUBIC_MIN = 24; /* motion.CUBIC_MIN_READINGS (init) */
 static long long C_MAX_GAP_US = 600000000LL;
-static PyObject *decode_fn = NULL; /* hostd.device.fastlink.decode: builds last_status dicts */
 static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the reference renders (init) */
 
 
@@ -110,7 +109,7 @@ typedef struct {
     hs_height_t *E;
     /* link */
     status_t ls; /* the latest STATUS (link.stats.last_status, health._last) */
-    int ls_new;  /* it came in this C run: its dict is built at store */
+    int ls_new;  /* it came in this C run: its bytes go back (writes) */
     /* pump */
     PyObject *append; /* pump.sent_codes.append while it records, else None (borrowed) */
     /* motion: the least-squares rows in use */
@@ -300,27 +299,15 @@ fail:
 }
 
 /* What the cycle changed that is not a record, for fastpump.py to put back (its _put): the
- * latest STATUS (decoded), the height weights in force, the transport's count or buffers. NULL on error. Releases s. */
+ * latest STATUS's bytes (None: none came), the height weights in force, the transport's count
+ * or buffers. NULL on error. Releases s. */
 static PyObject *writes(S *s) {
-    PyObject *st = NULL, *tr = NULL;
-    if (s->ls_new) { /* the latest STATUS as the reference decodes it */
-        PyObject *msg = PyBytes_FromStringAndSize((const char *)s->ls.b, HP_STATUS_SIZE);
-        PyObject *res = msg ? PyObject_CallOneArg(decode_fn, msg) : NULL;
-        Py_XDECREF(msg);
-        if (res && PyTuple_Check(res) && PyTuple_GET_SIZE(res) == 2)
-            st = Py_NewRef(PyTuple_GET_ITEM(res, 1));
-        Py_XDECREF(res);
-    } else
-        st = Py_NewRef(Py_None);
-    if (s->mode == MODE_HID)
-        tr = Py_BuildValue("(L)", s->empty_reads);
-    else
-        tr = Py_BuildValue("(Ly#y#)", s->bad_frames, (const char *)s->dbuf, s->dlen, (const char *)s->pend, s->plen);
-    PyObject *ret = NULL;
-    if (st && tr && !PyErr_Occurred())
-        ret = PyTuple_Pack(3, st, s->w, tr);
-    Py_XDECREF(st);
-    Py_XDECREF(tr);
+    const char *st = s->ls_new ? (const char *)s->ls.b : NULL; /* (y#: NULL gives None) */
+    const Py_ssize_t n = HP_STATUS_SIZE;
+    PyObject *ret = PyErr_Occurred()        ? NULL
+                    : s->mode == MODE_HID ? Py_BuildValue("(y#OL)", st, n, s->w, s->empty_reads)
+                                          : Py_BuildValue("(y#OLy#y#)", st, n, s->w, s->bad_frames, (const char *)s->dbuf,
+                                                          s->dlen, (const char *)s->pend, s->plen);
     release(s);
     return ret;
 }
@@ -1128,14 +1115,13 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
 }
 
 static PyObject *fp_init(PyObject *self, PyObject *args) {
-    PyObject *dec, *cf;
-    if (!PyArg_ParseTuple(args, "LiiOO", &C_MAX_GAP_US, &C_SMALL_BATCH, &C_CUBIC_MIN, &dec, &cf))
+    PyObject *cf;
+    if (!PyArg_ParseTuple(args, "LiiO", &C_MAX_GAP_US, &C_SMALL_BATCH, &C_CUBIC_MIN, &cf))
         return NULL;
     if (C_SMALL_BATCH > RC_MAX_N || C_CUBIC_MIN < 4) {
         PyErr_SetString(PyExc_ValueError, "init: constants out of range");
         return NULL;
     }
-    Py_XSETREF(decode_fn, Py_NewRef(dec));
     Py_XSETREF(codes_fn, Py_NewRef(cf));
     Py_RETURN_NONE;
 }
@@ -1155,7 +1141,7 @@ static PyMethodDef methods[] = {
     {"handovers", fp_handovers, METH_NOARGS,
      "handovers() -> {cause: cycles handed to the reference, 'compiled': cycles done compiled}"},
     {"init", fp_init, METH_VARARGS,
-     "init(max_gap_us, small_batch, cubic_min_readings, decode, codes_from_bytes)"},
+     "init(max_gap_us, small_batch, cubic_min_readings, codes_from_bytes)"},
     {"step", fp_step, METH_VARARGS,
      "step(parts, now_s | None, mode) -> (sent, hand, writes) | None: pump.step() (fastpump.step)"},
     {"run", fp_run, METH_VARARGS,

@@ -36,7 +36,7 @@ from hostd.errors import DeviceBusy
 from hostd.render import equalizer, fastrender, motion
 from hostd.render.pipeline import Renderer
 
-C_REVISION = 9  # _fastpump.c's REVISION this module is written for
+C_REVISION = 10  # _fastpump.c's REVISION this module is written for
 _PREVIOUS = pr.LAYOUTS["STATUS"].names  # the latest STATUS's fields the compiled cycle goes on from
 
 
@@ -48,7 +48,7 @@ def _load():
         return None  # built from another cycle_state.toml (or another ABI): not the records here
     from hostd.device.health import MAX_GAP_US
 
-    c.init(MAX_GAP_US, equalizer.SMALL_BATCH, motion.CUBIC_MIN_READINGS, fastlink.decode, _codes_from_bytes)
+    c.init(MAX_GAP_US, equalizer.SMALL_BATCH, motion.CUBIC_MIN_READINGS, _codes_from_bytes)
     return c
 
 
@@ -151,10 +151,10 @@ def _parts(pump, mode: int) -> tuple | None:
 
 def _put(pump, w) -> None:
     """Put back what the compiled cycle changed that is not a record (_fastpump.c's writes())."""
-    status, weights, tr = w
+    status, weights, *tr = w
     link, r = pump.link, pump.renderer
-    if status is not None:  # the latest STATUS: one dict for the link and the health
-        link.stats.last_status = pump.health._last = status
+    if status is not None:  # the latest STATUS, decoded: one dict for the link and the health
+        link.stats.last_status = pump.health._last = fastlink.decode(status)[1]
     r.height._w = weights
     t = link.t
     if len(tr) == 1:
