@@ -19,16 +19,18 @@ import runpy
 from setuptools import Extension, setup
 
 runpy.run_path("hostd/cyclestate.py")["write_header"]()  # hostd/device/cycle_state.h
+# the serial framing is the firmware's (one C implementation), with the protocol header it includes
+FRAMING = ["firmware/src/framing.c"]
+FW = {"include_dirs": ["firmware/include"],
+      "depends": ["firmware/include/fw_framing.h", "firmware/include/hostd_proto.h", "hostd/device/cycle_state.toml",
+                  "hostd/render/render_core.h"]}
 
 setup(ext_modules=[
     Extension("hostd.codec._rangecoder", ["hostd/codec/_rangecoder.c"], optional=True),
-    Extension("hostd.device._fastlink", ["hostd/device/_fastlink.c"], optional=True,
-              depends=["hostd/device/framing.h"]),
+    Extension("hostd.device._fastlink", ["hostd/device/_fastlink.c", *FRAMING], optional=True, **FW),
     Extension("hostd.render._fastrender", ["hostd/render/_fastrender.c"], optional=True,
               depends=["hostd/render/render_core.h", "hostd/device/cycle_state.toml"],
               extra_compile_args=["-ffp-contract=off"]),
-    Extension("hostd.device._fastpump", ["hostd/device/_fastpump.c"], optional=True,
-              depends=["hostd/render/render_core.h", "hostd/device/framing.h",
-                       "hostd/device/cycle_state.toml"],
-              extra_compile_args=["-ffp-contract=off"]),
+    Extension("hostd.device._fastpump", ["hostd/device/_fastpump.c", *FRAMING], optional=True,
+              extra_compile_args=["-ffp-contract=off"], **FW),
 ])

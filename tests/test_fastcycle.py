@@ -54,8 +54,8 @@ def test_the_compiled_fast_path_is_built_where_a_c_compiler_is():
     cc = (sysconfig.get_config_var("CC") or "cc").split()[0]
     if os.environ.get("HOSTD_PURE_PYTHON") or not shutil.which(cc):
         pytest.skip("pure Python asked for, or no C compiler: the reference is the expected path")
-    assert fastlink.IMPLEMENTATION == "c" and fastrender.IMPLEMENTATION == "c", (
-        "hostd.device._fastlink / hostd.render._fastrender are not built although a C compiler "
+    assert fastlink.IMPLEMENTATION == fastrender.IMPLEMENTATION == fastpump.IMPLEMENTATION == "c", (
+        "hostd.device._fastlink / _fastpump / hostd.render._fastrender are not built although a C compiler "
         "exists: re-run `pip install -e .` (./run does on a change of setup.py or the C sources)")
 
 

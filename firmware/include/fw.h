@@ -9,6 +9,7 @@
 #include <stdint.h>
 
 #include "hostd_proto.h"
+#include "fw_framing.h" /* fw_crc16, fw_frame, fw_unframe, FW_FRAME_MAX */
 #include "fw_encoder.h"
 #include "fw_render.h"
 
@@ -46,15 +47,6 @@ void fw_ring_request_clear(fw_ring_t *r); /* drop what is queued now; applied by
 /* Consumer: apply a pending clear now (every tick, so that a STOP frees the buffer within one
  * tick even while the device is idle and pops nothing: the host re-primes right after STOP). */
 void fw_ring_service(fw_ring_t *r);
-
-/* Serial framing: COBS(msg + CRC16/CCITT-FALSE LE) + 0x00 */
-uint16_t fw_crc16(const uint8_t *p, size_t n);
-/* Returns the frame length (delimiter included), 0 if out is too small. */
-size_t fw_frame(const uint8_t *msg, size_t len, uint8_t *out, size_t cap);
-/* Decodes one frame body (without the 0x00 delimiter); returns the message length or -1. */
-int fw_unframe(const uint8_t *body, size_t len, uint8_t *out, size_t cap);
-
-#define FW_FRAME_MAX (HP_REPORT_SIZE + 8)
 
 typedef struct fw fw_t;
 

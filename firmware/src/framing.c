@@ -1,4 +1,4 @@
-#include "fw.h"
+#include "fw_framing.h"
 
 uint16_t fw_crc16(const uint8_t *p, size_t n) {
     uint16_t crc = 0xFFFF;

@@ -42,7 +42,7 @@
 #include <string.h>
 #include <time.h>
 #include <unistd.h>
-#include "framing.h" /* crc16, cobs_decode */
+#include "fw_framing.h" /* fw_unframe: the firmware's framing (firmware/src/framing.c) */
 
 #define REVISION 1 /* fastlink.C_REVISION must equal this */
 
@@ -302,8 +302,7 @@ static PyObject *fl_gather(PyObject *self, PyObject *args) {
     return Py_BuildValue("(Nii)", ready, runs, hup);
 }
 
-/* ------------------------------------------------------------------ serial framing
- * (decoding: framing.h, shared by both compiled modules) */
+/* ------------------------------------------------------------------ serial framing (fw_framing.h) */
 
 static PyObject *fl_deframe(PyObject *self, PyObject *args) {
     PyObject *buf;
@@ -336,12 +335,12 @@ static PyObject *fl_deframe(PyObject *self, PyObject *args) {
             raw = big = nb;
         } else
             raw = small;
-        Py_ssize_t m = cobs_decode(body, n, raw);
-        if (m < 3 || crc16(raw, m - 2) != (uint16_t)(raw[m - 2] | (raw[m - 1] << 8))) {
+        const int m = fw_unframe(body, (size_t)n, raw, (size_t)n); /* COBS never lengthens */
+        if (m < 0) {
             bad++;
             continue;
         }
-        PyObject *msg = PyBytes_FromStringAndSize((const char *)raw, m - 2);
+        PyObject *msg = PyBytes_FromStringAndSize((const char *)raw, m);
         if (!msg || PyList_Append(out, msg) < 0) {
             Py_XDECREF(msg);
             goto fail;

@@ -9,8 +9,8 @@
  * hostd/device/cycle_state.toml: each stage (pump and its stats, link and its stats, health,
  * renderer, position, motion, height, output stage) holds its fields in a record, a struct this
  * file reads and writes in place through the buffer protocol (hs_<kind>_t, cycle_state.h,
- * generated at build). What is not a record (the motion window, the unacknowledged messages,
- * the latest STATUS dict, the weight caches and arrays, the transport's descriptor and buffers)
+ * generated at build), the motion window and the unacknowledged messages included. What is not
+ * a record (the latest STATUS dict, the weight caches and arrays, the transport's descriptor and buffers)
  * comes positionally from fastpump._parts and goes back through fastpump._put; no attribute is
  * read or written by name. A cycle is done here only while everything is ordinary: a serial
  * port with nothing queued or a hidraw node (mode), STATUS messages only (at most FRESH per
@@ -28,7 +28,7 @@
  * -ffp-contract=off; Python's float semantics are spelled out where C differs (floored %, max()
  * and min() that keep the first of equals, round() half to even = rint()).
  *
- *   init(rate, ..., decode, codes_from_bytes)   the protocol's ids and sizes, the cycle's constants
+ *   init(max_gap_us, ..., codes_from_bytes)   the cycle's constants (the protocol's: hostd_proto.h)
  *   step(parts, now_s, mode) -> (sent, hand, writes) | None    one pump.step(); now_s: the host
  *        clock (None: CLOCK_MONOTONIC); None: not ordinary (the reference's cycle)
  *   run(parts, start_s, k, duration_s, budget_s, fds, mode, top_done)
@@ -50,46 +50,44 @@
 #include <unistd.h>
 
 #include "../render/render_core.h"
-#include "framing.h" /* crc16, cobs_decode */
+#include "fw_framing.h" /* the firmware's framing (firmware/src/framing.c) and protocol header */
 
 #define STALL_MARGIN_CYCLES 2 /* pump.STALL_MARGIN_CYCLES */
-#define REVISION 8 /* fastpump.C_REVISION must equal this */
+#define REVISION 10 /* fastpump.C_REVISION must equal this */
 #define FRESH 32   /* DeviceLink.FRESH */
+/* the protocol's constants: hostd_proto.h, generated from protocol.toml (as is protocol.py) */
+#define C_RATE HP_SAMPLE_RATE_HZ
+#define C_MAX_SAMPLES HP_MAX_SAMPLES
 #define MAX_MSGS 64
-#define MAX_UNACKED 64
+#define MAX_UNACKED ((long long)(sizeof ((hs_link_t *)0)->_un_seq / sizeof(int64_t)))
 #define MAX_WIN 64
 #define READ_SIZE 4096   /* SerialTransport.READ_SIZE */
 #define MAX_PENDING 4096 /* SerialTransport.MAX_PENDING */
-#define STATUS_LEN 26
 #define REST_BUCKET (-(1LL << 30))
 #define MODE_SERIAL 0
 #define MODE_HID 1
-#define REPORT_SIZE 64 /* protocol.REPORT_SIZE (checked at init) */
-#define HS_COUNT(kind) +1
+#define HS_COUNT(...) +1
 #define HS_NREC (0 HS_RECORDS(HS_COUNT)) /* the records a cycle holds at most */
 
 /* ------------------------------------------------------------------ constants (init) */
-static int C_STATUS_ID = -1, C_SAMPLES_ID = -1, C_MAX_SAMPLES = 0, C_RUNNING = 1, C_SMALL_BATCH = 32,
-           C_CUBIC_MIN = 24; /* motion.CUBIC_MIN_READINGS (init) */
-static long long C_RATE = 3000, C_CAP = 0, C_MAX_FRAME = 0, C_MAX_GAP_US = 600000000LL;
-static PyObject *decode_fn = NULL; /* hostd.device.fastlink.decode: builds last_status dicts */
+static int C_SMALL_BATCH = 32, C_CUBIC_MIN = 24; /* motion.CUBIC_MIN_READINGS (init) */
+static long long C_MAX_GAP_US = 600000000LL;
 static PyObject *codes_fn = NULL;   /* int16 bytes -> the codes array the reference renders (init) */
 
 
 /* ------------------------------------------------------------------ the state */
-typedef struct {
-    unsigned char b[STATUS_LEN];
-    int state;
-    long long flags, us, enc, played, fill, last_seq, under;
+#define STATUS_FIELD(name, off, size, kind) long long name;
+typedef struct { /* a STATUS: its bytes and its fields (protocol.toml's layout, all unsigned) */
+    unsigned char b[HP_STATUS_SIZE];
+    HP_STATUS_FIELDS(STATUS_FIELD)
 } status_t;
+_Static_assert(HP_STATUS_SIZE == 26, "STATUS changed shape: take_status's wrap arithmetic is for this one");
 
 typedef struct {
-    /* objects (new references) */
-    PyObject *pump; /* (held while loaded) */
+    /* objects: the caches borrowed (the parts outlive a call), the rest new references */
     PyObject *mcache, *wcache, *w; /* motion weight cache, height weight cache, current weights */
     PyObject *overflow;             /* messages of one poll beyond MAX_MSGS (a backlog), or NULL */
     Py_buffer wbuf, sosbuf, zibuf, ringbuf;
-    int have_w, have_sos, have_zi, have_ring;
     int fd, mode; /* mode: MODE_SERIAL (COBS frames on a byte stream) or MODE_HID (a report per read/write) */
     int clock_live; /* the cycle's clock is CLOCK_MONOTONIC (not a test's now_s): read it again after the read */
     long long empty_reads;
@@ -110,12 +108,9 @@ typedef struct {
     hs_motion_t *M;
     hs_height_t *E;
     /* link */
-    int n_un;
-    long long un_seq[MAX_UNACKED], un_cnt[MAX_UNACKED];
     status_t ls; /* the latest STATUS (link.stats.last_status, health._last) */
-    int ls_new;  /* it came in this C run: its dict is built at store */
+    int ls_new;  /* it came in this C run: its bytes go back (writes) */
     /* pump */
-    long long motion_base0, motion_base1;
     PyObject *append; /* pump.sent_codes.append while it records, else None (borrowed) */
     /* motion: the least-squares rows in use */
     long long wkey_n, wkey_dt, wkey_order; /* the motion weights in mw (-1: none) */
@@ -148,21 +143,13 @@ static void *get_rec(S *s, PyObject *o, Py_ssize_t size) {
 }
 
 /* ------------------------------------------------------------------ load, writes */
-static void release(S *s) {
-    if (s->have_w)
-        PyBuffer_Release(&s->wbuf);
-    if (s->have_sos)
-        PyBuffer_Release(&s->sosbuf);
-    if (s->have_zi)
-        PyBuffer_Release(&s->zibuf);
-    if (s->have_ring)
-        PyBuffer_Release(&s->ringbuf);
-    s->have_w = s->have_sos = s->have_zi = s->have_ring = 0;
+static void release(S *s) { /* (a buffer not taken has obj NULL: PyBuffer_Release leaves it) */
+    PyBuffer_Release(&s->wbuf);
+    PyBuffer_Release(&s->sosbuf);
+    PyBuffer_Release(&s->zibuf);
+    PyBuffer_Release(&s->ringbuf);
     while (s->nrec > 0)
         PyBuffer_Release(&s->recbuf[--s->nrec]);
-    Py_CLEAR(s->pump);
-    Py_CLEAR(s->mcache);
-    Py_CLEAR(s->wcache);
     Py_CLEAR(s->w);
     Py_CLEAR(s->overflow);
     PyMem_Free(s->dbuf);
@@ -178,10 +165,8 @@ static int set_weights(S *s, PyObject *w) { /* the height weights array in force
         PyBuffer_Release(&b);
         return 0; /* not float64: not ordinary */
     }
-    if (s->have_w)
-        PyBuffer_Release(&s->wbuf);
+    PyBuffer_Release(&s->wbuf);
     s->wbuf = b;
-    s->have_w = 1;
     Py_INCREF(w);
     Py_XSETREF(s->w, w);
     return 1;
@@ -192,7 +177,7 @@ static int set_weights(S *s, PyObject *w) { /* the height weights array in force
  * the transport's descriptor and buffers). Nothing is looked up by name. */
 enum {
     P_PUMP, P_PSTATS, P_LINK, P_LSTATS, P_HEALTH, P_RENDERER, P_POSITION, P_MOTION, P_HEIGHT, P_OUT,
-    P_MOTION_BASE, P_STEP_US, P_UNACKED, P_LAST_STATUS, P_MCACHE, P_W, P_WCACHE, P_SOS, P_ZI,
+    P_STEP_US, P_LAST_STATUS, P_MCACHE, P_W, P_WCACHE, P_SOS, P_ZI,
     P_APPEND, P_FD, P_EMPTY_READS, P_DBUF, P_BAD_FRAMES, P_N
 };
 
@@ -215,8 +200,6 @@ static int load(S *s, PyObject *parts, int mode) {
 #define PART(i) PyTuple_GET_ITEM(parts, i)
     if (!PyTuple_Check(parts) || PyTuple_GET_SIZE(parts) != P_N)
         return 0; /* (None: fastpump found the cycle not ordinary) */
-    Py_INCREF(PART(P_PUMP));
-    s->pump = PART(P_PUMP);
     if (!(s->P = REC(s, PART(P_PUMP), pump)) || !(s->PS = REC(s, PART(P_PSTATS), pump_stats)) ||
         !(s->L = REC(s, PART(P_LINK), link)) || !(s->LS = REC(s, PART(P_LSTATS), link_stats)) ||
         !(s->H = REC(s, PART(P_HEALTH), health)) || !(s->R = REC(s, PART(P_RENDERER), renderer)) ||
@@ -225,41 +208,20 @@ static int load(S *s, PyObject *parts, int mode) {
         goto fail;
     /* pump */
     NO(s->P->_guard_seq_set || s->P->_flags_seen != 0 || !s->P->_last_samples_played_set);
-    PyObject *o = PART(P_MOTION_BASE);
-    NO(!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != 2);
-    s->motion_base0 = PyLong_AsLongLong(PyTuple_GET_ITEM(o, 0));
-    s->motion_base1 = PyLong_AsLongLong(PyTuple_GET_ITEM(o, 1));
-    if (PyErr_Occurred())
-        goto fail;
+    PyObject *o;
     TRY(PyObject_GetBuffer(PART(P_STEP_US), &s->ringbuf, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE | PyBUF_FORMAT));
-    s->have_ring = 1;
     NO(s->ringbuf.itemsize != 8 || strcmp(s->ringbuf.format, "d") || s->ringbuf.len < 8);
     /* link */
     NO(s->L->_fill_from_seq_set || !s->L->_last_us_set || !s->L->_offset_s_set);
-    {
-        PyObject *it = PyObject_GetIter(PART(P_UNACKED)), *x;
-        if (!it)
-            goto fail;
-        while ((x = PyIter_Next(it))) {
-            int ok = PyTuple_Check(x) && PyTuple_GET_SIZE(x) == 2 && s->n_un < MAX_UNACKED;
-            if (ok) {
-                s->un_seq[s->n_un] = PyLong_AsLongLong(PyTuple_GET_ITEM(x, 0));
-                s->un_cnt[s->n_un] = PyLong_AsLongLong(PyTuple_GET_ITEM(x, 1));
-                s->n_un++;
-            }
-            Py_DECREF(x);
-            if (!ok) {
-                Py_DECREF(it);
-                goto no;
-            }
-        }
-        Py_DECREF(it);
-        if (PyErr_Occurred())
-            goto fail;
-    }
+    NO(s->L->_un_n < 0 || s->L->_un_n > MAX_UNACKED);
     /* the latest STATUS's fields (fastpump._parts: the link's and the health's, one dict) */
-    TRY(PyArg_ParseTuple(PART(P_LAST_STATUS), "iLLLLLLL", &s->ls.state, &s->ls.flags, &s->ls.us, &s->ls.enc,
-                         &s->ls.played, &s->ls.fill, &s->ls.last_seq, &s->ls.under) ? 0 : -1);
+    o = PART(P_LAST_STATUS); /* its fields, in protocol.toml's order */
+    NO(!PyTuple_Check(o) || PyTuple_GET_SIZE(o) != 0 HP_STATUS_FIELDS(HS_COUNT));
+    Py_ssize_t fi = 0;
+#define STATUS_GET(name, off, size, kind) s->ls.name = PyLong_AsLongLong(PyTuple_GET_ITEM(o, fi++));
+    HP_STATUS_FIELDS(STATUS_GET)
+    if (PyErr_Occurred())
+        goto fail;
     /* transport */
     {
         long long fd = PyLong_AsLongLong(PART(P_FD));
@@ -291,11 +253,11 @@ static int load(S *s, PyObject *parts, int mode) {
     NO(s->M->_window < 2 || s->M->_window > MAX_WIN || s->M->_order < 0 || s->M->_order > 3);
     NO(s->M->_n < 1 || s->M->_n > s->M->_window);
     s->append = PART(P_APPEND); /* (borrowed: the parts outlive the call) */
-    s->mcache = Py_NewRef(PART(P_MCACHE));
+    s->mcache = PART(P_MCACHE);
     NO(!PyDict_Check(s->mcache));
     /* height: the series on float64 weights (checked by the wrapper: method, dtype) */
     NO(s->E->n <= 0);
-    s->wcache = Py_NewRef(PART(P_WCACHE));
+    s->wcache = PART(P_WCACHE);
     NO(!PyDict_Check(s->wcache));
     r = set_weights(s, PART(P_W));
     TRY(r);
@@ -304,7 +266,6 @@ static int load(S *s, PyObject *parts, int mode) {
     o = PART(P_SOS);
     if (o != Py_None) {
         TRY(PyObject_GetBuffer(o, &s->sosbuf, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT));
-        s->have_sos = 1;
         NO(s->sosbuf.itemsize != 8 || strcmp(s->sosbuf.format, "d") || s->sosbuf.len % 48);
         s->ns = s->sosbuf.len / 48;
         o = PART(P_ZI);
@@ -313,7 +274,6 @@ static int load(S *s, PyObject *parts, int mode) {
             PyErr_Clear(); /* not writable or not contiguous: the reference copes */
             goto no;
         }
-        s->have_zi = 1;
         NO(s->zibuf.itemsize != 8 || strcmp(s->zibuf.format, "d") || s->zibuf.len != s->ns * 16);
     } else
         s->ns = 0;
@@ -339,58 +299,20 @@ fail:
 }
 
 /* What the cycle changed that is not a record, for fastpump.py to put back (its _put): the
- * motion window, the unacknowledged messages, the latest STATUS (decoded), the height weights in
- * force, the transport's count or buffers. NULL on error. Releases s. */
+ * latest STATUS's bytes (None: none came), the height weights in force, the transport's count
+ * or buffers. NULL on error. Releases s. */
 static PyObject *writes(S *s) {
-    PyObject *un = PyList_New(s->n_un), *st = NULL, *tr = NULL;
-    for (int i = 0; un && i < s->n_un; i++)
-        PyList_SET_ITEM(un, i, Py_BuildValue("(LL)", s->un_seq[i], s->un_cnt[i]));
-    if (s->ls_new) { /* the latest STATUS as the reference decodes it */
-        PyObject *msg = PyBytes_FromStringAndSize((const char *)s->ls.b, STATUS_LEN);
-        PyObject *res = msg ? PyObject_CallOneArg(decode_fn, msg) : NULL;
-        Py_XDECREF(msg);
-        if (res && PyTuple_Check(res) && PyTuple_GET_SIZE(res) == 2)
-            st = Py_NewRef(PyTuple_GET_ITEM(res, 1));
-        Py_XDECREF(res);
-    } else
-        st = Py_NewRef(Py_None);
-    if (s->mode == MODE_HID)
-        tr = Py_BuildValue("(L)", s->empty_reads);
-    else
-        tr = Py_BuildValue("(Ly#y#)", s->bad_frames, (const char *)s->dbuf, s->dlen, (const char *)s->pend, s->plen);
-    PyObject *ret = NULL;
-    if (un && st && tr && !PyErr_Occurred())
-        ret = PyTuple_Pack(4, un, st, s->w, tr);
-    Py_XDECREF(un);
-    Py_XDECREF(st);
-    Py_XDECREF(tr);
+    const char *st = s->ls_new ? (const char *)s->ls.b : NULL; /* (y#: NULL gives None) */
+    const Py_ssize_t n = HP_STATUS_SIZE;
+    PyObject *ret = PyErr_Occurred()        ? NULL
+                    : s->mode == MODE_HID ? Py_BuildValue("(y#OL)", st, n, s->w, s->empty_reads)
+                                          : Py_BuildValue("(y#OLy#y#)", st, n, s->w, s->bad_frames, (const char *)s->dbuf,
+                                                          s->dlen, (const char *)s->pend, s->plen);
     release(s);
     return ret;
 }
 
-/* ------------------------------------------------------------------ serial framing
- * (decoding: framing.h, shared by both compiled modules) */
-
-static Py_ssize_t cobs_encode(const unsigned char *in, Py_ssize_t n, unsigned char *out) {
-    Py_ssize_t code_at = 0, k = 1;
-    unsigned char code = 1;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        if (in[i] == 0) {
-            out[code_at] = code;
-            code_at = k++;
-            code = 1;
-        } else {
-            out[k++] = in[i];
-            if (++code == 0xFF) {
-                out[code_at] = code;
-                code_at = k++;
-                code = 1;
-            }
-        }
-    }
-    out[code_at] = code;
-    return k;
-}
+/* ------------------------------------------------------------------ serial framing (fw_framing.h) */
 
 typedef struct {
     unsigned char b[2 * READ_SIZE]; /* a frame body is at most 4 x MAX_FRAME + one read long */
@@ -437,7 +359,7 @@ static int deframe(S *s, const unsigned char *data, Py_ssize_t n, msg_t *msgs, i
         if (!z) {
             memmove(s->dbuf, s->dbuf + at, (size_t)(s->dlen - at));
             s->dlen -= at;
-            if (s->dlen > 4 * C_MAX_FRAME) { /* no delimiter in sight: resync */
+            if (s->dlen > 4 * FW_FRAME_MAX) { /* no delimiter in sight: resync */
                 s->dlen = 0;
                 s->bad_frames++;
             }
@@ -448,18 +370,11 @@ static int deframe(S *s, const unsigned char *data, Py_ssize_t n, msg_t *msgs, i
         at = i + 1;
         if (len == 0)
             continue;
-        /* COBS never lengthens: the body's length suffices */
         unsigned char *raw = *nm < MAX_MSGS ? msgs[*nm].b : spare;
-        Py_ssize_t m = len <= (Py_ssize_t)sizeof msgs[0].b ? cobs_decode(body, len, raw) : -1;
-        if (m < 3) {
+        const int m = fw_unframe(body, (size_t)len, raw, sizeof spare); /* COBS, length, CRC */
+        if (m < 0)
             s->bad_frames++;
-            continue;
-        }
-        if (crc16(raw, m - 2) != (uint16_t)(raw[m - 2] | (raw[m - 1] << 8))) {
-            s->bad_frames++;
-            continue;
-        }
-        if (keep_msg(s, msgs, nm, raw, m - 2) < 0)
+        else if (keep_msg(s, msgs, nm, raw, m) < 0)
             return -1;
     }
 }
@@ -477,17 +392,20 @@ static double py_mod(double v, double w) { /* Python's float %: floored */
 static inline double py_max(double a, double b) { return b > a ? b : a; } /* max(a, b) */
 static inline double py_min(double a, double b) { return b < a ? b : a; } /* min(a, b) */
 static inline long long u32(long long v) { return v & 0xFFFFFFFFLL; }
+static inline uint32_t le(const unsigned char *p, int n) { /* an unsigned little-endian field */
+    uint32_t v = 0;
+    while (n-- > 0)
+        v = (v << 8) | p[n];
+    return v;
+}
 
-static double mono_now(void) {
+static double clock_s(clockid_t clock) {
     struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
+    clock_gettime(clock, &ts);
     return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
 }
-static double thread_now(void) {
-    struct timespec ts;
-    clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
-    return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
-}
+#define mono_now() clock_s(CLOCK_MONOTONIC)
+#define thread_now() clock_s(CLOCK_THREAD_CPUTIME_ID)
 
 /* ------------------------------------------------------------------ why cycles were handed over */
 enum {
@@ -548,38 +466,30 @@ static double dot(const double *w, const double *x, int n) { /* motion._dot */
 /* ------------------------------------------------------------------ one STATUS */
 /* 1 taken; 0 not ordinary (nothing changed); -1 error */
 static int take_status(S *s, const msg_t *m, double now) {
-    if (m->n < STATUS_LEN || m->b[0] != C_STATUS_ID)
+    if (m->n < HP_STATUS_SIZE || m->b[0] != HP_ID_STATUS)
         return HAND(H_MESSAGE, 0);
-    for (Py_ssize_t i = STATUS_LEN; i < m->n; i++)
+    for (Py_ssize_t i = HP_STATUS_SIZE; i < m->n; i++)
         if (m->b[i] != 0)
             return HAND(H_MESSAGE, 0); /* not padding: the reference says what it is */
-    const unsigned char *p = m->b;
     status_t f;
-    memcpy(f.b, p, STATUS_LEN);
-    f.state = p[1];
-    f.flags = p[2] | (p[3] << 8);
-    f.us = (long long)((uint32_t)p[4] | ((uint32_t)p[5] << 8) | ((uint32_t)p[6] << 16) | ((uint32_t)p[7] << 24));
-    f.enc = (long long)((uint32_t)p[8] | ((uint32_t)p[9] << 8) | ((uint32_t)p[10] << 16) | ((uint32_t)p[11] << 24));
-    f.played = (long long)((uint32_t)p[12] | ((uint32_t)p[13] << 8) | ((uint32_t)p[14] << 16) |
-                           ((uint32_t)p[15] << 24));
-    f.fill = p[16] | (p[17] << 8);
-    f.last_seq = p[18] | (p[19] << 8);
-    f.under = p[20] | (p[21] << 8);
-    if (f.flags != 0)
+    memcpy(f.b, m->b, HP_STATUS_SIZE);
+#define STATUS_READ(name, off, size, kind) f.name = (long long)le(m->b + off, size);
+    HP_STATUS_FIELDS(STATUS_READ)
+    if (f.fault_flags != 0)
         return HAND(H_FAULT, 0); /* a fault: the reference records it and supervises */
     /* health.update's checks */
-    const long long dt_us = u32(f.us - s->ls.us);
-    const long long d_played = u32(f.played - s->ls.played);
-    const long long d_under = (f.under - s->ls.under) & 0xFFFF;
+    const long long dt_us = u32(f.device_time_us - s->ls.device_time_us);
+    const long long d_played = u32(f.samples_played - s->ls.samples_played);
+    const long long d_under = (f.underruns - s->ls.underruns) & 0xFFFF;
     if (dt_us > C_MAX_GAP_US || d_played > dt_us * C_RATE / 1000000 + 3)
         return HAND(H_RESET, 0); /* a reset */
     /* link._status: the device's clock */
     long long time_hi = s->L->_time_hi;
-    if (f.us < s->L->_last_us && s->L->_last_us - f.us > (1LL << 31))
+    if (f.device_time_us < s->L->_last_us && s->L->_last_us - f.device_time_us > (1LL << 31))
         time_hi += 1LL << 32;
-    const double device_time_s = (double)(time_hi + f.us) * 1e-6;
+    const double device_time_s = (double)(time_hi + f.device_time_us) * 1e-6;
     /* position.update */
-    const long long raw = f.enc;
+    const long long raw = f.encoder_count;
     long long d = u32(raw - s->Z->_last);
     if (d >= (1LL << 31))
         d -= 1LL << 32;
@@ -587,59 +497,55 @@ static int take_status(S *s, const msg_t *m, double now) {
     if (total > (1LL << 52) || total < -(1LL << 52))
         return HAND(H_RESET, 0);
     const double x_mm = (double)total * s->Z->um_per_count * 1e-3;
-    /* motion.update, on a copy of the window */
+    /* motion.update, on a copy of its record (committed below, once nothing is handed over) */
     const double t_s = device_time_s;
     if (!isfinite(t_s) || !isfinite(x_mm))
         return HAND(H_GLITCH, 0);
-    double mt[MAX_WIN], mx[MAX_WIN];
-    int mn = (int)s->M->_n;
-    long long since = s->M->_since_restart, mdt = s->M->_dt_us, uni = s->M->_uniform;
-    double c0 = s->M->_c0, c1 = s->M->_c1, c2 = s->M->_c2, c3 = s->M->_c3, t_ref = s->M->_t_ref, rest_x = s->M->_rest_x;
-    int has_rest = s->M->_rest_x_set;
-    const int stale = t_s <= s->M->_tw[mn - 1];
+    hs_motion_t mo;
+    const int stale = t_s <= s->M->_tw[s->M->_n - 1];
     if (!stale) {
-        if (t_s - s->M->_tw[mn - 1] > s->M->_max_gap_s)
+        mo = *s->M;
+        double *mt = mo._tw, *mx = mo._xw;
+        if (t_s - mt[mo._n - 1] > mo._max_gap_s)
             return HAND(H_GAP, 0); /* a gap: the fit restarts (reference) */
-        if (mn >= s->M->_order + 2) {
+        if (mo._n >= mo._order + 2) {
             const double pred = predict_one(s, t_s);
-            if (fabs(x_mm - pred) * 1000.0 > s->M->_glitch_um)
+            if (fabs(x_mm - pred) * 1000.0 > mo._glitch_um)
                 return HAND(H_GLITCH, 0); /* a glitch or a real move (reference) */
         }
-        memcpy(mt, s->M->_tw, sizeof(double) * (size_t)mn);
-        memcpy(mx, s->M->_xw, sizeof(double) * (size_t)mn);
-        since += 1;
-        const long long dtu = (long long)rint((t_s - mt[mn - 1]) * 1e6); /* round() */
-        uni = dtu == mdt ? uni + 1 : 1;
-        mdt = dtu;
-        if (mn == s->M->_window) {
-            memmove(mt, mt + 1, sizeof(double) * (size_t)(mn - 1));
-            memmove(mx, mx + 1, sizeof(double) * (size_t)(mn - 1));
-            mn--;
+        mo._since_restart += 1;
+        const long long dtu = (long long)rint((t_s - mt[mo._n - 1]) * 1e6); /* round() */
+        mo._uniform = dtu == mo._dt_us ? mo._uniform + 1 : 1;
+        mo._dt_us = dtu;
+        if (mo._n == mo._window) {
+            memmove(mt, mt + 1, sizeof(double) * (size_t)(mo._n - 1));
+            memmove(mx, mx + 1, sizeof(double) * (size_t)(mo._n - 1));
+            mo._n--;
         }
-        mt[mn] = t_s;
-        mx[mn] = x_mm;
-        mn++;
+        mt[mo._n] = t_s;
+        mx[mo._n] = x_mm;
+        const int mn = (int)++mo._n;
         /* _fit */
-        t_ref = mt[mn - 1];
-        long long order = s->M->_order < mn - 1 ? s->M->_order : mn - 1;
-        if (since < 2 * (s->M->_order + 1) && order > 1)
+        mo._t_ref = mt[mn - 1];
+        long long order = mo._order < mn - 1 ? mo._order : mn - 1;
+        if (mo._since_restart < 2 * (mo._order + 1) && order > 1)
             order = 1;
         if (order == 3 && mn < C_CUBIC_MIN)
             order = 2; /* a short window: motion.CUBIC_MIN_READINGS */
         if (order == 0) {
-            c0 = mx[mn - 1];
-            c1 = c2 = c3 = 0.0;
-            has_rest = 0;
+            mo._c0 = mx[mn - 1];
+            mo._c1 = mo._c2 = mo._c3 = 0.0;
+            mo._rest_x_set = 0;
         } else {
-            if (uni < mn - 1)
+            if (mo._uniform < mn - 1)
                 return HAND(H_IRREGULAR, 0); /* irregular spacing: solved afresh (reference) */
-            int r = motion_weights(s, mn, mdt, order);
+            int r = motion_weights(s, mn, mo._dt_us, order);
             if (r <= 0)
                 return r < 0 ? -1 : HAND(H_FIT_UNCACHED, 0);
-            c0 = dot(s->mw[0], mx, mn);
-            c1 = dot(s->mw[1], mx, mn) * 1e3;
-            c2 = order >= 2 ? dot(s->mw[2], mx, mn) * 1e6 : 0.0;
-            c3 = order == 3 ? dot(s->mw[3], mx, mn) * 1e9 : 0.0;
+            mo._c0 = dot(s->mw[0], mx, mn);
+            mo._c1 = dot(s->mw[1], mx, mn) * 1e3;
+            mo._c2 = order >= 2 ? dot(s->mw[2], mx, mn) * 1e6 : 0.0;
+            mo._c3 = order == 3 ? dot(s->mw[3], mx, mn) * 1e9 : 0.0;
             /* at rest: slow, and the readings within what that speed covers over the window
              * (max(x) - min(x) as Python's max and min: the first of equals) */
             double lo = mx[0], hi = mx[0];
@@ -649,26 +555,27 @@ static int take_status(S *s, const msg_t *m, double now) {
                 if (mx[i] < lo)
                     lo = mx[i];
             }
-            if (fabs(c1) < s->M->_rest_speed_mm_s && hi - lo <= s->M->_rest_speed_mm_s * (mt[mn - 1] - mt[0]) + s->M->_rest_hold_um * 1e-3) {
+            if (fabs(mo._c1) < mo._rest_speed_mm_s &&
+                hi - lo <= mo._rest_speed_mm_s * (mt[mn - 1] - mt[0]) + mo._rest_hold_um * 1e-3) {
                 double acc = 0.0;
                 for (int i = 0; i < mn; i++)
                     acc += 1.0 * mx[i];
                 const double mean = acc / (double)mn;
-                if (!has_rest || fabs(mean - rest_x) * 1000.0 > s->M->_rest_hold_um) {
-                    rest_x = mean;
-                    has_rest = 1;
+                if (!mo._rest_x_set || fabs(mean - mo._rest_x) * 1000.0 > mo._rest_hold_um) {
+                    mo._rest_x = mean;
+                    mo._rest_x_set = 1;
                 }
-                c0 = rest_x;
-                c1 = c2 = c3 = 0.0;
+                mo._c0 = mo._rest_x;
+                mo._c1 = mo._c2 = mo._c3 = 0.0;
             } else
-                has_rest = 0;
+                mo._rest_x_set = 0;
         }
-        if (fabs(c1) > s->M->_max_speed_mm_s)
+        if (fabs(mo._c1) > mo._max_speed_mm_s)
             return HAND(H_IMPLAUSIBLE, 0); /* implausible (reference) */
     }
     /* ---- commit. link._status */
     s->L->_time_hi = time_hi;
-    s->L->_last_us = f.us;
+    s->L->_last_us = f.device_time_us;
     s->L->device_time_s = device_time_s;
     s->L->status_host_time = now;
     const double off = device_time_s - now;
@@ -680,12 +587,12 @@ static int take_status(S *s, const msg_t *m, double now) {
     }
     s->L->_offset_host_t = now;
     int drop = 0;
-    while (drop < s->n_un && ((f.last_seq - s->un_seq[drop]) & 0xFFFF) < 0x8000)
+    while (drop < s->L->_un_n && ((f.last_seq - s->L->_un_seq[drop]) & 0xFFFF) < 0x8000)
         drop++;
-    if (drop) {
-        memmove(s->un_seq, s->un_seq + drop, sizeof(long long) * (size_t)(s->n_un - drop));
-        memmove(s->un_cnt, s->un_cnt + drop, sizeof(long long) * (size_t)(s->n_un - drop));
-        s->n_un -= drop;
+    if (drop) { /* link._drop_unacked */
+        memmove(s->L->_un_seq, s->L->_un_seq + drop, sizeof(int64_t) * (size_t)(s->L->_un_n - drop));
+        memmove(s->L->_un_cnt, s->L->_un_cnt + drop, sizeof(int64_t) * (size_t)(s->L->_un_n - drop));
+        s->L->_un_n -= drop;
     }
     s->LS->statuses++;
     /* health.update */
@@ -694,7 +601,7 @@ static int take_status(S *s, const msg_t *m, double now) {
     s->H->samples_played += d_played;
     s->H->underruns += d_under;
     if (s->H->_sel_active && !s->H->_sel_device) {
-        if (!s->H->_sel_started && f.state == C_RUNNING)
+        if (!s->H->_sel_started && f.state == HP_STATE_RUNNING)
             s->H->_sel_started = 1;
         if (s->H->_sel_started) {
             s->H->_sel_due += (double)dt_us * 1e-6 * (double)C_RATE;
@@ -702,34 +609,21 @@ static int take_status(S *s, const msg_t *m, double now) {
         }
     }
     /* pump._on_status */
-    s->P->_flags_seen |= f.flags;
-    if (f.played != s->P->_last_samples_played && f.state == C_RUNNING) {
+    s->P->_flags_seen |= f.fault_flags;
+    if (f.samples_played != s->P->_last_samples_played && f.state == HP_STATE_RUNNING) {
         s->P->_last_played_dev_s = device_time_s;
         s->P->_last_played_dev_s_set = 1;
     }
-    if (s->P->_fill > s->P->_base_fill && f.state == C_RUNNING && f.fill < s->P->_low_fill)
-        s->P->_low_fill = f.fill; /* the evidence a raised target comes down on (no episode here) */
-    s->P->_last_samples_played = f.played;
+    if (s->P->_fill > s->P->_base_fill && f.state == HP_STATE_RUNNING && f.buffer_fill < s->P->_low_fill)
+        s->P->_low_fill = f.buffer_fill; /* the evidence a raised target comes down on (no episode here) */
+    s->P->_last_samples_played = f.samples_played;
     s->ls = f;
     s->ls_new = 1;
     /* renderer.on_encoder */
     s->Z->_last = raw;
     s->Z->_total = total;
-    if (!stale) {
-        memcpy(s->M->_tw, mt, sizeof(double) * (size_t)mn);
-        memcpy(s->M->_xw, mx, sizeof(double) * (size_t)mn);
-        s->M->_n = mn;
-        s->M->_since_restart = since;
-        s->M->_dt_us = mdt;
-        s->M->_uniform = uni;
-        s->M->_c0 = c0;
-        s->M->_c1 = c1;
-        s->M->_c2 = c2;
-        s->M->_c3 = c3;
-        s->M->_t_ref = t_ref;
-        s->M->_rest_x = rest_x;
-        s->M->_rest_x_set = has_rest;
-    }
+    if (!stale)
+        *s->M = mo;
     return 1;
 }
 
@@ -743,25 +637,19 @@ static double device_now(const S *s, double now) { return py_max(s->L->device_ti
  * changed (a write error; on HID also a busy or short write): the reference sends it. */
 static int send_msg(S *s, const unsigned char *msg, Py_ssize_t ml) {
     if (s->mode == MODE_HID) { /* HidrawTransport.send: report id 0, the message padded */
-        unsigned char rep[1 + REPORT_SIZE];
-        if (ml > REPORT_SIZE)
+        unsigned char rep[1 + HP_REPORT_SIZE];
+        if (ml > HP_REPORT_SIZE)
             return 1;
         rep[0] = 0;
         memcpy(rep + 1, msg, (size_t)ml);
-        memset(rep + 1 + ml, 0, (size_t)(REPORT_SIZE - ml));
+        memset(rep + 1 + ml, 0, (size_t)(HP_REPORT_SIZE - ml));
         ssize_t w = write(s->fd, rep, sizeof rep);
         return w == (ssize_t)sizeof rep ? 0 : 1;
     }
-    unsigned char fr[2 * (REPORT_SIZE + 8)], buf[MAX_PENDING + 256];
-    unsigned char framed[REPORT_SIZE + 8];
-    if (ml + 2 > (Py_ssize_t)sizeof framed)
+    unsigned char fr[2 * FW_FRAME_MAX], buf[MAX_PENDING + 256];
+    const Py_ssize_t n = (Py_ssize_t)fw_frame(msg, (size_t)ml, fr, sizeof fr);
+    if (n == 0)
         return 1;
-    memcpy(framed, msg, (size_t)ml);
-    const uint16_t crc = crc16(msg, ml);
-    framed[ml] = (unsigned char)(crc & 0xFF);
-    framed[ml + 1] = (unsigned char)(crc >> 8);
-    Py_ssize_t n = cobs_encode(framed, ml + 2, fr);
-    fr[n++] = 0;
     Py_ssize_t len = s->plen;
     memcpy(buf, s->pend, (size_t)len);
     memcpy(buf + len, fr, (size_t)n);
@@ -869,7 +757,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         }
     }
     /* after_poll: _supervise (ordinary: nothing to act on) */
-    if (s->P->_flags_seen != 0 || s->H->underruns != s->P->_under_seen || s->ls.state != C_RUNNING)
+    if (s->P->_flags_seen != 0 || s->H->underruns != s->P->_under_seen || s->ls.state != HP_STATE_RUNNING)
         return HAND(H_SUPERVISE, HAND_AFTER);
     /* _decay: at base, the quiet period starts now (committed below); a raised target after its
      * quiet period comes down by the reference's rule (Pump._decay), handed over when it is due */
@@ -877,10 +765,10 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         return HAND(H_DECAY, HAND_AFTER);
     /* fill_estimate, wanted */
     long long in_flight = 0;
-    for (int i = 0; i < s->n_un; i++)
-        in_flight += s->un_cnt[i];
-    double dfill = (double)s->ls.fill;
-    if (s->ls.state == C_RUNNING)
+    for (int i = 0; i < s->L->_un_n; i++)
+        in_flight += s->L->_un_cnt[i];
+    double dfill = (double)s->ls.buffer_fill;
+    if (s->ls.state == HP_STATE_RUNNING)
         dfill -= (device_now(s, now) - s->L->device_time_s) * (double)C_RATE;
     dfill = py_max(0.0, dfill);
     const double fill = dfill + (double)in_flight;
@@ -893,10 +781,10 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
     int16_t codes[RC_MAX_N];
     int new_w = 0;
     if (n > 0) {
-        if (n > C_SMALL_BATCH || s->n_un + (n + C_MAX_SAMPLES - 1) / C_MAX_SAMPLES > MAX_UNACKED)
+        if (n > C_SMALL_BATCH || s->L->_un_n + (n + C_MAX_SAMPLES - 1) / C_MAX_SAMPLES > MAX_UNACKED)
             return HAND(H_BIG_BATCH, HAND_AFTER); /* the reference's numpy path; or more in flight than held here */
         /* next_play_time_s */
-        const double queued = s->L->device_time_s + (double)(s->ls.fill + in_flight + 1) / (double)C_RATE;
+        const double queued = s->L->device_time_s + (double)(s->ls.buffer_fill + in_flight + 1) / (double)C_RATE;
         const double t0 = py_max(queued, device_now(s, now) + (double)(in_flight + 1) / (double)C_RATE);
         /* plan: predict; heights: phase, weights of the speed's bucket, the series */
         const double m = s->M->_max_predict_s;
@@ -951,7 +839,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         return DONE;
     if (fill < (double)s->R->_samples_per_batch)
         s->PS->late_batches++;
-    rc_tail(s->have_sos ? (const double *)s->sosbuf.buf : NULL, s->ns, s->have_zi ? (double *)s->zibuf.buf : NULL, h,
+    rc_tail(s->sosbuf.obj ? (const double *)s->sosbuf.buf : NULL, s->ns, s->zibuf.obj ? (double *)s->zibuf.buf : NULL, h,
             n, codes, s->o);
     /* send_samples */
     long long done = 0;
@@ -959,7 +847,7 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         const long long cnt = n - i < C_MAX_SAMPLES ? n - i : C_MAX_SAMPLES;
         const long long seq = (s->L->_seq + 1) & 0xFFFF;
         unsigned char msg[8 + 2 * 64];
-        msg[0] = (unsigned char)C_SAMPLES_ID;
+        msg[0] = (unsigned char)HP_ID_SAMPLES;
         msg[1] = 0;
         msg[2] = (unsigned char)(seq & 0xFF);
         msg[3] = (unsigned char)(seq >> 8);
@@ -977,9 +865,9 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
         }
         s->LS->messages_sent++;
         s->L->_seq = seq;
-        s->un_seq[s->n_un] = seq;
-        s->un_cnt[s->n_un] = cnt;
-        s->n_un++;
+        s->L->_un_seq[s->L->_un_n] = seq;
+        s->L->_un_cnt[s->L->_un_n] = cnt;
+        s->L->_un_n++;
         s->LS->samples_sent += cnt;
         done += cnt;
     }
@@ -995,8 +883,8 @@ static int cycle(S *s, double now, msg_t *msgs, int *nmsgs, int *first, int *mor
     }
     s->PS->samples += done;
     /* Pump._motion_stats */
-    s->PS->relocks = s->motion_base0 + s->M->relocks;
-    s->PS->implausible_speed = s->motion_base1 + s->M->implausible;
+    s->PS->relocks = s->P->_relocks_base + s->M->relocks;
+    s->PS->implausible_speed = s->P->_implausible_base + s->M->implausible;
     *sent = done;
     return DONE;
 }
@@ -1046,6 +934,22 @@ static int do_cycle(S *s, double now, long long *sent, PyObject **hand) {
     return *hand ? r : -1;
 }
 
+/* A cycle's state loaded from parts, or NULL with *res None (not ordinary: the reference's
+ * cycle) or NULL (an error). */
+static S *loaded(PyObject *parts, int mode, int clock_live, PyObject **res) {
+    S *s = PyMem_Calloc(1, sizeof(S));
+    const int r = s ? load(s, parts, mode) : (PyErr_NoMemory(), -1);
+    if (r > 0) {
+        s->clock_live = clock_live;
+        return s;
+    }
+    if (r == 0)
+        hand_count[H_LOAD]++;
+    *res = r == 0 ? Py_NewRef(Py_None) : NULL;
+    PyMem_Free(s);
+    return NULL;
+}
+
 static PyObject *fp_step(PyObject *self, PyObject *args) {
     PyObject *parts, *o_now;
     int mode;
@@ -1059,23 +963,12 @@ static PyObject *fp_step(PyObject *self, PyObject *args) {
         if (now == -1.0 && PyErr_Occurred())
             return NULL;
     }
-    S *s = PyMem_Calloc(1, sizeof(S));
+    PyObject *res = NULL, *hand = NULL;
+    S *s = loaded(parts, mode, o_now == Py_None, &res);
     if (!s)
-        return PyErr_NoMemory();
-    PyObject *res = NULL;
-    int r = load(s, parts, mode);
-    s->clock_live = o_now == Py_None;
-    if (r <= 0) {
-        if (r == 0) {
-            hand_count[H_LOAD]++;
-            res = Py_NewRef(Py_None); /* not ordinary: the reference's cycle */
-        }
-        PyMem_Free(s);
         return res;
-    }
     long long sent = 0;
-    PyObject *hand = NULL;
-    r = do_cycle(s, now, &sent, &hand);
+    const int r = do_cycle(s, now, &sent, &hand);
     PyObject *w = writes(s);
     if (r >= 0 && w)
         res = Py_BuildValue("(LOO)", sent, hand ? hand : Py_None, w);
@@ -1124,47 +1017,28 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
     double start, budget;
     long long k;
     int mode, top_done;
-    if (!PyArg_ParseTuple(args, "OdLOdOip", &parts, &start, &k, &o_dur, &budget, &o_fds, &mode, &top_done))
+    if (!PyArg_ParseTuple(args, "OdLOdO!ip", &parts, &start, &k, &o_dur, &budget, &PyTuple_Type, &o_fds, &mode,
+                          &top_done))
         return NULL;
     int has_dur = o_dur != Py_None;
     double duration = has_dur ? PyFloat_AsDouble(o_dur) : 0.0;
     if (has_dur && duration == -1.0 && PyErr_Occurred())
         return NULL;
     struct pollfd pfd[8];
-    int nfd = 0;
-    PyObject *seq = PySequence_Fast(o_fds, "fds: a sequence of descriptors");
-    if (!seq)
+    const int nfd = PyTuple_GET_SIZE(o_fds) < 8 ? (int)PyTuple_GET_SIZE(o_fds) : 8;
+    for (int i = 0; i < nfd; i++)
+        pfd[i] = (struct pollfd){(int)PyLong_AsLong(PyTuple_GET_ITEM(o_fds, i)), POLLIN, 0};
+    if (PyErr_Occurred())
         return NULL;
-    for (Py_ssize_t i = 0; i < PySequence_Fast_GET_SIZE(seq) && nfd < 8; i++) {
-        long fd = PyLong_AsLong(PySequence_Fast_GET_ITEM(seq, i));
-        if (fd == -1 && PyErr_Occurred()) {
-            Py_DECREF(seq);
-            return NULL;
-        }
-        pfd[nfd].fd = (int)fd;
-        pfd[nfd].events = POLLIN;
-        pfd[nfd].revents = 0;
-        nfd++;
-    }
-    Py_DECREF(seq);
-    S *s = PyMem_Calloc(1, sizeof(S));
-    if (!s)
-        return PyErr_NoMemory();
     const char *why = "reference";
     double due_out = 0.0, c0 = 0.0;
     PyObject *ret = NULL, *hand = NULL;
-    int r = load(s, parts, mode);
-    s->clock_live = 1;
-    if (r <= 0) {
-        if (r == 0) {
-            hand_count[H_LOAD]++;
-            ret = Py_NewRef(Py_None); /* not ordinary: the reference's cycle */
-        }
-        PyMem_Free(s);
+    S *s = loaded(parts, mode, 1, &ret);
+    if (!s)
         return ret;
-    }
+    int r;
     const double t_run0 = mono_now();
-    const long long lim_fill = C_CAP - C_MAX_SAMPLES;
+    const long long lim_fill = HP_BUFFER_CAPACITY - C_MAX_SAMPLES;
     int skip_top = top_done && s->P->_last_cycle_start_set; /* the caller's loop did this iteration's top */
     while (1) {
         double now = mono_now();
@@ -1241,39 +1115,24 @@ static PyObject *fp_run(PyObject *self, PyObject *args) {
 }
 
 static PyObject *fp_init(PyObject *self, PyObject *args) {
-    PyObject *dec, *cf;
-    int report_size;
-    if (!PyArg_ParseTuple(args, "LLLLiiiiiiiOO", &C_RATE, &C_CAP, &C_MAX_FRAME, &C_MAX_GAP_US, &C_STATUS_ID,
-                          &C_SAMPLES_ID, &C_MAX_SAMPLES, &C_RUNNING, &C_SMALL_BATCH, &C_CUBIC_MIN, &report_size,
-                          &dec, &cf))
+    PyObject *cf;
+    if (!PyArg_ParseTuple(args, "LiiO", &C_MAX_GAP_US, &C_SMALL_BATCH, &C_CUBIC_MIN, &cf))
         return NULL;
-    if (report_size != REPORT_SIZE || C_MAX_SAMPLES < 1 || 5 + 2 * C_MAX_SAMPLES > REPORT_SIZE ||
-        C_SMALL_BATCH > RC_MAX_N || C_RATE <= 0 || C_CUBIC_MIN < 4) {
-        PyErr_SetString(PyExc_ValueError, "init: constants out of range (a report of 64 bytes expected)");
+    if (C_SMALL_BATCH > RC_MAX_N || C_CUBIC_MIN < 4) {
+        PyErr_SetString(PyExc_ValueError, "init: constants out of range");
         return NULL;
     }
-    Py_XSETREF(decode_fn, Py_NewRef(dec));
     Py_XSETREF(codes_fn, Py_NewRef(cf));
     Py_RETURN_NONE;
 }
 
 static PyObject *fp_handovers(PyObject *self, PyObject *noargs) {
-    PyObject *d = PyDict_New();
-    PyObject *c = d ? PyLong_FromLongLong(compiled_count) : NULL;
-    if (!c || PyDict_SetItemString(d, "compiled", c) < 0) {
-        Py_XDECREF(c);
-        Py_XDECREF(d);
-        return NULL;
-    }
-    Py_DECREF(c);
+    PyObject *d = Py_BuildValue("{sL}", "compiled", compiled_count);
     for (int i = 0; d && i < H_N; i++) {
         PyObject *v = PyLong_FromLongLong(hand_count[i]);
-        if (!v || PyDict_SetItemString(d, H_NAMES[i], v) < 0) {
-            Py_XDECREF(v);
+        if (!v || PyDict_SetItemString(d, H_NAMES[i], v) < 0)
             Py_CLEAR(d);
-            break;
-        }
-        Py_DECREF(v);
+        Py_XDECREF(v);
     }
     return d;
 }
@@ -1282,8 +1141,7 @@ static PyMethodDef methods[] = {
     {"handovers", fp_handovers, METH_NOARGS,
      "handovers() -> {cause: cycles handed to the reference, 'compiled': cycles done compiled}"},
     {"init", fp_init, METH_VARARGS,
-     "init(rate, capacity, max_frame, max_gap_us, status_id, samples_id, max_samples, running, small_batch, "
-     "cubic_min_readings, report_size, decode, codes_from_bytes)"},
+     "init(max_gap_us, small_batch, cubic_min_readings, codes_from_bytes)"},
     {"step", fp_step, METH_VARARGS,
      "step(parts, now_s | None, mode) -> (sent, hand, writes) | None: pump.step() (fastpump.step)"},
     {"run", fp_run, METH_VARARGS,

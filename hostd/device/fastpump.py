@@ -36,29 +36,19 @@ from hostd.errors import DeviceBusy
 from hostd.render import equalizer, fastrender, motion
 from hostd.render.pipeline import Renderer
 
-C_REVISION = 8  # _fastpump.c's REVISION this module is written for
-_STATUS = ["id:u8", "state:u8", "fault_flags:u16", "device_time_us:u32", "encoder_count:u32",
-           "samples_played:u32", "buffer_fill:u16", "last_seq:u16", "underruns:u16",
-           "malformed:u16", "encoder_errors:u16"]  # the layout _fastpump.c reads
-_CODE = {"B": "u8", "H": "u16", "I": "u32"}
-_PREVIOUS = ("state", "fault_flags", "device_time_us", "encoder_count", "samples_played", "buffer_fill",
-             "last_seq", "underruns")  # the latest STATUS's fields the compiled cycle goes on from
+C_REVISION = 10  # _fastpump.c's REVISION this module is written for
+_PREVIOUS = pr.LAYOUTS["STATUS"].names  # the latest STATUS's fields the compiled cycle goes on from
 
 
 def _load():
     c = load_compiled("hostd.device._fastpump", C_REVISION)
     if c is None or fastrender._C is None:
         return None
-    lay = pr.LAYOUTS["STATUS"]
-    if [f"{n}:{_CODE.get(code, code)}" for n, code in lay.fields] != _STATUS:
-        return None  # STATUS changed shape: the compiled reader no longer applies
     if c.RECORD_SIZES != {k: ctypes.sizeof(r) for k, r in cyclestate.RECORDS.items()}:
         return None  # built from another cycle_state.toml (or another ABI): not the records here
     from hostd.device.health import MAX_GAP_US
 
-    c.init(pr.SAMPLE_RATE_HZ, pr.BUFFER_CAPACITY, pr.Deframer.MAX_FRAME, MAX_GAP_US, pr.IDS["STATUS"],
-           pr.IDS["SAMPLES"], pr.MAX_SAMPLES, pr.STATES["RUNNING"], equalizer.SMALL_BATCH,
-           motion.CUBIC_MIN_READINGS, pr.REPORT_SIZE, fastlink.decode, _codes_from_bytes)
+    c.init(MAX_GAP_US, equalizer.SMALL_BATCH, motion.CUBIC_MIN_READINGS, _codes_from_bytes)
     return c
 
 
@@ -154,19 +144,17 @@ def _parts(pump, mode: int) -> tuple | None:
     else:
         tr = (t.ser.fd, 0, t.deframer._buf, t.deframer.bad_frames)
     return (pump, pump.stats, link, link.stats, pump.health, r, r.position, m, h, r.out,
-            pump._motion_base, pump.stats.step_us, link._unacked, tuple(map(status.get, _PREVIOUS)),
+            pump.stats.step_us, tuple(map(status.get, _PREVIOUS)),
             m._cache, h._w, h._w_cache, r.eq.sos, r.eq.zi,
             pump.sent_codes.append if pump.record else None, *tr)
 
 
 def _put(pump, w) -> None:
     """Put back what the compiled cycle changed that is not a record (_fastpump.c's writes())."""
-    unacked, status, weights, tr = w
+    status, weights, *tr = w
     link, r = pump.link, pump.renderer
-    link._unacked.clear()
-    link._unacked.extend(unacked)
-    if status is not None:  # the latest STATUS: one dict for the link and the health
-        link.stats.last_status = pump.health._last = status
+    if status is not None:  # the latest STATUS, decoded: one dict for the link and the health
+        link.stats.last_status = pump.health._last = fastlink.decode(status)[1]
     r.height._w = weights
     t = link.t
     if len(tr) == 1:
@@ -222,7 +210,7 @@ def run(pump, start_s: float, k: int, duration_s: float | None, fds=(), top_done
     mode = _mode(pump.link.t)
     if mode is None or pump.renderer is None or not _ordinary(pump):
         return k, "reference", 0.0
-    res = _C.run(_parts(pump, mode), start_s, k, duration_s, BUDGET_S, list(fds), mode, top_done)
+    res = _C.run(_parts(pump, mode), start_s, k, duration_s, BUDGET_S, tuple(fds), mode, top_done)
     if res is None:
         return k, "reference", 0.0
     k, why, due, hand, c0, w = res

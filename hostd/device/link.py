@@ -19,7 +19,6 @@ vanished device (DeviceGone) ends the link.
 from __future__ import annotations
 
 import time
-from collections import deque
 from dataclasses import dataclass, field
 
 from hostd.cyclestate import record
@@ -52,7 +51,7 @@ class DeviceLink(record("link")):
         self.render_status: dict | None = None
         self.stats = LinkStats()
         self._seq = 0
-        self._unacked: deque[tuple[int, int]] = deque()  # (seq, count) not yet seen by the device
+        self._un_n = 0  # SAMPLES messages not yet seen by the device: _un_seq, _un_cnt[:_un_n] (a record)
         self._time_hi = 0  # unwrapping the device's 32-bit µs clock
         self._last_us: int | None = None
         self.device_time_s = 0.0
@@ -131,7 +130,7 @@ class DeviceLink(record("link")):
 
     def stop(self) -> None:
         self._send(pr.encode("STOP"), True)
-        self._unacked.clear()
+        self._un_n = 0
 
     def reset_stream(self) -> None:
         """STOP, and forget what the device holds: it clears its buffer when it takes STOP,
@@ -168,9 +167,10 @@ class DeviceLink(record("link")):
             self._offset_s = max(off, decayed)
         self._offset_host_t = now
         # messages up to last_seq have reached the device
-        last = f["last_seq"]
-        while self._unacked and ((last - self._unacked[0][0]) & 0xFFFF) < 0x8000:
-            self._unacked.popleft()
+        last, k = f["last_seq"], 0
+        while k < self._un_n and ((last - self._un_seq[k]) & 0xFFFF) < 0x8000:
+            k += 1
+        self._drop_unacked(k)
         self.stats.statuses += 1
         self.stats.last_status = f
         if self._fill_from_seq is not None and self.acked(self._fill_from_seq):
@@ -277,7 +277,14 @@ class DeviceLink(record("link")):
 
     @property
     def in_flight(self) -> int:
-        return sum(c for _, c in self._unacked)
+        return sum(self._un_cnt[: self._un_n])
+
+    def _drop_unacked(self, k: int) -> None:
+        """Forget the first k unacknowledged messages (the rest move to the front)."""
+        n = self._un_n - k
+        if k:
+            self._un_seq[:n], self._un_cnt[:n] = self._un_seq[k : k + n], self._un_cnt[k : k + n]
+            self._un_n = n
 
     def device_now_s(self) -> float:
         """The device's clock now (its latest STATUS's time if none has set the offset yet)."""
@@ -334,7 +341,10 @@ class DeviceLink(record("link")):
                     raise
                 break
             self._seq = seq
-            self._unacked.append((seq, len(part)))
+            if self._un_n == len(self._un_seq):  # (the flow control never sends this far ahead)
+                self._drop_unacked(1)
+            self._un_seq[self._un_n], self._un_cnt[self._un_n] = seq, len(part)
+            self._un_n += 1
             self.stats.samples_sent += len(part)
             sent += len(part)
         return sent

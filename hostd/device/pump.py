@@ -162,7 +162,7 @@ class Pump(record("pump")):
         self._low_fill = _NO_LOW  # the device's lowest reported fill in it (while the target is raised)
         self._last_cycle_start: float | None = None
         # counts of renderers and links already replaced (a new one per selection / reconnection)
-        self._motion_base = (0, 0)  # relocks, implausible speeds
+        self._relocks_base = self._implausible_base = 0  # re-locks, implausible speeds
         self._retries_base = 0
         self._fill = self.jitter.base_fill
         self._base_fill, self._quiet_s = self.jitter.base_fill, self.jitter.quiet_s  # (for the C)
@@ -242,8 +242,8 @@ class Pump(record("pump")):
         """Play `renderer` from now: stop what plays, prime the buffer, start (soft start)."""
         old = self.renderer
         if old is not None and old is not renderer:
-            self._motion_base = (self._motion_base[0] + old.motion.relocks,
-                                 self._motion_base[1] + old.motion.implausible)
+            self._relocks_base += old.motion.relocks
+            self._implausible_base += old.motion.implausible
         self.renderer = renderer
         if self.realtime is not None:
             self.realtime.streaming(renderer is not None)  # (before the prime and START)
@@ -436,8 +436,8 @@ class Pump(record("pump")):
 
     def _motion_stats(self) -> None:
         m = self.renderer.motion
-        self.stats.relocks = self._motion_base[0] + m.relocks
-        self.stats.implausible_speed = self._motion_base[1] + m.implausible
+        self.stats.relocks = self._relocks_base + m.relocks
+        self.stats.implausible_speed = self._implausible_base + m.implausible
 
     def run(self, duration_s: float | None = None, stop=None, each_cycle=None, wake_fds=(),
             compiled: bool = True) -> PumpStats:

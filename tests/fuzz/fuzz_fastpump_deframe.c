@@ -1,5 +1,5 @@
 /* libFuzzer (clang -fsanitize=fuzzer,address,undefined) on the serial deframer of the compiled
- * host-rendering cycle (hostd/device/_fastpump.c: deframe, cobs_decode, crc16, keep_msg), built
+ * host-rendering cycle (hostd/device/_fastpump.c: deframe, keep_msg; the firmware's fw_unframe), built
  * into this harness with its whole source, differential against a plain reference written here
  * after hostd/device/protocol.py's Deframer (cobs.decode, CRC-16/CCITT-FALSE, resync when more
  * than 4 x MAX_FRAME bytes hold no delimiter). The input is cut into reads of at most READ_SIZE
@@ -85,7 +85,7 @@ int LLVMFuzzerInitialize(int *argc, char ***argv) {
     (void)argc;
     (void)argv;
     Py_InitializeEx(0);
-    C_MAX_FRAME = REF_MAX_FRAME;
+    _Static_assert(FW_FRAME_MAX == REF_MAX_FRAME, "the reference's MAX_FRAME");
     return 0;
 }
 

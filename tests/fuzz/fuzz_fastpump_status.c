@@ -23,7 +23,7 @@
 #include <stdlib.h>
 
 #define WIN 32
-#define STATUS_ID 0x81
+#define STATUS_ID HP_ID_STATUS
 
 static PyObject *g_mcache;
 
@@ -31,9 +31,6 @@ int LLVMFuzzerInitialize(int *argc, char ***argv) {
     (void)argc;
     (void)argv;
     Py_InitializeEx(0);
-    C_STATUS_ID = STATUS_ID;
-    C_RUNNING = 1;
-    C_RATE = 3000;
     C_CUBIC_MIN = 24;
     g_mcache = PyDict_New();
     for (long long n = 2; n <= WIN; n++)
@@ -152,8 +149,8 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
             put16(m.b + 16, d[4]);
             put16(m.b + 18, seq);
             put16(m.b + 20, under);
-            m.n = STATUS_LEN + ((op & 0x40) && (op & 0x80) == 0 ? (d[3] & 7) : 0);
-            if ((op & 0xF0) == 0x70 && m.n > STATUS_LEN)
+            m.n = HP_STATUS_SIZE + ((op & 0x40) && (op & 0x80) == 0 ? (d[3] & 7) : 0);
+            if ((op & 0xF0) == 0x70 && m.n > HP_STATUS_SIZE)
                 m.b[m.n - 1] = 1; /* garbage after the layout */
         }
         now += 1e-3;
@@ -161,22 +158,23 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
         const int r = take_status(&s, &m, now);
         check(r == 0 || r == 1, "an error (a Python exception)");
         int padded = 0;
-        for (Py_ssize_t i = STATUS_LEN; i < m.n; i++)
+        for (Py_ssize_t i = HP_STATUS_SIZE; i < m.n; i++)
             padded |= m.b[i] != 0;
-        if (m.n < STATUS_LEN || m.b[0] != STATUS_ID || padded)
+        if (m.n < HP_STATUS_SIZE || m.b[0] != STATUS_ID || padded)
             check(r == 0 && LS.statuses == statuses, "a message that is not a STATUS was taken");
         if (r == 1) {
             const unsigned char *p = m.b;
-            check(s.ls.state == p[1] && s.ls.flags == get(p + 2, 2) && s.ls.us == get(p + 4, 4) &&
-                      s.ls.enc == get(p + 8, 4) && s.ls.played == get(p + 12, 4) && s.ls.fill == get(p + 16, 2) &&
-                      s.ls.last_seq == get(p + 18, 2) && s.ls.under == get(p + 20, 2),
+            check(s.ls.state == p[1] && s.ls.fault_flags == get(p + 2, 2) && s.ls.device_time_us == get(p + 4, 4) &&
+                      s.ls.encoder_count == get(p + 8, 4) && s.ls.samples_played == get(p + 12, 4) &&
+                      s.ls.buffer_fill == get(p + 16, 2) && s.ls.last_seq == get(p + 18, 2) &&
+                      s.ls.underruns == get(p + 20, 2),
                   "the fields differ from a little-endian reading");
             check(LS.statuses == statuses + 1, "an accepted report not counted");
         }
         check(M._n >= 1 && M._n <= M._window, "the motion window out of 1..win");
         check(isfinite(M._c0) && isfinite(M._c1) && isfinite(M._c2) && isfinite(M._c3), "a fit that is not finite");
         check(fabs(M._c1) <= M._max_speed_mm_s, "a speed past max_speed");
-        check(s.n_un >= 0 && s.n_un <= MAX_UNACKED, "the unacknowledged batches out of their array");
+        check(L._un_n >= 0 && L._un_n <= MAX_UNACKED, "the unacknowledged batches out of their array");
         check(isfinite(L.device_time_s), "a device time that is not finite");
     }
     return 0;

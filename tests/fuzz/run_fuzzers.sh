@@ -16,7 +16,8 @@ np_inc=$("$py" -c 'import numpy; print(numpy.get_include())')
 "$py" "$here/../../hostd/cyclestate.py"  # hostd/device/cycle_state.h, as setup.py generates it
 for h in fuzz_fastpump_deframe fuzz_fastpump_status fuzz_fastlink_decode; do
     clang -g -O1 -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=undefined \
-        -I"$inc" -I"$np_inc" -I"$here/../../hostd/device" "$here/$h.c" -o "$out/$h" \
+        -I"$inc" -I"$np_inc" -I"$here/../../hostd/device" -I"$here/../../firmware/include" "$here/$h.c" \
+        "$here/../../firmware/src/framing.c" -o "$out/$h" \
         -L"$libdir" -Wl,-rpath,"$libdir" -lpython"$ver" -lm
     mkdir -p "$out/$h.corpus"
     # Python's own allocations at start-up are not leaks of the harness

@@ -14,7 +14,8 @@ py=${PYTHON:-python3}
 inc=$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
 so="$out/_fastlink$("$py" -c 'import sysconfig; print(sysconfig.get_config_var("EXT_SUFFIX"))')"
 clang -shared -fPIC -g -O1 -fno-omit-frame-pointer -fsanitize=address,undefined,fuzzer-no-link \
-    -fno-sanitize-recover=undefined -I"$inc" "$here/../../hostd/device/_fastlink.c" -o "$so"
+    -fno-sanitize-recover=undefined -I"$inc" -I"$here/../../firmware/include" "$here/../../hostd/device/_fastlink.c" \
+    "$here/../../firmware/src/framing.c" -o "$so"
 asan="$("$py" -c 'import atheris; print(atheris.path())')/asan_with_fuzzer.so"
 LD_PRELOAD="$asan" PYTHONMALLOC=malloc ASAN_OPTIONS=detect_leaks=0 UBSAN_OPTIONS=halt_on_error=1 \
     HOSTD_FASTLINK_SO="$so" "$py" "$here/fuzz_device_link.py" "$@"
