@@ -109,15 +109,14 @@ def joint(runs: int, seed: int, sds: list[float], afc: int | None, trials: int |
             for n in ((afc,) if afc else (2, 3)):
                 t0 = time.process_time()
                 r = simulate_joint(kind, n, runs, trials or JOINT_TRIALS, seed=seed, wiggle_db=sd)
-                e, cov, mis = r["errors_db"], r["covered"], r["misfit"]
+                e, cov, mis = r["errors_db"], r["covered"], r["spent_more"]
                 within = np.abs(e) <= 2.0
                 d = _rates(e, cov, r["trials"])
                 d.update({"worst_frequency_within_2db": float(np.min(np.mean(within, axis=0))),
                           "worst_frequency_ci95_covers": float(np.min(np.mean(cov, axis=0))),
-                          "misfit_found": float(np.mean(r["spent_more"])),
-                          "per_frequency_thresholds": float(np.mean(mis)), "frequencies": r["frequencies"],
-                          "within_2db_when_fit": float(np.mean(within[~mis])) if (~mis).any() else None,
-                          "within_2db_when_misfit": float(np.mean(within[mis])) if mis.any() else None,
+                          "misfit_found": float(np.mean(mis)), "frequencies": r["frequencies"],
+                          "ci95_covers_when_fit": float(np.mean(cov[~mis])) if (~mis).any() else None,
+                          "ci95_covers_when_misfit": float(np.mean(cov[mis])) if mis.any() else None,
                           "cpu_s_per_run": (time.process_time() - t0) / runs})
                 out[f"{n}AFC {kind}, bumps SD {sd:g} dB"] = d
     return out
@@ -196,15 +195,18 @@ def check(seed: int) -> list[str]:
                               [30.0] * curve.freq_hz.size, procedure="joint")
     if cfg.max_trials * curve.freq_hz.size != 195:
         bad.append(f"joint default budget: {cfg.max_trials} per frequency, not 15 (195 trials)")
-    r = simulate_joint("weibull", 2, CHECK_JOINT_RUNS, seed=seed)
-    w = float(np.mean(np.abs(r["errors_db"]) <= 2))
-    if w < 0.9:
-        bad.append(f"joint 2AFC Weibull, a curve of the model's form: {w:.1%} within ±2 dB (want >= 90 %)")
+    for n in (2, 3):  # a curve of the model's form: the budget, accurate, intervals that hold
+        r = simulate_joint("weibull", n, CHECK_JOINT_RUNS, seed=seed)
+        w, c = float(np.mean(np.abs(r["errors_db"]) <= 2)), float(np.mean(r["covered"]))
+        m = float(np.median(r["trials"]))
+        if w < 0.9 or c < 0.9 or m > 195:
+            bad.append(f"joint {n}AFC Weibull, a curve of the model's form: {w:.1%} within ±2 dB, 95 % "
+                       f"intervals cover {c:.1%} (want >= 90 % each), median {m:g} trials (want 195)")
     r = simulate_joint("weibull", 2, CHECK_JOINT_RUNS, seed=seed, wiggle_db=2.0)
-    c = float(np.mean(r["covered"]))
-    if c < 0.9 or np.mean(r["spent_more"]) < 0.75:
+    c, found = float(np.mean(r["covered"])), float(np.mean(r["spent_more"]))
+    if c < 0.9 or found < 0.6:
         bad.append(f"joint 2AFC Weibull, bumps of SD 2 dB: 95 % intervals cover {c:.1%} (want >= 90 %), "
-                   f"misfit found in {np.mean(r['spent_more']):.0%} of runs (documented 85 %)")
+                   f"misfit found in {found:.0%} of runs (documented 70 %)")
     ip, ia = wood_design(0)
     good = fit.design_coverage(ip, ia, 0.581, 0.464, 0.5, 32, sims=50)
     if good["coverage_both"] < 0.9:
@@ -269,11 +271,9 @@ def _print(out: dict) -> None:
     for case, r in out.get("joint", {}).items():
         print(f"joint {case}: within ±2 dB {_pct(r['within_2db'])} (worst frequency "
               f"{_pct(r['worst_frequency_within_2db'])}), 95% covers {_pct(r['ci95_covers'])} (worst "
-              f"{_pct(r['worst_frequency_ci95_covers'])}), misfit found in {_pct(r['misfit_found'])} "
-              "of runs, "
-              f"confirmed in {_pct(r['per_frequency_thresholds'])} (within: joint thresholds "
-              f"{_pct(r['within_2db_when_fit'])}, per frequency "
-              f"{_pct(r['within_2db_when_misfit'])}), trials median {r['median_trials']:g} max "
+              f"{_pct(r['worst_frequency_ci95_covers'])}; when the check passed "
+              f"{_pct(r['ci95_covers_when_fit'])}, when it fired {_pct(r['ci95_covers_when_misfit'])}), "
+              f"misfit found in {_pct(r['misfit_found'])} of runs, trials median {r['median_trials']:g} max "
               f"{r['max_trials']} ({r['cpu_s_per_run']:.2f} s CPU/run)")
     fit = out.get("fit")
     if not fit:

@@ -1,5 +1,6 @@
 """Joint mode: the whole threshold curve at once, by the QUEST+ rule over a parametric curve,
-checked against the answers, and per frequency where it does not fit.
+estimated with a bump of its own at each frequency, and more trials per frequency where the
+answers call for bumps.
 
 Detection thresholds across frequency form a smooth U. Instead of one QUEST+ per frequency,
 this estimates one curve over u, log-frequency scaled to [-1, 1] over the measured range:
@@ -17,22 +18,28 @@ parameter: the curve has trials to spare for β and δ, unlike one frequency's 3
 products per trial, for one run or a batch of them (the bench runs hundreds at once through
 this code).
 
-The check. A lab's curve need not be of this form (a resonance of the display puts a bump in
-it); the joint estimate then misses at the bumps while its intervals, which trust the form,
-are narrow. So once the joint phase's budget (max_trials × the frequencies) is spent, a
-likelihood-ratio test compares the most likely curve with one free at each frequency tried (an
-offset of its own from the curve, -12..12 dB), each with its best slope and lapse: the
-deviance against χ² with as many degrees of freedom as frequencies tried less 3. Below
-PPC_ALPHA (0.2) the curve may not fit: the run spends misfit_trials × the frequencies more,
-one QUEST+ per frequency (threshold.ThresholdGrid, each frequency's posterior from the
-per-frequency prior and every answer at that frequency, the joint phase's included), each
-trial at the frequency whose 95 % interval is the widest; those answers inform the joint
-posterior too. The same test on every answer then decides: below FINAL_ALPHA (0.05) the
-thresholds are the per-frequency posteriors', else the joint curve's. notes() says which.
-The χ² reference is anti-conservative here (15 trials per frequency, levels chosen
-adaptively): on a smooth curve the first test fires in about half the runs, which then cost
-the per-frequency budget; a parametric bootstrap of the deviance was tried and is
-conservative instead (bumps of SD 2 dB found in 40-57 % of runs, intervals covering 77-87 %).
+The estimates: the curve with a bump per frequency. A lab's curve need not be of this form (a
+resonance of the display puts a bump in it); a curve's estimate alone then misses at the bumps
+while its intervals, which trust the form, are narrow. So the thresholds and their intervals
+come from a hierarchical posterior (bump_posterior): t(f) = the curve + b_f, the bumps b_f
+independent normal of an SD σ ∈ BUMP_SD_DB (0, 1, 2, 3 dB; prior BUMP_PRIOR) marginalised with
+the curve, β and δ, from every answer. Given (curve, σ, β, δ) the frequencies are independent,
+so each bump is integrated out per frequency on a fine grid of t (FINE_STEP_DB) and the grid
+over (curve, σ, β, δ) stays the joint grid times 4. The answers then say how far to trust the
+curve at each frequency: the intervals hold for a smooth curve and for a bumpy one, whether
+or not the check below fires (`hostd experiment bench --joint-runs`, docs/experiments.md).
+
+The check. Once the joint phase's budget (max_trials × the frequencies) is spent, a run whose
+posterior gives bumps of SD >= BUMP_FOUND_DB a probability above BUMP_FOUND_P (0.3: chosen on
+the bench, smooth curves spend more in 16-28 % of runs, bumps of SD 2 dB in about 70 %) spends
+misfit_trials × the frequencies more, one QUEST+ per frequency (threshold.ThresholdGrid, each
+frequency's posterior from the per-frequency prior and every answer at that frequency, the
+joint phase's included), each trial at the frequency whose 95 % interval is the widest; the
+estimates are the same posterior's, from every answer. notes() says whether it fired. (Tried
+before and dropped: a likelihood-ratio test against χ², anti-conservative at 15 adaptive
+trials per frequency (it fired on half the smooth curves), and its parametric bootstrap,
+conservative; both chose between the curve's thresholds and each frequency's own, whose
+intervals then missed in the runs the test got wrong.)
 
 Why not questplus: its QuestPlus accepts only its built-in functions; the one over frequency,
 `csf`, makes the threshold a linear function max(min_thresh, c0 + cf·f + cw·w) of two stimulus
@@ -45,10 +52,11 @@ Safety as in the per-frequency procedure: each frequency's levels run PRIOR_SPAN
 of the prior and never above the display's reach (the host refuses anything above it:
 hostd.experiment.display); the curve's grid extends above the reach, so a threshold above it is
 reported as "above_reach", never clipped. The estimate at f is the posterior mean of t(f), its
-interval the central 95 % of t(f)'s posterior. The default budget is JOINT_TRIALS (15) per
-frequency, half the per-frequency procedure's 30, and as many again on a misfit; a stop width
-ends the joint phase once every frequency's interval is that narrow. A run is a pure function
-of (config, seed, answers): resuming replays the answers.
+interval the central 95 % of t(f)'s posterior (both with the bumps). The default budget is
+JOINT_TRIALS (15) per frequency, half the per-frequency procedure's 30, and as many again on a
+misfit; a stop width ends the joint phase once every frequency's interval on the smooth curve
+is that narrow. A run is a pure function of (config, seed, answers): resuming replays the
+answers.
 """
 
 from __future__ import annotations
@@ -82,10 +90,16 @@ LAPSE = (0.0, 0.04)
 # by less than 1e-5 of its value.
 PRUNE_EVERY = 8
 PRUNE_LOG = 20.0
-OFFSETS_DB = np.arange(-12.0, 12.0 + 1e-9, 0.5)  # the check's own offset per frequency
-PPC_ALPHA = 0.2  # its p-value below this: the curve may not fit, so spend the fallback's trials
-FINAL_ALPHA = 0.05  # the final check's, on every answer: below this the thresholds are per frequency
 JOINT, PER_FREQUENCY, DONE = 0, 1, 2  # a run's phase
+# The estimates' model: the curve plus a bump per frequency, normal with an SD of its own (one
+# of BUMP_SD_DB, prior BUMP_PRIOR), marginalised; on a grid of FINE_STEP_DB.
+BUMP_SD_DB = (0.0, 1.0, 2.0, 3.0)
+BUMP_PRIOR = (0.4, 0.2, 0.2, 0.2)
+FINE_STEP_DB = 0.25
+# The check: after the joint phase, P(σ >= BUMP_FOUND_DB | the answers) above BUMP_FOUND_P: spend
+# the fallback's trials (calibrated by `hostd experiment bench --joint-runs`: docs/experiments.md)
+BUMP_FOUND_DB = 2.0
+BUMP_FOUND_P = 0.3
 
 
 class JointBatch:
@@ -143,11 +157,12 @@ class JointBatch:
         self.index = np.zeros(runs, dtype=int)
         self.count = np.zeros((runs, self.n_f), dtype=int)  # trials per frequency
         self.phase = np.full(runs, JOINT)
-        self.misfit_p = np.full(runs, np.nan)
-        self.final_p = np.full(runs, np.nan)
+        self.bump_p = np.full(runs, np.nan)  # P(σ >= BUMP_FOUND_DB) after the joint phase
         self.seeds = [c.seed] * runs if seeds is None else list(seeds)
         self._orders = None
         self._act, self._since = None, 0
+        self._bump = None
+        self._bump_cache = None
 
     def curve_db_grid(self) -> np.ndarray:
         """t(f) at every grid point, (n_freq, n_theta)."""
@@ -162,7 +177,10 @@ class JointBatch:
 
     def planned(self, r: int) -> int:
         return self.budget + (self.extra if self.phase[r] == PER_FREQUENCY or
-                              (self.phase[r] == DONE and self.misfit_p[r] < PPC_ALPHA) else 0)
+                              (self.phase[r] == DONE and self.misfit(r)) else 0)
+
+    def misfit(self, r: int) -> bool:
+        return bool(self.extra > 0 and self.bump_p[r] > BUMP_FOUND_P)
 
     # ------------------------------------------------------------------ trials
     def live(self) -> np.ndarray:
@@ -233,62 +251,29 @@ class JointBatch:
         if c.stop_width_db > 0:
             rest = j[(self.index[j] < self.budget) & (self.index[j] >= 5)]
             if rest.size:
-                iv = self.intervals_db(rest)
+                iv = self.curve_intervals_db(rest)
                 narrow = np.all(iv[..., 1] - iv[..., 0] <= c.stop_width_db, axis=1)
                 end = np.concatenate([end, rest[narrow]])
-        if end.size:
-            if self.extra > 0:
-                self.misfit_p[end] = self.ppc(end)
-                self.phase[end] = np.where(self.misfit_p[end] < PPC_ALPHA, PER_FREQUENCY, DONE)
-            else:
-                self.phase[end] = DONE
+        if end.size:  # the check: do the answers call for bumps the curve does not have?
+            sds = np.array(BUMP_SD_DB)
+            self.bump_p[end] = self.bump_posterior(end)["p_sd"][:, sds >= BUMP_FOUND_DB].sum(axis=1)
+            found = (self.bump_p[end] > BUMP_FOUND_P) & (self.extra > 0)
+            self.phase[end] = np.where(found, PER_FREQUENCY, DONE)
         p = rows[self.phase[rows] == PER_FREQUENCY]
-        end = p[self.index[p] >= self.budget + self.extra]
-        if end.size:  # the final check, on every answer: does the curve fit after all?
-            self.final_p[end] = self.ppc(end)
-            self.phase[end] = DONE
-
-    # ------------------------------------------------------------------ the check
-    def ppc(self, rows: np.ndarray) -> np.ndarray:
-        """The check's p-value per run (see the module): a likelihood-ratio test of the joint
-        curve against a curve free at each frequency tried (an offset of its own from the joint
-        one), each model with its best slope and lapse; the deviance against χ² with as many
-        degrees of freedom as frequencies tried less the curve's 3."""
-        from scipy.stats import chi2
-
-        out = np.empty(rows.size)
-        onehot = np.eye(self.n_f)
-        g = 1.0 / self.cfg.n_afc
-        for a, r in enumerate(rows):
-            n = int(self.index[r])
-            k = int(np.argmax(self.log_post[r] - self.log_prior))  # the joint's most likely curve
-            f = self.trial_f[r, :n]
-            ok = self.trial_ok[r, :n][:, None, None]
-            t = self.curve_db_grid()[f, k][:, None, None] + OFFSETS_DB  # (trials, 1, offsets)
-            b, d = self._nuisance[0][None, :, None], self._nuisance[1][None, :, None]
-            p = psychometric.weibull(self.trial_db[r, :n][:, None, None], t, b, g, d)  # (trials, βδ, offsets)
-            ll = np.log(np.clip(np.where(ok, p, 1.0 - p), 1e-300, None))
-            per_f = np.einsum("if,ijo->jfo", onehot[f], ll)  # (β δ, n_f, offsets)
-            tried = np.bincount(f, minlength=self.n_f) > 0
-            p0 = psychometric.weibull(self.trial_db[r, :n], self.curve_db_grid()[f, k], self.beta[k], g,
-                                      self.lapse[k])
-            null = float(np.sum(np.log(np.clip(np.where(ok[:, 0, 0], p0, 1.0 - p0), 1e-300, None))))
-            alt = float(np.max(per_f[:, tried].max(axis=2).sum(axis=1)))
-            dof = max(int(tried.sum()) - 3, 1)
-            out[a] = float(chi2.sf(max(2.0 * (alt - null), 0.0), dof))
-        return out
+        self.phase[p[self.index[p] >= self.budget + self.extra]] = DONE
 
     # ------------------------------------------------------------------ estimates
     def estimates_db(self, rows=slice(None)) -> np.ndarray:
-        """Per run and frequency: the joint posterior's mean of t(f), or, for a run whose curve did
-        not fit, that frequency's own posterior mean. (runs, n_f)."""
-        m = self.posterior(rows) @ self.c.T  # the posterior mean of c: t is linear in c
-        est = self.prior_db + m[:, :1] + m[:, 1:2] * self.u + m[:, 2:3] * self.u ** 2
-        own = np.stack([g.estimate_db()[rows] for g in self.grids], axis=1)
-        return np.where(self._fallback(rows)[:, None], own, est)
+        """Per run and frequency the posterior mean of t(f), the curve with its bumps (runs, n_f)."""
+        return self.bump_posterior(rows)["mean_db"]
 
-    def intervals_db(self, rows=slice(None), level: float = 0.95) -> np.ndarray:
-        """(runs, n_f, 2): the central `level` of t(f)'s posterior, joint or per frequency."""
+    def intervals_db(self, rows=slice(None)) -> np.ndarray:
+        """(runs, n_f, 2): the central 95 % of t(f)'s posterior, the curve with its bumps."""
+        return self.bump_posterior(rows)["interval_db"]
+
+    def curve_intervals_db(self, rows=slice(None), level: float = 0.95) -> np.ndarray:
+        """(runs, n_f, 2): the central `level` of the smooth curve's t(f) (the joint grid's posterior,
+        no bumps: the stop width's)."""
         if self._orders is None:
             grid = self.curve_db_grid()
             self._orders = [(np.argsort(row), np.sort(row)) for row in grid]
@@ -298,16 +283,97 @@ class JointBatch:
         for i, (o, v) in enumerate(self._orders):
             cdf = np.cumsum(post[:, o], axis=1)
             out[:, i] = [np.interp(q, ci, v) for ci in cdf]
-        fb = self._fallback(rows)
-        if fb.any():
-            own = np.stack([g.interval_db(level, rows) for g in self.grids], axis=1)
-            out[fb] = own[fb]
         return out
 
-    def _fallback(self, rows) -> np.ndarray:
-        """Whether each run's thresholds are its frequencies' own posteriors: the first check
-        found a misfit and the final one (on every answer) confirms it."""
-        return np.atleast_1d(np.isfinite(self.final_p[rows]) & (self.final_p[rows] < FINAL_ALPHA))
+    # ------------------------------------------------------------------ the bumps' model
+    def _bump_tables(self) -> list:
+        """Per frequency: the fine grid of t; log P(correct) and log P(wrong) per (level of its
+        QUEST+ grid, fine t, nuisance); the bump's kernel per SD; where each joint grid point's
+        t(f) falls on the fine grid (the two neighbours and their weights, as a sparse matrix from
+        the joint grid to (fine t, nuisance)) and its nuisance (β, δ)."""
+        if self._bump is not None:
+            return self._bump
+        from scipy import sparse
+
+        nb, nd = self._nuisance
+        nu = np.array([int(np.flatnonzero((nb == b) & (nd == d))[0]) for b, d in zip(self.beta, self.lapse,
+                                                                                       strict=True)])
+        n_nu, n_theta = nb.size, nu.size
+        out = []
+        for i, g in enumerate(self.grids):
+            fine = np.arange(g.thresholds[0], g.thresholds[-1] + 1e-9, FINE_STEP_DB)
+            p = psychometric.weibull(g.stim[:, None, None], fine[None, :, None], nb, 1.0 / self.cfg.n_afc, nd)
+            logp = np.log(np.clip(p, 1e-300, None)), np.log(np.clip(1.0 - p, 1e-300, None))
+            d = fine[None, :] - fine[:, None]  # (m, t): t - m
+            kern = []
+            for sd in BUMP_SD_DB:
+                k = np.eye(fine.size) if sd == 0 else np.exp(-0.5 * (d / sd) ** 2)
+                kern.append(k / k.sum(axis=1, keepdims=True))
+            pos = np.clip((self._curve[i] - fine[0]) / FINE_STEP_DB, 0, fine.size - 1 - 1e-9)
+            lo = np.floor(pos).astype(int)
+            w = pos - lo
+            near = sparse.csr_matrix((np.r_[1.0 - w, w], (np.r_[np.arange(n_theta), np.arange(n_theta)],
+                                                        np.r_[lo * n_nu + nu, (lo + 1) * n_nu + nu])),
+                                     shape=(n_theta, fine.size * n_nu))
+            out.append((fine, logp, np.stack(kern), near))
+        self._bump = out
+        return out
+
+    def _counts(self, rows: np.ndarray, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per run of rows, the answers at frequency i: (right, wrong) per level of its QUEST+ grid."""
+        g = self.grids[i]
+        n = self.trial_f.shape[1]
+        f, x, ok = self.trial_f[rows], self.trial_db[rows], self.trial_ok[rows]
+        mine = (f == i) & (np.arange(n)[None, :] < self.index[rows][:, None])
+        r, k = np.nonzero(mine)
+        lv = np.clip(np.rint(x[r, k] - g.stim[0]).astype(int), 0, g.stim.size - 1)
+        right = np.zeros((rows.size, g.stim.size))
+        wrong = np.zeros((rows.size, g.stim.size))
+        np.add.at(right, (r[ok[r, k]], lv[ok[r, k]]), 1.0)
+        np.add.at(wrong, (r[~ok[r, k]], lv[~ok[r, k]]), 1.0)
+        return right, wrong
+
+    def bump_posterior(self, rows=slice(None)) -> dict:
+        """The estimates' posterior: t(f) = the curve (c0, c1, c2) + a bump per frequency, normal of
+        SD σ ∈ BUMP_SD_DB (σ marginalised, prior BUMP_PRIOR), one β and δ for all frequencies;
+        from every answer. Given the curve, σ, β and δ the frequencies are independent, so the
+        grid over (curve, σ, β, δ) takes the bumps integrated out per frequency, on a grid of t
+        FINE_STEP_DB fine. Returns per run the posterior of σ (runs, n_sd) and per frequency t's
+        mean and central 95 % interval (runs, n_f[, 2])."""
+        tables = self._bump_tables()
+        rows = np.arange(self.runs)[rows]
+        key = (rows.tobytes(), self.index[rows].tobytes())
+        if self._bump_cache is not None and self._bump_cache[0] == key:
+            return self._bump_cache[1]
+        n_r, n_s = rows.size, len(BUMP_SD_DB)
+        lj = (self.log_prior[None, None, :] + np.log(np.array(BUMP_PRIOR))[None, :, None]).repeat(n_r, axis=0)
+        like, marg = [], []
+        for i, (_fine, (logp, logq), kern, near) in enumerate(tables):
+            right, wrong = self._counts(rows, i)
+            ll = np.einsum("rs,stn->rtn", right, logp) + np.einsum("rs,stn->rtn", wrong, logq)
+            lk = np.exp(ll - ll.max(axis=(1, 2), keepdims=True))  # (runs, fine, nuisance): the likelihood
+            m = np.matmul(kern[None], lk[:, None])  # (runs, sd, fine, nuisance): the bump integrated
+            at = (near @ m.reshape(n_r * n_s, -1).T).T.reshape(n_r, n_s, -1)  # at each grid point's t(f)
+            lj += np.log(np.clip(at, 1e-300, None))
+            like.append(lk)
+            marg.append(m)
+        lj -= lj.max(axis=(1, 2), keepdims=True)
+        post = np.exp(lj)
+        post /= post.sum(axis=(1, 2), keepdims=True)  # (runs, sd, theta)
+        mean = np.empty((n_r, self.n_f))
+        iv = np.empty((n_r, self.n_f, 2))
+        for i, ((fine, _lp, kern, near), lk, m) in enumerate(zip(tables, like, marg, strict=True)):
+            w = (near.T @ post.reshape(n_r * n_s, -1).T).T.reshape(m.shape)  # (runs, sd, fine, nuisance)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                a = np.where(m > 0, w / m, 0.0)
+            pt = (np.matmul(np.swapaxes(kern, 1, 2)[None], a).sum(axis=1) * lk).sum(axis=-1)  # (runs, fine)
+            pt /= pt.sum(axis=1, keepdims=True)
+            mean[:, i] = pt @ fine
+            cdf = np.cumsum(pt, axis=1)
+            iv[:, i] = [np.interp((0.025, 0.975), c, fine) for c in cdf]
+        out = {"p_sd": post.sum(axis=2), "mean_db": mean, "interval_db": iv}
+        self._bump_cache = (key, out)
+        return out
 
     def trials_per_frequency(self, r: int) -> np.ndarray:
         f = self.trial_f[r, :self.index[r]]
@@ -373,8 +439,8 @@ class JointRun:
     def estimates_db(self) -> np.ndarray:
         return self.batch.estimates_db(self._rows)[0]
 
-    def intervals_db(self, level: float = 0.95) -> list[tuple[float, float]]:
-        return [(float(lo), float(hi)) for lo, hi in self.batch.intervals_db(self._rows, level)[0]]
+    def intervals_db(self) -> list[tuple[float, float]]:
+        return [(float(lo), float(hi)) for lo, hi in self.batch.intervals_db(self._rows)[0]]
 
     def results(self) -> list[ThresholdResult]:
         est = self.estimates_db()
@@ -387,21 +453,17 @@ class JointRun:
         return out
 
     def notes(self) -> list[str]:
-        p, q = self.batch.misfit_p[0], self.batch.final_p[0]
+        p = self.batch.bump_p[0]
         if not np.isfinite(p):
             return []
-        if p >= PPC_ALPHA:
-            return [f"the answers fit the joint model's smooth curve (check p = {p:.3f})"]
+        fit = (f"P(bumps of SD >= {BUMP_FOUND_DB:g} dB | the joint phase's answers) = {p:.2f}")
+        if not self.batch.misfit(0):
+            return [f"the answers fit the joint model's smooth curve ({fit}); each threshold is the curve's "
+                    "with a bump of its own, and its interval allows for one"]
         extra = self.batch.extra // self.batch.n_f
-        head = (f"the answers may not fit the joint model's smooth curve (check p = {p:.3f} < {PPC_ALPHA}): "
-                f"{extra} more trials per frequency were spent, one QUEST+ per frequency")
-        if not np.isfinite(q):
-            return [head]
-        if q < FINAL_ALPHA:
-            return [f"{head}; on every answer the curve does not fit (p = {q:.3g} < {FINAL_ALPHA}): "
-                    "each threshold is its own frequency's QUEST+ posterior"]
-        return [f"{head}; on every answer the curve fits (p = {q:.3f}): the thresholds are the joint "
-                "curve's, from every answer"]
+        return [f"the answers may not fit the joint model's smooth curve ({fit} > {BUMP_FOUND_P:g}): {extra} "
+                "more trials per frequency were spent, one QUEST+ per frequency; each threshold is the "
+                "curve's with a bump of its own, from every answer"]
 
 
 def simulate_joint(kind: str, n_afc: int, runs: int, trials_per_frequency: int = JOINT_TRIALS, seed: int = 0,
@@ -445,9 +507,9 @@ def simulate_joint(kind: str, n_afc: int, runs: int, trials_per_frequency: int =
         fi, lv = b.choose(rows)
         p = psychometric.p_correct(func, lv, truth[rows, fi], slope[rows], 1.0 / n_afc, lapse[rows])
         b.record(rows, fi, lv, u[rows, b.index[rows]] < p)
-    est = b.estimates_db()
-    iv = b.intervals_db()
+    bp = b.bump_posterior()
+    est, iv = bp["mean_db"], bp["interval_db"]
     return {"errors_db": est - truth, "covered": (iv[..., 0] <= truth) & (truth <= iv[..., 1]),
-            "trials": b.index.copy(), "misfit": b._fallback(slice(None)), "misfit_p": b.misfit_p.copy(),
+            "trials": b.index.copy(), "bump_p": b.bump_p.copy(), "p_sd": bp["p_sd"],
             "spent_more": b.index > b.budget,
             "frequencies": len(freqs)}
