@@ -178,7 +178,7 @@ def install(parser, prefix: str = "/", dry_run: bool = False, run_commands: bool
     if fleet:
         print(f"the fleet unit runs {exe} fleet ship --config /etc/hostd/fleet.toml: write that file "
               "([fleet] url, role) and /etc/hostd/fleet.password (0600), then systemctl enable --now "
-              "hostd-fleet (docs/fleet.md)")
+              "hostd-fleet (hostd fleet ship --help)")
     if not live:  # a staging tree: the commands are for whoever installs it
         print(f"{'would print' if dry_run else 'printed'}, not run ({root} is not /); run them on the "
               "target:")
