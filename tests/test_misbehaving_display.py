@@ -386,6 +386,11 @@ def _display_and_daemon(tmp_path: Path, where: str, hp_args: list[str], **cable_
 def _end(hp, cable, daemon, log: Path, dac: Path, honest: bool = True) -> None:
     """Stop it all; no traceback, nothing past the piezo's limits, and an honest display's
     counters never called impossible."""
+    # at least a second of the display's own clock in its DAC log, so the limits below are checked on
+    # a log, however fast the test got here (the port ticks at 3 kHz from its start and writes the
+    # log through stdio: the file on disk lags by at most its buffer, which the close flushes)
+    wait_for(lambda: dac.exists() and dac.stat().st_size > 3000 * hostport.LOG_DTYPE.itemsize, 60,
+             "a second of the display's DAC log")
     if daemon.poll() is None:
         daemon.send_signal(signal.SIGTERM)
         daemon.wait(30)
