@@ -23,7 +23,8 @@ runpy.run_path("hostd/cyclestate.py")["write_header"]()  # hostd/device/cycle_st
 FRAMING = ["firmware/src/framing.c"]
 FW = {"include_dirs": ["firmware/include"],
       "depends": ["firmware/include/fw_framing.h", "firmware/include/hostd_proto.h",
-                  "hostd/device/cycle_state.toml", "hostd/render/render_core.h"]}
+                  "hostd/device/cycle_state.toml", "hostd/device/protocol.toml",
+                  "hostd/render/render_core.h"]}
 
 setup(ext_modules=[
     Extension("hostd.codec._rangecoder", ["hostd/codec/_rangecoder.c"], optional=True),

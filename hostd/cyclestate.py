@@ -7,7 +7,8 @@ record, so its fields live in the struct and the compiled cycle reads and writes
 the buffer protocol (no attribute crosses by name); everything else the stage holds (configs,
 caches, arrays) stays in its __dict__. A field declared "f64?" or "i64?" may be None: the
 struct keeps a `<name>_set` flag beside the value, and the Python attribute maps it; "f64[N]" is
-a fixed array (a ctypes array in Python).
+a fixed array (a ctypes array in Python), N a number or a constant of protocol.toml's [protocol]
+("i64[buffer_capacity]": the device's, read from its one declaration).
 """
 
 from __future__ import annotations
@@ -22,6 +23,15 @@ SCHEMA: dict[str, dict[str, str]] = tomllib.loads(SCHEMA_PATH.read_text())
 CTYPES = {"f64": ctypes.c_double, "i64": ctypes.c_int64, "bool": ctypes.c_bool}
 C_TYPES = {"f64": "double", "i64": "int64_t", "bool": "bool"}
 HEADER_PATH = SCHEMA_PATH.with_suffix(".h")
+# the device protocol's constants, for array lengths that are one (read here by path, as setup.py
+# runs this file alone: hostd.device.protocol reads the same file)
+PROTOCOL: dict[str, int] = tomllib.loads((SCHEMA_PATH.parent / "protocol.toml").read_text())["protocol"]
+
+
+def _length(n: str) -> int | None:
+    """An array's length: a number, or the name of a protocol constant (None: neither)."""
+    v = int(n) if n.isdigit() else PROTOCOL.get(n)
+    return v if isinstance(v, int) and not isinstance(v, bool) and v > 0 else None
 
 
 def fields(kind: str) -> list[tuple[str, str, int]]:
@@ -30,10 +40,11 @@ def fields(kind: str) -> list[tuple[str, str, int]]:
     out = []
     for name, t in SCHEMA[kind].items():
         base, _, n = t.rstrip("?").partition("[")
-        if base not in CTYPES or (n and not (n[:-1].isdigit() and n.endswith("]"))):
+        k = _length(n[:-1]) if n.endswith("]") else None
+        if base not in CTYPES or (n and k is None):
             raise ValueError(f"cycle_state.toml [{kind}] {name}: type {t!r} is not f64, i64 or bool "
-                             "(optionally [N] or ?)")
-        out.append((name, base, int(n[:-1]) if n else 0))
+                             "(optionally [N], N a number or a protocol.toml constant, or ?)")
+        out.append((name, base, k or 0))
         if t.endswith("?"):
             out.append((f"{name}_set", "bool", 0))
     return out
