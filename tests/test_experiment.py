@@ -175,6 +175,32 @@ def test_resume_meets_the_same_trials_and_a_lost_display_repeats_the_trial(tmp_p
     assert len(st.answers("tok")) == 12 and st.state("tok") == "done"
 
 
+def test_a_session_stored_by_an_older_hostd_resumes(tmp_path):
+    # 100 answers of a default-stop 3AFC session (three frequencies, one already stopped on its
+    # interval's width) recorded by the hostd before the intervals' cells were centred: the same
+    # levels and the same stops replay, and the session goes on to its end
+    from pathlib import Path
+
+    from hostd.experiment.threshold import MAX_TRIALS
+
+    data = Path(__file__).parent / "data" / "threshold-session-before-interval-fix.json"
+    old = json.loads(data.read_text())
+    st = Store(tmp_path / "s.sqlite")
+    st.create("tok", "threshold", {})
+    for a in old["answers"]:
+        assert st.record("tok", a["trial"], a["answer"], a["stimulus"], None)
+    b = ThresholdSession(st, "tok", SimDisplay(), ThresholdConfig(**old["config"]), NO_PRACTICE)
+    b.resume()
+    assert b.answered() == len(old["answers"]) == 100
+    stopped = [s.n for i, s in enumerate(b.run.stairs) if i not in b.run.running()]
+    assert stopped and max(stopped) < MAX_TRIALS  # a stop on the width, replayed
+    rng = np.random.default_rng(1)
+    b.open("pg")
+    while not _answer(b, rng)["done"]:
+        pass
+    assert st.state("tok") == "done" and len(st.answers("tok")) > 100
+
+
 def test_resume_refuses_a_plan_that_no_longer_matches(tmp_path):
     st = Store(tmp_path / "s.sqlite")
     st.create("tok", "threshold", {})
