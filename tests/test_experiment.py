@@ -177,19 +177,24 @@ def test_resume_meets_the_same_trials_and_a_lost_display_repeats_the_trial(tmp_p
 
 def test_a_session_stored_by_an_older_hostd_resumes(tmp_path):
     # 100 answers of a default-stop 3AFC session (three frequencies, one already stopped on its
-    # interval's width) recorded by the hostd before the intervals' cells were centred: the same
-    # levels and the same stops replay, and the session goes on to its end
+    # interval's width after 39 trials) recorded by the hostd before the intervals' cells were
+    # centred and 3AFC's default minimum was 40 trials: its stored config has no min_trials, so it
+    # replays with the minimum it was run with, meets the same levels and stops, and goes on to
+    # its end (with today's default minimum it would not match)
     from pathlib import Path
 
     from hostd.experiment.threshold import MAX_TRIALS
 
     data = Path(__file__).parent / "data" / "threshold-session-before-interval-fix.json"
     old = json.loads(data.read_text())
+    assert "min_trials" not in old["config"]
     st = Store(tmp_path / "s.sqlite")
     st.create("tok", "threshold", {})
     for a in old["answers"]:
         assert st.record("tok", a["trial"], a["answer"], a["stimulus"], None)
-    b = ThresholdSession(st, "tok", SimDisplay(), ThresholdConfig(**old["config"]), NO_PRACTICE)
+    with pytest.raises(ExperimentError, match="does not match the plan"):
+        ThresholdSession(st, "tok", SimDisplay(), ThresholdConfig(**old["config"]), NO_PRACTICE).resume()
+    b = ThresholdSession(st, "tok", SimDisplay(), ThresholdConfig.stored(old["config"]), NO_PRACTICE)
     b.resume()
     assert b.answered() == len(old["answers"]) == 100
     stopped = [s.n for i, s in enumerate(b.run.stairs) if i not in b.run.running()]

@@ -78,7 +78,8 @@ def per_frequency(runs: int, seed: int, trials: int) -> dict:
             out[f"{n}AFC {kind}"] = {
                 "fixed": _rates(f["errors_db"], f["covered"], f["trials"]),
                 "default_stop": _rates(d["errors_db"], d["covered"], d["trials"]),
-                "stop_width_db": thr.STOP_WIDTH_DB[n], "cpu_s": time.process_time() - t0}
+                "stop_width_db": thr.STOP_WIDTH_DB[n], "min_trials": thr.MIN_TRIALS_WIDTH[n],
+                "cpu_s": time.process_time() - t0}
     return out
 
 
@@ -183,13 +184,19 @@ def check(seed: int) -> list[str]:
                     or r["max_trials"] > 60):
                 bad.append(f"per-frequency {n}AFC {kind}: {r} (want >= 90 % within ±2 dB and covered, "
                            "median <= 40 and max <= 60 trials)")
-    floors = {2: 0.76, 3: 0.81}  # β = 2: below the goal (an oracle reaches 89.5 % / 94.5 % in 60)
+    # β = 2: 2AFC below the goal (an oracle reaches 89.5 % in 60 trials); 3AFC at it on this seed
+    # (92.0 %; 89.5 % on 1000 runs), median 40
+    floors = {2: 0.76, 3: 0.90}
+    covers = {2: 0.88, 3: 0.90}  # 2AFC: 90.0 % on this seed
     for n, floor in floors.items():
         d = simulate_threshold_runs("weibull-beta2", n, CHECK_RUNS, thr.MAX_TRIALS, seed=seed,
                                     stop_width_db=thr.STOP_WIDTH_DB[n])
-        w = float(np.mean(np.abs(d["errors_db"]) <= 2))
-        if w < floor:
-            bad.append(f"per-frequency {n}AFC Weibull β = 2: {w:.1%} within ±2 dB, documented >= {floor:.0%}")
+        w, c = float(np.mean(np.abs(d["errors_db"]) <= 2)), float(np.mean(d["covered"]))
+        m = float(np.median(d["trials"]))
+        if w < floor or c < covers[n] or (n == 3 and m > 40):
+            bad.append(f"per-frequency {n}AFC Weibull β = 2: {w:.1%} within ±2 dB (documented >= "
+                       f"{floor:.0%}), 95 % intervals cover {c:.1%} (documented >= {covers[n]:.0%}), "
+                       f"median {m:g} trials (3AFC: want <= 40)")
     curve = th.default_curve()
     cfg = thr.ThresholdConfig([float(f) for f in curve.freq_hz], [float(v) for v in curve.threshold_um],
                               [30.0] * curve.freq_hz.size, procedure="joint")
@@ -263,7 +270,8 @@ def _print(out: dict) -> None:
         print(f"QUEST+ {case:<19} {out['trials_per_frequency']} trials: within ±2 dB "
               f"{_pct(f['within_2db'])}, "
               f"95% covers {_pct(f['ci95_covers'])}, bias {f['bias_db']:+.2f} dB | default stop "
-              f"(95% width <= {r['stop_width_db']:g} dB): within {_pct(d['within_2db'])}, covers "
+              f"(95% width <= {r['stop_width_db']:g} dB after >= {r['min_trials']}): "
+              f"within {_pct(d['within_2db'])}, covers "
               f"{_pct(d['ci95_covers'])}, trials median {d['median_trials']:g} max {d['max_trials']} "
               f"({r['cpu_s']:.1f} s CPU)")
     for case, r in out.get("oracle", {}).items():

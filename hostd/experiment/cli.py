@@ -79,6 +79,8 @@ def add_parser(sub, parents=()) -> None:
     t.add_argument("--stop-width-db", type=float, default=None,
                    help="stop a frequency once its 95%% interval is this narrow, dB (default without "
                    "--trials: 2AFC 5.25, 3AFC 4.5; with --trials: 0, the budget only)")
+    t.add_argument("--min-trials", type=int, default=None,
+                   help="trials per frequency before the width can stop it (default: 2AFC 12, 3AFC 40)")
     t.add_argument("--seed", type=int, default=0)
     t.set_defaults(func=cmd_threshold)
 
@@ -292,13 +294,13 @@ def cmd_threshold(args) -> int:
                                       "leave that frequency out (--frequencies)")
         cfg = ThresholdConfig(freqs, [float(prior(f)) for f in freqs], reach, n_afc=args.afc,
                               max_trials=args.trials, stop_width_db=args.stop_width_db, seed=args.seed,
-                              procedure=args.procedure)
+                              procedure=args.procedure, min_trials=args.min_trials)
         from dataclasses import asdict
 
         return {"config": asdict(cfg), "prior": str(args.prior or "shipped"), "steps": steps}
 
     store, label, plan = _open_session(args, out, "threshold", make_plan)
-    cfg = ThresholdConfig(**plan["config"])
+    cfg = ThresholdConfig.stored(plan["config"])
     sess = ThresholdSession(store, label, display, cfg, plan.get("steps", steps))
     if args.resume:
         sess.resume()

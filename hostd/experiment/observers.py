@@ -90,12 +90,13 @@ def simulate_threshold_runs(kind: str, n_afc: int, runs: int, max_trials: int = 
                             min_trials_width: int | None = None) -> dict:
     """`runs` seeded single-frequency QUEST+ runs at once (threshold.ThresholdGrid, the procedure's
     own posterior and rule, one row per run), stopping as ThresholdRun does: at max_trials, or
-    once the 95 % interval is narrower than stop_width_db after min_trials_width trials.
+    once the 95 % interval is narrower than stop_width_db after min_trials_width trials (None:
+    the procedure's default, threshold.MIN_TRIALS_WIDTH).
     Returns the errors (estimate - truth, dB), the trials each took and whether its 95 %
     interval held the truth."""
     from hostd.experiment import threshold as thr
 
-    min_w = thr.MIN_TRIALS_WIDTH if min_trials_width is None else min_trials_width
+    min_w = thr.MIN_TRIALS_WIDTH[n_afc] if min_trials_width is None else min_trials_width
     centre = thr.db(centre_um)
     obs, seeds = observers(kind, runs, seed, centre, n_afc)
     func = obs[0].func

@@ -16,10 +16,10 @@ grid Bayes in numpy (ThresholdGrid: the one questplus.QuestPlus keeps, equal to 
 which tests/test_experiment_stats.py checks; in numpy so that the bench runs hundreds of runs
 at once through the same code). The estimate is the posterior mean of t; its interval the
 central 95 % of t's marginal posterior. A frequency stops at its trial budget or, after
-MIN_TRIALS_WIDTH trials, when that interval is narrower than stop_width_db. By default
-(no budget given) the stop is that width, STOP_WIDTH_DB, within at most MAX_TRIALS trials: a
-steep observer's frequency ends in about 20 trials, a shallow one's takes more (2AFC at a fixed
-30 trials put 75 % of a β = 2 observer's thresholds within ±2 dB; `hostd experiment bench`).
+min_trials (MIN_TRIALS_WIDTH per n-AFC), when that interval is narrower than stop_width_db. By
+default (no budget given) the stop is that width, STOP_WIDTH_DB, within at most MAX_TRIALS
+trials: a steep observer's frequency ends at its minimum, a shallow one's takes more (2AFC at a
+fixed 30 trials put 75 % of a β = 2 observer's thresholds within ±2 dB; `hostd experiment bench`).
 Trials of the frequencies still running are interleaved at random (seeded).
 A run is a pure function of (config, seed, answers): resuming replays the answers recorded.
 """
@@ -49,8 +49,12 @@ LAPSE = {2: (0.0, 0.04), 3: (0.0, 0.04)}
 PRIOR_SD_DB = 6.0  # the prior on t: normal about the prior curve, 6 dB (0: flat)
 # The default stop (no budget given): the 95 % interval this narrow, after at least
 # MIN_TRIALS_WIDTH trials and within MAX_TRIALS (docs/experiments.md: `hostd experiment bench`).
-STOP_WIDTH_DB = {2: 5.25, 3: 4.5}  # per n-AFC: medians of 38 and 33 trials on the bench's observers
-MIN_TRIALS_WIDTH = 12
+STOP_WIDTH_DB = {2: 5.25, 3: 4.5}  # per n-AFC: medians of 38 and 40 trials on the bench's observers
+# 3AFC: at least 40, the goal's median, which a narrower width would spend less well (a β = 2
+# observer within ±2 dB: 89.5 % at a median of 40 trials, against 88.3 % at 41 with 12 and a
+# 4.25-dB width; 1000 runs). 2AFC: 12 (its medians are 38 already).
+MIN_TRIALS_WIDTH = {2: 12, 3: 40}
+STORED_MIN_TRIALS = 12  # what a session stored without min_trials (an older hostd) stopped after
 MAX_TRIALS = 60
 JOINT_TRIALS = 15  # the joint procedure's default budget per frequency: half of per-frequency's 30
 
@@ -74,7 +78,7 @@ class ThresholdConfig:
     # JOINT_TRIALS (and as many again per frequency when its curve does not fit: joint.py)
     max_trials: int | None = None
     # stop a frequency when its 95 % interval is narrower (0: never; None: STOP_WIDTH_DB when
-    # max_trials is None too, else 0)
+    # max_trials is None too, else 0), once it has had min_trials (None: MIN_TRIALS_WIDTH)
     stop_width_db: float | None = None
     seed: int = 0
     duration_s: float = 0.5  # each interval's stimulus
@@ -84,6 +88,13 @@ class ThresholdConfig:
     # model (a posterior predictive check; None: max_trials, so the two phases together spend at
     # most the per-frequency budget; 0: never)
     misfit_trials: int | None = None
+    min_trials: int | None = None
+
+    @classmethod
+    def stored(cls, d: dict) -> ThresholdConfig:
+        """The config a session stored (dataclasses.asdict); one stored before min_trials existed
+        stopped after STORED_MIN_TRIALS, and replays so."""
+        return cls(**{"min_trials": STORED_MIN_TRIALS, **d})
 
     def __post_init__(self) -> None:
         if self.procedure not in PROCEDURES:
@@ -99,6 +110,10 @@ class ThresholdConfig:
             self.stop_width_db = 0.0
         if self.misfit_trials is None:
             self.misfit_trials = self.max_trials if joint else 0
+        if self.min_trials is None:
+            self.min_trials = MIN_TRIALS_WIDTH[self.n_afc]
+        if not 1 <= self.min_trials <= 1000:
+            raise ExperimentError(f"--min-trials {self.min_trials}: 1..1000 per frequency")
         if not (math.isfinite(self.stop_width_db) and self.stop_width_db >= 0):
             raise ExperimentError(f"--stop-width-db {self.stop_width_db}: a width in dB >= 0")
         if not 0 <= self.misfit_trials <= 1000:
@@ -284,7 +299,7 @@ class ThresholdRun:
         for i, s in enumerate(self.stairs):
             if s.n >= self.cfg.max_trials:
                 continue
-            if self.cfg.stop_width_db > 0 and s.n >= MIN_TRIALS_WIDTH:
+            if self.cfg.stop_width_db > 0 and s.n >= self.cfg.min_trials:
                 lo, hi = s.interval_db()
                 if hi - lo <= self.cfg.stop_width_db:
                     continue
