@@ -159,12 +159,22 @@ def test_the_interval_is_central_about_the_estimate_on_the_grid():
 
 
 def test_the_procedures_defaults_and_names():
+    from dataclasses import asdict
+
+    from hostd.errors import ExperimentError
     from hostd.experiment import threshold as thr
     from hostd.experiment.procedure import PROCEDURES, Procedure, make_run
 
     f, p, reach = [40.0, 250.0, 500.0], [3.9, 0.1, 0.3], [30.0] * 3
     c = thr.ThresholdConfig(f, p, reach, n_afc=2)
-    assert (c.max_trials, c.stop_width_db) == (thr.MAX_TRIALS, thr.STOP_WIDTH_DB[2])
+    assert (c.max_trials, c.stop_width_db, c.min_trials) == (thr.MAX_TRIALS, thr.STOP_WIDTH_DB[2], 12)
+    assert thr.ThresholdConfig(f, p, reach, n_afc=3).min_trials == 40  # the goal's median
+    # a config stored before min_trials existed keeps the 12 it ran with; one stored since, its own
+    assert thr.ThresholdConfig.stored({"frequencies_hz": f, "prior_um": p, "reach_um": reach,
+                                       "n_afc": 3}).min_trials == 12
+    assert thr.ThresholdConfig.stored(asdict(thr.ThresholdConfig(f, p, reach, n_afc=3))).min_trials == 40
+    with pytest.raises(ExperimentError, match="--min-trials 0: 1"):
+        thr.ThresholdConfig(f, p, reach, min_trials=0)
     c = thr.ThresholdConfig(f, p, reach, procedure="joint")
     assert (c.max_trials, c.misfit_trials, c.stop_width_db) == (15, 15, 0.0)  # half of 30 per frequency
     assert make_run(c).planned_trials == 45
@@ -177,6 +187,7 @@ def test_the_procedures_defaults_and_names():
     ap = build_parser()
     ns = ap.parse_args(["experiment", "threshold", "-o", "x", "--token", "t", "--procedure", "joint"])
     assert ns.procedure == "joint" and ns.trials is None
+    assert ap.parse_args(["experiment", "threshold", "-o", "x", "--min-trials", "12"]).min_trials == 12
 
 
 def test_the_joint_mode_finds_a_smooth_curve_and_checks_a_bumpy_one():
