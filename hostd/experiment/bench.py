@@ -184,9 +184,9 @@ def check(seed: int) -> list[str]:
                     or r["max_trials"] > 60):
                 bad.append(f"per-frequency {n}AFC {kind}: {r} (want >= 90 % within ±2 dB and covered, "
                            "median <= 40 and max <= 60 trials)")
-    # β = 2: 2AFC below the goal (an oracle reaches 89.5 % in 60 trials); 3AFC at it on this seed
-    # (92.0 %; 89.5 % on 1000 runs), median 40
-    floors = {2: 0.76, 3: 0.90}
+    # β = 2, below the goal of 90 %: 2AFC out of reach (an oracle reaches 89.5 % in 60 trials);
+    # 3AFC 92.0 % on this seed but 89.5 % on 1000 runs, so its floor is what holds beyond a seed
+    floors = {2: 0.76, 3: 0.88}
     covers = {2: 0.88, 3: 0.90}  # 2AFC: 90.0 % on this seed
     for n, floor in floors.items():
         d = simulate_threshold_runs("weibull-beta2", n, CHECK_RUNS, thr.MAX_TRIALS, seed=seed,
