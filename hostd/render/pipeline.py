@@ -94,6 +94,22 @@ class Renderer(record("renderer")):
     def stop(self) -> None:
         self.out.stop()
 
+    def restart(self, t_play_s: float) -> None:
+        """Soft start again from zero with the sample played at t_play_s (the device ramped to
+        zero: a stall, an underrun). The envelope starts from zero (OutputStage.restart_from),
+        and the equalizer's state is the texture's just before t_play_s, as if it had played on:
+        its state from before the pause belonged to the texture where the hand was then, and the
+        jump from it rang through the envelope's first samples (an equalizer output of up to
+        5x the texture's peak near the Nyquist rate, 0.3 of its steady amplitude within 5 ms on
+        the firmware's DAC log). No crossfade from an estimate before a re-lock: the envelope
+        is the fade."""
+        self.out.restart_from(0.0)
+        self._xfade_left = 0
+        n = self.eq.settle_samples
+        if n:
+            t = float(t_play_s) - np.arange(n, 0, -1) / self.cfg.sample_rate_hz
+            self.eq.warm(self.heights_um(self.plan(t)))
+
     def plan(self, t_play_s: np.ndarray) -> BatchPlan:
         """The motion part of rendering one batch: where the hand will be at the play instants
         (+ the chain's latency), at what speed, and the crossfade from the estimate before a
