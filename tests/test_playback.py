@@ -29,6 +29,13 @@ from tests.daemon_helpers import wait_for
 from tests.test_recovery import soft_start_limit
 
 RATE = pr.SAMPLE_RATE_HZ
+# The soft start's bound (tests/test_recovery.soft_start_limit) times this: the texture's value
+# may exceed the peak sampled at full envelope, and the motion fit restarts after the pause (its
+# window fills over 40 ms of readings: a speed briefly off, a step in the predicted position).
+# Measured on a loaded machine: at most 1.32 of the bound over 108 pauses (the equalizer's state
+# from before the pause, before it restarted on the texture where the hand is: up to 7.4, and
+# above 1.5 in 51 of 54 runs of this test)
+SOFT_START_MARGIN = 1.5
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +128,7 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
         # reach zero first; then each sample is within the envelope times the texture's peak
         assert codes[resumed - 3 : resumed].tolist() == [0, 0, 0], f"{stall_s} s: from {codes[resumed - 1]}"
         first = np.abs(codes[resumed : resumed + ramp])
-        lim = soft_start_limit(played[resumed : resumed + ramp], peak)
+        lim = soft_start_limit(played[resumed : resumed + ramp], peak * SOFT_START_MARGIN)
         assert np.all(first <= lim), f"{stall_s} s: {(first / lim).max():.2f} x the soft start's bound"
         # and it comes back to the texture's amplitude before the next pause (at least 1 s on;
         # a loaded machine's own underruns start soft again, so not within a fixed window)

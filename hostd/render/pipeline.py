@@ -8,7 +8,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from hostd.cyclestate import record
-from hostd.render import fastrender
+from hostd.render import fastrender, series
 from hostd.render.equalizer import ActuatorModel, Equalizer, EqualizerConfig
 from hostd.render.height import BandLimitConfig, HeightEvaluator
 from hostd.render.motion import MotionConfig, MotionEstimator
@@ -108,7 +108,10 @@ class Renderer(record("renderer")):
         n = self.eq.settle_samples
         if n:
             t = float(t_play_s) - np.arange(n, 0, -1) / self.cfg.sample_rate_hz
-            self.eq.warm(self.heights_um(self.plan(t)))
+            # in real-time batches: the pump's own arithmetic (Clenshaw), never the bulk
+            # evaluation's NUFFT (finufft: an import of 16 ms and its memory, in the pump)
+            b = series.SMALL_BATCH
+            self.eq.warm(np.concatenate([self.heights_um(self.plan(t[i : i + b])) for i in range(0, n, b)]))
 
     def plan(self, t_play_s: np.ndarray) -> BatchPlan:
         """The motion part of rendering one batch: where the hand will be at the play instants
