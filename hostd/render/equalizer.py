@@ -478,7 +478,9 @@ class Equalizer:
         just before it) leaves from rest, as if the filter had always been fed that signal."""
         if self.sos is not None:
             self.zi = np.zeros_like(self.zi)
-            self(np.asarray(x_um, dtype=np.float64))
+            x = np.asarray(x_um, dtype=np.float64)
+            for i in range(0, x.size, SMALL_BATCH):  # the scalar recurrence: no scipy.signal
+                self(x[i : i + SMALL_BATCH])
 
     def __call__(self, x_um: np.ndarray) -> np.ndarray:
         x = np.asarray(x_um, dtype=np.float64)
