@@ -23,10 +23,20 @@ import pytest
 from hostd.cli import main
 from hostd.device import hostport
 from hostd.device import protocol as pr
+from hostd.render.output import OutputConfig
 from hostd.service.client import request, send_file
+from hostd.service.config import DeviceCfg
 from tests.daemon_helpers import wait_for
+from tests.test_recovery import soft_start_limit
 
 RATE = pr.SAMPLE_RATE_HZ
+# The soft start's bound (tests/test_recovery.soft_start_limit) times this, over the samples the
+# pump rendered at the restart (its prime: at least the configured fill target): the texture's
+# value may exceed the peak sampled at full envelope, and the motion fit restarted after the
+# pause from its first readings (a speed briefly off). Measured on a loaded machine: at most 1.32
+# of the bound over 198 pauses (the equalizer's state from before the pause, before it restarted
+# on the texture where the hand is: up to 7.4, and above 1.5 in 81 of 84 runs of this test)
+SOFT_START_MARGIN = 1.5
 
 
 @pytest.fixture(scope="module")
@@ -92,9 +102,16 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
     # the device's guarantee: host silence past its timeout, then a ramp of at most ramp_ticks
     # (+ a STATUS period for the last bytes still in the pty), and the output is zero
     silent_ticks = pr.P["default_timeout_ms"] * RATE // 1000 + pr.P["ramp_ticks"] + 3
-    # the texture's amplitude while it played from the buffer (the 99th percentile of |code|)
+    # the texture's amplitude while it played from the buffer (the 99th percentile of |code|),
+    # and its peak at full envelope (played, after a ramp's worth of ticks that all played)
     steady = float(np.percentile(np.abs(codes[played]), 99))
     assert steady > 500
+    ramp = round(OutputConfig().ramp_s * RATE)
+    unplayed = np.concatenate([[0], np.cumsum(~played)])
+    k = np.arange(codes.size)
+    full = played & (unplayed[k + 1] == unplayed[np.maximum(k + 1 - ramp, 0)])
+    peak = float(np.abs(codes[full]).max())
+    prime = DeviceCfg().target_fill
     for (t_stop, t_cont), stall_s in zip(events, stalls, strict=True):
         c = hp.tick_at(t_cont) - tick0
         s0 = hp.tick_at(t_stop) - tick0
@@ -110,10 +127,12 @@ def test_daemon_rides_through_sigstop_of_100ms_300ms_and_2s(port_factory, tmp_pa
         assert played[c:].any() and resumed - c <= RATE // 10, \
             f"{stall_s} s pause: resumed {(resumed - c) / RATE * 1e3:.0f} ms after SIGCONT\n{journal[-1500:]}"
         # soft start from zero: the pump lets a device still ramping down after its host timeout
-        # reach zero first; then the first 5 ms are well below the texture's steady amplitude
+        # reach zero first; then each sample of the prime is within the envelope times the
+        # texture's peak (the later ones follow the motion fit as its window fills)
         assert codes[resumed - 3 : resumed].tolist() == [0, 0, 0], f"{stall_s} s: from {codes[resumed - 1]}"
-        first = np.abs(codes[resumed : resumed + 15]).max()
-        assert first <= 0.3 * steady, (first, steady)
+        first = np.abs(codes[resumed : resumed + prime])
+        lim = soft_start_limit(played[resumed : resumed + prime], peak * SOFT_START_MARGIN)
+        assert np.all(first <= lim), f"{stall_s} s: {(first / lim).max():.2f} x the soft start's bound"
         # and it comes back to the texture's amplitude before the next pause (at least 1 s on;
         # a loaded machine's own underruns start soft again, so not within a fixed window)
         nxt = next((hp.tick_at(a) - tick0 for a, _ in events if hp.tick_at(a) - tick0 > c), codes.size)

@@ -174,6 +174,38 @@ def test_soft_start_and_stop_ramp(wood):
     assert z[-1] == 0.0 and np.all(np.diff(z) <= 1e-12)
 
 
+@pytest.mark.parametrize("pause_s", [0.1, 0.35])
+def test_a_restart_fades_in_the_texture_as_if_it_had_played_on(wood, pause_s):
+    """Renderer.restart after a pause (the device ramped to zero): the k-th sample is the soft
+    start's envelope times what a renderer that never paused plays there, the equalizer's state
+    being the texture's where the hand is now (from before the pause, it rang: up to 5x the
+    texture's peak through the envelope's first samples)."""
+    c, n, length = wood
+    ref, r = Renderer(c, n, length, RenderConfig()), Renderer(c, n, length, RenderConfig())
+    ref.start()
+    r.start()
+    ramp = round(OutputConfig().ramp_s * FS)
+    played, paused = [], []
+    for i in range(int((1.0 + pause_s) * 1000) + ramp // 3):
+        t = i / 1000.0
+        count = int(np.floor(20.0 * t * 1000 / COUNT_UM))  # 20 mm/s
+        for x in (ref, r):
+            x.on_encoder(t, count)
+        y = ref.render_um(t + np.arange(3) / FS)
+        if i < 1000:
+            r.render_um(t + np.arange(3) / FS)
+            continue
+        if i == int((1.0 + pause_s) * 1000):
+            r.restart(t)
+        if i >= int((1.0 + pause_s) * 1000):
+            played.append(r.render_um(t + np.arange(3) / FS))
+            paused.append(y)
+    # equal within half a DAC code (the motion fit's history differs by its encoder noise)
+    env = np.arange(1, ramp + 1) / ramp
+    err_um = np.abs(np.concatenate(played) - env * np.concatenate(paused)).max()
+    assert err_um < 0.5 * OutputConfig().um_per_code, err_um
+
+
 def test_huge_coefficient_is_limited_end_to_end(wood):
     c, n, length = wood
     c = c.copy()

@@ -280,12 +280,13 @@ class Pump(record("pump")):
         r = self.renderer
         if not first or self._started:
             link.reset_stream()  # STOP: the device drops what it buffered while not playing
-        r.out.restart_from(0.0)  # the device ramped to zero; fade in from there
         # the device's present state, not a backlog: a link left unread for a while (a texture
         # built between the handshake and the start) holds ~0.7 s of old STATUS, on which the
         # primed samples stay "in flight" until they are read through, so nothing more was sent
         # and the device played its primed buffer dry (DAC log: the prime, then an underrun)
         link.catch_up()
+        # the device ramped to zero; fade in from there, from the prime's first play instant
+        r.restart(link.next_play_time_s())
         self._send(link.wanted_to_prime())  # pre-fill, then start
         link.start()
         self._started = True
@@ -328,7 +329,7 @@ class Pump(record("pump")):
             self._episode = _Episode(cause, since, self.link.t.now())
             if cause == "underrun":
                 self._set_fill(self._fill * self.jitter.rise_factor)
-                self.renderer.out.restart_from(0.0)
+                self.renderer.restart(self.link.next_play_time_s())
             else:
                 if flags & UNDERRUN_BIT or new_underrun:
                     self._set_fill(self._fill * self.jitter.rise_factor)

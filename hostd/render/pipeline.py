@@ -8,7 +8,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from hostd.cyclestate import record
-from hostd.render import fastrender
+from hostd.render import fastrender, series
 from hostd.render.equalizer import ActuatorModel, Equalizer, EqualizerConfig
 from hostd.render.height import BandLimitConfig, HeightEvaluator
 from hostd.render.motion import MotionConfig, MotionEstimator
@@ -93,6 +93,25 @@ class Renderer(record("renderer")):
 
     def stop(self) -> None:
         self.out.stop()
+
+    def restart(self, t_play_s: float) -> None:
+        """Soft start again from zero with the sample played at t_play_s (the device ramped to
+        zero: a stall, an underrun). The envelope starts from zero (OutputStage.restart_from),
+        and the equalizer's state is the texture's just before t_play_s, as if it had played on:
+        its state from before the pause belonged to the texture where the hand was then, and the
+        jump from it rang through the envelope's first samples (an equalizer output of up to
+        5x the texture's peak near the Nyquist rate, 0.3 of its steady amplitude within 5 ms on
+        the firmware's DAC log). No crossfade from an estimate before a re-lock: the envelope
+        is the fade."""
+        self.out.restart_from(0.0)
+        self._xfade_left = 0
+        n = self.eq.settle_samples
+        if n:
+            t = float(t_play_s) - np.arange(n, 0, -1) / self.cfg.sample_rate_hz
+            # in real-time batches: the pump's own arithmetic (Clenshaw), never the bulk
+            # evaluation's NUFFT (finufft: an import of 16 ms and its memory, in the pump)
+            b = series.SMALL_BATCH
+            self.eq.warm(np.concatenate([self.heights_um(self.plan(t[i : i + b])) for i in range(0, n, b)]))
 
     def plan(self, t_play_s: np.ndarray) -> BatchPlan:
         """The motion part of rendering one batch: where the hand will be at the play instants

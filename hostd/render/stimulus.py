@@ -172,6 +172,10 @@ class StimulusRenderer:
     def start(self) -> None:
         self.out.start()
 
+    def restart(self, _t_play_s: float) -> None:
+        """The device ran dry or stopped (Renderer.restart): _StimulusStage.restart_from."""
+        self.out.restart_from(0.0)
+
     def render_codes(self, t_play_s: np.ndarray) -> np.ndarray:
         """The next len(t_play_s) samples (the play times do not matter: nothing follows the hand)."""
         n = len(t_play_s)
