@@ -234,6 +234,27 @@ def test_the_bumps_model_without_bumps_is_the_joint_curve(monkeypatch):
     assert np.max(np.abs(b.bump_posterior()["mean_db"] - own)) <= 0.02, b.bump_posterior()["mean_db"] - own
 
 
+def test_the_joint_intervals_are_central_about_a_symmetric_posterior():
+    # before any answer t(f)'s posterior is the prior: the curve's offset, tilt and curvature
+    # each symmetric about 0 and a bump of any SD about it, so symmetric about the prior curve
+    # (a point of each frequency's fine grid). Its mean and the middle of its central 95 % are
+    # that point; each fine t's mass spread over its cell. (Interpolating the cumulative mass at
+    # the fine grid's points put both ends a half step, 0.125 dB, low.)
+    from hostd.experiment import joint
+    from hostd.experiment.threshold import ThresholdConfig
+    from hostd.perception import thresholds as th
+
+    c = th.default_curve()
+    cfg = ThresholdConfig([float(f) for f in c.freq_hz], [float(v) for v in c.threshold_um],
+                          [30.0] * c.freq_hz.size, n_afc=2, procedure="joint")
+    b = joint.JointBatch(cfg, runs=1, seeds=[1])
+    bp = b.bump_posterior()
+    iv = bp["interval_db"][0]
+    assert bp["mean_db"][0] == pytest.approx(b.prior_db, abs=1e-3)
+    assert iv.mean(axis=1) == pytest.approx(b.prior_db, abs=0.01), iv.mean(axis=1) - b.prior_db
+    assert np.all(iv[:, 1] - iv[:, 0] > 20.0)  # the prior's: offset ± 16 dB, and more
+
+
 def test_a_joint_run_says_whether_its_curve_fit():
     from hostd.experiment import threshold as thr
     from hostd.experiment.procedure import make_run

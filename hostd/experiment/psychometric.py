@@ -56,6 +56,19 @@ def flush(p: np.ndarray, tiny: float = TINY) -> np.ndarray:
     return p
 
 
+def central_interval(mass: np.ndarray, points: np.ndarray, step: float, level: float = 0.95) -> np.ndarray:
+    """The central `level` of the masses `mass` (runs, n) on the regular grid `points` (n,), `step`
+    apart, (runs, 2): each point's mass spread evenly over its cell, so the cumulative mass at a
+    cell's upper edge is the sum up to its point (taking it at the point itself put both ends half
+    a step low)."""
+    m = np.atleast_2d(mass)
+    edges = np.append(points - step / 2, points[-1] + step / 2)
+    c = np.cumsum(m, axis=-1) / m.sum(axis=-1, keepdims=True)
+    c = np.concatenate([np.zeros((c.shape[0], 1)), c], axis=-1)
+    q = ((1 - level) / 2, (1 + level) / 2)
+    return np.array([np.interp(q, ci, edges) for ci in c]).reshape(-1, 2)
+
+
 def binary_entropy(p: np.ndarray) -> np.ndarray:
     p = np.clip(p, TINY, 1.0)
     q = np.clip(1.0 - p, TINY, 1.0)

@@ -162,8 +162,6 @@ class ThresholdGrid:
             stim = np.array([top - GRID_STEP_DB, top])
         self.stim = stim
         self.thresholds = np.arange(lo, max(centre + PRIOR_SPAN_DB, top + 6.0) + 1e-9, GRID_STEP_DB)
-        # each threshold's mass stands for its cell, GRID_STEP_DB wide: the intervals' edges
-        self.edges = np.append(self.thresholds - GRID_STEP_DB / 2, self.thresholds[-1] + GRID_STEP_DB / 2)
         b, d = np.meshgrid(np.array(SLOPES[n_afc]), np.array(LAPSE[n_afc]), indexing="ij")
         self.slope, self.lapse, self.guess = b.ravel(), d.ravel(), 1.0 / n_afc  # (n_nuisance,)
         self.table = self.likelihood(stim)  # P(correct) per (stimulus, threshold, nuisance)
@@ -197,14 +195,10 @@ class ThresholdGrid:
         return (m @ self.thresholds) / m.sum(axis=-1)
 
     def interval_db(self, level: float = 0.95, rows=slice(None)) -> np.ndarray:
-        """The central `level` of t's marginal posterior, (runs, 2): the mass at each threshold
-        spread evenly over its cell, so the cumulative mass at a cell's upper edge is the sum up
-        to its threshold (taking it at the threshold itself put both ends half a step low)."""
+        """The central `level` of t's marginal posterior, (runs, 2), each threshold's mass spread
+        over its GRID_STEP_DB cell (psychometric.central_interval)."""
         m = self.post[rows].sum(axis=-1)
-        c = np.cumsum(m, axis=-1) / m.sum(axis=-1, keepdims=True)
-        c = np.concatenate([np.zeros((c.shape[0], 1)), c], axis=-1)
-        q = ((1 - level) / 2, (1 + level) / 2)
-        return np.array([np.interp(q, ci, self.edges) for ci in c]).reshape(-1, 2)
+        return psychometric.central_interval(m, self.thresholds, GRID_STEP_DB, level)
 
     def width_db(self, level: float = 0.95, rows=slice(None)) -> np.ndarray:
         iv = self.interval_db(level, rows)
