@@ -213,7 +213,7 @@ def check(seed: int) -> list[str]:
     c, found = float(np.mean(r["covered"])), float(np.mean(r["spent_more"]))
     if c < 0.9 or found < 0.6:
         bad.append(f"joint 2AFC Weibull, bumps of SD 2 dB: 95 % intervals cover {c:.1%} (want >= 90 %), "
-                   f"misfit found in {found:.0%} of runs (want >= 60 %: 79 % on docs/experiments.md's 200)")
+                   f"misfit found in {found:.0%} of runs (want >= 60 %; 79 % in the documented 200 runs)")
     ip, ia = wood_design(0)
     good = fit.design_coverage(ip, ia, 0.581, 0.464, 0.5, 32, sims=50)
     if good["coverage_both"] < 0.9:
