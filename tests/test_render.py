@@ -178,8 +178,8 @@ def test_soft_start_and_stop_ramp(wood):
 def test_a_restart_fades_in_the_texture_as_if_it_had_played_on(wood, pause_s):
     """Renderer.restart after a pause (the device ramped to zero): the k-th sample is the soft
     start's envelope times what a renderer that never paused plays there, the equalizer's state
-    being the texture's where the hand is now (from before the pause, it rang: up to 5x the
-    texture's peak through the envelope's first samples)."""
+    being the texture's where the hand is now (from before the pause, it rang: up to 1.36 µm off in
+    these two cases)."""
     c, n, length = wood
     ref, r = Renderer(c, n, length, RenderConfig()), Renderer(c, n, length, RenderConfig())
     ref.start()

@@ -99,10 +99,9 @@ class Renderer(record("renderer")):
         zero: a stall, an underrun). The envelope starts from zero (OutputStage.restart_from),
         and the equalizer's state is the texture's just before t_play_s, as if it had played on:
         its state from before the pause belonged to the texture where the hand was then, and the
-        jump from it rang through the envelope's first samples (an equalizer output of up to
-        5x the texture's peak near the Nyquist rate, 0.3 of its steady amplitude within 5 ms on
-        the firmware's DAC log). No crossfade from an estimate before a re-lock: the envelope
-        is the fade."""
+        jump from it rang near the Nyquist rate through the envelope's first samples (up to
+        7.4x the envelope times the texture's peak on the firmware's DAC log, tests/test_playback).
+        No crossfade from an estimate before a re-lock: the envelope is the fade."""
         self.out.restart_from(0.0)
         self._xfade_left = 0
         n = self.eq.settle_samples
